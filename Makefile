@@ -1,0 +1,40 @@
+# workcell: two commands do everything on a fresh clone: `make demo` and `make test`.
+VENV    ?= .venv
+PY      := $(VENV)/bin/python
+STAMP   := $(VENV)/.installed
+PYTHON  ?= python3
+export JAX_PLATFORMS ?= cpu
+export XLA_FLAGS ?= --xla_force_host_platform_device_count=1
+
+.PHONY: install demo test test-all bench lint format clean
+
+install: $(STAMP)
+
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e '.[dev]'
+	touch $(STAMP)
+
+demo: install
+	$(VENV)/bin/workcell demo
+
+test: install
+	$(PY) -m pytest -q -m "not slow"
+
+test-all: install
+	$(PY) -m pytest -q
+
+bench: install
+	$(VENV)/bin/workcell bench all
+
+lint: install
+	$(VENV)/bin/ruff check workcell sim_devices tests
+	$(VENV)/bin/ruff format --check workcell sim_devices tests
+
+format: install
+	$(VENV)/bin/ruff format workcell sim_devices tests
+	$(VENV)/bin/ruff check --fix workcell sim_devices tests
+
+clean:
+	rm -rf $(VENV) build *.egg-info .pytest_cache

@@ -1,0 +1,76 @@
+"""Small device Protocols. Real drivers and simulated ones implement the same ones.
+
+Units SI. Joint vectors ordered base to wrist. Tracker positions are in the `tracker` frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+
+class DeviceError(RuntimeError):
+    """A device failed in a way the campaign's fault policy may handle (retry, reconnect)."""
+
+
+class DeviceUnreachable(DeviceError):
+    """The device cannot be reached at all (address, port, cable)."""
+
+
+class ProtectiveStop(DeviceError):
+    """The robot controller entered a protective stop."""
+
+
+class BeamBroken(DeviceError):
+    """The tracker lost the beam / has no distance (angle ok, no distance)."""
+
+
+@dataclass(frozen=True)
+class RobotState:
+    """One snapshot of the arm as the controller reports it."""
+
+    t_s: float  # controller time, seconds
+    q_rad: np.ndarray  # (6,)
+    qd_rad_s: np.ndarray  # (6,)
+    temperature_c: np.ndarray | None = None  # (6,)
+    torque_nm: np.ndarray | None = None  # (6,) estimated joint torque (or None)
+    current_a: np.ndarray | None = None  # (6,)
+    mode: str = "RUNNING"  # RUNNING, IDLE, POWER_OFF, ...
+    safety: str = "NORMAL"  # NORMAL, PROTECTIVE_STOP, EMERGENCY_STOP, ...
+
+
+@dataclass(frozen=True)
+class TrackerReading:
+    """One raw tracker reading of the SMR."""
+
+    position_m: np.ndarray  # (3,) in tracker frame (nan if no distance)
+    sigma_m: np.ndarray  # (3,) instrument's stated 1-sigma per axis
+    status: str = "ok"  # ok, beam_broken, out_of_range, error
+    t_s: float = 0.0
+    extra: dict = field(default_factory=dict)
+
+
+@runtime_checkable
+class Robot(Protocol):
+    def connect(self) -> None: ...
+    def close(self) -> None: ...
+    def state(self) -> RobotState: ...
+    def move_joints(self, q_rad: np.ndarray, speed_rad_s: float, accel_rad_s2: float) -> None:
+        """Blocking joint move; raises ProtectiveStop or DeviceError."""
+        ...
+
+    def stop(self) -> None: ...
+    def sleep(self, seconds: float) -> None:
+        """Wait `seconds` of robot time (simulators may scale time)."""
+        ...
+
+
+@runtime_checkable
+class Tracker(Protocol):
+    def connect(self) -> None: ...
+    def close(self) -> None: ...
+    def measure(self) -> TrackerReading:
+        """One reading; status other than `ok` for beam break etc. Raises DeviceError on I/O."""
+        ...

@@ -1,0 +1,164 @@
+"""Robot catalogue: nominal standard-DH chains with joint limits and link inertial data.
+
+Standard DH, joint i: A_i = Rz(q_i + theta_offset_i) Tz(d_i) Tx(a_i) Rx(alpha_i).
+Link centres of mass are expressed in the link's own DH frame i (the frame at the end of link i),
+as Universal Robots publish them. All values SI.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+PI = np.pi
+
+
+@dataclass(frozen=True)
+class DH:
+    """Standard DH parameters of a 6-joint serial chain, each an array of shape (6,)."""
+
+    a: np.ndarray
+    d: np.ndarray
+    alpha: np.ndarray
+    theta_offset: np.ndarray
+
+    def __post_init__(self) -> None:
+        for name in ("a", "d", "alpha", "theta_offset"):
+            v = np.asarray(getattr(self, name), dtype=float)
+            if v.shape != (6,):
+                raise ValueError(f"DH.{name}: expected 6 values, got shape {v.shape}")
+            if not np.all(np.isfinite(v)):
+                raise ValueError(f"DH.{name}: non-finite value in {v.tolist()}")
+            object.__setattr__(self, name, v)
+
+    def to_dict(self) -> dict:
+        return {k: getattr(self, k).tolist() for k in ("a", "d", "alpha", "theta_offset")}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> DH:
+        try:
+            return cls(
+                a=d["a"], d=d["d"], alpha=d["alpha"], theta_offset=d.get("theta_offset", [0.0] * 6)
+            )
+        except KeyError as e:
+            raise ValueError(f"DH parameters: missing field {e.args[0]!r}") from None
+
+
+@dataclass(frozen=True)
+class RobotSpec:
+    """A 6-joint arm: nominal geometry, limits and inertial data used for gravity torques."""
+
+    model: str
+    dh: DH
+    joint_limits_rad: np.ndarray  # (6, 2)
+    link_masses_kg: np.ndarray  # (6,)
+    link_coms_m: np.ndarray  # (6, 3), in DH frame i
+    max_joint_speed_rad_s: np.ndarray = field(default_factory=lambda: np.full(6, PI))
+    max_torque_nm: np.ndarray = field(default_factory=lambda: np.full(6, 150.0))
+    max_payload_kg: float = 5.0
+
+    def __post_init__(self) -> None:
+        lim = np.asarray(self.joint_limits_rad, dtype=float)
+        if lim.shape != (6, 2) or np.any(lim[:, 0] >= lim[:, 1]):
+            raise ValueError(f"joint_limits_rad: expected 6 [lo, hi] pairs, got {lim.tolist()}")
+        object.__setattr__(self, "joint_limits_rad", lim)
+        for name, shape in (("link_masses_kg", (6,)), ("link_coms_m", (6, 3))):
+            v = np.asarray(getattr(self, name), dtype=float)
+            if v.shape != shape:
+                raise ValueError(f"{name}: expected shape {shape}, got {v.shape}")
+            object.__setattr__(self, name, v)
+        object.__setattr__(
+            self, "max_joint_speed_rad_s", np.asarray(self.max_joint_speed_rad_s, dtype=float)
+        )
+        object.__setattr__(self, "max_torque_nm", np.asarray(self.max_torque_nm, dtype=float))
+
+    def with_dh(self, dh: DH) -> RobotSpec:
+        return replace(self, dh=dh)
+
+
+_LIM_UR = np.array([[-2 * PI, 2 * PI]] * 2 + [[-PI, PI]] + [[-2 * PI, 2 * PI]] * 3)
+
+UR5E = RobotSpec(
+    model="ur5e",
+    dh=DH(
+        a=[0.0, -0.425, -0.3922, 0.0, 0.0, 0.0],
+        d=[0.1625, 0.0, 0.0, 0.1333, 0.0997, 0.0996],
+        alpha=[PI / 2, 0.0, 0.0, PI / 2, -PI / 2, 0.0],
+        theta_offset=[0.0] * 6,
+    ),
+    joint_limits_rad=_LIM_UR,
+    link_masses_kg=[3.761, 8.058, 2.846, 1.37, 1.3, 0.365],
+    link_coms_m=[
+        [0.0, -0.02561, 0.00193],
+        [0.2125, 0.0, 0.11336],
+        [0.15, 0.0, 0.0265],
+        [0.0, -0.0018, 0.01634],
+        [0.0, 0.0018, 0.01634],
+        [0.0, 0.0, -0.001159],
+    ],
+    max_joint_speed_rad_s=np.full(6, PI),
+    max_torque_nm=[150.0, 150.0, 150.0, 28.0, 28.0, 28.0],
+    max_payload_kg=5.0,
+)
+
+UR10 = RobotSpec(
+    model="ur10",
+    dh=DH(
+        a=[0.0, -0.612, -0.5723, 0.0, 0.0, 0.0],
+        d=[0.1273, 0.0, 0.0, 0.163941, 0.1157, 0.0922],
+        alpha=[PI / 2, 0.0, 0.0, PI / 2, -PI / 2, 0.0],
+        theta_offset=[0.0] * 6,
+    ),
+    joint_limits_rad=_LIM_UR,
+    link_masses_kg=[7.1, 12.7, 4.27, 2.0, 2.0, 0.365],
+    link_coms_m=[
+        [0.021, 0.0, 0.027],
+        [0.38, 0.0, 0.158],
+        [0.24, 0.0, 0.068],
+        [0.0, 0.007, 0.018],
+        [0.0, 0.007, 0.018],
+        [0.0, 0.0, -0.026],
+    ],
+    max_joint_speed_rad_s=[2 * PI / 3, 2 * PI / 3, PI, PI, PI, PI],
+    max_torque_nm=[330.0, 330.0, 150.0, 54.0, 54.0, 54.0],
+    max_payload_kg=10.0,
+)
+
+CATALOGUE: dict[str, RobotSpec] = {"ur5e": UR5E, "ur10": UR10}
+
+
+def robot_by_name(name: str) -> RobotSpec:
+    key = name.strip().lower()
+    if key not in CATALOGUE:
+        raise ValueError(f"unknown robot {name!r}; known: {', '.join(sorted(CATALOGUE))}")
+    return CATALOGUE[key]
+
+
+def robot_from_session(robot: dict) -> RobotSpec:
+    """Build the nominal chain a recording's session message declares.
+
+    The DH chain in the session wins over the catalogue (it is what the controller believes);
+    inertial data comes from the catalogue when the model is known, else gravity torques are
+    unavailable (masses zero) and the caller is told through `has_inertia`.
+    """
+    model = str(robot.get("model", "unknown"))
+    if "dh" not in robot:
+        return robot_by_name(model)
+    dh = DH.from_dict(robot["dh"])
+    base = CATALOGUE.get(model.strip().lower())
+    lim = robot.get("joint_limits_rad")
+    lim = np.asarray(lim, dtype=float) if lim is not None else _LIM_UR
+    if base is not None:
+        return replace(base, dh=dh, joint_limits_rad=lim)
+    return RobotSpec(
+        model=model,
+        dh=dh,
+        joint_limits_rad=lim,
+        link_masses_kg=np.zeros(6),
+        link_coms_m=np.zeros((6, 3)),
+    )
+
+
+def has_inertia(spec: RobotSpec) -> bool:
+    return bool(np.any(spec.link_masses_kg > 0))
