@@ -4,7 +4,8 @@ PY      := $(VENV)/bin/python
 STAMP   := $(VENV)/.installed
 PYTHON  ?= python3
 export JAX_PLATFORMS ?= cpu
-export XLA_FLAGS ?= --xla_force_host_platform_device_count=1
+export OPENBLAS_NUM_THREADS ?= 1
+export OMP_NUM_THREADS ?= 1
 
 .PHONY: install demo test test-all bench lint format clean
 

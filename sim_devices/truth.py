@@ -1,0 +1,306 @@
+"""The simulated "true" workcell: a robot whose real geometry differs from nominal and that carries
+physical effects, plus a laser tracker with a realistic noise model.
+
+Written independently of `workcell.estimation` and of `workcell.kinematics.chain`: its own forward
+kinematics (elementary rotations/translations composed link by link), its own gravity model. It
+imports only the nominal robot catalogue. Estimators must never import this module; tests may,
+only to score.
+
+Effects (each switchable, each with its own parameters, all SI):
+- geometry: every DH parameter (a, d, alpha, theta zero offset) differs from nominal; base pose;
+  SMR offset on the flange.
+- joint_compliance: link-side angle = encoder + c_i * tau_i, tau_i the gravity + payload torque
+  on joint i [rad/(N m)].
+- link_deflection: links 2 and 3 bend as cantilevers under the perpendicular load of their own
+  weight and everything they carry: tip shift = flex_m_per_n * W_perp, tip slope = 1.5 shift / L.
+- transmission_error: dq_i = sum_k A_ik sin(k q_i + phi_ik) (gear eccentricity, ripple).
+- backlash: dq_i = +- b_i / 2 depending on the direction the joint approached its target.
+- thermal_drift: link lengths grow with alpha * dT; joint temperatures follow a warm-up curve
+  T_i(t) = T_amb + dT_i (1 - exp(-t / tau)) that the joint temperature sensors show.
+- tracker_scale: the tracker reports (1 + s) * p_true about its own origin.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from workcell.kinematics.robots import RobotSpec, robot_by_name
+
+G = 9.80665
+EFFECT_KINDS = (
+    "joint_compliance",
+    "link_deflection",
+    "transmission_error",
+    "backlash",
+    "thermal_drift",
+    "tracker_scale",
+)
+
+
+# ----------------------------------------------------------------- elementary transforms
+def _rot_z(t: float) -> np.ndarray:
+    c, s = np.cos(t), np.sin(t)
+    M = np.eye(4)
+    M[0, 0], M[0, 1], M[1, 0], M[1, 1] = c, -s, s, c
+    return M
+
+
+def _rot_x(t: float) -> np.ndarray:
+    c, s = np.cos(t), np.sin(t)
+    M = np.eye(4)
+    M[1, 1], M[1, 2], M[2, 1], M[2, 2] = c, -s, s, c
+    return M
+
+
+def _rot_y(t: float) -> np.ndarray:
+    c, s = np.cos(t), np.sin(t)
+    M = np.eye(4)
+    M[0, 0], M[0, 2], M[2, 0], M[2, 2] = c, s, -s, c
+    return M
+
+
+def _trans(x: float, y: float, z: float) -> np.ndarray:
+    M = np.eye(4)
+    M[:3, 3] = (x, y, z)
+    return M
+
+
+def _euler_zyx(yaw: float, pitch: float, roll: float) -> np.ndarray:
+    return _rot_z(yaw) @ _rot_y(pitch) @ _rot_x(roll)
+
+
+# ----------------------------------------------------------------- configuration
+@dataclass
+class TrackerNoise:
+    """Tracker errors. MPE about +-(15 um + 6 um/m * range); typical error half the MPE.
+
+    A reading's error = a per-pose systematic part (does not average out over readings at one
+    pose) + a per-reading random part. Per-axis 1-sigma of the total = (a + b * range) / 4.
+    """
+
+    a_m: float = 15e-6
+    b_m_per_m: float = 6e-6
+    systematic_share: float = 0.8  # fraction of the sigma that is per pose (not averaging)
+    beam_break_prob: float = 0.0
+    outlier_prob: float = 0.0
+    outlier_scale_m: float = 1e-3
+
+    def sigma_axis(self, range_m: float) -> float:
+        return (self.a_m + self.b_m_per_m * range_m) / 4.0
+
+    def sigma_parts(self, range_m: float) -> tuple[float, float]:
+        s = self.sigma_axis(range_m)
+        sys_ = self.systematic_share * s
+        rnd = np.sqrt(max(s**2 - sys_**2, 0.0))
+        return sys_, rnd
+
+    def sigma_of_mean(self, range_m: float, n_readings: int) -> float:
+        """Per-axis 1-sigma of the error of a mean over n readings at one pose."""
+        sys_, rnd = self.sigma_parts(range_m)
+        return float(np.sqrt(sys_**2 + rnd**2 / max(n_readings, 1)))
+
+
+@dataclass
+class TrueWorkcell:
+    """Ground truth of the simulated cell. Build with `make_truth`."""
+
+    nominal: RobotSpec
+    a: np.ndarray
+    d: np.ndarray
+    alpha: np.ndarray
+    theta_offset: np.ndarray
+    tracker_T_base: np.ndarray  # (4, 4)
+    smr_flange_m: np.ndarray  # (3,)
+    link_masses_kg: np.ndarray
+    link_coms_m: np.ndarray
+    payload_kg: float = 0.0
+    payload_com_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    effects: dict = field(default_factory=dict)
+    noise: TrackerNoise = field(default_factory=TrackerNoise)
+    ambient_c: float = 21.0
+
+    # ------------------------------------------------------------ temperatures and time
+    def joint_temperatures_c(self, t_s: float) -> np.ndarray:
+        th = self.effects.get("thermal_drift")
+        if th is None:
+            # joints still warm up; the effect on geometry is what is switched off
+            dT, tau = np.array([6.0, 8.0, 7.0, 4.0, 4.0, 3.0]), 1200.0
+        else:
+            dT, tau = np.asarray(th["warmup_k"], float), float(th["tau_s"])
+        return self.ambient_c + dT * (1.0 - np.exp(-max(t_s, 0.0) / tau))
+
+    # ------------------------------------------------------------ gravity (own model)
+    def _frames(self, q_link: np.ndarray, a: np.ndarray, d: np.ndarray) -> list[np.ndarray]:
+        Ts = [np.eye(4)]
+        for i in range(6):
+            A = (
+                _rot_z(q_link[i] + self.theta_offset[i])
+                @ _trans(0.0, 0.0, d[i])
+                @ _trans(a[i], 0.0, 0.0)
+                @ _rot_x(self.alpha[i])
+            )
+            Ts.append(Ts[-1] @ A)
+        return Ts
+
+    def gravity_torques(self, q: np.ndarray) -> np.ndarray:
+        """Torque gravity applies about each joint axis (N m), positive towards increasing q."""
+        Ts = self._frames(q, self.a, self.d)
+        g = np.array([0.0, 0.0, -G])
+        pts = [Ts[j + 1][:3, :3] @ self.link_coms_m[j] + Ts[j + 1][:3, 3] for j in range(6)]
+        ms = list(self.link_masses_kg)
+        pts.append(Ts[6][:3, :3] @ self.payload_com_m + Ts[6][:3, 3])
+        ms.append(self.payload_kg)
+        tau = np.zeros(6)
+        for i in range(6):
+            z, o = Ts[i][:3, 2], Ts[i][:3, 3]
+            tot = np.zeros(3)
+            for j in range(i, 7):
+                tot += np.cross(pts[j] - o, ms[j] * g)
+            tau[i] = tot @ z
+        return tau
+
+    # ------------------------------------------------------------ the physics
+    def link_angles(self, q_enc: np.ndarray, approach_sign: np.ndarray) -> np.ndarray:
+        """Link-side joint angles from encoder angles and the approach direction."""
+        q = np.array(q_enc, dtype=float)
+        e = self.effects
+        dq = np.zeros(6)
+        if "joint_compliance" in e:
+            dq += np.asarray(e["joint_compliance"]["c_rad_per_nm"], float) * self.gravity_torques(q)
+        if "transmission_error" in e:
+            for j, harmonics in e["transmission_error"]["harmonics"].items():
+                for k, amp, ph in harmonics:
+                    dq[int(j)] += amp * np.sin(k * q[int(j)] + ph)
+        if "backlash" in e:
+            dq += 0.5 * np.asarray(e["backlash"]["b_rad"], float) * np.sign(approach_sign)
+        return q + dq
+
+    def smr_in_base(self, q_enc: np.ndarray, approach_sign: np.ndarray, t_s: float) -> np.ndarray:
+        q = self.link_angles(q_enc, approach_sign)
+        a, d = self.a.copy(), self.d.copy()
+        th = self.effects.get("thermal_drift")
+        if th is not None:
+            temps = self.joint_temperatures_c(t_s)
+            # link i spans joints i and i+1: its temperature is their mean
+            t_link = np.append(0.5 * (temps[:-1] + temps[1:]), temps[-1])
+            grow = 1.0 + float(th["alpha_per_k"]) * (t_link - self.ambient_c)
+            a, d = a * grow, d * grow
+        Ts = [np.eye(4)]
+        defl = self.effects.get("link_deflection")
+        g_base = np.array([0.0, 0.0, -G])
+        for i in range(6):
+            A = (
+                _rot_z(q[i] + self.theta_offset[i])
+                @ _trans(0.0, 0.0, d[i])
+                @ _trans(a[i], 0.0, 0.0)
+            )
+            T_end = Ts[-1] @ A  # end of link i before the twist
+            if defl is not None and i in (1, 2):
+                flex = float(defl["flex_m_per_n"][i - 1])
+                # load carried by the link tip: half its own mass + all distal masses + payload
+                m_load = 0.5 * self.link_masses_kg[i] + self.link_masses_kg[i + 1 :].sum()
+                m_load += self.payload_kg
+                g_link = T_end[:3, :3].T @ (m_load * g_base)  # in the link-end frame
+                L = abs(a[i])
+                w_perp = np.array([0.0, g_link[1], g_link[2]])  # perpendicular to the link (x)
+                shift = flex * w_perp
+                slope_y = -1.5 * shift[2] / L  # rotation about y bends towards z
+                slope_z = 1.5 * shift[1] / L
+                A = A @ _trans(*shift) @ _rot_y(slope_y) @ _rot_z(slope_z)
+            Ts.append(Ts[-1] @ A @ _rot_x(self.alpha[i]))
+        T6 = Ts[-1]
+        return T6[:3, :3] @ self.smr_flange_m + T6[:3, 3]
+
+    def smr_in_tracker(self, q_enc: np.ndarray, approach_sign: np.ndarray, t_s: float) -> np.ndarray:
+        """Noise-free SMR position as the tracker would report it (includes tracker scale)."""
+        p_b = self.smr_in_base(q_enc, approach_sign, t_s)
+        p = self.tracker_T_base[:3, :3] @ p_b + self.tracker_T_base[:3, 3]
+        ts = self.effects.get("tracker_scale")
+        if ts is not None:
+            p = p * (1.0 + float(ts["scale"]))
+        return p
+
+    def session_nominal(self, rng: np.random.Generator, rough_base: bool = True) -> dict:
+        """What the operator believes: nominal chain, nominal SMR, a rough base pose."""
+        T = self.tracker_T_base.copy()
+        if rough_base:
+            ang = rng.normal(0, np.deg2rad(2.0), 3)
+            T = T @ _euler_zyx(*ang)
+            T[:3, 3] += rng.normal(0, 0.02, 3)
+        from scipy.spatial.transform import Rotation
+
+        x, y, z, w = Rotation.from_matrix(T[:3, :3]).as_quat()
+        return {"translation_m": T[:3, 3].tolist(), "quaternion_wxyz": [w, x, y, z]}
+
+
+# ----------------------------------------------------------------- factories
+DEFAULT_MAGNITUDES = {
+    "joint_compliance": {"c_rad_per_nm": [3e-6, 6e-6, 6e-6, 1e-5, 1e-5, 1e-5]},
+    "link_deflection": {"flex_m_per_n": [3.0e-7, 2.5e-7]},
+    "transmission_error": {"harmonics": {1: [(1, 30e-6, 0.4), (2, 15e-6, 1.1)],
+                                         2: [(1, 25e-6, -0.7), (2, 10e-6, 2.0)]}},
+    "backlash": {"b_rad": [40e-6, 60e-6, 60e-6, 40e-6, 40e-6, 40e-6]},
+    "thermal_drift": {"alpha_per_k": 23e-6, "warmup_k": [6.0, 8.0, 7.0, 4.0, 4.0, 3.0],
+                      "tau_s": 1200.0},
+    "tracker_scale": {"scale": 15e-6},
+}
+
+REALISTIC = ("joint_compliance", "transmission_error", "backlash", "thermal_drift")
+
+
+def parse_effects(spec: str | None) -> dict:
+    """`none`, `dh` (geometry only), `realistic`, `all`, or a comma list of effect kinds."""
+    if spec is None or spec.strip() in ("", "none", "dh", "geometry"):
+        return {}
+    s = spec.strip()
+    kinds = {"realistic": REALISTIC, "all": EFFECT_KINDS}.get(s)
+    if kinds is None:
+        kinds = tuple(k.strip() for k in s.split(",") if k.strip())
+    out = {}
+    for k in kinds:
+        if k not in DEFAULT_MAGNITUDES:
+            raise ValueError(
+                f"unknown effect {k!r}; known: none, realistic, all, {', '.join(EFFECT_KINDS)}"
+            )
+        out[k] = copy.deepcopy(DEFAULT_MAGNITUDES[k])
+    return out
+
+
+def make_truth(
+    robot: str | RobotSpec = "ur5e",
+    effects: dict | str | None = "realistic",
+    seed: int = 0,
+    *,
+    dh_error_scale: float = 1.0,
+    payload_kg: float = 0.5,
+    noise: TrackerNoise | None = None,
+) -> TrueWorkcell:
+    """A random true cell: DH errors (sigma 0.3 mm, 0.5 mrad), base ~2.5 m from the tracker."""
+    spec = robot_by_name(robot) if isinstance(robot, str) else robot
+    rng = np.random.default_rng(seed)
+    s = dh_error_scale
+    eff = parse_effects(effects) if (effects is None or isinstance(effects, str)) else effects
+    yaw = rng.uniform(-np.pi, np.pi)
+    T = _trans(*rng.uniform([1.8, -1.0, -0.6], [2.6, 1.0, 0.0])) @ _euler_zyx(yaw, 0.0, 0.0)
+    T = T @ _euler_zyx(*rng.normal(0, 0.003, 3))  # base not perfectly level
+    return TrueWorkcell(
+        nominal=spec,
+        a=spec.dh.a + s * rng.normal(0, 3e-4, 6),
+        d=spec.dh.d + s * rng.normal(0, 3e-4, 6),
+        alpha=spec.dh.alpha + s * rng.normal(0, 5e-4, 6),
+        theta_offset=spec.dh.theta_offset + s * rng.normal(0, 1e-3, 6),
+        tracker_T_base=T,
+        smr_flange_m=np.array([0.0, 0.0, 0.06]) + s * rng.normal(0, 3e-4, 3),
+        link_masses_kg=spec.link_masses_kg.copy(),
+        link_coms_m=spec.link_coms_m.copy(),
+        payload_kg=payload_kg,
+        payload_com_m=np.array([0.0, 0.0, 0.03]),
+        effects=eff,
+        noise=noise or TrackerNoise(beam_break_prob=0.01, outlier_prob=0.005),
+    )
+
+
+NOMINAL_SMR_M = np.array([0.0, 0.0, 0.06])

@@ -1,0 +1,327 @@
+"""The campaign executor: runs a plan's poses through move -> settle -> measure -> record.
+
+It talks to devices only through the Robot/Tracker Protocols and writes records to a `sink` with
+the RecordingWriter's methods (joint_state, tracker_measurement, sample, event); it does not know
+MCAP. Faults become `/campaign/event` records and are handled by a small policy:
+- beam break / no distance: wait and retry up to `max_beam_retries`, then skip the pose (event);
+- tracker I/O error: the driver resyncs; the executor retries, then skips the pose;
+- robot connection lost: reconnect with exponential back-off (if the driver can), then continue;
+- protective stop: pause, event, and resume when `resume_protective_stop()` says so;
+- Ctrl-C / abort: stop the robot, record an `abort` event; the caller closes the recording.
+Safety: every target (and its approach pre-pose) is checked against the envelope before any
+motion; speed and acceleration are capped by the envelope.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from workcell.campaign.envelope import Envelope, EnvelopeViolation
+from workcell.campaign.plans import Plan, PoseTarget
+from workcell.drivers.protocols import DeviceError, ProtectiveStop, Robot, Tracker
+from workcell.kinematics.robots import RobotSpec
+
+
+@dataclass
+class CampaignConfig:
+    readings_per_pose: int = 5
+    settle_s: float = 1.0
+    settle_speed_rad_s: float = 1e-3
+    speed_rad_s: float = 1.0
+    accel_rad_s2: float = 2.0
+    approach_rad: float = 0.02
+    max_beam_retries: int = 5
+    beam_retry_wait_s: float = 1.0
+    max_reconnects: int = 5
+    reconnect_backoff_s: float = 0.5
+    outlier_k: float = 5.0
+    payload_kg: float = 0.0
+    joint_state_every_s: float = 0.25
+
+
+@dataclass
+class CampaignControl:
+    """Shared flags for a UI: pause/abort requests, protective-stop resume policy."""
+
+    abort: threading.Event = field(default_factory=threading.Event)
+    pause: threading.Event = field(default_factory=threading.Event)
+    auto_resume_protective_stop: bool = True
+
+
+@dataclass
+class CampaignResult:
+    measured: int = 0
+    skipped: int = 0
+    aborted: bool = False
+    events: int = 0
+    skipped_ids: list[int] = field(default_factory=list)
+
+
+class Executor:
+    def __init__(
+        self,
+        robot: Robot,
+        tracker: Tracker,
+        spec: RobotSpec,
+        envelope: Envelope,
+        sink,
+        *,
+        tool_m: np.ndarray,
+        config: CampaignConfig | None = None,
+        control: CampaignControl | None = None,
+        on_sample: Callable[[dict], None] | None = None,
+        on_event: Callable[[dict], None] | None = None,
+        index0: int = 0,
+        t_wall0_ns: int | None = None,
+        elapsed0_s: float = 0.0,
+    ) -> None:
+        self.robot, self.tracker, self.spec, self.env, self.sink = robot, tracker, spec, envelope, sink
+        self.tool_m = np.asarray(tool_m, float)
+        self.cfg = config or CampaignConfig()
+        self.control = control or CampaignControl()
+        self.on_sample, self.on_event = on_sample, on_event
+        self.index = index0
+        self.result = CampaignResult()
+        self._t_robot0: float | None = None
+        self._t_wall0_ns = time.time_ns() if t_wall0_ns is None else t_wall0_ns
+        self._elapsed0 = elapsed0_s
+        self._last_js = -1e9
+
+    # ------------------------------------------------------------------ time and records
+    def elapsed(self) -> float:
+        t = self._robot_call(lambda: self.robot.state()).t_s
+        if self._t_robot0 is None:
+            self._t_robot0 = t
+        return self._elapsed0 + t - self._t_robot0
+
+    def _t_ns(self, elapsed: float | None = None) -> int:
+        e = self.elapsed() if elapsed is None else elapsed
+        return self._t_wall0_ns + int(round((e - self._elapsed0) * 1e9))
+
+    def event(self, level: str, kind: str, message: str) -> None:
+        self.result.events += 1
+        self.sink.event(self._t_ns_safe(), level, kind, message)
+        if self.on_event:
+            self.on_event({"level": level, "kind": kind, "message": message})
+
+    def _t_ns_safe(self) -> int:
+        try:
+            return self._t_ns()
+        except Exception:  # robot unreachable while reporting it
+            return time.time_ns()
+
+    def _record_state(self, force: bool = False):
+        st = self._robot_call(lambda: self.robot.state())
+        e = self.elapsed()
+        if force or e - self._last_js >= self.cfg.joint_state_every_s:
+            self._last_js = e
+            self.sink.joint_state(self._t_ns(e), st.q_rad, st.qd_rad_s, st.torque_nm, st.temperature_c)
+        return st
+
+    # ------------------------------------------------------------------ robot with fault policy
+    def _robot_call(self, fn):
+        attempt = 0
+        while True:
+            try:
+                return fn()
+            except ProtectiveStop:
+                raise
+            except DeviceError as e:
+                attempt += 1
+                reconnect = getattr(self.robot, "reconnect", None)
+                if reconnect is None or attempt > self.cfg.max_reconnects:
+                    raise
+                wait = self.cfg.reconnect_backoff_s * 2 ** (attempt - 1)
+                self.sink.event(time.time_ns(), "warning", "reconnect",
+                                f"robot connection lost ({e}); reconnect {attempt} in {wait:.1f} s")
+                self.result.events += 1
+                if self.on_event:
+                    self.on_event({"level": "warning", "kind": "reconnect", "message": str(e)})
+                time.sleep(wait)
+                try:
+                    reconnect()
+                except DeviceError:
+                    continue
+
+    def _move(self, q: np.ndarray) -> None:
+        speed, accel = self.env.cap(self.cfg.speed_rad_s, self.cfg.accel_rad_s2)
+        while True:
+            try:
+                self._robot_call(lambda: self.robot.move_joints(q, speed, accel))
+                return
+            except ProtectiveStop as e:
+                self.event("error", "protective_stop", f"protective stop during a move: {e}")
+                self._wait_protective_stop()
+
+    def _wait_protective_stop(self) -> None:
+        self.event("warning", "pause", "campaign paused by a protective stop")
+        if not self.control.auto_resume_protective_stop:
+            while not self.control.abort.is_set() and self.control.pause.is_set() is False:
+                time.sleep(0.1)
+        if self.control.abort.is_set():
+            raise KeyboardInterrupt
+        unlock = getattr(self.robot, "unlock_protective_stop", None)
+        if unlock is not None:
+            self._robot_call(unlock)
+        self.event("info", "resume", "protective stop cleared; resuming the pose")
+
+    # ------------------------------------------------------------------ steps
+    def check_plan(self, targets: list[PoseTarget]) -> list[str]:
+        """Dry run: every target and pre-pose against the envelope. Returns the problems."""
+        problems = []
+        for t in targets:
+            for q, what in ((t.q_rad, "target"), (self._prepose(t), "approach pre-pose")):
+                v = self.env.violations(self.spec, q, self.tool_m)[0]
+                if v:
+                    problems.append(f"pose {t.pose_id} {what}: {v}")
+        return problems
+
+    def _prepose(self, t: PoseTarget) -> np.ndarray:
+        return t.q_rad - np.sign(t.approach_sign) * self.cfg.approach_rad
+
+    def run_pose(self, t: PoseTarget) -> dict | None:
+        pre = self._prepose(t)
+        for q, what in ((t.q_rad, "target"), (pre, "approach pre-pose")):
+            try:
+                self.env.check(self.spec, q, self.tool_m)
+            except EnvelopeViolation as e:
+                self.event("error", "refused", f"pose {t.pose_id} {what}: {e}")
+                self.result.skipped += 1
+                self.result.skipped_ids.append(t.pose_id)
+                return None
+        self._move(pre)
+        self._record_state(force=True)
+        self._move(t.q_rad)
+        approach = np.sign(t.q_rad - pre)
+        self._settle()
+        return self._measure(t, approach)
+
+    def _settle(self) -> None:
+        waited = 0.0
+        still = 0.0
+        step = max(self.cfg.settle_s / 4, 0.05)
+        while still < self.cfg.settle_s and waited < 10 * self.cfg.settle_s + 5:
+            self._robot_call(lambda: self.robot.sleep(step))
+            waited += step
+            st = self._record_state()
+            if np.max(np.abs(st.qd_rad_s)) < self.cfg.settle_speed_rad_s:
+                still += step
+            else:
+                still = 0.0
+        if still < self.cfg.settle_s:
+            self.event("warning", "settle", f"joints did not settle within {waited:.1f} s")
+
+    def _measure(self, t: PoseTarget, approach: np.ndarray) -> dict | None:
+        n = self.cfg.readings_per_pose
+        good, qs, temps = [], [], []
+        failures = 0
+        while len(good) < n:
+            try:
+                r = self.tracker.measure()
+            except DeviceError as e:
+                failures += 1
+                self.event("warning", "retry", f"pose {t.pose_id}: tracker error ({e}); retrying")
+                if failures > self.cfg.max_beam_retries:
+                    break
+                continue
+            for kind, msg in _pop_faults(self.tracker):
+                self.event("warning", kind, msg)
+            self.sink.tracker_measurement(self._t_ns(), r.position_m, r.sigma_m, r.status)
+            if r.status != "ok" or not np.all(np.isfinite(r.position_m)):
+                failures += 1
+                self.event("warning", "beam_broken" if r.status == "beam_broken" else "retry",
+                           f"pose {t.pose_id}: tracker status {r.status}; retry {failures}")
+                if failures > self.cfg.max_beam_retries:
+                    break
+                self._robot_call(lambda: self.robot.sleep(self.cfg.beam_retry_wait_s))
+                continue
+            st = self._record_state()
+            good.append((np.asarray(r.position_m, float), np.asarray(r.sigma_m, float)))
+            qs.append(st.q_rad)
+            if st.temperature_c is not None:
+                temps.append(st.temperature_c)
+        need = max(2, (n + 1) // 2) if n > 1 else 1
+        if len(good) < need:
+            self.event("error", "skip",
+                       f"pose {t.pose_id} skipped: {len(good)} of {n} readings after {failures} failures")
+            self.result.skipped += 1
+            self.result.skipped_ids.append(t.pose_id)
+            return None
+        P = np.array([g[0] for g in good])
+        S = np.array([g[1] for g in good])
+        keep = _reject_outliers(P, S, self.cfg.outlier_k)
+        if (~keep).any():
+            self.event("info", "outlier", f"pose {t.pose_id}: {(~keep).sum()} reading(s) rejected")
+        P, S = P[keep], S[keep]
+        mean = P.mean(0)
+        if len(P) > 1:
+            sig = np.maximum(P.std(0, ddof=1), S.mean(0) / 4) / np.sqrt(len(P))
+        else:
+            sig = S[0]
+        e = self.elapsed()
+        sample = {
+            "index": self.index,
+            "pose_id": int(t.pose_id),
+            "q_commanded_rad": np.asarray(t.q_rad, float).tolist(),
+            "q_measured_rad": np.mean(qs, axis=0).tolist(),
+            "approach_sign": [int(s) for s in approach],
+            "tracker_position_m": mean.tolist(),
+            "tracker_sigma_m": sig.tolist(),
+            "n_readings": int(len(P)),
+            "joint_temperature_c": np.mean(temps, axis=0).tolist() if temps else None,
+            "ambient_temperature_c": None,
+            "elapsed_s": float(e),
+            "payload_kg": float(self.cfg.payload_kg),
+            "tracker_readings": int(len(good) + failures),
+            "rejected_readings": int((~keep).sum()),
+        }
+        self.sink.sample(self._t_ns(e), sample)
+        self.index += 1
+        self.result.measured += 1
+        if self.on_sample:
+            self.on_sample(sample)
+        return sample
+
+    def run(self, plan: Plan) -> CampaignResult:
+        sample = None
+        try:
+            t = next(plan)
+            while True:
+                if self.control.abort.is_set():
+                    raise KeyboardInterrupt
+                while self.control.pause.is_set() and not self.control.abort.is_set():
+                    time.sleep(0.05)
+                sample = self.run_pose(t)
+                t = plan.send(sample)
+        except StopIteration:
+            pass
+        except KeyboardInterrupt:
+            self.result.aborted = True
+            try:
+                self.robot.stop()
+            except Exception:  # noqa: BLE001 - stopping is best effort while aborting
+                pass
+            self.event("warning", "abort", "campaign aborted by the operator; recording closed")
+        return self.result
+
+
+def _pop_faults(tracker) -> list[tuple[str, str]]:
+    pop = getattr(tracker, "pop_faults", None)
+    return list(pop()) if pop else []
+
+
+def _reject_outliers(P: np.ndarray, S: np.ndarray, k: float) -> np.ndarray:
+    """Readings farther from the median than k robust sigmas (floored by the stated sigma)."""
+    if len(P) < 3:
+        return np.ones(len(P), bool)
+    med = np.median(P, axis=0)
+    d = np.linalg.norm(P - med, axis=1)
+    mad = 1.4826 * np.median(d)
+    thr = k * max(mad, float(np.linalg.norm(S.mean(0))))
+    keep = d <= thr
+    return keep if keep.sum() >= 2 else np.ones(len(P), bool)

@@ -1,0 +1,106 @@
+"""Campaign plans: generators over a closed set of steps, run by `workcell.campaign.executor`.
+
+A plan yields `PoseTarget`s; the executor turns each into Move (via an approach pre-pose) ->
+Settle -> Measure -> Record, and sends the recorded sample (or None if the pose was skipped) back
+into the generator, so adaptive plans (bo, dopt) can choose the next pose from what was measured.
+
+`grid` and `random` choose joint configurations inside the envelope. The approach direction of
+every joint is varied on purpose: each pose is approached from a pre-pose offset by
+`approach_rad` with a random sign per joint, so backlash is observable.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Generator
+from dataclasses import dataclass
+
+import numpy as np
+
+from workcell.campaign.envelope import Envelope
+from workcell.kinematics.robots import RobotSpec
+
+
+@dataclass(frozen=True)
+class PoseTarget:
+    pose_id: int
+    q_rad: np.ndarray  # (6,)
+    approach_sign: np.ndarray  # (6,) desired direction of the final motion of each joint
+
+
+Plan = Generator[PoseTarget, "dict | None", None]
+
+
+def random_configurations(
+    spec: RobotSpec, env: Envelope, n: int, rng: np.random.Generator, tool_m: np.ndarray,
+    max_tries: int = 200_000,
+) -> np.ndarray:
+    """n joint configurations uniformly inside the envelope's joint ranges and workspace."""
+    lim = env.joint_limits_rad
+    out = []
+    tries = 0
+    while len(out) < n:
+        m = max(4 * (n - len(out)), 64)
+        q = rng.uniform(lim[:, 0], lim[:, 1], size=(m, 6))
+        ok = [v is None for v in env.violations(spec, q, tool_m)]
+        out.extend(q[np.array(ok)][: n - len(out)])
+        tries += m
+        if tries > max_tries and len(out) < n:
+            raise ValueError(
+                f"could only find {len(out)} of {n} poses inside the envelope; widen it"
+            )
+    return np.array(out)
+
+
+def grid_configurations(
+    spec: RobotSpec, env: Envelope, n: int, tool_m: np.ndarray, seed: int = 0
+) -> np.ndarray:
+    """About n configurations on a regular grid over joints 1-3 (arm) with wrist angles varied
+    deterministically; poses outside the workspace are dropped, extra ones thinned evenly."""
+    lim = env.joint_limits_rad
+    k = 2
+    while True:
+        g = np.stack(np.meshgrid(*[np.linspace(lim[j, 0], lim[j, 1], k + 2)[1:-1] for j in range(3)],
+                                 indexing="ij"), -1).reshape(-1, 3)
+        rng = np.random.default_rng(seed)
+        wrist = rng.uniform(lim[3:, 0], lim[3:, 1], size=(len(g), 3))
+        q = np.hstack([g, wrist])
+        ok = np.array([v is None for v in env.violations(spec, q, tool_m)])
+        if ok.sum() >= n or k > 30:
+            q = q[ok]
+            break
+        k += 1
+    if len(q) > n:
+        q = q[np.round(np.linspace(0, len(q) - 1, n)).astype(int)]
+    return q
+
+
+def static_plan(q: np.ndarray, seed: int = 0, *, start_id: int = 0,
+                skip_ids: set[int] | None = None) -> Plan:
+    rng = np.random.default_rng(seed + 1)
+    signs = rng.choice([-1.0, 1.0], size=q.shape)
+    for i, (qi, si) in enumerate(zip(q, signs, strict=True)):
+        pid = start_id + i
+        if skip_ids and pid in skip_ids:
+            continue
+        yield PoseTarget(pose_id=pid, q_rad=qi, approach_sign=si)
+
+
+def make_plan(
+    kind: str, spec: RobotSpec, env: Envelope, n: int, *, seed: int, tool_m: np.ndarray,
+    skip_ids: set[int] | None = None, **kw
+) -> tuple[Plan, np.ndarray | None]:
+    """Build a plan by name. Returns (generator, the planned configurations if known ahead)."""
+    if n <= 0:
+        raise ValueError(f"number of poses must be positive, got {n}")
+    if kind == "random":
+        q = random_configurations(spec, env, n, np.random.default_rng(seed), tool_m)
+        return static_plan(q, seed, skip_ids=skip_ids), q
+    if kind == "grid":
+        q = grid_configurations(spec, env, n, tool_m, seed)
+        return static_plan(q, seed, skip_ids=skip_ids), q
+    if kind in ("bo", "dopt"):
+        from workcell.campaign import adaptive  # optional module (experiment design)
+
+        return adaptive.make_adaptive_plan(kind, spec, env, n, seed=seed, tool_m=tool_m,
+                                           skip_ids=skip_ids, **kw), None
+    raise ValueError(f"unknown plan {kind!r}; choose grid, random, bo or dopt")

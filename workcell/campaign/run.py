@@ -1,0 +1,122 @@
+"""Run a whole campaign: open devices, write the session, execute the plan, close the recording."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from workcell.campaign.envelope import Envelope, default_envelope
+from workcell.campaign.executor import CampaignConfig, CampaignControl, CampaignResult, Executor
+from workcell.campaign.plans import make_plan
+from workcell.kinematics.robots import RobotSpec
+from workcell.recording.writer import RecordingWriter
+
+
+@dataclass
+class CellSetup:
+    """Everything the operator declares about the cell (what the session message records)."""
+
+    spec: RobotSpec
+    tool_m: np.ndarray
+    base_in_tracker: dict  # {"translation_m", "quaternion_wxyz"} nominal (may be rough)
+    tracker_model: str = "unknown"
+    payload_kg: float = 0.0
+    payload_com_m: tuple = (0.0, 0.0, 0.0)
+
+    def session(self, campaign: dict) -> dict:
+        return {
+            "robot": {
+                "model": self.spec.model,
+                "dh": self.spec.dh.to_dict(),
+                "joint_limits_rad": self.spec.joint_limits_rad.tolist(),
+            },
+            "tool": {"smr_offset_m": np.asarray(self.tool_m, float).tolist()},
+            "tracker": {"model": self.tracker_model, "base_in_tracker": self.base_in_tracker},
+            "payload": {"mass_kg": float(self.payload_kg), "com_m": list(self.payload_com_m)},
+            "campaign": campaign,
+        }
+
+
+def run_campaign(
+    robot,
+    tracker,
+    cell: CellSetup,
+    out: str | Path,
+    *,
+    plan: str = "random",
+    poses: int = 50,
+    seed: int = 0,
+    envelope: Envelope | None = None,
+    config: CampaignConfig | None = None,
+    control: CampaignControl | None = None,
+    on_sample: Callable[[dict], None] | None = None,
+    on_event: Callable[[dict], None] | None = None,
+    extra_campaign: dict | None = None,
+    skip_ids: set[int] | None = None,
+    index0: int = 0,
+    chained_from: dict | None = None,
+    elapsed0_s: float = 0.0,
+    plan_kwargs: dict | None = None,
+) -> tuple[Path, CampaignResult]:
+    env = envelope or default_envelope(cell.spec)
+    cfg = config or CampaignConfig(payload_kg=cell.payload_kg)
+    gen, _ = make_plan(plan, cell.spec, env, poses, seed=seed, tool_m=cell.tool_m,
+                       skip_ids=skip_ids, **(plan_kwargs or {}))
+    campaign = {
+        "plan": plan,
+        "poses": poses,
+        "seed": seed,
+        "readings_per_pose": cfg.readings_per_pose,
+        "settle_s": cfg.settle_s,
+        "approach_rad": cfg.approach_rad,
+        "envelope": env.to_dict(),
+        **(extra_campaign or {}),
+    }
+    session = cell.session(campaign)
+    if chained_from:
+        session["chained_from"] = chained_from
+    robot.connect()
+    tracker.connect()
+    with RecordingWriter(out, session) as w:
+        ex = Executor(robot, tracker, cell.spec, env, w, tool_m=cell.tool_m, config=cfg,
+                      control=control, on_sample=on_sample, on_event=on_event, index0=index0,
+                      t_wall0_ns=time.time_ns(), elapsed0_s=elapsed0_s)
+        if chained_from:
+            ex.event("info", "resume_from",
+                     f"continues {chained_from.get('path')} ({chained_from.get('samples')} samples)")
+        result = ex.run(gen)
+    for dev in (robot, tracker):
+        try:
+            dev.close()
+        except Exception:  # noqa: BLE001 - closing is best effort
+            pass
+    return Path(out), result
+
+
+def sim_cell(robot: str = "ur5e", effects: str | dict | None = "realistic", seed: int = 0,
+             *, beam_break_prob: float = 0.01, outlier_prob: float = 0.005, dh_error_scale=1.0,
+             noise=None):
+    """An in-process simulated cell: (SimWorld, SimRobot, SimTracker, CellSetup).
+
+    Imports the simulator lazily: only `campaign --robot sim`, `demo` and tests use it.
+    """
+    from sim_devices.inprocess import SimRobot, SimTracker
+    from sim_devices.truth import NOMINAL_SMR_M, TrackerNoise, make_truth
+    from sim_devices.world import SimWorld
+
+    nz = noise or TrackerNoise(beam_break_prob=beam_break_prob, outlier_prob=outlier_prob)
+    truth = make_truth(robot, effects, seed, noise=nz, dh_error_scale=dh_error_scale)
+    world = SimWorld(truth, seed=seed)
+    cell = CellSetup(
+        spec=truth.nominal,
+        tool_m=NOMINAL_SMR_M.copy(),
+        base_in_tracker=truth.session_nominal(np.random.default_rng(seed + 99)),
+        tracker_model="simulated laser tracker",
+        payload_kg=truth.payload_kg,
+        payload_com_m=tuple(truth.payload_com_m.tolist()),
+    )
+    return world, SimRobot(world), SimTracker(world), cell

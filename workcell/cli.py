@@ -1,0 +1,88 @@
+"""`workcell` command line. Thin: every subcommand lives in `workcell/commands/<name>.py` with
+
+    def add_arguments(parser: argparse.ArgumentParser) -> None
+    def run(args: argparse.Namespace) -> int
+
+User errors raise `workcell.errors.UserError` (or ValueError/OSError from validation) and are
+printed as one line `workcell <cmd>: error: ...` with exit code 2, never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+
+from workcell.errors import UserError
+
+# name -> (module, one-line help). Modules are imported lazily (JAX start-up is slow).
+COMMANDS: dict[str, tuple[str, str]] = {
+    "info": ("workcell.commands.info", "summarise a recording"),
+    "campaign": ("workcell.commands.campaign", "run a measurement campaign and record it"),
+    "fit": ("workcell.commands.fit", "fit a calibrated model to a recording"),
+    "demo": ("workcell.commands.demo", "simulated campaign, fits and correction end to end"),
+    "sim": ("workcell.commands.sim", "start the protocol-level simulators (UR + tracker)"),
+    "replay": ("workcell.commands.replay", "replay a recording through an online estimator"),
+    "diagnose": ("workcell.commands.diagnose", "find the physics the nominal model left out"),
+    "export": ("workcell.commands.export", "write a correction for the robot controller"),
+    "validate": ("workcell.commands.validate", "closed-loop check of an exported correction"),
+    "tui": ("workcell.commands.tui", "the shop-floor terminal UI"),
+    "bench": ("workcell.commands.bench", "benchmarks that print their figures"),
+}
+
+
+def _load(name: str):
+    module, _ = COMMANDS[name]
+    try:
+        return importlib.import_module(module)
+    except ModuleNotFoundError as e:
+        if e.name == module:
+            return None
+        raise
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="workcell",
+        description="Robot calibration with a laser tracker: campaign, fit, diagnose, export.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    return parser, sub
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser, sub = build_parser()
+    # Only import the module of the command asked for (keeps `workcell --help` fast).
+    name = next((a for a in argv if not a.startswith("-")), None)
+    for cmd, (_, help_) in COMMANDS.items():
+        p = sub.add_parser(cmd, help=help_, description=help_)
+        if cmd == name:
+            mod = _load(cmd)
+            if mod is None:
+                print(f"workcell {cmd}: error: not available in this build", file=sys.stderr)
+                return 2
+            mod.add_arguments(p)
+            p.set_defaults(_run=mod.run)
+    args = parser.parse_args(argv)
+    if not getattr(args, "command", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args._run(args) or 0)
+    except UserError as e:
+        print(f"workcell {args.command}: error: {e}", file=sys.stderr)
+        return e.exit_code
+    except KeyboardInterrupt:
+        print(f"workcell {args.command}: interrupted", file=sys.stderr)
+        return 130
+    except (ValueError, OSError) as e:
+        if os.environ.get("WORKCELL_DEBUG"):
+            raise
+        print(f"workcell {args.command}: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,102 @@
+"""`workcell campaign --robot sim|ur://HOST --tracker sim|serial://PORT --plan P --poses N --out REC`."""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+from pathlib import Path
+
+from workcell.campaign.devices import open_cell
+from workcell.campaign.executor import CampaignConfig, CampaignControl
+from workcell.campaign.run import run_campaign
+from workcell.errors import UserError
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--robot", default="sim", help="sim or ur://HOST")
+    p.add_argument("--tracker", default="sim", help="sim or serial:///dev/ttyX")
+    p.add_argument("--plan", default="random", help="grid, random, bo or dopt")
+    p.add_argument("--poses", type=int, default=50, help="number of poses to measure")
+    p.add_argument("--out", help="recording to write (.mcap); must not exist")
+    p.add_argument("--seed", type=int, default=0, help="plan seed (and simulated truth seed)")
+    p.add_argument("--effects", default="realistic",
+                   help="simulated truth: none, realistic, all, or a comma list of effect kinds")
+    p.add_argument("--model", default="ur5e", help="robot model when not given by the device")
+    p.add_argument("--readings", type=int, default=5, help="tracker readings per pose")
+    p.add_argument("--settle", type=float, default=1.0, help="settle time in seconds")
+    p.add_argument("--time-scale", type=float, default=1.0, help="simulators: time scale")
+    p.add_argument("--dry-run", action="store_true", help="print and check the plan; do not move")
+    p.add_argument("--resume", help="continue this interrupted recording in a new chained file")
+    p.add_argument("--online", choices=["ekf-ann"], help="feed samples to an online estimator")
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.resume:
+        from workcell.campaign.resume import resume_campaign
+
+        return resume_campaign(args)
+    if args.poses <= 0:
+        raise UserError(f"--poses must be positive, got {args.poses}")
+    if args.readings <= 0:
+        raise UserError(f"--readings must be positive, got {args.readings}")
+    cell, robot, tracker, env = open_cell(args)
+    cfg = CampaignConfig(readings_per_pose=args.readings, settle_s=args.settle,
+                         payload_kg=cell.payload_kg)
+    if args.dry_run:
+        return dry_run(args, cell, env, cfg)
+    if not args.out:
+        raise UserError("--out REC.mcap is required (the recording to write)")
+    if Path(args.out).exists():
+        raise UserError(f"{args.out} already exists; choose a new file or use --resume")
+    control = CampaignControl()
+    signal.signal(signal.SIGINT, lambda *_: control.abort.set())
+    n = [0]
+
+    def on_sample(s: dict) -> None:
+        n[0] += 1
+        print(f"pose {s['pose_id']:4d}  {n[0]:4d}/{args.poses}  elapsed {s['elapsed_s']:8.1f} s",
+              file=sys.stderr, flush=True)
+
+    def on_event(e: dict) -> None:
+        print(f"  [{e['level']}] {e['kind']}: {e['message']}", file=sys.stderr, flush=True)
+
+    online = None
+    if args.online:
+        from workcell.estimation.ekf_ann.live import LiveFilter  # EKF-ANN issue
+
+        online = LiveFilter.for_cell(cell)
+        prev = on_sample
+
+        def on_sample(s: dict) -> None:  # noqa: F811
+            prev(s)
+            print("  " + online.update(s), file=sys.stderr, flush=True)
+
+    path, res = run_campaign(
+        robot, tracker, cell, args.out, plan=args.plan, poses=args.poses, seed=args.seed,
+        envelope=env, config=cfg, control=control, on_sample=on_sample, on_event=on_event,
+        extra_campaign={"robot_url": args.robot, "tracker_url": args.tracker,
+                        "effects": args.effects if args.robot == "sim" else None},
+    )
+    print(f"recorded {res.measured} poses, skipped {res.skipped}, events {res.events} -> {path}")
+    return 130 if res.aborted else 0
+
+
+def dry_run(args, cell, env, cfg) -> int:
+    from workcell.campaign.executor import Executor
+    from workcell.campaign.plans import make_plan
+
+    gen, q = make_plan(args.plan, cell.spec, env, args.poses, seed=args.seed, tool_m=cell.tool_m)
+    if q is None:
+        print(f"plan {args.plan}: adaptive; each pose is chosen during the campaign inside the "
+              f"envelope; {args.poses} poses")
+        return 0
+    targets = list(gen)
+    ex = Executor(None, None, cell.spec, env, None, tool_m=cell.tool_m, config=cfg)
+    problems = ex.check_plan(targets)
+    for t in targets:
+        print(f"pose {t.pose_id:4d}  q = [" + ", ".join(f"{x:+.4f}" for x in t.q_rad) + "] rad")
+    print(f"dry run: {len(targets)} poses, {len(problems)} problems; nothing moved")
+    for p in problems:
+        print("  " + p)
+    return 1 if problems else 0

@@ -1,0 +1,58 @@
+"""`workcell info REC`: what a recording holds and whether it was closed cleanly."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from workcell.recording.reader import read_recording
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("recording", help="an .mcap recording")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+
+
+def summary(path: str) -> dict:
+    rec = read_recording(path)
+    s = rec.session
+    kinds: dict[str, int] = {}
+    for e in rec.events:
+        kinds[e.get("kind", "?")] = kinds.get(e.get("kind", "?"), 0) + 1
+    ids = [x.get("pose_id") for x in rec.samples]
+    return {
+        "path": str(rec.path),
+        "robot": s.get("robot", {}).get("model"),
+        "tracker": s.get("tracker", {}).get("model"),
+        "created_utc": s.get("created_utc"),
+        "poses": len(rec.samples),
+        "distinct_pose_ids": len(set(ids)),
+        "duration_s": rec.duration_s,
+        "channels": rec.channel_counts,
+        "events": kinds,
+        "closed_cleanly": rec.closed_cleanly,
+        "problems": rec.problems,
+        "plan": (s.get("campaign") or {}).get("plan"),
+        "chained_from": s.get("chained_from"),
+        "size_bytes": rec.size_bytes,
+    }
+
+
+def run(args: argparse.Namespace) -> int:
+    d = summary(args.recording)
+    if args.json:
+        print(json.dumps(d))
+        return 0
+    print(f"recording   {d['path']} ({d['size_bytes']} bytes)")
+    print(f"robot       {d['robot']}    tracker {d['tracker']}")
+    print(f"created     {d['created_utc']}    plan {d['plan']}")
+    print(f"poses       {d['poses']} samples ({d['distinct_pose_ids']} distinct pose ids)")
+    print(f"duration    {d['duration_s']:.1f} s")
+    print("channels    " + ", ".join(f"{k}: {v}" for k, v in d["channels"].items()))
+    print("events      " + (", ".join(f"{k}: {v}" for k, v in d["events"].items()) or "none"))
+    print(f"closed      {'cleanly' if d['closed_cleanly'] else 'NOT cleanly (crash or still open)'}")
+    if d["chained_from"]:
+        print(f"continues   {d['chained_from'].get('path')}")
+    for p in d["problems"]:
+        print(f"problem     {p}")
+    return 0

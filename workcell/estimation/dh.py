@@ -1,0 +1,255 @@
+"""Geometric calibration: simultaneous DH errors, joint offsets, base pose and SMR offset.
+
+Steps (all on the training poses):
+1. Rigid registration: the nominal chain's SMR positions in `base` are registered to the
+   measurements (Kabsch). This gives `base_ref` (the recording's nominal base pose may be rough).
+2. Identifiability: the weighted identification Jacobian at the nominal parameters is analysed;
+   parameters that are not separately identifiable are fixed at nominal and reported by group.
+3. Weighted nonlinear least squares (scipy least_squares, Levenberg-Marquardt/TRF) over the
+   identifiable parameters. Per-pose isotropic weights 1/sigma_i with
+   sigma_i = RMS of the recording's per-axis sigmas of that pose.
+4. Robust pass: poses whose residual exceeds `outlier_k` robust standard deviations are set
+   aside (reported) and the fit is repeated once.
+5. Uncertainty: Cov = s0^2 (J^T W J)^-1 with the a-posteriori variance factor s0^2 = chi2/dof,
+   so the reported standard deviations do not depend on the stated sigmas being right.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from workcell.estimation.identifiability import Identifiability, analyse
+from workcell.estimation.models import error_stats
+from workcell.kinematics.chain import (
+    IDX,
+    N_PARAMS,
+    PARAM_NAMES,
+    PARAM_UNITS,
+    jac_params,
+    p_tracker,
+    pack,
+    tracker_T_base,
+    unpack_dh,
+)
+from workcell.kinematics.frames import apply_transform, kabsch, quat_wxyz_from_matrix
+from workcell.kinematics.robots import DH, robot_by_name, robot_from_session
+from workcell.recording.dataset import Dataset
+
+
+@dataclass
+class DHModel:
+    """A calibrated geometric model. `predict(q)` gives SMR positions in the tracker frame."""
+
+    robot_model: str
+    nominal_dh: DH
+    theta: np.ndarray  # (33,)
+    base_ref: np.ndarray  # (4, 4)
+    cov: np.ndarray  # (33, 33); zero rows/cols for fixed parameters
+    free: np.ndarray  # (33,) bool
+    unidentifiable: list[list[str]] = field(default_factory=list)
+    info: dict = field(default_factory=dict)
+    method: str = "dh"
+
+    def predict(self, q: np.ndarray, **aux) -> np.ndarray:
+        q = np.atleast_2d(np.asarray(q, dtype=float))
+        return np.asarray(p_tracker(self.theta, self.base_ref, q))
+
+    def predict_nominal(self, q: np.ndarray) -> np.ndarray:
+        """What the controller's nominal kinematics predicts, in the same registered base."""
+        th = pack(self.nominal_dh, tool=self.info.get("nominal_tool_m", self.theta[30:33]))
+        q = np.atleast_2d(np.asarray(q, dtype=float))
+        return np.asarray(p_tracker(th, self.base_ref, q))
+
+    @property
+    def std(self) -> np.ndarray:
+        return np.sqrt(np.clip(np.diag(self.cov), 0.0, None))
+
+    @property
+    def tracker_T_base(self) -> np.ndarray:
+        return np.asarray(tracker_T_base(self.theta, self.base_ref))
+
+    @property
+    def dh(self) -> DH:
+        return unpack_dh(self.theta)
+
+    def parameters(self) -> dict[str, dict]:
+        nom = pack(self.nominal_dh, tool=self.info.get("nominal_tool_m", (0.0, 0.0, 0.0)))
+        out = {}
+        for i, n in enumerate(PARAM_NAMES):
+            out[n] = {
+                "value": float(self.theta[i]),
+                "std": float(self.std[i]) if self.free[i] else 0.0,
+                "unit": PARAM_UNITS[n],
+                "nominal": float(nom[i]) if i < 24 or i >= 30 else 0.0,
+                "estimated": bool(self.free[i]),
+            }
+        return out
+
+    def to_dict(self) -> dict:
+        T = self.tracker_T_base
+        return {
+            "method": self.method,
+            "robot": self.robot_model,
+            "nominal_dh": self.nominal_dh.to_dict(),
+            "parameter_names": PARAM_NAMES,
+            "theta": self.theta.tolist(),
+            "base_ref": self.base_ref.tolist(),
+            "cov": self.cov.tolist(),
+            "free": self.free.tolist(),
+            "unidentifiable": self.unidentifiable,
+            "tracker_T_base": {
+                "translation_m": T[:3, 3].tolist(),
+                "quaternion_wxyz": quat_wxyz_from_matrix(T[:3, :3]).tolist(),
+            },
+            "info": self.info,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> DHModel:
+        return cls(
+            robot_model=d["robot"],
+            nominal_dh=DH.from_dict(d["nominal_dh"]),
+            theta=np.asarray(d["theta"], float),
+            base_ref=np.asarray(d["base_ref"], float),
+            cov=np.asarray(d["cov"], float),
+            free=np.asarray(d["free"], bool),
+            unidentifiable=d.get("unidentifiable", []),
+            info=d.get("info", {}),
+        )
+
+    def robot_spec(self):
+        try:
+            return robot_by_name(self.robot_model).with_dh(self.nominal_dh)
+        except ValueError:
+            return robot_from_session({"model": self.robot_model, "dh": self.nominal_dh.to_dict()})
+
+
+def pose_sigma(ds: Dataset) -> np.ndarray:
+    """Per-pose isotropic 1-sigma (N,) from the recording's per-axis sigmas."""
+    return np.sqrt(np.mean(ds.sigma_m**2, axis=1))
+
+
+def register_base(ds: Dataset, theta: np.ndarray) -> np.ndarray:
+    """Rigid registration of the model's SMR positions (in base) to the measurements."""
+    p_base = np.asarray(p_tracker(theta, np.eye(4), ds.q))
+    return kabsch(p_base, ds.p_tracker)
+
+
+def nominal_theta(ds: Dataset) -> np.ndarray:
+    return pack(ds.robot.dh, tool=ds.tool_offset_m)
+
+
+def fit_dh(
+    ds: Dataset,
+    *,
+    fixed: list[str] | None = None,
+    outlier_k: float = 5.0,
+    max_nfev: int = 200,
+    theta0: np.ndarray | None = None,
+    base_ref: np.ndarray | None = None,
+) -> DHModel:
+    """Fit the geometric model to all poses of `ds` (split before calling)."""
+    t0 = time.perf_counter()
+    if len(ds) < 12:
+        raise ValueError(f"too few poses to fit the geometry: {len(ds)} (need at least 12)")
+    th_nom = nominal_theta(ds)
+    theta = th_nom.copy() if theta0 is None else np.asarray(theta0, float).copy()
+    base_ref = register_base(ds, theta) if base_ref is None else base_ref
+    w = 1.0 / pose_sigma(ds)
+    J0 = np.asarray(jac_params(theta, base_ref, ds.q)) * w[:, None, None]
+    cand = [n for n in PARAM_NAMES if n not in set(fixed or [])]
+    ident = analyse(J0.reshape(-1, N_PARAMS), candidates=cand)
+    free = np.zeros(N_PARAMS, bool)
+    free[[IDX[n] for n in ident.identifiable]] = True
+    keep = np.ones(len(ds), bool)
+    n_rejected = 0
+    for _ in range(2):
+        theta, res = _solve(ds, keep, w, theta, base_ref, free, max_nfev)
+        e = np.linalg.norm(np.asarray(p_tracker(theta, base_ref, ds.q)) - ds.p_tracker, axis=1)
+        sc = e * w
+        med = np.median(sc[keep])
+        mad = 1.4826 * np.median(np.abs(sc[keep] - med)) + 1e-12
+        new_keep = sc < med + outlier_k * mad * 3.0  # 3-D norm: generous band
+        if np.array_equal(new_keep, keep) or new_keep.sum() < 0.8 * len(ds):
+            break
+        keep = new_keep
+        n_rejected = int((~keep).sum())
+    # uncertainty
+    Jw = (np.asarray(jac_params(theta, base_ref, ds.q[keep])) * w[keep][:, None, None]).reshape(
+        -1, N_PARAMS
+    )[:, free]
+    r = ((np.asarray(p_tracker(theta, base_ref, ds.q[keep])) - ds.p_tracker[keep]) * w[keep][:, None]).ravel()
+    dof = max(len(r) - free.sum(), 1)
+    s0_2 = float(r @ r / dof)
+    cov_free = s0_2 * np.linalg.pinv(Jw.T @ Jw)
+    cov = np.zeros((N_PARAMS, N_PARAMS))
+    cov[np.ix_(free, free)] = cov_free
+    stats = error_stats(p_tracker(theta, base_ref, ds.q[keep]), ds.p_tracker[keep])
+    info = {
+        "nominal_tool_m": ds.tool_offset_m.tolist(),
+        "train_poses": int(len(ds)),
+        "outliers_rejected": n_rejected,
+        "variance_factor": s0_2,
+        "train_rms_m": stats["rms_m"],
+        "identifiability": ident.to_dict(),
+        "fit_seconds": time.perf_counter() - t0,
+        "nfev": int(res.nfev),
+        "recording": ds.source,
+        "recording_sha256": ds.source_sha256,
+    }
+    return DHModel(
+        robot_model=ds.robot.model,
+        nominal_dh=ds.robot.dh,
+        theta=theta,
+        base_ref=base_ref,
+        cov=cov,
+        free=free,
+        unidentifiable=ident.groups_named if hasattr(ident, "groups_named") else ident.groups,
+        info=info,
+    )
+
+
+def _solve(ds, keep, w, theta, base_ref, free, max_nfev):
+    q, p, wk = ds.q[keep], ds.p_tracker[keep], w[keep]
+    x0 = theta[free]
+
+    def full(x):
+        th = theta.copy()
+        th[free] = x
+        return th
+
+    def fun(x):
+        return ((np.asarray(p_tracker(full(x), base_ref, q)) - p) * wk[:, None]).ravel()
+
+    def jac(x):
+        J = np.asarray(jac_params(full(x), base_ref, q)) * wk[:, None, None]
+        return J.reshape(-1, N_PARAMS)[:, free]
+
+    res = least_squares(fun, x0, jac=jac, method="lm", x_scale="jac", max_nfev=max_nfev,
+                        xtol=1e-12, ftol=1e-12, gtol=1e-12)
+    return full(res.x), res
+
+
+def nominal_registered(ds_train: Dataset) -> tuple[np.ndarray, np.ndarray]:
+    """Nominal chain with the base registered on the training poses: (theta, base_ref)."""
+    th = nominal_theta(ds_train)
+    return th, register_base(ds_train, th)
+
+
+def evaluate(model, ds: Dataset) -> dict:
+    from workcell.estimation.models import aux_from_dataset
+
+    return error_stats(model.predict(ds.q, **aux_from_dataset(ds)), ds.p_tracker)
+
+
+def ident_summary(ident: Identifiability) -> str:
+    g = "; ".join("{" + ", ".join(x) + "}" for x in ident.groups)
+    return f"rank {ident.rank}/{len(ident.names)}, condition {ident.condition:.3g}; fixed groups: {g}"
+
+
+def transform_points(T: np.ndarray, p: np.ndarray) -> np.ndarray:
+    return apply_transform(T, p)

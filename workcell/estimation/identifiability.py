@@ -1,0 +1,130 @@
+"""Identifiability of geometric parameters from a set of poses.
+
+The identification Jacobian J (3N x P, d p_tracker / d theta, weighted) is column-scaled to unit
+norm (so metres and radians compare), then analysed:
+- rank, singular values, condition number (of the scaled Jacobian);
+- observability indices for pose selection: O1 = (prod sigma_i)^(1/L) / sqrt(N) (Borm & Menq)
+  and the minimum singular value O3 (Nahvi & Nahavandi);
+- a greedy column selection in a stated priority order keeps a maximal identifiable subset;
+  every other parameter is reported with the kept parameters it is a combination of (its group).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from workcell.kinematics.chain import PARAM_NAMES
+
+# Keep base and tool parameters first (they are what a user sets), then DH lengths/twists, so
+# that dependent DH parameters are the ones fixed at nominal. theta1 goes with base_rz, d1 with
+# base_tz, d2/d3 with d4, a6/d6/alpha6/theta6 with the tool.
+PRIORITY = (
+    ["base_tx", "base_ty", "base_tz", "base_rx", "base_ry", "base_rz", "tool_x", "tool_y", "tool_z"]
+    + [f"a{i}" for i in range(1, 6)]
+    + [f"alpha{i}" for i in range(1, 6)]
+    + [f"theta{i}_offset" for i in range(2, 6)]
+    + ["d4", "d5", "d1", "d2", "d3", "d6", "a6", "alpha6", "theta1_offset", "theta6_offset"]
+)
+
+
+@dataclass
+class Identifiability:
+    names: list[str]
+    rank: int
+    singular_values: np.ndarray
+    condition: float
+    o1: float
+    min_singular_value: float
+    identifiable: list[str]
+    dependent: dict[str, list[str]]  # dependent param -> kept params it combines
+    groups: list[list[str]]
+
+    def to_dict(self) -> dict:
+        return {
+            "rank": self.rank,
+            "n_parameters": len(self.names),
+            "condition": self.condition,
+            "o1": self.o1,
+            "min_singular_value": self.min_singular_value,
+            "singular_values": self.singular_values.tolist(),
+            "identifiable": self.identifiable,
+            "unidentifiable": self.groups,
+        }
+
+
+def observability(Js: np.ndarray) -> dict:
+    """Observability indices of a column-scaled Jacobian (rows 3N, columns L)."""
+    s = np.linalg.svd(Js, compute_uv=False)
+    n = max(Js.shape[0] // 3, 1)
+    L = len(s)
+    pos = s[s > 0]
+    o1 = float(np.exp(np.log(pos).sum() / L) / np.sqrt(n)) if len(pos) == L else 0.0
+    return {"o1": o1, "min_singular_value": float(s[-1]) if L else 0.0,
+            "condition": float(s[0] / s[-1]) if L and s[-1] > 0 else float("inf")}
+
+
+def analyse(
+    J: np.ndarray,
+    names: list[str] | None = None,
+    *,
+    priority: list[str] | None = None,
+    candidates: list[str] | None = None,
+    rtol: float = 1e-6,
+) -> Identifiability:
+    """Analyse a Jacobian J (rows, P) whose columns are `names` (default: all 33 parameters).
+
+    `candidates` restricts the analysis to a subset of the columns (others are fixed anyway).
+    A column is dependent when its distance from the span of the columns kept before it, relative
+    to its norm, is below `rtol` (exact dependencies give ~1e-12; weak ones are reported through
+    the condition number instead).
+    """
+    names = list(PARAM_NAMES if names is None else names)
+    if J.ndim != 2 or J.shape[1] != len(names):
+        raise ValueError(f"Jacobian: expected shape (rows, {len(names)}), got {J.shape}")
+    cand = [n for n in (candidates or names)]
+    order = [n for n in (priority or PRIORITY) if n in cand] + [
+        n for n in cand if n not in (priority or PRIORITY)
+    ]
+    col = {n: i for i, n in enumerate(names)}
+    norms = np.linalg.norm(J, axis=0)
+    kept: list[str] = []
+    dependent: dict[str, list[str]] = {}
+    Q = np.zeros((J.shape[0], 0))
+    for n in order:
+        c = J[:, col[n]]
+        nc = norms[col[n]]
+        if nc < 1e-12 * max(norms.max(), 1e-300):
+            dependent[n] = []  # no effect on the measured point at all
+            continue
+        u = c / nc
+        r = u - Q @ (Q.T @ u)
+        r = r - Q @ (Q.T @ r)  # re-orthogonalise
+        if np.linalg.norm(r) < rtol:
+            K = J[:, [col[k] for k in kept]] / norms[[col[k] for k in kept]]
+            x, *_ = np.linalg.lstsq(K, u, rcond=None)
+            big = np.abs(x) > 1e-3 * np.abs(x).max()
+            dependent[n] = [k for k, b in zip(kept, big, strict=True) if b]
+        else:
+            kept.append(n)
+            Q = np.column_stack([Q, r / np.linalg.norm(r)])
+    Js = J[:, [col[k] for k in kept]] / norms[[col[k] for k in kept]]
+    s = np.linalg.svd(Js, compute_uv=False)
+    obs = observability(Js)
+    # groups: dependent parameters sharing the same support are merged with it
+    by_support: dict[tuple, list[str]] = {}
+    for n, sup in dependent.items():
+        by_support.setdefault(tuple(sup), []).append(n)
+    groups = [sorted(deps + list(sup), key=names.index) for sup, deps in by_support.items()]
+    return Identifiability(
+        names=names,
+        rank=len(kept),
+        singular_values=s,
+        condition=obs["condition"],
+        o1=obs["o1"],
+        min_singular_value=obs["min_singular_value"],
+        identifiable=sorted(kept, key=names.index),
+        dependent=dependent,
+        groups=groups,
+    )

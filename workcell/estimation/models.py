@@ -1,0 +1,110 @@
+"""The small interface every fitted model shares, and saving/loading model files.
+
+A model file is JSON: {"method": ..., "format": "workcell-model/1", ...}. `load_model` dispatches
+on `method` to the class registered for it.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import os
+from pathlib import Path
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+
+from workcell.errors import UserError
+
+MODEL_FORMAT = "workcell-model/1"
+
+# method -> "module:Class" with a classmethod from_dict(d) -> model
+REGISTRY: dict[str, str] = {
+    "dh": "workcell.estimation.dh:DHModel",
+    "lddmm": "workcell.estimation.lddmm_fit:LddmmCalibration",
+    "gp": "workcell.estimation.gp_residual:GPResidualModel",
+    "ekf-ann": "workcell.estimation.ekf_ann.model:EkfAnnModel",
+    "augmented": "workcell.estimation.effects:AugmentedModel",
+}
+
+
+@runtime_checkable
+class FittedModel(Protocol):
+    method: str
+
+    def predict(self, q: np.ndarray, **aux: Any) -> np.ndarray:
+        """SMR positions in the tracker frame (N, 3) for joints q (N, 6).
+
+        aux (optional, per pose): approach_sign (N, 6), joint_temperature_c (N, 6),
+        elapsed_s (N,), payload_kg (N,). Models that do not need them ignore them.
+        """
+        ...
+
+    def parameters(self) -> dict[str, dict]:
+        """name -> {"value", "std", "unit"} for every estimated parameter."""
+        ...
+
+    def to_dict(self) -> dict: ...
+
+
+def aux_from_dataset(ds) -> dict:
+    return {
+        "approach_sign": ds.approach_sign,
+        "joint_temperature_c": ds.joint_temperature_c,
+        "elapsed_s": ds.elapsed_s,
+        "payload_kg": ds.payload_kg,
+    }
+
+
+def save_model(model: FittedModel, path: str | os.PathLike) -> Path:
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    d = {"format": MODEL_FORMAT, **model.to_dict()}
+    tmp = p.with_suffix(p.suffix + ".tmp")
+    tmp.write_text(json.dumps(d, indent=1, allow_nan=False))
+    tmp.replace(p)
+    return p
+
+
+def load_model(path: str | os.PathLike) -> FittedModel:
+    p = Path(path)
+    if not p.exists():
+        raise UserError(f"{p}: no such model file; fit one with `workcell fit REC --out {p}`")
+    try:
+        d = json.loads(p.read_text())
+    except (ValueError, UnicodeDecodeError):
+        raise UserError(f"{p}: not a workcell model file (not JSON)") from None
+    if not isinstance(d, dict) or d.get("format") != MODEL_FORMAT:
+        raise UserError(f"{p}: not a workcell model file (format is not {MODEL_FORMAT})")
+    return model_from_dict(d, source=str(p))
+
+
+def model_from_dict(d: dict, source: str = "model") -> FittedModel:
+    method = d.get("method")
+    if method not in REGISTRY:
+        raise UserError(f"{source}: unknown model method {method!r}")
+    mod, cls = REGISTRY[method].split(":")
+    try:
+        klass = getattr(importlib.import_module(mod), cls)
+    except ModuleNotFoundError:
+        raise UserError(f"{source}: method {method!r} is not available in this build") from None
+    return klass.from_dict(d)
+
+
+def rms(e: np.ndarray) -> float:
+    """RMS of 3-D position errors (N, 3) -> metres."""
+    e = np.asarray(e)
+    return float(np.sqrt(np.mean(np.sum(e**2, axis=1)))) if len(e) else float("nan")
+
+
+def error_stats(p_pred: np.ndarray, p_meas: np.ndarray) -> dict:
+    e = np.linalg.norm(np.asarray(p_pred) - np.asarray(p_meas), axis=1)
+    if not len(e):
+        return {"rms_m": float("nan"), "mean_m": float("nan"), "max_m": float("nan"),
+                "median_m": float("nan")}
+    return {
+        "rms_m": float(np.sqrt(np.mean(e**2))),
+        "mean_m": float(e.mean()),
+        "median_m": float(np.median(e)),
+        "max_m": float(e.max()),
+    }

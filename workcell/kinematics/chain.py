@@ -1,0 +1,149 @@
+"""Geometric model of a 6-joint arm measured by a tracker: DH chain + base pose + SMR offset.
+
+Parameter vector `theta` (33,) with names `PARAM_NAMES`:
+  a1..a6, d1..d6 [m], alpha1..alpha6 [rad], theta1_offset..theta6_offset [rad]   (standard DH)
+  base_tx, base_ty, base_tz [m], base_rx, base_ry, base_rz [rad]                  (base pose)
+  tool_x, tool_y, tool_z [m]                                                       (SMR in flange)
+
+The base pose is `tracker_T_base = base_ref @ Trans(t) @ Rot(r)` where `base_ref` is a fixed
+reference transform (e.g. the rigid registration) and (t, r) are offsets expressed along the
+*base* axes, so that `base_rz` is a rotation about joint 1's axis and `base_tz` a shift along it.
+
+All functions are pure JAX, vectorised over N poses, float64.
+"""
+
+from __future__ import annotations
+
+from functools import partial
+
+import numpy as np
+
+from workcell._jax import jax, jnp
+from workcell.kinematics.robots import DH
+
+N_JOINTS = 6
+DH_NAMES = (
+    [f"a{i}" for i in range(1, 7)]
+    + [f"d{i}" for i in range(1, 7)]
+    + [f"alpha{i}" for i in range(1, 7)]
+    + [f"theta{i}_offset" for i in range(1, 7)]
+)
+BASE_NAMES = ["base_tx", "base_ty", "base_tz", "base_rx", "base_ry", "base_rz"]
+TOOL_NAMES = ["tool_x", "tool_y", "tool_z"]
+PARAM_NAMES: list[str] = DH_NAMES + BASE_NAMES + TOOL_NAMES
+N_PARAMS = len(PARAM_NAMES)
+PARAM_UNITS = {n: ("rad" if n.startswith(("alpha", "theta", "base_r")) else "m") for n in PARAM_NAMES}
+IDX = {n: i for i, n in enumerate(PARAM_NAMES)}
+
+
+def pack(dh: DH, base_t=(0.0, 0.0, 0.0), base_r=(0.0, 0.0, 0.0), tool=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """Parameter vector from a DH chain, base offsets and tool (SMR) offset."""
+    return np.concatenate(
+        [dh.a, dh.d, dh.alpha, dh.theta_offset, np.asarray(base_t, float),
+         np.asarray(base_r, float), np.asarray(tool, float)]
+    )
+
+
+def unpack_dh(theta: np.ndarray) -> DH:
+    t = np.asarray(theta, dtype=float)
+    return DH(a=t[0:6], d=t[6:12], alpha=t[12:18], theta_offset=t[18:24])
+
+
+def _rotvec_to_matrix(r):
+    th2 = jnp.dot(r, r)
+    small = th2 < 1e-12
+    th2s = jnp.where(small, 1.0, th2)
+    th = jnp.sqrt(th2s)
+    A = jnp.where(small, 1.0 - th2 / 6.0, jnp.sin(th) / th)
+    B = jnp.where(small, 0.5 - th2 / 24.0, (1.0 - jnp.cos(th)) / th2s)
+    K = jnp.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])
+    return jnp.eye(3) + A * K + B * (K @ K)
+
+
+def _dh_matrix(a, d, alpha, th):
+    ct, st = jnp.cos(th), jnp.sin(th)
+    ca, sa = jnp.cos(alpha), jnp.sin(alpha)
+    return jnp.array(
+        [
+            [ct, -st * ca, st * sa, a * ct],
+            [st, ct * ca, -ct * sa, a * st],
+            [0.0, sa, ca, d],
+            [0.0, 0.0, 0.0, 1.0],
+        ]
+    )
+
+
+def base_T_flange_single(theta, q):
+    """Flange pose in base for one joint vector q (6,). theta (>=24,) holds the DH part."""
+    T = jnp.eye(4)
+    for i in range(N_JOINTS):
+        T = T @ _dh_matrix(theta[i], theta[6 + i], theta[12 + i], q[i] + theta[18 + i])
+    return T
+
+
+def base_T_frames_single(theta, q):
+    """All DH frames 0..6 in base for one q: (7, 4, 4)."""
+    Ts = [jnp.eye(4)]
+    for i in range(N_JOINTS):
+        Ts.append(Ts[-1] @ _dh_matrix(theta[i], theta[6 + i], theta[12 + i], q[i] + theta[18 + i]))
+    return jnp.stack(Ts)
+
+
+def tracker_T_base(theta, base_ref):
+    t = theta[24:27]
+    R = _rotvec_to_matrix(theta[27:30])
+    off = jnp.eye(4).at[:3, :3].set(R).at[:3, 3].set(t)
+    return base_ref @ off
+
+
+def p_tracker_single(theta, base_ref, q):
+    """SMR position in the tracker frame for one q (6,)."""
+    T = tracker_T_base(theta, base_ref) @ base_T_flange_single(theta, q)
+    tool = theta[30:33]
+    return T[:3, :3] @ tool + T[:3, 3]
+
+
+@jax.jit
+def p_tracker(theta, base_ref, q):
+    """SMR positions (N, 3) in the tracker frame for joints q (N, 6)."""
+    return jax.vmap(p_tracker_single, in_axes=(None, None, 0))(theta, base_ref, q)
+
+
+@jax.jit
+def base_T_flange(theta, q):
+    """Flange poses (N, 4, 4) in base."""
+    return jax.vmap(base_T_flange_single, in_axes=(None, 0))(theta, q)
+
+
+@jax.jit
+def jac_params(theta, base_ref, q):
+    """d p_tracker / d theta: (N, 3, 33)."""
+    return jax.vmap(jax.jacfwd(p_tracker_single, argnums=0), in_axes=(None, None, 0))(
+        theta, base_ref, q
+    )
+
+
+@jax.jit
+def jac_joints(theta, base_ref, q):
+    """d p_tracker / d q: (N, 3, 6)."""
+    return jax.vmap(jax.jacfwd(p_tracker_single, argnums=2), in_axes=(None, None, 0))(
+        theta, base_ref, q
+    )
+
+
+@partial(jax.jit, static_argnums=())
+def base_T_frames(theta, q):
+    """DH frames 0..6 in base for each pose: (N, 7, 4, 4)."""
+    return jax.vmap(base_T_frames_single, in_axes=(None, 0))(theta, q)
+
+
+def check_joints(q: np.ndarray, name: str = "q_rad") -> np.ndarray:
+    """Validate joint vectors (N, 6) or (6,) -> (N, 6) float64."""
+    q = np.asarray(q, dtype=float)
+    if q.ndim == 1:
+        q = q[None, :]
+    if q.ndim != 2 or q.shape[1] != N_JOINTS:
+        raise ValueError(f"{name}: expected shape (N, 6), got {q.shape}")
+    if not np.all(np.isfinite(q)):
+        raise ValueError(f"{name}: contains non-finite values")
+    return q

@@ -1,0 +1,164 @@
+"""In-memory dataset every estimator takes: arrays of pose samples plus the session's nominal model.
+
+Built from a recording (`Dataset.from_recording`) or directly from arrays (simulation, tests).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from workcell.kinematics.frames import matrix_from_quat_wxyz, transform_from
+from workcell.kinematics.robots import RobotSpec, robot_from_session
+from workcell.recording.reader import Recording, RecordingError, is_finite_list, read_recording
+
+HOLDOUT_SEED = 20240601
+
+
+@dataclass
+class Dataset:
+    robot: RobotSpec
+    tool_offset_m: np.ndarray  # (3,) nominal SMR in flange
+    tracker_T_base_nominal: np.ndarray  # (4, 4) (may be rough)
+    q: np.ndarray  # (N, 6) measured joints
+    p_tracker: np.ndarray  # (N, 3)
+    sigma_m: np.ndarray  # (N, 3)
+    q_commanded: np.ndarray | None = None
+    approach_sign: np.ndarray | None = None  # (N, 6)
+    joint_temperature_c: np.ndarray | None = None  # (N, 6), nan where unknown
+    ambient_temperature_c: np.ndarray | None = None  # (N,)
+    elapsed_s: np.ndarray | None = None
+    payload_kg: np.ndarray | None = None
+    payload_com_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    pose_id: np.ndarray | None = None
+    session: dict = field(default_factory=dict)
+    source: str = ""
+    source_sha256: str = ""
+
+    def __post_init__(self) -> None:
+        n = len(self.q)
+        if self.q.shape != (n, 6) or self.p_tracker.shape != (n, 3):
+            raise ValueError(f"dataset: q {self.q.shape} and p_tracker {self.p_tracker.shape} differ")
+        if self.approach_sign is None:
+            self.approach_sign = np.zeros((n, 6))
+        if self.joint_temperature_c is None:
+            self.joint_temperature_c = np.full((n, 6), np.nan)
+        if self.ambient_temperature_c is None:
+            self.ambient_temperature_c = np.full(n, np.nan)
+        if self.elapsed_s is None:
+            self.elapsed_s = np.arange(n, dtype=float)
+        if self.payload_kg is None:
+            self.payload_kg = np.zeros(n)
+        if self.pose_id is None:
+            self.pose_id = np.arange(n)
+        if self.q_commanded is None:
+            self.q_commanded = self.q.copy()
+
+    def __len__(self) -> int:
+        return len(self.q)
+
+    def subset(self, idx) -> Dataset:
+        idx = np.asarray(idx)
+        arrays = {}
+        for k in ("q", "p_tracker", "sigma_m", "q_commanded", "approach_sign",
+                  "joint_temperature_c", "ambient_temperature_c", "elapsed_s", "payload_kg",
+                  "pose_id"):
+            arrays[k] = getattr(self, k)[idx]
+        return replace(self, **arrays)
+
+    def holdout_split(self, fraction: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
+        """Deterministic split (fixed-seed permutation): (train indices, held-out indices)."""
+        if not 0.0 <= fraction < 1.0:
+            raise ValueError(f"holdout fraction must be in [0, 1), got {fraction}")
+        n = len(self)
+        n_test = int(round(fraction * n))
+        perm = np.random.default_rng(HOLDOUT_SEED).permutation(n)
+        return np.sort(perm[n_test:]), np.sort(perm[:n_test])
+
+    @classmethod
+    def from_recording(cls, rec: Recording | str | os.PathLike) -> Dataset:
+        if not isinstance(rec, Recording):
+            rec = read_recording(rec, streams=False)
+        s = rec.session
+        try:
+            robot = robot_from_session(s["robot"])
+        except ValueError as e:
+            raise RecordingError(f"{rec.path}: {e}") from None
+        tool = s["tool"].get("smr_offset_m")
+        if not is_finite_list(tool, 3):
+            raise RecordingError(f"{rec.path}: session tool.smr_offset_m must be 3 finite numbers")
+        bit = s["tracker"].get("base_in_tracker") or {}
+        t, qw = bit.get("translation_m"), bit.get("quaternion_wxyz")
+        if not (is_finite_list(t, 3) and is_finite_list(qw, 4)):
+            raise RecordingError(
+                f"{rec.path}: session tracker.base_in_tracker needs translation_m (3) and "
+                "quaternion_wxyz (4)"
+            )
+        T = transform_from(matrix_from_quat_wxyz(np.array(qw, float)), np.array(t, float))
+        rows = []
+        for k, smp in enumerate(rec.samples):
+            for key, n in (("q_measured_rad", 6), ("tracker_position_m", 3)):
+                if not is_finite_list(smp.get(key), n):
+                    raise RecordingError(
+                        f"{rec.path}: sample {smp.get('index', k)} (pose_id {smp.get('pose_id')}) "
+                        f"has a missing or non-finite {key}; repair or drop that sample"
+                    )
+            rows.append(smp)
+        if not rows:
+            raise RecordingError(f"{rec.path}: no /campaign/sample messages; nothing to fit")
+        n = len(rows)
+
+        def arr(key, width, default):
+            out = np.full((n, width) if width else n, default, dtype=float)
+            for i, r in enumerate(rows):
+                v = r.get(key)
+                if v is None:
+                    continue
+                try:
+                    out[i] = np.asarray(v, dtype=float)
+                except (TypeError, ValueError):
+                    raise RecordingError(
+                        f"{rec.path}: sample {r.get('index', i)} field {key} is malformed"
+                    ) from None
+            return out
+
+        q = arr("q_measured_rad", 6, np.nan)
+        sig = arr("tracker_sigma_m", 3, np.nan)
+        bad = ~np.isfinite(sig) | (sig <= 0)
+        if bad.any():  # unknown sigma: use the median of the known ones, or 10 um
+            good = sig[~bad]
+            sig[bad] = np.median(good) if good.size else 1e-5
+        payload = s.get("payload") or {}
+        pkg = arr("payload_kg", 0, float(payload.get("mass_kg", 0.0) or 0.0))
+        com = payload.get("com_m")
+        return cls(
+            robot=robot,
+            tool_offset_m=np.asarray(tool, float),
+            tracker_T_base_nominal=T,
+            q=q,
+            p_tracker=arr("tracker_position_m", 3, np.nan),
+            sigma_m=sig,
+            q_commanded=arr("q_commanded_rad", 6, np.nan),
+            approach_sign=arr("approach_sign", 6, 0.0),
+            joint_temperature_c=arr("joint_temperature_c", 6, np.nan),
+            ambient_temperature_c=arr("ambient_temperature_c", 0, np.nan),
+            elapsed_s=arr("elapsed_s", 0, np.nan),
+            payload_kg=pkg,
+            payload_com_m=np.asarray(com if is_finite_list(com, 3) else [0.0, 0.0, 0.0], float),
+            pose_id=arr("pose_id", 0, -1).astype(int),
+            session=s,
+            source=str(rec.path),
+            source_sha256=file_sha256(rec.path),
+        )
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    h = hashlib.sha256()
+    with open(Path(path), "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()

@@ -1,0 +1,170 @@
+"""Reader for recording format v1. Reads files without a summary (cut short by a crash): every
+complete chunk before the cut is read, and `Recording.problems` says what could not be read.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from mcap.exceptions import McapError
+from mcap.records import Channel, Chunk, DataEnd, Footer, Message, Schema
+from mcap.stream_reader import StreamReader, breakup_chunk
+
+from workcell.errors import UserError
+from workcell.recording import schema as S
+
+MAGIC = b"\x89MCAP0\r\n"
+
+
+class RecordingError(UserError):
+    """The file is not a usable recording; the message says what and what to do."""
+
+
+@dataclass
+class Recording:
+    path: Path
+    session: dict
+    samples: list[dict] = field(default_factory=list)
+    events: list[dict] = field(default_factory=list)
+    joint_states: list[dict] = field(default_factory=list)
+    tracker_measurements: list[dict] = field(default_factory=list)
+    channel_counts: dict[str, int] = field(default_factory=dict)
+    closed_cleanly: bool = False
+    problems: list[str] = field(default_factory=list)
+    first_ns: int | None = None
+    last_ns: int | None = None
+    size_bytes: int = 0
+
+    @property
+    def duration_s(self) -> float:
+        if self.first_ns is None or self.last_ns is None:
+            return 0.0
+        return (self.last_ns - self.first_ns) * 1e-9
+
+
+def read_recording(path: str | os.PathLike, *, streams: bool = True) -> Recording:
+    """Read a recording. Raises RecordingError (one clear line) if it is unusable.
+
+    `streams=False` skips decoding the joint-state and raw tracker streams (faster for fits).
+    """
+    p = Path(path)
+    if not p.exists():
+        raise RecordingError(f"{p}: no such file; check the path")
+    if p.is_dir():
+        raise RecordingError(f"{p}: is a directory, expected an .mcap recording")
+    with open(p, "rb") as f:
+        head = f.read(len(MAGIC))
+        if head != MAGIC:
+            raise RecordingError(f"{p}: not an MCAP file (bad magic bytes); expected a recording")
+        f.seek(0)
+        rec = Recording(path=p, session={}, size_bytes=p.stat().st_size)
+        channels: dict[int, Channel] = {}
+        schemas: dict[int, Schema] = {}
+        reader = StreamReader(f, emit_chunks=True, record_size_limit=1 << 30)
+
+        def handle(r) -> None:
+            if isinstance(r, Schema):
+                schemas[r.id] = r
+            elif isinstance(r, Channel):
+                channels[r.id] = r
+            elif isinstance(r, Message):
+                _message(rec, channels, schemas, r, streams)
+
+        try:
+            for r in reader.records:
+                if isinstance(r, Chunk):
+                    try:
+                        inner = breakup_chunk(r, validate_crc=True)
+                    except Exception as e:  # corrupt chunk: say so, keep going
+                        rec.problems.append(f"a damaged chunk could not be read ({e})")
+                        continue
+                    for r2 in inner:
+                        handle(r2)
+                elif isinstance(r, DataEnd):
+                    pass
+                elif isinstance(r, Footer):
+                    rec.closed_cleanly = True
+                else:
+                    handle(r)
+        except (McapError, EOFError, ValueError, OSError, MemoryError, KeyError) as e:
+            where = f.tell()
+            rec.problems.append(
+                f"file ends or is damaged near byte {where} of {rec.size_bytes} "
+                f"({type(e).__name__}); read everything before it"
+            )
+        except Exception as e:  # noqa: BLE001 - a reader must never crash on a bad file
+            rec.problems.append(f"unreadable data after byte {f.tell()} ({type(e).__name__}: {e})")
+    if not rec.closed_cleanly and not any("ends" in x for x in rec.problems):
+        rec.problems.append("no summary/footer: the writer did not finish (crash or still open)")
+    if not rec.session:
+        raise RecordingError(
+            f"{p}: no {S.SESSION} message; a recording must start with its session"
+        )
+    _check_session(p, rec.session)
+    return rec
+
+
+def _message(rec: Recording, channels, schemas, m: Message, streams: bool) -> None:
+    ch = channels.get(m.channel_id)
+    if ch is None:
+        rec.problems.append(f"message on unknown channel id {m.channel_id} skipped")
+        return
+    topic = ch.topic
+    rec.channel_counts[topic] = rec.channel_counts.get(topic, 0) + 1
+    t = m.log_time
+    rec.first_ns = t if rec.first_ns is None else min(rec.first_ns, t)
+    rec.last_ns = t if rec.last_ns is None else max(rec.last_ns, t)
+    if topic not in (S.SESSION, S.SAMPLE, S.EVENT) and not streams:
+        return
+    if topic not in S.SCHEMAS:
+        return  # extension channels are allowed
+    if ch.message_encoding != "json":
+        raise RecordingError(
+            f"{rec.path}: channel {topic} uses encoding {ch.message_encoding!r}; format v1 "
+            "requires json"
+        )
+    try:
+        msg = json.loads(m.data)
+    except (ValueError, UnicodeDecodeError):
+        rec.problems.append(f"{topic}: a message is not valid JSON (log time {t}); skipped")
+        return
+    if not isinstance(msg, dict):
+        rec.problems.append(f"{topic}: a message is not a JSON object; skipped")
+        return
+    msg["_log_time_ns"] = t
+    if topic == S.SESSION:
+        if rec.session:
+            rec.problems.append("more than one session message; kept the first")
+        else:
+            rec.session = msg
+    elif topic == S.SAMPLE:
+        rec.samples.append(msg)
+    elif topic == S.EVENT:
+        rec.events.append(msg)
+    elif topic == S.JOINT_STATE:
+        rec.joint_states.append(msg)
+    elif topic == S.TRACKER:
+        rec.tracker_measurements.append(msg)
+
+
+def _check_session(p: Path, s: dict) -> None:
+    v = s.get("format_version")
+    if v != S.FORMAT_VERSION:
+        raise RecordingError(
+            f"{p}: session format_version is {v!r}; this workcell reads version {S.FORMAT_VERSION}"
+        )
+    for key in ("robot", "tool", "tracker"):
+        if not isinstance(s.get(key), dict):
+            raise RecordingError(f"{p}: session has no '{key}' object; not a workcell recording")
+
+
+def is_finite_list(v, n: int) -> bool:
+    return (
+        isinstance(v, list)
+        and len(v) == n
+        and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v)
+    )

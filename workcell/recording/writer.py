@@ -1,0 +1,131 @@
+"""Append-only MCAP writer for recording format v1. Flushes to disk at every pose and event.
+
+Each `sample()` closes the current chunk and fsyncs, so a kill -9 loses at most the pose in
+progress (its joint states and tracker readings, written before its sample).
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import math
+import os
+import time
+from pathlib import Path
+
+from mcap.writer import CompressionType, Writer
+
+from workcell.recording import schema as S
+
+
+def _now_ns() -> int:
+    return time.time_ns()
+
+
+def _clean(v):
+    """JSON-ready: numpy to lists, NaN to None."""
+    if hasattr(v, "tolist"):
+        v = v.tolist()
+    if isinstance(v, float):
+        return v if math.isfinite(v) else None
+    if isinstance(v, (list, tuple)):
+        return [_clean(x) for x in v]
+    if isinstance(v, dict):
+        return {k: _clean(x) for k, x in v.items()}
+    return v
+
+
+class RecordingWriter:
+    """Write a campaign recording. Use as a context manager; `close()` writes the summary."""
+
+    def __init__(self, path: str | os.PathLike, session: dict, *, compression: str = "zstd"):
+        self.path = Path(path)
+        if self.path.exists():
+            raise FileExistsError(f"{self.path} already exists; refusing to overwrite a recording")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._f = open(self.path, "wb")
+        comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}[
+            compression
+        ]
+        self._w = Writer(self._f, chunk_size=4 * 1024 * 1024, compression=comp)
+        self._w.start(profile="", library="workcell")
+        self._ch: dict[str, int] = {}
+        for topic in (S.SESSION, S.JOINT_STATE, S.TRACKER, S.SAMPLE, S.EVENT):
+            name, data = S.schema_bytes(topic)
+            sid = self._w.register_schema(name=name, encoding="jsonschema", data=data)
+            self._ch[topic] = self._w.register_channel(
+                topic=topic, message_encoding="json", schema_id=sid
+            )
+        self._seq = 0
+        self.n_samples = 0
+        self.closed = False
+        sess = {
+            "format_version": S.FORMAT_VERSION,
+            "created_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+            **session,
+        }
+        sess.setdefault("software", {"name": "workcell", "version": _version()})
+        self._write(S.SESSION, sess, _now_ns())
+        self.flush()
+
+    def _write(self, topic: str, msg: dict, t_ns: int) -> None:
+        if self.closed:
+            raise ValueError(f"recording {self.path} is closed")
+        data = json.dumps(_clean(msg), allow_nan=False).encode()
+        self._w.add_message(
+            channel_id=self._ch[topic], log_time=int(t_ns), publish_time=int(t_ns), data=data,
+            sequence=self._seq,
+        )
+        self._seq += 1
+
+    def flush(self) -> None:
+        self._w.flush()  # closes the current chunk
+        self._f.flush()
+        os.fsync(self._f.fileno())
+
+    def joint_state(self, t_ns: int, q_rad, qd_rad_s, torque_nm=None, temperature_c=None) -> None:
+        self._write(
+            S.JOINT_STATE,
+            {"q_rad": q_rad, "qd_rad_s": qd_rad_s, "torque_nm": torque_nm,
+             "temperature_c": temperature_c},
+            t_ns,
+        )
+
+    def tracker_measurement(self, t_ns: int, position_m, sigma_m, status: str) -> None:
+        self._write(S.TRACKER, {"position_m": position_m, "sigma_m": sigma_m, "status": status}, t_ns)
+
+    def sample(self, t_ns: int, sample: dict) -> None:
+        for k in ("q_measured_rad", "tracker_position_m"):
+            if any(x is None or not math.isfinite(x) for x in _clean(sample[k]) or [None]):
+                raise ValueError(f"sample {sample.get('pose_id')}: non-finite {k}")
+        self._write(S.SAMPLE, sample, t_ns)
+        self.n_samples += 1
+        self.flush()
+
+    def event(self, t_ns: int, level: str, kind: str, message: str) -> None:
+        self._write(S.EVENT, {"level": level, "kind": kind, "message": message}, t_ns)
+        self.flush()
+
+    def close(self) -> None:
+        if self.closed:
+            return
+        self._w.finish()
+        self._f.flush()
+        os.fsync(self._f.fileno())
+        self._f.close()
+        self.closed = True
+
+    def __enter__(self) -> RecordingWriter:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _version() -> str:
+    try:
+        from importlib.metadata import version
+
+        return version("workcell")
+    except Exception:
+        return "0+unknown"
