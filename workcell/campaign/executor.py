@@ -42,6 +42,7 @@ class CampaignConfig:
     outlier_k: float = 5.0
     payload_kg: float = 0.0
     joint_state_every_s: float = 0.25
+    warmup_s: float = 0.0  # exercise the arm this long before the first measurement
 
 
 @dataclass
@@ -287,10 +288,31 @@ class Executor:
             self.on_sample(sample)
         return sample
 
+    def warm_up(self, q_centre: np.ndarray) -> None:
+        """Move the arm back and forth around q_centre for `warmup_s` of robot time, so the
+        joints reach their working temperature before measuring (no measurement is taken)."""
+        if self.cfg.warmup_s <= 0:
+            return
+        self.event("info", "warmup", f"warming up for {self.cfg.warmup_s:.0f} s before measuring")
+        start = self.elapsed()
+        k = 0
+        offsets = np.array([0.4, -0.3, 0.3, -0.4, 0.4, 0.5])
+        while self.elapsed() - start < self.cfg.warmup_s:
+            if self.control.abort.is_set():
+                raise KeyboardInterrupt
+            q = q_centre + (offsets if k % 2 == 0 else -offsets)
+            if self.env.violations(self.spec, q, self.tool_m)[0] is not None:
+                q = q_centre
+            self._move(q)
+            self._record_state(force=False)
+            k += 1
+        self.event("info", "warmup", f"warm-up done after {k} moves")
+
     def run(self, plan: Plan) -> CampaignResult:
         sample = None
         try:
             t = next(plan)
+            self.warm_up(t.q_rad)
             while True:
                 if self.control.abort.is_set():
                     raise KeyboardInterrupt

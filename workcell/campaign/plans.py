@@ -74,10 +74,30 @@ def grid_configurations(
     return q
 
 
-def static_plan(q: np.ndarray, seed: int = 0, *, start_id: int = 0,
-                skip_ids: set[int] | None = None) -> Plan:
+def approach_signs(
+    spec: RobotSpec, env: Envelope, q: np.ndarray, tool_m: np.ndarray, approach_rad: float,
+    seed: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Random approach signs whose pre-pose (q - sign * approach_rad) is inside the envelope.
+
+    Returns (kept configurations, their signs); a pose whose pre-pose cannot be placed inside
+    the envelope with either random or flipped signs is dropped."""
     rng = np.random.default_rng(seed + 1)
     signs = rng.choice([-1.0, 1.0], size=q.shape)
+    ok = np.ones(len(q), bool)
+    for attempt in range(3):
+        bad = [i for i, v in enumerate(env.violations(spec, q - signs * approach_rad, tool_m)) if v]
+        if not bad:
+            break
+        if attempt < 2:
+            signs[bad] = -signs[bad] if attempt == 0 else rng.choice([-1.0, 1.0], (len(bad), 6))
+        else:
+            ok[bad] = False
+    return q[ok], signs[ok]
+
+
+def static_plan(q: np.ndarray, signs: np.ndarray, *, start_id: int = 0,
+                skip_ids: set[int] | None = None) -> Plan:
     for i, (qi, si) in enumerate(zip(q, signs, strict=True)):
         pid = start_id + i
         if skip_ids and pid in skip_ids:
@@ -87,20 +107,27 @@ def static_plan(q: np.ndarray, seed: int = 0, *, start_id: int = 0,
 
 def make_plan(
     kind: str, spec: RobotSpec, env: Envelope, n: int, *, seed: int, tool_m: np.ndarray,
-    skip_ids: set[int] | None = None, **kw
+    skip_ids: set[int] | None = None, approach_rad: float = 0.02, **kw
 ) -> tuple[Plan, np.ndarray | None]:
     """Build a plan by name. Returns (generator, the planned configurations if known ahead)."""
     if n <= 0:
         raise ValueError(f"number of poses must be positive, got {n}")
-    if kind == "random":
-        q = random_configurations(spec, env, n, np.random.default_rng(seed), tool_m)
-        return static_plan(q, seed, skip_ids=skip_ids), q
-    if kind == "grid":
-        q = grid_configurations(spec, env, n, tool_m, seed)
-        return static_plan(q, seed, skip_ids=skip_ids), q
+    if kind in ("random", "grid"):
+        if kind == "random":
+            q = random_configurations(spec, env, int(n * 1.1) + 2, np.random.default_rng(seed),
+                                      tool_m)
+        else:
+            q = grid_configurations(spec, env, int(n * 1.1) + 2, tool_m, seed)
+        q, signs = approach_signs(spec, env, q, tool_m, approach_rad, seed)
+        if len(q) < n:
+            raise ValueError(f"only {len(q)} of {n} poses fit the envelope with their approach")
+        idx = np.round(np.linspace(0, len(q) - 1, n)).astype(int) if kind == "grid" else slice(0, n)
+        q, signs = q[idx], signs[idx]
+        return static_plan(q, signs, skip_ids=skip_ids), q
     if kind in ("bo", "dopt"):
         from workcell.campaign import adaptive  # optional module (experiment design)
 
         return adaptive.make_adaptive_plan(kind, spec, env, n, seed=seed, tool_m=tool_m,
-                                           skip_ids=skip_ids, **kw), None
+                                           skip_ids=skip_ids, approach_rad=approach_rad,
+                                           **kw), None
     raise ValueError(f"unknown plan {kind!r}; choose grid, random, bo or dopt")

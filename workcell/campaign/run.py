@@ -65,7 +65,8 @@ def run_campaign(
     env = envelope or default_envelope(cell.spec)
     cfg = config or CampaignConfig(payload_kg=cell.payload_kg)
     gen, _ = make_plan(plan, cell.spec, env, poses, seed=seed, tool_m=cell.tool_m,
-                       skip_ids=skip_ids, **(plan_kwargs or {}))
+                       skip_ids=skip_ids, approach_rad=cfg.approach_rad,
+                       **(plan_kwargs or {}))
     campaign = {
         "plan": plan,
         "poses": poses,

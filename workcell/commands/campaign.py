@@ -25,6 +25,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--model", default="ur5e", help="robot model when not given by the device")
     p.add_argument("--readings", type=int, default=5, help="tracker readings per pose")
     p.add_argument("--settle", type=float, default=1.0, help="settle time in seconds")
+    p.add_argument("--warmup", type=float, default=0.0,
+                   help="exercise the arm this many seconds before measuring")
     p.add_argument("--time-scale", type=float, default=1.0, help="simulators: time scale")
     p.add_argument("--dry-run", action="store_true", help="print and check the plan; do not move")
     p.add_argument("--resume", help="continue this interrupted recording in a new chained file")
@@ -42,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--readings must be positive, got {args.readings}")
     cell, robot, tracker, env = open_cell(args)
     cfg = CampaignConfig(readings_per_pose=args.readings, settle_s=args.settle,
-                         payload_kg=cell.payload_kg)
+                         payload_kg=cell.payload_kg, warmup_s=args.warmup)
     if args.dry_run:
         return dry_run(args, cell, env, cfg)
     if not args.out:
@@ -86,7 +88,8 @@ def dry_run(args, cell, env, cfg) -> int:
     from workcell.campaign.executor import Executor
     from workcell.campaign.plans import make_plan
 
-    gen, q = make_plan(args.plan, cell.spec, env, args.poses, seed=args.seed, tool_m=cell.tool_m)
+    gen, q = make_plan(args.plan, cell.spec, env, args.poses, seed=args.seed, tool_m=cell.tool_m,
+                       approach_rad=cfg.approach_rad)
     if q is None:
         print(f"plan {args.plan}: adaptive; each pose is chosen during the campaign inside the "
               f"envelope; {args.poses} poses")
