@@ -1,0 +1,294 @@
+"""SerialTracker against the simulated GeoCOM instrument over a real pseudo-terminal."""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from sim_devices.geocom_tracker import SimGeoComTracker
+from workcell.drivers.protocols import DeviceError, DeviceUnreachable, Tracker
+from workcell.drivers.serial_tracker import SerialTracker
+
+pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="needs a POSIX pty")
+
+TIMEOUT_S = 0.25
+
+
+class World:
+    """Stands in for the simulated workcell: a new SMR position on every measurement."""
+
+    def __init__(self, seed: int = 1) -> None:
+        self.rng = np.random.default_rng(seed)
+        self.produced: list[np.ndarray] = []
+        self.status = "ok"
+
+    def __call__(self) -> tuple[np.ndarray, str]:
+        p = self.rng.uniform([-3.0, -3.0, -1.0], [3.0, 3.0, 2.0])
+        self.produced.append(p)
+        return p, self.status
+
+
+@pytest.fixture
+def world() -> World:
+    return World()
+
+
+@pytest.fixture
+def sim(world: World):
+    s = SimGeoComTracker(world, time_scale=1.0).start()
+    yield s
+    s.stop()
+
+
+@pytest.fixture
+def tracker(sim: SimGeoComTracker):
+    t = SerialTracker(sim.port, timeout_s=TIMEOUT_S, retries=2)
+    t.connect()
+    yield t
+    t.close()
+
+
+def _assert_reading_is_latest(reading, world: World) -> None:
+    assert reading.status == "ok"
+    np.testing.assert_allclose(reading.position_m, world.produced[-1], rtol=0, atol=1e-12)
+
+
+def test_connect_and_measure(sim: SimGeoComTracker, tracker: SerialTracker, world: World) -> None:
+    assert isinstance(tracker, Tracker)
+    assert sim.port.startswith("/dev/")
+    assert tracker.instrument_name == sim.instrument_name
+    assert tracker.precision == 15
+    for _ in range(20):
+        r = tracker.measure()
+        _assert_reading_is_latest(r, world)
+        rng_m = np.linalg.norm(world.produced[-1])
+        np.testing.assert_allclose(r.sigma_m, np.full(3, (15e-6 + 6e-6 * rng_m) / 4.0))
+        assert r.extra["rc"] == 0 and r.extra["faults"] == 0
+    assert len(world.produced) == 20
+    assert tracker.pop_faults() == []
+
+
+def test_low_instrument_precision_is_raised_on_connect(world: World) -> None:
+    with SimGeoComTracker(world, precision=4) as s:
+        t = SerialTracker(s.port, timeout_s=TIMEOUT_S)
+        t.connect()
+        assert (t.precision, s.precision) == (15, 15)
+        _assert_reading_is_latest(t.measure(), world)
+        t.close()
+
+
+def test_crc_mode(sim: SimGeoComTracker, world: World) -> None:
+    t = SerialTracker(sim.port, timeout_s=TIMEOUT_S, use_crc=True)
+    t.connect()
+    _assert_reading_is_latest(t.measure(), world)
+    assert t.pop_faults() == []
+    assert sim.stats["bad_request_crc"] == 0
+    t.close()
+
+
+@pytest.mark.parametrize(
+    ("world_status", "expected"),
+    [("beam_broken", "beam_broken"), ("out_of_range", "beam_broken"), ("error", "error")],
+)
+def test_world_status_maps_to_reading_status(
+    tracker: SerialTracker, world: World, world_status: str, expected: str
+) -> None:
+    world.status = world_status
+    r = tracker.measure()
+    assert r.status == expected
+    assert np.all(np.isnan(r.position_m)) and np.all(np.isnan(r.sigma_m))
+    world.status = "ok"
+    _assert_reading_is_latest(tracker.measure(), world)
+
+
+def test_injected_beam_break_is_angle_ok_no_distance(
+    sim: SimGeoComTracker, tracker: SerialTracker, world: World
+) -> None:
+    sim.inject("beam_break")
+    r = tracker.measure()
+    assert r.status == "beam_broken"
+    assert r.extra["rc"] == 1285 and r.extra["rc_name"] == "GRC_TMC_ANGLE_OK"
+    assert tracker.pop_faults() == []  # a beam break is an answer, not a link fault
+    _assert_reading_is_latest(tracker.measure(), world)
+
+
+def test_beam_break_rate_matches_injected_count(world: World) -> None:
+    with SimGeoComTracker(world, faults={"beam_break_rate": 0.3}, seed=3) as s:
+        t = SerialTracker(s.port, timeout_s=TIMEOUT_S)
+        t.connect()
+        statuses = [t.measure().status for _ in range(60)]
+        t.close()
+    assert statuses.count("beam_broken") == s.stats["beam_break"]
+    assert 0 < statuses.count("beam_broken") < 60
+
+
+@pytest.mark.parametrize("kind", ["garbage_before", "garbage_instead"])
+def test_garbage_resyncs_and_next_measurement_is_clean(
+    sim: SimGeoComTracker, tracker: SerialTracker, world: World, kind: str
+) -> None:
+    sim.inject(kind)
+    r = tracker.measure()
+    _assert_reading_is_latest(r, world)
+    kinds = [k for k, _ in tracker.pop_faults()]
+    assert "resync" in kinds
+    assert "garbage" in kinds or "timeout" in kinds  # 'instead' may carry no line end
+    r = tracker.measure()
+    _assert_reading_is_latest(r, world)
+    assert tracker.pop_faults() == []
+
+
+def test_dropped_line_times_out_and_retries(
+    sim: SimGeoComTracker, tracker: SerialTracker, world: World
+) -> None:
+    sim.inject("drop")
+    t0 = time.monotonic()
+    r = tracker.measure()
+    elapsed = time.monotonic() - t0
+    _assert_reading_is_latest(r, world)
+    kinds = [k for k, _ in tracker.pop_faults()]
+    assert kinds[0] == "timeout" and "resync" in kinds
+    assert elapsed >= TIMEOUT_S
+    assert sim.stats["drop"] == 1
+
+
+def test_slow_reply_late_answer_is_skipped_by_transaction_id(
+    sim: SimGeoComTracker, tracker: SerialTracker, world: World
+) -> None:
+    sim.faults["slow_delay_s"] = 2 * TIMEOUT_S
+    sim.inject("slow")
+    r = tracker.measure()
+    _assert_reading_is_latest(r, world)
+    kinds = [k for k, _ in tracker.pop_faults()]
+    assert "timeout" in kinds and "stale_reply" in kinds
+    # a slow reply within the time-out is no fault at all
+    sim.faults["slow_delay_s"] = 0.3 * TIMEOUT_S
+    sim.inject("slow")
+    _assert_reading_is_latest(tracker.measure(), world)
+    assert tracker.pop_faults() == []
+
+
+def test_silent_instrument_gives_device_error(
+    sim: SimGeoComTracker, tracker: SerialTracker
+) -> None:
+    sim.inject("drop", 1000)
+    t0 = time.monotonic()
+    with pytest.raises(DeviceError, match="is silent: no reply to TMC_DoMeasure") as ei:
+        tracker.measure()
+    assert not isinstance(ei.value, DeviceUnreachable)
+    # one time-out on the request, then retries + 1 = 3 COM_NullProc tries
+    assert time.monotonic() - t0 >= 4 * TIMEOUT_S
+    kinds = [k for k, _ in tracker.pop_faults()]
+    assert kinds == ["timeout", "resync_failed", "gave_up"]
+
+
+def test_persistently_garbled_replies_give_device_error_after_retries(
+    sim: SimGeoComTracker, tracker: SerialTracker
+) -> None:
+    # every reply to TMC_DoMeasure garbled while COM_NullProc answers: the link works, the
+    # request is re-sent `retries` times, then DeviceError
+    sim.inject("garbage_before", 3, rpc=2008)
+    with pytest.raises(DeviceError, match="no valid reply to TMC_DoMeasure after 3 attempts"):
+        tracker.measure()
+    kinds = [k for k, _ in tracker.pop_faults()]
+    assert kinds.count("garbage") == 3 and kinds[-1] == "gave_up"
+
+
+def test_vanish_gives_device_unreachable_with_clear_message(
+    sim: SimGeoComTracker, tracker: SerialTracker, world: World
+) -> None:
+    _assert_reading_is_latest(tracker.measure(), world)
+    port = sim.port
+    sim.vanish()
+    assert not os.path.exists(port)
+    with pytest.raises(DeviceUnreachable) as ei:
+        tracker.measure()
+    msg = str(ei.value)
+    assert port in msg and "vanished" in msg and "reconnect" in msg
+    assert not tracker.is_connected
+    with pytest.raises(DeviceUnreachable, match="cannot be opened"):
+        tracker.connect()
+
+
+def test_vanish_after_n_requests(world: World) -> None:
+    # connect = 3 requests (NullProc, GetDoublePrecision, GetInstrumentName), a measure = 2
+    with SimGeoComTracker(world, faults={"vanish_after": 8}) as s:
+        t = SerialTracker(s.port, timeout_s=TIMEOUT_S)
+        t.connect()
+        _assert_reading_is_latest(t.measure(), world)
+        _assert_reading_is_latest(t.measure(), world)
+        with pytest.raises(DeviceUnreachable, match="vanished"):
+            t.measure()
+        assert s.vanished
+
+
+def test_unopenable_and_non_geocom_ports_are_unreachable(tmp_path) -> None:
+    with pytest.raises(DeviceUnreachable, match="cannot be opened"):
+        SerialTracker(str(tmp_path / "no-such-tty"), timeout_s=0.05).connect()
+    # loop:// echoes our requests back: a line, but nobody answering GeoCOM
+    t = SerialTracker("loop://", timeout_s=0.05, retries=0)
+    with pytest.raises(DeviceUnreachable, match="no GeoCOM answer"):
+        t.connect()
+    assert not t.is_connected
+
+
+def test_random_faults_never_mix_up_measurements(world: World) -> None:
+    timeout_s = 0.1
+    faults = {
+        "slow_rate": 0.05,
+        "slow_delay_s": 2 * timeout_s,
+        "garbage_rate": 0.05,
+        "drop_rate": 0.05,
+        "beam_break_rate": 0.05,
+    }
+    with SimGeoComTracker(world, faults=faults, seed=11) as s:
+        t = SerialTracker(s.port, timeout_s=timeout_s, retries=3, measure_wait_s=0.0)
+        t.connect()
+        statuses = []
+        for _ in range(60):
+            try:
+                r = t.measure()
+            except DeviceError:
+                statuses.append("device_error")
+                continue
+            statuses.append(r.status)
+            if r.status == "ok":
+                _assert_reading_is_latest(r, world)
+        faults_seen = {k for k, _ in t.pop_faults()}
+        t.close()
+    assert statuses.count("ok") >= 40
+    injected = s.stats["garbage"] + s.stats["drop"] + s.stats["slow"]
+    assert injected > 0 and "resync" in faults_seen
+
+
+# ----------------------------------------------------------------------------- geocompy
+
+
+@pytest.mark.parametrize("checksum", [False, True])
+def test_geocompy_client_reads_a_coordinate(
+    sim: SimGeoComTracker, world: World, checksum: bool
+) -> None:
+    from geocompy.communication import open_serial
+    from geocompy.geo import GeoCom
+    from geocompy.geo.gctypes import GeoComCode
+
+    with open_serial(sim.port, speed=115200, timeout=2) as conn:
+        tps = GeoCom(conn, checksum=checksum)  # NullProc, precision sync, name, versions
+        assert tps.precision == 15
+        assert tps.csv.get_instrument_name().params == sim.instrument_name
+        assert tps.csv.get_serial_number().params == sim.serial_number
+        assert tps.tmc.do_measurement().error == GeoComCode.OK
+        resp = tps.tmc.get_coordinate(wait=1)
+        assert resp.error == GeoComCode.OK
+        coord, t_ms, _coord_cont, _t_cont = resp.params
+        np.testing.assert_allclose(
+            [coord.e, coord.n, coord.h], world.produced[-1], rtol=0, atol=1e-12
+        )
+        assert t_ms >= 0
+        sim.inject("beam_break")
+        assert tps.tmc.do_measurement().error == GeoComCode.OK
+        assert tps.tmc.get_coordinate(wait=1).error == GeoComCode.TMC_ANGLE_OK
+    assert sim.stats["bad_request"] == 0 and sim.stats["bad_request_crc"] == 0

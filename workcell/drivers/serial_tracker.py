@@ -1,0 +1,448 @@
+"""`Tracker` over RS-232 speaking GeoCOM (Leica), with pyserial.
+
+One measurement = `TMC_DoMeasure(TMC_DEF_DIST, TMC_AUTO_INC)` then
+`TMC_GetCoordinate(wait_ms, TMC_AUTO_INC)`; the coordinate (E, N, H) is the SMR position in the
+`tracker` frame (see `workcell.drivers.geocom.p_tracker_from_enh`).
+
+Status of a reading (from the TMC return code of either call):
+- `ok`: GRC_OK, and the "results valid with a warning" codes TMC_NO_FULL_CORRECTION (1283) and
+  TMC_ACCURACY_GUARANTEE (1284) (the warning is kept in `extra["warning"]`);
+- `beam_broken`: "angles ok, no distance" TMC_ANGLE_OK (1285), TMC_ANGLE_NOT_FULL_CORR (1288),
+  TMC_ANGLE_NO_ACC_GUARANTY (1289), and TMC_DIST_ERROR (1292, no target found); position and
+  sigma are nan;
+- `error`: any other non-zero procedure code (angle error, busy, ...); position and sigma nan.
+Procedure codes are instrument answers, so `measure()` returns them as a reading; it raises only
+for the link: `DeviceError` when no valid reply came after the retries, `DeviceUnreachable` when
+the port cannot be opened or vanished.
+
+sigma_m: the stated accuracy of a laser tracker is an MPE, U = +-(a + b * range) with
+a = 15 um, b = 6 um/m (Leica AT960 class). Typical errors are half the MPE; we take that half as a
+2-sigma bound, so per axis sigma = (a + b * range) / 4 -- the same model the simulated world
+(`sim_devices.truth.TrackerNoise`) uses. Change with `mpe_a_m`, `mpe_b_m_per_m`, `sigma_divisor`.
+
+Link robustness: every request carries a fresh transaction id (1..32767) and only a reply with the
+same id is accepted (late replies to earlier requests are skipped and logged as `stale_reply`).
+A malformed line, a CRC mismatch, a transient COM error code or a time-out triggers a resync --
+flush the input, send a bare LF (clears the instrument's receive buffer), then COM_NullProc until
+one clean reply with a matching id -- and the request is sent again, up to `retries` times.
+Everything handled is appended to `fault_log` as `(kind, message)`; drain it with `pop_faults()`.
+Kinds: `timeout`, `garbage`, `checksum`, `stale_reply`, `com_error`, `resync`, `resync_failed`,
+`gave_up`, `port_vanished`.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import serial
+
+from workcell.drivers import geocom as gc
+from workcell.drivers.protocols import DeviceError, DeviceUnreachable, TrackerReading
+
+try:  # pyserial's POSIX backend lets termios.error (not an OSError) escape from flush()
+    import termios
+
+    _IO_ERRORS: tuple[type[BaseException], ...] = (
+        serial.SerialException,
+        OSError,
+        termios.error,
+    )
+except ImportError:  # pragma: no cover - Windows
+    _IO_ERRORS = (serial.SerialException, OSError)
+
+BEAM_BROKEN_CODES: frozenset[int] = gc.ANGLE_ONLY_CODES | {gc.Grc.TMC_DIST_ERROR}
+
+
+class _Timeout(Exception):
+    pass
+
+
+class SerialTracker:
+    """GeoCOM tracker on a serial port (`/dev/ttyUSB0`, `/dev/pts/N`, `loop://`, `rfc2217://`).
+
+    timeout_s: time allowed for one reply (TMC_GetCoordinate gets `measure_wait_s` on top).
+    retries: how many times a request is re-sent after a time-out or a garbled reply; so a dead
+    link costs about (retries + 1) * timeout_s plus the resync attempts before `DeviceError`.
+    """
+
+    def __init__(
+        self,
+        port: str,
+        *,
+        baudrate: int = 115200,
+        timeout_s: float = 2.0,
+        retries: int = 2,
+        use_crc: bool = False,
+        measure_wait_s: float = 1.0,
+        mpe_a_m: float = 15e-6,
+        mpe_b_m_per_m: float = 6e-6,
+        sigma_divisor: float = 4.0,
+        min_precision: int = 9,
+        serial_factory: Callable[..., Any] = serial.serial_for_url,
+        clock: Callable[[], float] = time.monotonic,
+        wall_clock: Callable[[], float] = time.time,
+    ) -> None:
+        if timeout_s <= 0:
+            raise ValueError(f"timeout_s must be > 0, got {timeout_s!r}")
+        if retries < 0:
+            raise ValueError(f"retries must be >= 0, got {retries!r}")
+        if measure_wait_s < 0:
+            raise ValueError(f"measure_wait_s must be >= 0, got {measure_wait_s!r}")
+        if sigma_divisor <= 0:
+            raise ValueError(f"sigma_divisor must be > 0, got {sigma_divisor!r}")
+        self.port = port
+        self.baudrate = int(baudrate)
+        self.timeout_s = float(timeout_s)
+        self.retries = int(retries)
+        self.use_crc = bool(use_crc)
+        self.measure_wait_s = float(measure_wait_s)
+        self.mpe_a_m = float(mpe_a_m)
+        self.mpe_b_m_per_m = float(mpe_b_m_per_m)
+        self.sigma_divisor = float(sigma_divisor)
+        self.min_precision = int(min_precision)
+        self._serial_factory = serial_factory
+        self._clock = clock
+        self._wall_clock = wall_clock
+        self._poll_s = min(0.05, self.timeout_s)
+        self._ser: Any = None
+        self._buf = bytearray()
+        self._trid = 0
+        self._lock = threading.RLock()
+        self.instrument_name: str | None = None
+        self.precision: int = 15
+        self.fault_log: list[tuple[str, str]] = []
+        self.fault_counts: Counter[str] = Counter()
+        self.requests_sent = 0
+
+    # ------------------------------------------------------------------ Tracker protocol
+    def connect(self) -> None:
+        """Open the port, check the instrument answers COM_NullProc, read its name/precision."""
+        with self._lock:
+            self.close()
+            try:
+                self._ser = self._serial_factory(
+                    self.port, baudrate=self.baudrate, timeout=self._poll_s, write_timeout=None
+                )
+            except (*_IO_ERRORS, ValueError) as exc:
+                self._ser = None
+                raise DeviceUnreachable(
+                    f"tracker port {self.port!r} cannot be opened ({exc}); check the cable / USB "
+                    f"adapter, the port name, and that no other program holds the port"
+                ) from exc
+            self._buf.clear()
+            try:
+                self._write(b"\n")  # a leading LF clears the instrument's receive buffer
+                try:
+                    self._call(gc.Rpc.COM_NullProc)
+                except DeviceUnreachable:
+                    raise
+                except DeviceError as exc:
+                    raise DeviceUnreachable(
+                        f"no GeoCOM answer from the tracker on {self.port!r} at {self.baudrate} "
+                        f"baud ({exc}); check the instrument is on, in GeoCOM/online mode, and "
+                        f"its RS-232 settings (baud rate, 8N1, CR/LF terminator)"
+                    ) from exc
+                prec = self._call_value(gc.Rpc.COM_GetDoublePrecision, gc.decode_long)
+                if prec < self.min_precision:
+                    # a low precision would round coordinates (4 digits = 0.1 mm)
+                    rep = self._call(gc.Rpc.COM_SetDoublePrecision, (15,))
+                    if rep.rc != gc.Grc.OK:
+                        raise DeviceError(
+                            f"tracker on {self.port!r}: double precision is {prec} digits and "
+                            f"COM_SetDoublePrecision failed: {rep.describe()}"
+                        )
+                    prec = 15
+                self.precision = int(prec)
+                self.instrument_name = self._call_value(
+                    gc.Rpc.CSV_GetInstrumentName, gc.decode_string
+                )
+            except BaseException:
+                self.close()
+                raise
+
+    def close(self) -> None:
+        with self._lock:
+            ser, self._ser = self._ser, None
+            if ser is not None:
+                try:
+                    ser.close()
+                except Exception:  # noqa: BLE001 - closing a vanished port may fail; ignore
+                    pass
+
+    @property
+    def is_connected(self) -> bool:
+        return self._ser is not None
+
+    def measure(self) -> TrackerReading:
+        """TMC_DoMeasure + TMC_GetCoordinate -> one reading (status ok/beam_broken/error)."""
+        with self._lock:
+            faults_before = len(self.fault_log)
+            rep = self._call(
+                gc.Rpc.TMC_DoMeasure,
+                (int(gc.TmcMeasurePrg.TMC_DEF_DIST), int(gc.TmcInclinePrg.TMC_AUTO_INC)),
+            )
+            if rep.rc != gc.Grc.OK:
+                return self._reading_without_coordinate(rep.rc, "TMC_DoMeasure", faults_before)
+            wait_ms = int(round(self.measure_wait_s * 1000))
+            rep = self._call(
+                gc.Rpc.TMC_GetCoordinate,
+                (wait_ms, int(gc.TmcInclinePrg.TMC_AUTO_INC)),
+                extra_timeout_s=self.measure_wait_s,
+                decode=_decode_coordinate_if_valid,
+            )
+            t_s = self._wall_clock()
+            if rep.rc != gc.Grc.OK and rep.rc not in gc.COORDINATE_WARNING_CODES:
+                return self._reading_without_coordinate(rep.rc, "TMC_GetCoordinate", faults_before)
+            coord = gc.decode_coordinate(rep)
+            p = gc.p_tracker_from_enh(coord.e_m, coord.n_m, coord.h_m)
+            extra: dict[str, Any] = {
+                "rc": int(rep.rc),
+                "rc_name": gc.return_code_name(rep.rc),
+                "instrument_time_ms": coord.time_ms,
+                "faults": len(self.fault_log) - faults_before,
+            }
+            if rep.rc != gc.Grc.OK:
+                extra["warning"] = gc.describe_return_code(rep.rc)
+            return TrackerReading(
+                position_m=p, sigma_m=self.sigma_for(p), status="ok", t_s=t_s, extra=extra
+            )
+
+    # ------------------------------------------------------------------ public helpers
+    def sigma_for(self, p_tracker: np.ndarray) -> np.ndarray:
+        """Per-axis 1-sigma (m) of a reading at `p_tracker`: (a + b * range) / sigma_divisor."""
+        r = float(np.linalg.norm(np.asarray(p_tracker, dtype=float)))
+        s = (self.mpe_a_m + self.mpe_b_m_per_m * r) / self.sigma_divisor
+        return np.full(3, s)
+
+    def pop_faults(self) -> list[tuple[str, str]]:
+        """Return and clear the faults handled since the last call, oldest first."""
+        with self._lock:
+            out, self.fault_log = self.fault_log, []
+            return out
+
+    def call(
+        self, rpc: int, params: tuple | list = (), *, extra_timeout_s: float = 0.0
+    ) -> gc.Reply:
+        """Any GeoCOM RPC with the same retry/resync policy (reply's procedure code unchecked)."""
+        with self._lock:
+            return self._call(rpc, tuple(params), extra_timeout_s=extra_timeout_s)
+
+    def __enter__(self) -> SerialTracker:
+        self.connect()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ internals
+    def _call_value(self, rpc: int, decoder: Callable[[str], Any]) -> Any:
+        """Call an RPC that returns one value; a non-zero procedure code -> DeviceError."""
+
+        def check(rep: gc.Reply) -> None:
+            if rep.com_rc == 0 and rep.rc == gc.Grc.OK:
+                gc.decode_single(rep, decoder)
+
+        rep = self._call(rpc, decode=check)
+        if rep.rc != gc.Grc.OK:
+            raise DeviceError(
+                f"tracker on {self.port!r}: {gc.rpc_name(rpc)} failed: {rep.describe()}"
+            )
+        return gc.decode_single(rep, decoder)
+
+    def _reading_without_coordinate(
+        self, rc: int, where: str, faults_before: int
+    ) -> TrackerReading:
+        status = "beam_broken" if rc in BEAM_BROKEN_CODES else "error"
+        nan3 = np.full(3, np.nan)
+        return TrackerReading(
+            position_m=nan3,
+            sigma_m=nan3.copy(),
+            status=status,
+            t_s=self._wall_clock(),
+            extra={
+                "rc": int(rc),
+                "rc_name": gc.return_code_name(rc),
+                "message": f"{where}: {gc.describe_return_code(rc)}",
+                "faults": len(self.fault_log) - faults_before,
+            },
+        )
+
+    def _fault(self, kind: str, message: str) -> None:
+        self.fault_log.append((kind, message))
+        self.fault_counts[kind] += 1
+
+    def _next_trid(self) -> int:
+        self._trid = self._trid % gc.MAX_TRANSACTION_ID + 1
+        return self._trid
+
+    def _vanished(self, during: str, exc: BaseException) -> DeviceUnreachable:
+        where = self.port
+        gone = ""
+        if where.startswith("/") and not os.path.exists(where):
+            gone = f" (the device node {where} no longer exists)"
+        msg = (
+            f"tracker serial port {where!r} vanished during {during}{gone}: {exc}; check the "
+            f"cable / USB adapter and power, then reconnect (connect())"
+        )
+        self._fault("port_vanished", msg)
+        self.close()
+        return DeviceUnreachable(msg)
+
+    def _require_open(self) -> Any:
+        if self._ser is None:
+            raise DeviceError(f"tracker on {self.port!r} is not connected; call connect() first")
+        return self._ser
+
+    def _write(self, data: bytes) -> None:
+        ser = self._require_open()
+        try:
+            ser.write(data)
+            ser.flush()
+        except _IO_ERRORS as exc:
+            raise self._vanished("write", exc) from exc
+
+    def _flush_input(self) -> None:
+        ser = self._require_open()
+        self._buf.clear()
+        try:
+            ser.reset_input_buffer()
+        except _IO_ERRORS as exc:
+            raise self._vanished("input flush", exc) from exc
+
+    def _read_line(self, deadline: float) -> bytes:
+        """Next LF-terminated line (CR LF stripped); `_Timeout` at the deadline."""
+        ser = self._require_open()
+        while True:
+            i = self._buf.find(b"\n")
+            if i >= 0:
+                line = bytes(self._buf[:i])
+                del self._buf[: i + 1]
+                return line[:-1] if line.endswith(b"\r") else line
+            if len(self._buf) > gc.MAX_LINE_BYTES:
+                junk = bytes(self._buf[:60])
+                self._buf.clear()
+                raise gc.GeoComParseError(f"over {gc.MAX_LINE_BYTES} bytes without LF: {junk!r}")
+            if self._clock() >= deadline:
+                raise _Timeout()
+            try:
+                n = ser.in_waiting
+                chunk = ser.read(n if n > 0 else 1)
+            except _IO_ERRORS as exc:
+                raise self._vanished("read", exc) from exc
+            if chunk:
+                self._buf.extend(chunk)
+
+    def _read_reply(self, trid: int, deadline: float, *, skip_garbage: bool) -> gc.Reply:
+        """The reply carrying `trid`; skips stale replies (and garbage if `skip_garbage`)."""
+        while True:
+            line = self._read_line(deadline)
+            if not line.strip():
+                continue
+            try:
+                rep = gc.parse_reply(line, expect_crc=self.use_crc)
+            except gc.GeoComParseError:
+                if not skip_garbage:
+                    raise
+                if self._clock() >= deadline:
+                    raise _Timeout() from None
+                continue
+            if rep.trid != trid:
+                self._fault(
+                    "stale_reply",
+                    f"skipped a reply with transaction id {rep.trid} while waiting for {trid}",
+                )
+                if self._clock() >= deadline:
+                    raise _Timeout()
+                continue
+            return rep
+
+    def _resync(self, reason: str) -> bool:
+        """Flush, LF, then COM_NullProc until one clean reply with a matching id."""
+        self._flush_input()
+        self._write(b"\n")
+        for _attempt in range(self.retries + 1):
+            trid = self._next_trid()
+            self._write(gc.format_request(gc.Rpc.COM_NullProc, trid=trid, use_crc=self.use_crc))
+            self.requests_sent += 1
+            try:
+                rep = self._read_reply(trid, self._clock() + self.timeout_s, skip_garbage=True)
+            except _Timeout:
+                continue
+            if rep.com_rc == 0:
+                self._fault("resync", f"link resynchronised after {reason}")
+                return True
+        self._fault("resync_failed", f"no clean COM_NullProc reply after {reason}")
+        return False
+
+    def _call(
+        self,
+        rpc: int,
+        params: tuple = (),
+        *,
+        extra_timeout_s: float = 0.0,
+        decode: Callable[[gc.Reply], object] | None = None,
+    ) -> gc.Reply:
+        name = gc.rpc_name(rpc)
+        last = "no attempt"
+        for attempt in range(self.retries + 1):
+            trid = self._next_trid()
+            req = gc.format_request(
+                rpc, params, trid=trid, use_crc=self.use_crc, precision=self.precision
+            )
+            self._write(req)
+            self.requests_sent += 1
+            deadline = self._clock() + self.timeout_s + extra_timeout_s
+            try:
+                rep = self._read_reply(trid, deadline, skip_garbage=False)
+                if decode is not None:
+                    decode(rep)
+            except _Timeout:
+                last = f"no reply within {self.timeout_s + extra_timeout_s:.3g} s"
+                self._fault("timeout", f"{name} (attempt {attempt + 1}): {last}")
+                if not self._resync(f"a time-out on {name}"):
+                    # not even COM_NullProc answers: re-sending the request is pointless
+                    msg = (
+                        f"tracker on {self.port!r} is silent: no reply to {name} within "
+                        f"{self.timeout_s + extra_timeout_s:.3g} s and none to "
+                        f"{self.retries + 1} COM_NullProc tries; check the instrument is on and "
+                        f"awake, and the cable"
+                    )
+                    self._fault("gave_up", msg)
+                    raise DeviceError(msg) from None
+                continue
+            except gc.GeoComChecksumError as exc:
+                last = f"bad checksum: {exc}"
+                self._fault("checksum", f"{name} (attempt {attempt + 1}): {exc}")
+                self._resync(f"a checksum error on {name}")
+                continue
+            except gc.GeoComParseError as exc:
+                last = f"garbled reply: {exc}"
+                self._fault("garbage", f"{name} (attempt {attempt + 1}): {exc}")
+                self._resync(f"a garbled reply to {name}")
+                continue
+            if rep.com_rc != 0:
+                last = "COM " + gc.describe_return_code(rep.com_rc)
+                self._fault("com_error", f"{name} (attempt {attempt + 1}): {last}")
+                if rep.com_rc in gc.COM_TRANSIENT_CODES:
+                    self._resync(f"a COM error on {name}")
+                    continue
+                raise DeviceError(f"tracker on {self.port!r}: {name} failed: {last}")
+            return rep
+        msg = (
+            f"tracker on {self.port!r}: no valid reply to {name} after {self.retries + 1} "
+            f"attempts (timeout {self.timeout_s:.3g} s each); last problem: {last}"
+        )
+        self._fault("gave_up", msg)
+        raise DeviceError(msg)
+
+
+def _decode_coordinate_if_valid(rep: gc.Reply) -> None:
+    """A coordinate reply whose code says 'valid' must carry 8 decodable values."""
+    if rep.com_rc == 0 and (rep.rc == gc.Grc.OK or rep.rc in gc.COORDINATE_WARNING_CODES):
+        gc.decode_coordinate(rep)
