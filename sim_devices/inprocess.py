@@ -66,6 +66,8 @@ class SimTracker:
         self.world.clock.advance(self.reading_time_s)
         p, status = self.world.read_tracker()
         return TrackerReading(
-            position_m=p, sigma_m=self.world.stated_sigma_m(p), status=status,
+            position_m=p,
+            sigma_m=self.world.stated_sigma_m(p),
+            status=status,
             t_s=self.world.clock.now(),
         )

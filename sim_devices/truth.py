@@ -119,6 +119,7 @@ class TrueWorkcell:
     payload_kg: float = 0.0
     payload_com_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
     effects: dict = field(default_factory=dict)
+    beta: np.ndarray = field(default_factory=lambda: np.zeros(6))  # tilt about y_i of link i
     noise: TrackerNoise = field(default_factory=TrackerNoise)
     ambient_c: float = 21.0
 
@@ -141,6 +142,7 @@ class TrueWorkcell:
                 @ _trans(0.0, 0.0, d[i])
                 @ _trans(a[i], 0.0, 0.0)
                 @ _rot_x(self.alpha[i])
+                @ _rot_y(self.beta[i])
             )
             Ts.append(Ts[-1] @ A)
         return Ts
@@ -210,11 +212,13 @@ class TrueWorkcell:
                 slope_y = -1.5 * shift[2] / L  # rotation about y bends towards z
                 slope_z = 1.5 * shift[1] / L
                 A = A @ _trans(*shift) @ _rot_y(slope_y) @ _rot_z(slope_z)
-            Ts.append(Ts[-1] @ A @ _rot_x(self.alpha[i]))
+            Ts.append(Ts[-1] @ A @ _rot_x(self.alpha[i]) @ _rot_y(self.beta[i]))
         T6 = Ts[-1]
         return T6[:3, :3] @ self.smr_flange_m + T6[:3, 3]
 
-    def smr_in_tracker(self, q_enc: np.ndarray, approach_sign: np.ndarray, t_s: float) -> np.ndarray:
+    def smr_in_tracker(
+        self, q_enc: np.ndarray, approach_sign: np.ndarray, t_s: float
+    ) -> np.ndarray:
         """Noise-free SMR position as the tracker would report it (includes tracker scale)."""
         p_b = self.smr_in_base(q_enc, approach_sign, t_s)
         p = self.tracker_T_base[:3, :3] @ p_b + self.tracker_T_base[:3, 3]
@@ -240,11 +244,15 @@ class TrueWorkcell:
 DEFAULT_MAGNITUDES = {
     "joint_compliance": {"c_rad_per_nm": [3e-6, 6e-6, 6e-6, 1e-5, 1e-5, 1e-5]},
     "link_deflection": {"flex_m_per_n": [3.0e-7, 2.5e-7]},
-    "transmission_error": {"harmonics": {1: [(1, 30e-6, 0.4), (2, 15e-6, 1.1)],
-                                         2: [(1, 25e-6, -0.7), (2, 10e-6, 2.0)]}},
+    "transmission_error": {
+        "harmonics": {1: [(1, 30e-6, 0.4), (2, 15e-6, 1.1)], 2: [(1, 25e-6, -0.7), (2, 10e-6, 2.0)]}
+    },
     "backlash": {"b_rad": [40e-6, 60e-6, 60e-6, 40e-6, 40e-6, 40e-6]},
-    "thermal_drift": {"alpha_per_k": 23e-6, "warmup_k": [6.0, 8.0, 7.0, 4.0, 4.0, 3.0],
-                      "tau_s": 1200.0},
+    "thermal_drift": {
+        "alpha_per_k": 23e-6,
+        "warmup_k": [6.0, 8.0, 7.0, 4.0, 4.0, 3.0],
+        "tau_s": 1200.0,
+    },
     "tracker_scale": {"scale": 15e-6},
 }
 
@@ -299,6 +307,7 @@ def make_truth(
         payload_kg=payload_kg,
         payload_com_m=np.array([0.0, 0.0, 0.03]),
         effects=eff,
+        beta=np.array([0.0, 1.0, 1.0, 0.0, 0.0, 0.0]) * s * rng.normal(0, 3e-4, 6),
         noise=noise or TrackerNoise(beam_break_prob=0.01, outlier_prob=0.005),
     )
 

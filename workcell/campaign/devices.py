@@ -16,8 +16,10 @@ def open_cell(args):
         _, robot, tracker, cell = sim_cell(args.model, args.effects, args.seed)
         return cell, robot, tracker, default_envelope(cell.spec)
     if args.robot == "sim" or args.tracker == "sim":
-        raise UserError("use --robot sim together with --tracker sim (one simulated world), "
-                        "or start `workcell sim` and give both real addresses")
+        raise UserError(
+            "use --robot sim together with --tracker sim (one simulated world), "
+            "or start `workcell sim` and give both real addresses"
+        )
     if not args.robot.startswith("ur://"):
         raise UserError(f"--robot {args.robot!r}: expected sim or ur://HOST")
     if not args.tracker.startswith("serial://"):
@@ -28,8 +30,8 @@ def open_cell(args):
     except ModuleNotFoundError as e:
         raise UserError(f"real drivers not available in this build ({e.name})") from None
     spec = robot_by_name(args.model)
-    robot = UrRobot(args.robot[len("ur://"):], time_scale=getattr(args, "time_scale", 1.0))
-    tracker = SerialTracker(args.tracker[len("serial://"):])
+    robot = UrRobot(args.robot[len("ur://") :], time_scale=getattr(args, "time_scale", 1.0))
+    tracker = SerialTracker(args.tracker[len("serial://") :])
     cell = CellSetup(
         spec=spec,
         tool_m=np.array([0.0, 0.0, 0.06]),

@@ -75,7 +75,9 @@ class Envelope:
                 continue
             zmin = T[i, 2:, 2, 3].min()
             if zmin < self.floor_z_m:
-                out[i] = f"a link frame would go down to z = {zmin:.3f} m, below the floor {self.floor_z_m} m"
+                out[i] = (
+                    f"a link frame would go down to z = {zmin:.3f} m, below the floor {self.floor_z_m} m"
+                )
         return out
 
     def check(self, spec: RobotSpec, q: np.ndarray, tool_m: np.ndarray) -> None:

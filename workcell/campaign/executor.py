@@ -81,7 +81,13 @@ class Executor:
         t_wall0_ns: int | None = None,
         elapsed0_s: float = 0.0,
     ) -> None:
-        self.robot, self.tracker, self.spec, self.env, self.sink = robot, tracker, spec, envelope, sink
+        self.robot, self.tracker, self.spec, self.env, self.sink = (
+            robot,
+            tracker,
+            spec,
+            envelope,
+            sink,
+        )
         self.tool_m = np.asarray(tool_m, float)
         self.cfg = config or CampaignConfig()
         self.control = control or CampaignControl()
@@ -121,7 +127,9 @@ class Executor:
         e = self.elapsed()
         if force or e - self._last_js >= self.cfg.joint_state_every_s:
             self._last_js = e
-            self.sink.joint_state(self._t_ns(e), st.q_rad, st.qd_rad_s, st.torque_nm, st.temperature_c)
+            self.sink.joint_state(
+                self._t_ns(e), st.q_rad, st.qd_rad_s, st.torque_nm, st.temperature_c
+            )
         return st
 
     # ------------------------------------------------------------------ robot with fault policy
@@ -138,8 +146,12 @@ class Executor:
                 if reconnect is None or attempt > self.cfg.max_reconnects:
                     raise
                 wait = self.cfg.reconnect_backoff_s * 2 ** (attempt - 1)
-                self.sink.event(time.time_ns(), "warning", "reconnect",
-                                f"robot connection lost ({e}); reconnect {attempt} in {wait:.1f} s")
+                self.sink.event(
+                    time.time_ns(),
+                    "warning",
+                    "reconnect",
+                    f"robot connection lost ({e}); reconnect {attempt} in {wait:.1f} s",
+                )
                 self.result.events += 1
                 if self.on_event:
                     self.on_event({"level": "warning", "kind": "reconnect", "message": str(e)})
@@ -235,8 +247,11 @@ class Executor:
             self.sink.tracker_measurement(self._t_ns(), r.position_m, r.sigma_m, r.status)
             if r.status != "ok" or not np.all(np.isfinite(r.position_m)):
                 failures += 1
-                self.event("warning", "beam_broken" if r.status == "beam_broken" else "retry",
-                           f"pose {t.pose_id}: tracker status {r.status}; retry {failures}")
+                self.event(
+                    "warning",
+                    "beam_broken" if r.status == "beam_broken" else "retry",
+                    f"pose {t.pose_id}: tracker status {r.status}; retry {failures}",
+                )
                 if failures > self.cfg.max_beam_retries:
                     break
                 self._robot_call(lambda: self.robot.sleep(self.cfg.beam_retry_wait_s))
@@ -248,8 +263,11 @@ class Executor:
                 temps.append(st.temperature_c)
         need = max(2, (n + 1) // 2) if n > 1 else 1
         if len(good) < need:
-            self.event("error", "skip",
-                       f"pose {t.pose_id} skipped: {len(good)} of {n} readings after {failures} failures")
+            self.event(
+                "error",
+                "skip",
+                f"pose {t.pose_id} skipped: {len(good)} of {n} readings after {failures} failures",
+            )
             self.result.skipped += 1
             self.result.skipped_ids.append(t.pose_id)
             return None

@@ -31,7 +31,11 @@ Plan = Generator[PoseTarget, "dict | None", None]
 
 
 def random_configurations(
-    spec: RobotSpec, env: Envelope, n: int, rng: np.random.Generator, tool_m: np.ndarray,
+    spec: RobotSpec,
+    env: Envelope,
+    n: int,
+    rng: np.random.Generator,
+    tool_m: np.ndarray,
     max_tries: int = 200_000,
 ) -> np.ndarray:
     """n joint configurations uniformly inside the envelope's joint ranges and workspace."""
@@ -59,8 +63,12 @@ def grid_configurations(
     lim = env.joint_limits_rad
     k = 2
     while True:
-        g = np.stack(np.meshgrid(*[np.linspace(lim[j, 0], lim[j, 1], k + 2)[1:-1] for j in range(3)],
-                                 indexing="ij"), -1).reshape(-1, 3)
+        g = np.stack(
+            np.meshgrid(
+                *[np.linspace(lim[j, 0], lim[j, 1], k + 2)[1:-1] for j in range(3)], indexing="ij"
+            ),
+            -1,
+        ).reshape(-1, 3)
         rng = np.random.default_rng(seed)
         wrist = rng.uniform(lim[3:, 0], lim[3:, 1], size=(len(g), 3))
         q = np.hstack([g, wrist])
@@ -75,7 +83,11 @@ def grid_configurations(
 
 
 def approach_signs(
-    spec: RobotSpec, env: Envelope, q: np.ndarray, tool_m: np.ndarray, approach_rad: float,
+    spec: RobotSpec,
+    env: Envelope,
+    q: np.ndarray,
+    tool_m: np.ndarray,
+    approach_rad: float,
     seed: int,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Random approach signs whose pre-pose (q - sign * approach_rad) is inside the envelope.
@@ -96,8 +108,9 @@ def approach_signs(
     return q[ok], signs[ok]
 
 
-def static_plan(q: np.ndarray, signs: np.ndarray, *, start_id: int = 0,
-                skip_ids: set[int] | None = None) -> Plan:
+def static_plan(
+    q: np.ndarray, signs: np.ndarray, *, start_id: int = 0, skip_ids: set[int] | None = None
+) -> Plan:
     for i, (qi, si) in enumerate(zip(q, signs, strict=True)):
         pid = start_id + i
         if skip_ids and pid in skip_ids:
@@ -106,16 +119,25 @@ def static_plan(q: np.ndarray, signs: np.ndarray, *, start_id: int = 0,
 
 
 def make_plan(
-    kind: str, spec: RobotSpec, env: Envelope, n: int, *, seed: int, tool_m: np.ndarray,
-    skip_ids: set[int] | None = None, approach_rad: float = 0.02, **kw
+    kind: str,
+    spec: RobotSpec,
+    env: Envelope,
+    n: int,
+    *,
+    seed: int,
+    tool_m: np.ndarray,
+    skip_ids: set[int] | None = None,
+    approach_rad: float = 0.02,
+    **kw,
 ) -> tuple[Plan, np.ndarray | None]:
     """Build a plan by name. Returns (generator, the planned configurations if known ahead)."""
     if n <= 0:
         raise ValueError(f"number of poses must be positive, got {n}")
     if kind in ("random", "grid"):
         if kind == "random":
-            q = random_configurations(spec, env, int(n * 1.1) + 2, np.random.default_rng(seed),
-                                      tool_m)
+            q = random_configurations(
+                spec, env, int(n * 1.1) + 2, np.random.default_rng(seed), tool_m
+            )
         else:
             q = grid_configurations(spec, env, int(n * 1.1) + 2, tool_m, seed)
         q, signs = approach_signs(spec, env, q, tool_m, approach_rad, seed)
@@ -127,7 +149,15 @@ def make_plan(
     if kind in ("bo", "dopt"):
         from workcell.campaign import adaptive  # optional module (experiment design)
 
-        return adaptive.make_adaptive_plan(kind, spec, env, n, seed=seed, tool_m=tool_m,
-                                           skip_ids=skip_ids, approach_rad=approach_rad,
-                                           **kw), None
+        return adaptive.make_adaptive_plan(
+            kind,
+            spec,
+            env,
+            n,
+            seed=seed,
+            tool_m=tool_m,
+            skip_ids=skip_ids,
+            approach_rad=approach_rad,
+            **kw,
+        ), None
     raise ValueError(f"unknown plan {kind!r}; choose grid, random, bo or dopt")

@@ -64,9 +64,17 @@ def run_campaign(
 ) -> tuple[Path, CampaignResult]:
     env = envelope or default_envelope(cell.spec)
     cfg = config or CampaignConfig(payload_kg=cell.payload_kg)
-    gen, _ = make_plan(plan, cell.spec, env, poses, seed=seed, tool_m=cell.tool_m,
-                       skip_ids=skip_ids, approach_rad=cfg.approach_rad,
-                       **(plan_kwargs or {}))
+    gen, _ = make_plan(
+        plan,
+        cell.spec,
+        env,
+        poses,
+        seed=seed,
+        tool_m=cell.tool_m,
+        skip_ids=skip_ids,
+        approach_rad=cfg.approach_rad,
+        **(plan_kwargs or {}),
+    )
     campaign = {
         "plan": plan,
         "poses": poses,
@@ -83,12 +91,27 @@ def run_campaign(
     robot.connect()
     tracker.connect()
     with RecordingWriter(out, session) as w:
-        ex = Executor(robot, tracker, cell.spec, env, w, tool_m=cell.tool_m, config=cfg,
-                      control=control, on_sample=on_sample, on_event=on_event, index0=index0,
-                      t_wall0_ns=time.time_ns(), elapsed0_s=elapsed0_s)
+        ex = Executor(
+            robot,
+            tracker,
+            cell.spec,
+            env,
+            w,
+            tool_m=cell.tool_m,
+            config=cfg,
+            control=control,
+            on_sample=on_sample,
+            on_event=on_event,
+            index0=index0,
+            t_wall0_ns=time.time_ns(),
+            elapsed0_s=elapsed0_s,
+        )
         if chained_from:
-            ex.event("info", "resume_from",
-                     f"continues {chained_from.get('path')} ({chained_from.get('samples')} samples)")
+            ex.event(
+                "info",
+                "resume_from",
+                f"continues {chained_from.get('path')} ({chained_from.get('samples')} samples)",
+            )
         result = ex.run(gen)
     for dev in (robot, tracker):
         try:
@@ -98,9 +121,16 @@ def run_campaign(
     return Path(out), result
 
 
-def sim_cell(robot: str = "ur5e", effects: str | dict | None = "realistic", seed: int = 0,
-             *, beam_break_prob: float = 0.01, outlier_prob: float = 0.005, dh_error_scale=1.0,
-             noise=None):
+def sim_cell(
+    robot: str = "ur5e",
+    effects: str | dict | None = "realistic",
+    seed: int = 0,
+    *,
+    beam_break_prob: float = 0.01,
+    outlier_prob: float = 0.005,
+    dh_error_scale=1.0,
+    noise=None,
+):
     """An in-process simulated cell: (SimWorld, SimRobot, SimTracker, CellSetup).
 
     Imports the simulator lazily: only `campaign --robot sim`, `demo` and tests use it.

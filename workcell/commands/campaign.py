@@ -20,13 +20,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--poses", type=int, default=50, help="number of poses to measure")
     p.add_argument("--out", help="recording to write (.mcap); must not exist")
     p.add_argument("--seed", type=int, default=0, help="plan seed (and simulated truth seed)")
-    p.add_argument("--effects", default="realistic",
-                   help="simulated truth: none, realistic, all, or a comma list of effect kinds")
+    p.add_argument(
+        "--effects",
+        default="realistic",
+        help="simulated truth: none, realistic, all, or a comma list of effect kinds",
+    )
     p.add_argument("--model", default="ur5e", help="robot model when not given by the device")
     p.add_argument("--readings", type=int, default=5, help="tracker readings per pose")
     p.add_argument("--settle", type=float, default=1.0, help="settle time in seconds")
-    p.add_argument("--warmup", type=float, default=0.0,
-                   help="exercise the arm this many seconds before measuring")
+    p.add_argument(
+        "--warmup",
+        type=float,
+        default=0.0,
+        help="exercise the arm this many seconds before measuring",
+    )
     p.add_argument("--time-scale", type=float, default=1.0, help="simulators: time scale")
     p.add_argument("--dry-run", action="store_true", help="print and check the plan; do not move")
     p.add_argument("--resume", help="continue this interrupted recording in a new chained file")
@@ -43,8 +50,12 @@ def run(args: argparse.Namespace) -> int:
     if args.readings <= 0:
         raise UserError(f"--readings must be positive, got {args.readings}")
     cell, robot, tracker, env = open_cell(args)
-    cfg = CampaignConfig(readings_per_pose=args.readings, settle_s=args.settle,
-                         payload_kg=cell.payload_kg, warmup_s=args.warmup)
+    cfg = CampaignConfig(
+        readings_per_pose=args.readings,
+        settle_s=args.settle,
+        payload_kg=cell.payload_kg,
+        warmup_s=args.warmup,
+    )
     if args.dry_run:
         return dry_run(args, cell, env, cfg)
     if not args.out:
@@ -57,8 +68,11 @@ def run(args: argparse.Namespace) -> int:
 
     def on_sample(s: dict) -> None:
         n[0] += 1
-        print(f"pose {s['pose_id']:4d}  {n[0]:4d}/{args.poses}  elapsed {s['elapsed_s']:8.1f} s",
-              file=sys.stderr, flush=True)
+        print(
+            f"pose {s['pose_id']:4d}  {n[0]:4d}/{args.poses}  elapsed {s['elapsed_s']:8.1f} s",
+            file=sys.stderr,
+            flush=True,
+        )
 
     def on_event(e: dict) -> None:
         print(f"  [{e['level']}] {e['kind']}: {e['message']}", file=sys.stderr, flush=True)
@@ -75,10 +89,23 @@ def run(args: argparse.Namespace) -> int:
             print("  " + online.update(s), file=sys.stderr, flush=True)
 
     path, res = run_campaign(
-        robot, tracker, cell, args.out, plan=args.plan, poses=args.poses, seed=args.seed,
-        envelope=env, config=cfg, control=control, on_sample=on_sample, on_event=on_event,
-        extra_campaign={"robot_url": args.robot, "tracker_url": args.tracker,
-                        "effects": args.effects if args.robot == "sim" else None},
+        robot,
+        tracker,
+        cell,
+        args.out,
+        plan=args.plan,
+        poses=args.poses,
+        seed=args.seed,
+        envelope=env,
+        config=cfg,
+        control=control,
+        on_sample=on_sample,
+        on_event=on_event,
+        extra_campaign={
+            "robot_url": args.robot,
+            "tracker_url": args.tracker,
+            "effects": args.effects if args.robot == "sim" else None,
+        },
     )
     print(f"recorded {res.measured} poses, skipped {res.skipped}, events {res.events} -> {path}")
     return 130 if res.aborted else 0
@@ -88,11 +115,20 @@ def dry_run(args, cell, env, cfg) -> int:
     from workcell.campaign.executor import Executor
     from workcell.campaign.plans import make_plan
 
-    gen, q = make_plan(args.plan, cell.spec, env, args.poses, seed=args.seed, tool_m=cell.tool_m,
-                       approach_rad=cfg.approach_rad)
+    gen, q = make_plan(
+        args.plan,
+        cell.spec,
+        env,
+        args.poses,
+        seed=args.seed,
+        tool_m=cell.tool_m,
+        approach_rad=cfg.approach_rad,
+    )
     if q is None:
-        print(f"plan {args.plan}: adaptive; each pose is chosen during the campaign inside the "
-              f"envelope; {args.poses} poses")
+        print(
+            f"plan {args.plan}: adaptive; each pose is chosen during the campaign inside the "
+            f"envelope; {args.poses} poses"
+        )
         return 0
     targets = list(gen)
     ex = Executor(None, None, cell.spec, env, None, tool_m=cell.tool_m, config=cfg)

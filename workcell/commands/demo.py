@@ -19,14 +19,21 @@ from workcell.errors import UserError
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--poses", type=int, default=150, help="poses to measure (default 150)")
-    p.add_argument("--effects", default="realistic",
-                   help="simulated physics: none (DH errors + noise), realistic, all, or a list")
+    p.add_argument(
+        "--effects",
+        default="realistic",
+        help="simulated physics: none (DH errors + noise), realistic, all, or a list",
+    )
     p.add_argument("--seed", type=int, default=1, help="seed of the simulated truth and plan")
     p.add_argument("--model", default="ur5e", help="robot model (ur5e, ur10)")
     p.add_argument("--methods", default="dh,lddmm,gp", help="fits to run (comma list)")
     p.add_argument("--out", default="out/demo", help="directory for the recording and models")
-    p.add_argument("--warmup", type=float, default=2700.0,
-                   help="simulated warm-up before measuring, seconds (default 45 min)")
+    p.add_argument(
+        "--warmup",
+        type=float,
+        default=2700.0,
+        help="simulated warm-up before measuring, seconds (default 45 min)",
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--no-correction", action="store_true", help="skip the correction check")
 
@@ -51,12 +58,22 @@ def run(args: argparse.Namespace) -> int:
     from workcell.campaign.executor import CampaignConfig
 
     cfg = CampaignConfig(payload_kg=cell.payload_kg, warmup_s=args.warmup)
-    _, res = run_campaign(robot, tracker, cell, rec_path, plan="random", poses=args.poses,
-                          seed=args.seed, config=cfg,
-                          extra_campaign={"effects": args.effects, "warmup_s": args.warmup})
+    _, res = run_campaign(
+        robot,
+        tracker,
+        cell,
+        rec_path,
+        plan="random",
+        poses=args.poses,
+        seed=args.seed,
+        config=cfg,
+        extra_campaign={"effects": args.effects, "warmup_s": args.warmup},
+    )
     camp_s = time.perf_counter() - t0
-    log(f"  measured {res.measured}, skipped {res.skipped}, {res.events} events "
-        f"({world.clock.now() / 60:.1f} simulated minutes, {camp_s:.1f} s wall)")
+    log(
+        f"  measured {res.measured}, skipped {res.skipped}, {res.events} events "
+        f"({world.clock.now() / 60:.1f} simulated minutes, {camp_s:.1f} s wall)"
+    )
     ds = Dataset.from_recording(rec_path)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     results, models = {}, {}
@@ -69,8 +86,10 @@ def run(args: argparse.Namespace) -> int:
         models[m] = model
         save_model(model, out / f"{rec_path.stem}.{m}.json")
         results[m] = rep
-        log(f"  fit {m:6s}: held-out RMS {rep['heldout_rms_m'] * 1e6:8.1f} um  "
-            f"max {rep['heldout_max_m'] * 1e6:8.1f} um  ({rep['fit_seconds']:.1f} s)")
+        log(
+            f"  fit {m:6s}: held-out RMS {rep['heldout_rms_m'] * 1e6:8.1f} um  "
+            f"max {rep['heldout_max_m'] * 1e6:8.1f} um  ({rep['fit_seconds']:.1f} s)"
+        )
     if "dh" not in results:
         raise UserError("the DH fit failed; nothing to report")
     dh = results["dh"]
@@ -110,13 +129,17 @@ def run(args: argparse.Namespace) -> int:
         print(f"{'calibrated: ' + m:24}{um(r['heldout_rms_m']):>14}{um(r['heldout_max_m']):>12}")
     print(f"{'noise floor (expected)':24}{um(floor):>14}")
     best = min(results.values(), key=lambda r: r["heldout_rms_m"])
-    print(f"\nimprovement nominal/calibrated: {dh['nominal_rms_m'] / best['heldout_rms_m']:.0f}x; "
-          f"calibrated/noise floor: {best['heldout_rms_m'] / floor:.2f}")
+    print(
+        f"\nimprovement nominal/calibrated: {dh['nominal_rms_m'] / best['heldout_rms_m']:.0f}x; "
+        f"calibrated/noise floor: {best['heldout_rms_m'] / floor:.2f}"
+    )
     print(f"poses: {len(train)} train, {len(test)} held out; recording {rec_path}")
     if "correction" in summary:
         c = summary["correction"]
-        print(f"correction ({c['targets']} targets): RMS {um(c['before_rms_m'])} -> "
-              f"{um(c['after_rms_m'])}")
+        print(
+            f"correction ({c['targets']} targets): RMS {um(c['before_rms_m'])} -> "
+            f"{um(c['after_rms_m'])}"
+        )
     return 0
 
 
@@ -131,7 +154,7 @@ def noise_floor(ds, dh_model, noise) -> float:
     simulator's per-axis sigma of a pose mean (systematic + averaged random parts) and Cov the
     covariance that noise alone gives the identifiable parameters on the training poses.
     """
-    from workcell.kinematics.chain import N_PARAMS, jac_params
+    from workcell.kinematics.chain import jac_params
 
     train, test = ds.holdout_split(0.25)
     rng = np.linalg.norm(ds.p_tracker, axis=1)
@@ -145,5 +168,3 @@ def noise_floor(ds, dh_model, noise) -> float:
     cov = np.linalg.pinv(A)
     par = np.einsum("nkp,pq,nkq->n", Jh, cov, Jh)
     return float(np.sqrt(np.mean(3 * sig[test] ** 2 + par)))
-
-

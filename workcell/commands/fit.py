@@ -14,11 +14,19 @@ from workcell.estimation.fitting import FIT_METHODS, fit_recording
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("recording", help="an .mcap recording (needs /workcell/session + /campaign/sample)")
+    p.add_argument(
+        "recording", help="an .mcap recording (needs /workcell/session + /campaign/sample)"
+    )
     p.add_argument("--method", default="dh", help=f"one of: {', '.join(FIT_METHODS)}")
-    p.add_argument("--holdout", type=float, default=0.25,
-                   help="fraction of poses held out for evaluation (deterministic split)")
-    p.add_argument("--out", help="write the fitted model here (JSON); default next to the recording")
+    p.add_argument(
+        "--holdout",
+        type=float,
+        default=0.25,
+        help="fraction of poses held out for evaluation (deterministic split)",
+    )
+    p.add_argument(
+        "--out", help="write the fitted model here (JSON); default next to the recording"
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--on", default="auto", help="lddmm/gp: base model (dh, nominal or auto)")
     p.add_argument("--bounds", help="dh: parameter bounds file (JSON) or 'default' (bounded QP)")
@@ -30,9 +38,15 @@ def run(args: argparse.Namespace) -> int:
     if not 0.0 <= args.holdout < 0.9:
         raise UserError(f"--holdout must be in [0, 0.9), got {args.holdout}")
     out = Path(args.out) if args.out else Path(args.recording).with_suffix(f".{args.method}.json")
-    report = fit_recording(args.recording, method=args.method, holdout=args.holdout, out=out,
-                           on=args.on, bounds=args.bounds,
-                           progress=None if args.json else lambda m: print(m, file=sys.stderr))
+    report = fit_recording(
+        args.recording,
+        method=args.method,
+        holdout=args.holdout,
+        out=out,
+        on=args.on,
+        bounds=args.bounds,
+        progress=None if args.json else lambda m: print(m, file=sys.stderr),
+    )
     if args.json:
         print(json.dumps(report, default=_json_default))
     else:
@@ -55,12 +69,15 @@ def um(x: float) -> str:
 def print_report(r: dict) -> None:
     print(f"method          {r['method']}")
     print(f"recording       {r['recording']}")
-    print(f"poses           {r['train_poses']} train, {r['heldout_poses']} held out "
-          f"({r['split']})")
-    print(f"nominal         held-out RMS {um(r['nominal_rms_m'])}   (nominal chain, base registered)")
+    print(f"poses           {r['train_poses']} train, {r['heldout_poses']} held out ({r['split']})")
+    print(
+        f"nominal         held-out RMS {um(r['nominal_rms_m'])}   (nominal chain, base registered)"
+    )
     print(f"calibrated      held-out RMS {um(r['heldout_rms_m'])}   max {um(r['heldout_max_m'])}")
     if r.get("stated_noise_floor_m"):
-        print(f"noise floor     {um(r['stated_noise_floor_m'])}   (from the recording's stated sigmas)")
+        print(
+            f"noise floor     {um(r['stated_noise_floor_m'])}   (from the recording's stated sigmas)"
+        )
     print(f"fit time        {r['fit_seconds']:.2f} s")
     if r.get("unidentifiable"):
         print("not separately identifiable (fixed at nominal, first of each group kept free):")
@@ -68,14 +85,22 @@ def print_report(r: dict) -> None:
             print("   {" + ", ".join(g) + "}")
     if r.get("identifiability"):
         i = r["identifiability"]
-        print(f"identification  rank {i['rank']}/{i['n_parameters']}, condition {i['condition']:.3g}")
+        print(
+            f"identification  rank {i['rank']}/{i['n_parameters']}, condition {i['condition']:.3g}"
+        )
     params = r.get("parameters") or {}
     shown = [(k, v) for k, v in params.items() if v.get("estimated", True)]
     if shown:
         print(f"{'parameter':>16} {'value':>14} {'- nominal':>12} {'std':>10}  unit")
         for k, v in shown:
             d = v["value"] - v.get("nominal", v["value"]) if "nominal" in v else float("nan")
-            scale, unit = (1e3, "mm") if v["unit"] == "m" else (1e3, "mrad") if v["unit"] == "rad" else (1, v["unit"])
+            scale, unit = (
+                (1e3, "mm")
+                if v["unit"] == "m"
+                else (1e3, "mrad")
+                if v["unit"] == "rad"
+                else (1, v["unit"])
+            )
             print(f"{k:>16} {v['value']:14.6f} {d * scale:12.4f} {v['std'] * scale:10.4f}  {unit}")
     for k, v in (r.get("extra") or {}).items():
         print(f"{k:>16} {v}")

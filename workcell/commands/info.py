@@ -50,7 +50,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"duration    {d['duration_s']:.1f} s")
     print("channels    " + ", ".join(f"{k}: {v}" for k, v in d["channels"].items()))
     print("events      " + (", ".join(f"{k}: {v}" for k, v in d["events"].items()) or "none"))
-    print(f"closed      {'cleanly' if d['closed_cleanly'] else 'NOT cleanly (crash or still open)'}")
+    print(
+        f"closed      {'cleanly' if d['closed_cleanly'] else 'NOT cleanly (crash or still open)'}"
+    )
     if d["chained_from"]:
         print(f"continues   {d['chained_from'].get('path')}")
     for p in d["problems"]:

@@ -25,6 +25,7 @@ from scipy.optimize import least_squares
 from workcell.estimation.identifiability import Identifiability, analyse
 from workcell.estimation.models import error_stats
 from workcell.kinematics.chain import (
+    I_TOOL,
     IDX,
     N_PARAMS,
     PARAM_NAMES,
@@ -32,6 +33,7 @@ from workcell.kinematics.chain import (
     jac_params,
     p_tracker,
     pack,
+    parallel_beta_names,
     tracker_T_base,
     unpack_dh,
 )
@@ -46,10 +48,10 @@ class DHModel:
 
     robot_model: str
     nominal_dh: DH
-    theta: np.ndarray  # (33,)
+    theta: np.ndarray  # (39,)
     base_ref: np.ndarray  # (4, 4)
-    cov: np.ndarray  # (33, 33); zero rows/cols for fixed parameters
-    free: np.ndarray  # (33,) bool
+    cov: np.ndarray  # (39, 39); zero rows/cols for fixed parameters
+    free: np.ndarray  # (39,) bool
     unidentifiable: list[list[str]] = field(default_factory=list)
     info: dict = field(default_factory=dict)
     method: str = "dh"
@@ -60,7 +62,7 @@ class DHModel:
 
     def predict_nominal(self, q: np.ndarray) -> np.ndarray:
         """What the controller's nominal kinematics predicts, in the same registered base."""
-        th = pack(self.nominal_dh, tool=self.info.get("nominal_tool_m", self.theta[30:33]))
+        th = pack(self.nominal_dh, tool=self.info.get("nominal_tool_m", self.theta[I_TOOL]))
         q = np.atleast_2d(np.asarray(q, dtype=float))
         return np.asarray(p_tracker(th, self.base_ref, q))
 
@@ -84,7 +86,7 @@ class DHModel:
                 "value": float(self.theta[i]),
                 "std": float(self.std[i]) if self.free[i] else 0.0,
                 "unit": PARAM_UNITS[n],
-                "nominal": float(nom[i]) if i < 24 or i >= 30 else 0.0,
+                "nominal": float(nom[i]) if i < 30 or i >= 36 else 0.0,
                 "estimated": bool(self.free[i]),
             }
         return out
@@ -161,7 +163,12 @@ def fit_dh(
     base_ref = register_base(ds, theta) if base_ref is None else base_ref
     w = 1.0 / pose_sigma(ds)
     J0 = np.asarray(jac_params(theta, base_ref, ds.q)) * w[:, None, None]
-    cand = [n for n in PARAM_NAMES if n not in set(fixed or [])]
+    betas = set(parallel_beta_names(ds.robot.dh))
+    cand = [
+        n
+        for n in PARAM_NAMES
+        if n not in set(fixed or []) and (not n.startswith("beta") or n in betas)
+    ]
     ident = analyse(J0.reshape(-1, N_PARAMS), candidates=cand)
     free = np.zeros(N_PARAMS, bool)
     free[[IDX[n] for n in ident.identifiable]] = True
@@ -182,7 +189,9 @@ def fit_dh(
     Jw = (np.asarray(jac_params(theta, base_ref, ds.q[keep])) * w[keep][:, None, None]).reshape(
         -1, N_PARAMS
     )[:, free]
-    r = ((np.asarray(p_tracker(theta, base_ref, ds.q[keep])) - ds.p_tracker[keep]) * w[keep][:, None]).ravel()
+    r = (
+        (np.asarray(p_tracker(theta, base_ref, ds.q[keep])) - ds.p_tracker[keep]) * w[keep][:, None]
+    ).ravel()
     dof = max(len(r) - free.sum(), 1)
     s0_2 = float(r @ r / dof)
     cov_free = s0_2 * np.linalg.pinv(Jw.T @ Jw)
@@ -229,8 +238,17 @@ def _solve(ds, keep, w, theta, base_ref, free, max_nfev):
         J = np.asarray(jac_params(full(x), base_ref, q)) * wk[:, None, None]
         return J.reshape(-1, N_PARAMS)[:, free]
 
-    res = least_squares(fun, x0, jac=jac, method="lm", x_scale="jac", max_nfev=max_nfev,
-                        xtol=1e-12, ftol=1e-12, gtol=1e-12)
+    res = least_squares(
+        fun,
+        x0,
+        jac=jac,
+        method="lm",
+        x_scale="jac",
+        max_nfev=max_nfev,
+        xtol=1e-12,
+        ftol=1e-12,
+        gtol=1e-12,
+    )
     return full(res.x), res
 
 
@@ -248,7 +266,9 @@ def evaluate(model, ds: Dataset) -> dict:
 
 def ident_summary(ident: Identifiability) -> str:
     g = "; ".join("{" + ", ".join(x) + "}" for x in ident.groups)
-    return f"rank {ident.rank}/{len(ident.names)}, condition {ident.condition:.3g}; fixed groups: {g}"
+    return (
+        f"rank {ident.rank}/{len(ident.names)}, condition {ident.condition:.3g}; fixed groups: {g}"
+    )
 
 
 def transform_points(T: np.ndarray, p: np.ndarray) -> np.ndarray:

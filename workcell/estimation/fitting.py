@@ -9,7 +9,6 @@ from __future__ import annotations
 import importlib
 import time
 from collections.abc import Callable
-from pathlib import Path
 
 import numpy as np
 
@@ -78,7 +77,8 @@ def fit_dataset(
         "train_poses": int(len(train)),
         "heldout_poses": int(len(test)),
         "split": f"seeded permutation (seed {HOLDOUT_SEED}), {holdout:.0%} held out"
-        if len(test) else "no hold-out: numbers are on the training poses",
+        if len(test)
+        else "no hold-out: numbers are on the training poses",
         "nominal_rms_m": nominal["rms_m"],
         "nominal_max_m": nominal["max_m"],
         "heldout_rms_m": held["rms_m"],
@@ -96,11 +96,13 @@ def fit_dataset(
     return model, report
 
 
-def fit_recording(path, *, method="dh", holdout=0.25, out=None, on="auto", bounds=None,
-                  progress=None) -> dict:
+def fit_recording(
+    path, *, method="dh", holdout=0.25, out=None, on="auto", bounds=None, progress=None
+) -> dict:
     ds = Dataset.from_recording(path)
-    model, report = fit_dataset(ds, method=method, holdout=holdout, on=on, bounds=bounds,
-                                progress=progress)
+    model, report = fit_dataset(
+        ds, method=method, holdout=holdout, on=on, bounds=bounds, progress=progress
+    )
     if out is not None:
         info = getattr(model, "info", None)
         if isinstance(info, dict):

@@ -25,7 +25,20 @@ PRIORITY = (
     + [f"a{i}" for i in range(1, 6)]
     + [f"alpha{i}" for i in range(1, 6)]
     + [f"theta{i}_offset" for i in range(2, 6)]
-    + ["d4", "d5", "d1", "d2", "d3", "d6", "a6", "alpha6", "theta1_offset", "theta6_offset"]
+    + [f"beta{i}" for i in range(1, 6)]
+    + [
+        "d4",
+        "d5",
+        "d1",
+        "d2",
+        "d3",
+        "d6",
+        "a6",
+        "alpha6",
+        "theta1_offset",
+        "theta6_offset",
+        "beta6",
+    ]
 )
 
 
@@ -61,8 +74,11 @@ def observability(Js: np.ndarray) -> dict:
     L = len(s)
     pos = s[s > 0]
     o1 = float(np.exp(np.log(pos).sum() / L) / np.sqrt(n)) if len(pos) == L else 0.0
-    return {"o1": o1, "min_singular_value": float(s[-1]) if L else 0.0,
-            "condition": float(s[0] / s[-1]) if L and s[-1] > 0 else float("inf")}
+    return {
+        "o1": o1,
+        "min_singular_value": float(s[-1]) if L else 0.0,
+        "condition": float(s[0] / s[-1]) if L and s[-1] > 0 else float("inf"),
+    }
 
 
 def analyse(
@@ -73,7 +89,7 @@ def analyse(
     candidates: list[str] | None = None,
     rtol: float = 1e-6,
 ) -> Identifiability:
-    """Analyse a Jacobian J (rows, P) whose columns are `names` (default: all 33 parameters).
+    """Analyse a Jacobian J (rows, P) whose columns are `names` (default: all 39 parameters).
 
     `candidates` restricts the analysis to a subset of the columns (others are fixed anyway).
     A column is dependent when its distance from the span of the columns kept before it, relative

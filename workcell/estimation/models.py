@@ -100,8 +100,12 @@ def rms(e: np.ndarray) -> float:
 def error_stats(p_pred: np.ndarray, p_meas: np.ndarray) -> dict:
     e = np.linalg.norm(np.asarray(p_pred) - np.asarray(p_meas), axis=1)
     if not len(e):
-        return {"rms_m": float("nan"), "mean_m": float("nan"), "max_m": float("nan"),
-                "median_m": float("nan")}
+        return {
+            "rms_m": float("nan"),
+            "mean_m": float("nan"),
+            "max_m": float("nan"),
+            "median_m": float("nan"),
+        }
     return {
         "rms_m": float(np.sqrt(np.mean(e**2))),
         "mean_m": float(e.mean()),

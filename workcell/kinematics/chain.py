@@ -1,7 +1,10 @@
 """Geometric model of a 6-joint arm measured by a tracker: DH chain + base pose + SMR offset.
 
-Parameter vector `theta` (33,) with names `PARAM_NAMES`:
+Parameter vector `theta` (39,) with names `PARAM_NAMES`:
   a1..a6, d1..d6 [m], alpha1..alpha6 [rad], theta1_offset..theta6_offset [rad]   (standard DH)
+  beta1..beta6 [rad]   Hayati rotation about y_i, appended to link i (0 nominally). Standard DH
+                       cannot represent a small tilt between nominally parallel axes (UR joints
+                       2-3-4); beta can. It is estimated only where the next axis is parallel.
   base_tx, base_ty, base_tz [m], base_rx, base_ry, base_rz [rad]                  (base pose)
   tool_x, tool_y, tool_z [m]                                                       (SMR in flange)
 
@@ -27,21 +30,46 @@ DH_NAMES = (
     + [f"d{i}" for i in range(1, 7)]
     + [f"alpha{i}" for i in range(1, 7)]
     + [f"theta{i}_offset" for i in range(1, 7)]
+    + [f"beta{i}" for i in range(1, 7)]
 )
 BASE_NAMES = ["base_tx", "base_ty", "base_tz", "base_rx", "base_ry", "base_rz"]
 TOOL_NAMES = ["tool_x", "tool_y", "tool_z"]
 PARAM_NAMES: list[str] = DH_NAMES + BASE_NAMES + TOOL_NAMES
 N_PARAMS = len(PARAM_NAMES)
-PARAM_UNITS = {n: ("rad" if n.startswith(("alpha", "theta", "base_r")) else "m") for n in PARAM_NAMES}
+PARAM_UNITS = {
+    n: ("rad" if n.startswith(("alpha", "theta", "beta", "base_r")) else "m") for n in PARAM_NAMES
+}
+I_BASE = slice(30, 36)
+I_TOOL = slice(36, 39)
 IDX = {n: i for i, n in enumerate(PARAM_NAMES)}
 
 
-def pack(dh: DH, base_t=(0.0, 0.0, 0.0), base_r=(0.0, 0.0, 0.0), tool=(0.0, 0.0, 0.0)) -> np.ndarray:
+def pack(
+    dh: DH, base_t=(0.0, 0.0, 0.0), base_r=(0.0, 0.0, 0.0), tool=(0.0, 0.0, 0.0), beta=None
+) -> np.ndarray:
     """Parameter vector from a DH chain, base offsets and tool (SMR) offset."""
+    beta = np.zeros(6) if beta is None else np.asarray(beta, float)
     return np.concatenate(
-        [dh.a, dh.d, dh.alpha, dh.theta_offset, np.asarray(base_t, float),
-         np.asarray(base_r, float), np.asarray(tool, float)]
+        [
+            dh.a,
+            dh.d,
+            dh.alpha,
+            dh.theta_offset,
+            beta,
+            np.asarray(base_t, float),
+            np.asarray(base_r, float),
+            np.asarray(tool, float),
+        ]
     )
+
+
+def parallel_beta_names(dh: DH, tol: float = 1e-6) -> list[str]:
+    """beta_i worth estimating: link i whose next joint axis is nominally parallel (alpha_i = 0)."""
+    return [f"beta{i + 1}" for i in range(5) if abs(np.sin(dh.alpha[i])) < tol]
+
+
+def unpack_beta(theta: np.ndarray) -> np.ndarray:
+    return np.asarray(theta, dtype=float)[24:30]
 
 
 def unpack_dh(theta: np.ndarray) -> DH:
@@ -60,10 +88,11 @@ def _rotvec_to_matrix(r):
     return jnp.eye(3) + A * K + B * (K @ K)
 
 
-def _dh_matrix(a, d, alpha, th):
+def _dh_matrix(a, d, alpha, th, beta=0.0):
+    """Rz(th) Tz(d) Tx(a) Rx(alpha) Ry(beta)."""
     ct, st = jnp.cos(th), jnp.sin(th)
     ca, sa = jnp.cos(alpha), jnp.sin(alpha)
-    return jnp.array(
+    A = jnp.array(
         [
             [ct, -st * ca, st * sa, a * ct],
             [st, ct * ca, -ct * sa, a * st],
@@ -71,13 +100,23 @@ def _dh_matrix(a, d, alpha, th):
             [0.0, 0.0, 0.0, 1.0],
         ]
     )
+    cb, sb = jnp.cos(beta), jnp.sin(beta)
+    Ry = jnp.array(
+        [[cb, 0.0, sb, 0.0], [0.0, 1.0, 0.0, 0.0], [-sb, 0.0, cb, 0.0], [0.0, 0.0, 0.0, 1.0]]
+    )
+    return A @ Ry
+
+
+def _link(theta, i, qi):
+    beta = theta[24 + i] if theta.shape[0] > 24 else 0.0
+    return _dh_matrix(theta[i], theta[6 + i], theta[12 + i], qi + theta[18 + i], beta)
 
 
 def base_T_flange_single(theta, q):
-    """Flange pose in base for one joint vector q (6,). theta (>=24,) holds the DH part."""
+    """Flange pose in base for one joint vector q (6,). theta (>=30,) holds the DH part."""
     T = jnp.eye(4)
     for i in range(N_JOINTS):
-        T = T @ _dh_matrix(theta[i], theta[6 + i], theta[12 + i], q[i] + theta[18 + i])
+        T = T @ _link(theta, i, q[i])
     return T
 
 
@@ -85,13 +124,13 @@ def base_T_frames_single(theta, q):
     """All DH frames 0..6 in base for one q: (7, 4, 4)."""
     Ts = [jnp.eye(4)]
     for i in range(N_JOINTS):
-        Ts.append(Ts[-1] @ _dh_matrix(theta[i], theta[6 + i], theta[12 + i], q[i] + theta[18 + i]))
+        Ts.append(Ts[-1] @ _link(theta, i, q[i]))
     return jnp.stack(Ts)
 
 
 def tracker_T_base(theta, base_ref):
-    t = theta[24:27]
-    R = _rotvec_to_matrix(theta[27:30])
+    t = theta[30:33]
+    R = _rotvec_to_matrix(theta[33:36])
     off = jnp.eye(4).at[:3, :3].set(R).at[:3, 3].set(t)
     return base_ref @ off
 
@@ -99,7 +138,7 @@ def tracker_T_base(theta, base_ref):
 def p_tracker_single(theta, base_ref, q):
     """SMR position in the tracker frame for one q (6,)."""
     T = tracker_T_base(theta, base_ref) @ base_T_flange_single(theta, q)
-    tool = theta[30:33]
+    tool = theta[36:39]
     return T[:3, :3] @ tool + T[:3, 3]
 
 
@@ -117,7 +156,7 @@ def base_T_flange(theta, q):
 
 @jax.jit
 def jac_params(theta, base_ref, q):
-    """d p_tracker / d theta: (N, 3, 33)."""
+    """d p_tracker / d theta: (N, 3, 39)."""
     return jax.vmap(jax.jacfwd(p_tracker_single, argnums=0), in_axes=(None, None, 0))(
         theta, base_ref, q
     )

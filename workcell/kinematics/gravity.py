@@ -26,15 +26,17 @@ def gravity_torques_nm(
     """Gravity torques (N, 6) for joints q (N, 6). `payload_kg` may be per pose (N,)."""
     q = np.atleast_2d(np.asarray(q_rad, dtype=float))
     th = pack(spec.dh) if theta is None else np.asarray(theta, float)
-    if th.shape[0] < 33:
-        th = np.concatenate([th, np.zeros(33 - th.shape[0])])
+    if th.shape[0] < 39:
+        th = np.concatenate([th, np.zeros(39 - th.shape[0])])
     T = np.asarray(base_T_frames(th, q))  # (N, 7, 4, 4)
     N = q.shape[0]
     masses = np.broadcast_to(spec.link_masses_kg, (N, 6))
     pay = np.broadcast_to(np.asarray(payload_kg, float), (N,))
     # centres of mass in base: link j in frame j (1..6); payload in flange frame 6
     coms = np.einsum("njab,jb->nja", T[:, 1:, :3, :3], spec.link_coms_m) + T[:, 1:, :3, 3]
-    pcom = np.einsum("nab,b->na", T[:, 6, :3, :3], np.asarray(payload_com_m, float)) + T[:, 6, :3, 3]
+    pcom = (
+        np.einsum("nab,b->na", T[:, 6, :3, :3], np.asarray(payload_com_m, float)) + T[:, 6, :3, 3]
+    )
     tau = np.zeros((N, 6))
     for i in range(6):  # joint i+1 rotates about z of frame i
         z = T[:, i, :3, 2]

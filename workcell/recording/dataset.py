@@ -42,7 +42,9 @@ class Dataset:
     def __post_init__(self) -> None:
         n = len(self.q)
         if self.q.shape != (n, 6) or self.p_tracker.shape != (n, 3):
-            raise ValueError(f"dataset: q {self.q.shape} and p_tracker {self.p_tracker.shape} differ")
+            raise ValueError(
+                f"dataset: q {self.q.shape} and p_tracker {self.p_tracker.shape} differ"
+            )
         if self.approach_sign is None:
             self.approach_sign = np.zeros((n, 6))
         if self.joint_temperature_c is None:
@@ -64,9 +66,18 @@ class Dataset:
     def subset(self, idx) -> Dataset:
         idx = np.asarray(idx)
         arrays = {}
-        for k in ("q", "p_tracker", "sigma_m", "q_commanded", "approach_sign",
-                  "joint_temperature_c", "ambient_temperature_c", "elapsed_s", "payload_kg",
-                  "pose_id"):
+        for k in (
+            "q",
+            "p_tracker",
+            "sigma_m",
+            "q_commanded",
+            "approach_sign",
+            "joint_temperature_c",
+            "ambient_temperature_c",
+            "elapsed_s",
+            "payload_kg",
+            "pose_id",
+        ):
             arrays[k] = getattr(self, k)[idx]
         return replace(self, **arrays)
 

@@ -166,5 +166,7 @@ def is_finite_list(v, n: int) -> bool:
     return (
         isinstance(v, list)
         and len(v) == n
-        and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v)
+        and all(
+            isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v
+        )
     )

@@ -71,8 +71,15 @@ SCHEMAS: dict[str, tuple[str, dict]] = {
         {
             "type": "object",
             "required": [
-                "index", "pose_id", "q_commanded_rad", "q_measured_rad", "approach_sign",
-                "tracker_position_m", "tracker_sigma_m", "n_readings", "elapsed_s",
+                "index",
+                "pose_id",
+                "q_commanded_rad",
+                "q_measured_rad",
+                "approach_sign",
+                "tracker_position_m",
+                "tracker_sigma_m",
+                "n_readings",
+                "elapsed_s",
             ],
             "properties": {
                 "index": {"type": "integer"},

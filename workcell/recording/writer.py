@@ -44,9 +44,11 @@ class RecordingWriter:
             raise FileExistsError(f"{self.path} already exists; refusing to overwrite a recording")
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._f = open(self.path, "wb")
-        comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}[
-            compression
-        ]
+        comp = {
+            "zstd": CompressionType.ZSTD,
+            "lz4": CompressionType.LZ4,
+            "none": CompressionType.NONE,
+        }[compression]
         self._w = Writer(self._f, chunk_size=4 * 1024 * 1024, compression=comp)
         self._w.start(profile="", library="workcell")
         self._ch: dict[str, int] = {}
@@ -73,7 +75,10 @@ class RecordingWriter:
             raise ValueError(f"recording {self.path} is closed")
         data = json.dumps(_clean(msg), allow_nan=False).encode()
         self._w.add_message(
-            channel_id=self._ch[topic], log_time=int(t_ns), publish_time=int(t_ns), data=data,
+            channel_id=self._ch[topic],
+            log_time=int(t_ns),
+            publish_time=int(t_ns),
+            data=data,
             sequence=self._seq,
         )
         self._seq += 1
@@ -86,13 +91,19 @@ class RecordingWriter:
     def joint_state(self, t_ns: int, q_rad, qd_rad_s, torque_nm=None, temperature_c=None) -> None:
         self._write(
             S.JOINT_STATE,
-            {"q_rad": q_rad, "qd_rad_s": qd_rad_s, "torque_nm": torque_nm,
-             "temperature_c": temperature_c},
+            {
+                "q_rad": q_rad,
+                "qd_rad_s": qd_rad_s,
+                "torque_nm": torque_nm,
+                "temperature_c": temperature_c,
+            },
             t_ns,
         )
 
     def tracker_measurement(self, t_ns: int, position_m, sigma_m, status: str) -> None:
-        self._write(S.TRACKER, {"position_m": position_m, "sigma_m": sigma_m, "status": status}, t_ns)
+        self._write(
+            S.TRACKER, {"position_m": position_m, "sigma_m": sigma_m, "status": status}, t_ns
+        )
 
     def sample(self, t_ns: int, sample: dict) -> None:
         for k in ("q_measured_rad", "tracker_position_m"):
