@@ -26,13 +26,16 @@ Faults (`faults` dict; rates are probabilities per request, drawn from `seed`):
 given) for deterministic tests; kinds:
 `beam_break`, `slow`, `garbage`, `garbage_before`, `garbage_instead`, `drop`, `vanish`.
 
-time_scale multiplies every simulated duration (slow replies, `measure_time_s`) to get wall-clock
-seconds: 1.0 = real time, 0.1 = ten times faster, 0 = instantaneous.
+time_scale: simulated time runs `time_scale` times faster than the wall clock (as
+`sim_devices.world.ScaledClock`): a simulated delay d (slow replies, `measure_time_s`) takes
+d / time_scale wall seconds, and the instrument clock (CoordTime, ms) advances time_scale ms per
+wall ms. `math.inf` makes delays instantaneous.
 """
 
 from __future__ import annotations
 
 import errno
+import math
 import os
 import re
 import select
@@ -120,8 +123,8 @@ class SimGeoComTracker:
         precision: int = 15,
         measure_time_s: float = 0.0,
     ) -> None:
-        if time_scale < 0:
-            raise ValueError(f"time_scale must be >= 0, got {time_scale!r}")
+        if not time_scale > 0:
+            raise ValueError(f"time_scale must be > 0 (inf: no delays), got {time_scale!r}")
         if not 0 <= precision <= 15:
             raise ValueError(f"precision must be in 0..15, got {precision!r}")
         self.measure_fn = measure_fn
@@ -288,7 +291,7 @@ class SimGeoComTracker:
         return self._rng.integers(0, 256, size=n, dtype=np.uint8).tobytes()
 
     def _sleep(self, sim_s: float) -> None:
-        wall = sim_s * self.time_scale
+        wall = sim_s / self.time_scale
         if wall > 0:
             self._stop.wait(wall)
 
@@ -347,7 +350,9 @@ class SimGeoComTracker:
 
     # ------------------------------------------------------------------ the instrument
     def _instrument_ms(self) -> int:
-        return int((time.monotonic() - self._t0) * 1000)
+        """Instrument clock in ms of simulated time since start (wraps like a 32-bit long)."""
+        scale = self.time_scale if math.isfinite(self.time_scale) else 1.0
+        return int((time.monotonic() - self._t0) * 1000 * scale) % 2**31
 
     def _dispatch(self, req: gc.Request) -> tuple[int, int, tuple]:
         rpc = req.rpc

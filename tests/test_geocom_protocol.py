@@ -410,6 +410,8 @@ def test_driver_survives_well_framed_replies_with_bad_values(
         r = trk.measure()
     except DeviceError:
         return
-    assert r.status == "ok"
-    # either the corruption was harmless (e.g. a digit for a digit) or it was retried
-    assert np.all(np.isfinite(r.position_m))
+    # a corrupted return code is an answer the driver cannot tell from a real one (no CRC)
+    assert r.status in ("ok", "beam_broken", "error")
+    if r.status == "ok":
+        # either the corruption was harmless (a digit for a digit) or the call was retried
+        assert np.all(np.isfinite(r.position_m)) and r.position_m.shape == (3,)

@@ -72,6 +72,36 @@ def test_connect_and_measure(sim: SimGeoComTracker, tracker: SerialTracker, worl
     assert tracker.pop_faults() == []
 
 
+def test_reconnect_on_a_live_port(tracker: SerialTracker, world: World) -> None:
+    tracker.reconnect()
+    _assert_reading_is_latest(tracker.measure(), world)
+
+
+def test_time_scale_speeds_up_simulated_delays(world: World) -> None:
+    # every reply 1 simulated second late, simulated time 10x faster: 0.1 s wall per reply
+    faults = {"slow_rate": 1.0, "slow_delay_s": 1.0}
+    with SimGeoComTracker(world, faults=faults, time_scale=10.0) as s:
+        t = SerialTracker(s.port, timeout_s=TIMEOUT_S)
+        t.connect()
+        t.pop_faults()
+        t0 = time.monotonic()
+        _assert_reading_is_latest(t.measure(), world)
+        assert 0.2 <= time.monotonic() - t0 < 2 * TIMEOUT_S + 0.2
+        assert t.pop_faults() == []
+        t.close()
+
+
+def test_sim_rejects_bad_fault_settings(world: World) -> None:
+    with pytest.raises(ValueError, match="unknown fault keys"):
+        SimGeoComTracker(world, faults={"garbage": 0.1})
+    with pytest.raises(ValueError, match="must be in"):
+        SimGeoComTracker(world, faults={"drop_rate": 1.5})
+    with pytest.raises(ValueError, match="time_scale"):
+        SimGeoComTracker(world, time_scale=0.0)
+    with pytest.raises(ValueError, match="unknown fault kind"):
+        SimGeoComTracker(world).inject("explode")
+
+
 def test_low_instrument_precision_is_raised_on_connect(world: World) -> None:
     with SimGeoComTracker(world, precision=4) as s:
         t = SerialTracker(s.port, timeout_s=TIMEOUT_S)
@@ -209,8 +239,10 @@ def test_vanish_gives_device_unreachable_with_clear_message(
     msg = str(ei.value)
     assert port in msg and "vanished" in msg and "reconnect" in msg
     assert not tracker.is_connected
+    with pytest.raises(DeviceUnreachable, match="call reconnect"):
+        tracker.measure()
     with pytest.raises(DeviceUnreachable, match="cannot be opened"):
-        tracker.connect()
+        tracker.reconnect()
 
 
 def test_vanish_after_n_requests(world: World) -> None:

@@ -119,6 +119,7 @@ class SerialTracker:
         self.fault_log: list[tuple[str, str]] = []
         self.fault_counts: Counter[str] = Counter()
         self.requests_sent = 0
+        self._lost = False  # the port vanished under us; cleared by a successful connect()
 
     # ------------------------------------------------------------------ Tracker protocol
     def connect(self) -> None:
@@ -162,9 +163,14 @@ class SerialTracker:
                 self.instrument_name = self._call_value(
                     gc.Rpc.CSV_GetInstrumentName, gc.decode_string
                 )
+                self._lost = False
             except BaseException:
                 self.close()
                 raise
+
+    def reconnect(self) -> None:
+        """Close and connect again (after `DeviceUnreachable`, e.g. a USB adapter re-plugged)."""
+        self.connect()
 
     def close(self) -> None:
         with self._lock:
@@ -292,10 +298,15 @@ class SerialTracker:
         )
         self._fault("port_vanished", msg)
         self.close()
+        self._lost = True
         return DeviceUnreachable(msg)
 
     def _require_open(self) -> Any:
         if self._ser is None:
+            if self._lost:
+                raise DeviceUnreachable(
+                    f"tracker on {self.port!r}: the port was lost earlier; call reconnect()"
+                )
             raise DeviceError(f"tracker on {self.port!r} is not connected; call connect() first")
         return self._ser
 
