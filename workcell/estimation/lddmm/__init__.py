@@ -1,0 +1,18 @@
+"""Calibration by diffeomorphisms (LDDMM landmark shooting), Orozco & Ratajczak.
+
+Real kinematics k = psi o k0 o phi^-1; phi, psi are flows of time-varying Gaussian-RKHS vector
+fields on joint space X and task space Y. See `shooting` for the equations (and the documented
+deviations from the printed eq. 28) and `model` for fitting, scaling and width selection.
+
+Public API:
+    fit_lddmm(k0, X_train, Y_train, *, sigma_v=None, sigma_w=None, sigma=1e-3, n_steps=10,
+              max_iter=200, lam_v=1.0, lam_w=1.0, ...) -> LddmmModel
+    LddmmModel.predict(X) -> (M, dy)
+    LddmmModel.min_jacobian_det(X) -> (min det D phi_1, min det D psi_1)
+    LddmmModel.to_dict() / LddmmModel.from_dict(d, k0)
+"""
+
+from workcell.estimation.lddmm.model import FitInfo, LddmmModel, fit_lddmm
+from workcell.estimation.lddmm.shooting import KernelParams, State
+
+__all__ = ["FitInfo", "KernelParams", "LddmmModel", "State", "fit_lddmm"]

@@ -1,0 +1,460 @@
+"""Calibration by diffeomorphisms: fitting (cost 27 by L-BFGS) and the fitted model (eq. 29).
+
+Units and scaling. X is used as given (joint angles in rad), Y as given (positions in m); the
+kernel widths are in those units. The momenta P carry the units of Y (the kernels are
+dimensionless), so the weight `sigma` of the data term in (27) is dimensionless: linearised, the
+fit is kernel ridge regression with ridge sigma^2 on a Gram matrix whose diagonal is ~1
+(sigma = 1e-3 means "trust the data, ~1e-6 ridge").
+
+Conditioning. The optimiser works on z with P0 = sigma (G + sigma^2 I)^-1 z, where G (N m x N m)
+is the Gram matrix of the linearised flow at t=0:
+    G_ij = lam_w K_W(k0(x_i), k0(x_j)) I_m + lam_v K_V(x_i, x_j) Dk0(x_i) Dk0(x_j)^T.
+This whitens the Hessian of (27) (eigenvalues g/(g+sigma^2)) and z0 = (y - k0(x))/sigma is the
+exact linearised optimum, so L-BFGS starts at the kernel-ridge solution and only has to fix the
+nonlinear part. The cost is normalised by its value at z = 0.
+
+Width selection (sigma_v / sigma_w = None). k-fold (default 5) cross-validation over the grid
+    sigma_v in s_x * (0.25, 0.5, 1, 2),   sigma_w in s_y * (0.25, 0.5, 1, 2)
+where s_x = RMS over coordinates of the std of X_train, s_y = the same for k0(X_train). The
+score is the held-out RMS error of the linearised model (the t=0 kernel-ridge solution above),
+which costs one Cholesky per fold and grid point; `cv="full"` instead runs the nonlinear fit
+(with max_iter capped at 30) for each fold - far slower.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import scipy.linalg
+import scipy.optimize
+
+from workcell._jax import jax, jnp
+from workcell.estimation.lddmm.shooting import (
+    KernelParams,
+    State,
+    evolve_kinematics,
+    flow_phi,
+    flow_psi,
+    hamiltonian,
+    shoot,
+)
+
+K0 = Callable[[jnp.ndarray], jnp.ndarray]
+
+WIDTH_FACTORS = (0.25, 0.5, 1.0, 2.0)
+_FORMAT = "workcell.lddmm/1"
+
+
+def _check_xy(X: Any, Y: Any | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    X = np.asarray(X, dtype=float)
+    if X.ndim != 2 or X.shape[0] < 1:
+        raise ValueError(f"X must have shape (N, dx) with N >= 1, got {X.shape}")
+    if not np.all(np.isfinite(X)):
+        raise ValueError("X contains non-finite values")
+    if Y is None:
+        return X, None
+    Y = np.asarray(Y, dtype=float)
+    if Y.ndim != 2 or Y.shape[0] != X.shape[0]:
+        raise ValueError(f"Y must have shape (N, dy) with N = {X.shape[0]}, got {Y.shape}")
+    if not np.all(np.isfinite(Y)):
+        raise ValueError("Y contains non-finite values")
+    return X, Y
+
+
+def _k0_and_jac(k0: K0) -> Callable:
+    return functools.partial(_k0j_jit, k0)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _k0j_jit(k0, X):
+    return jax.vmap(k0)(X), jax.vmap(jax.jacfwd(k0))(X)
+
+
+# Module-level jitted kernels: the kernel parameters are traced (a pytree of floats), k0 and the
+# step count are static, so repeated fits / models with the same shapes reuse the compilation.
+
+
+@functools.partial(jax.jit, static_argnums=(2, 3))
+def _shoot_record(s0, x, n_steps, div_term, kp):
+    return shoot(s0, x, kp, n_steps, div_term=div_term, record=True)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _pred_jit(k0, xi, sd, x, kp):
+    kx, dkx = _k0j_jit(k0, xi)
+    return evolve_kinematics(xi, kx, dkx, x, sd, kp)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _dets_jit(k0, xi, sd, x, kp):
+    kx, _ = _k0j_jit(k0, xi)
+    _, dphi = flow_phi(xi, x, sd, kp)
+    _, dpsi = flow_psi(kx, sd, kp)
+    return dphi, dpsi
+
+
+def _fit_cost(z, chol, q0, J0, x, y, kp, sigma, c_ref, n_steps, div_term):
+    N, m = q0.shape
+    P = (sigma * jax.scipy.linalg.cho_solve((chol, True), z)).reshape(N, m)
+    s0 = State(q0, J0, P)
+    fin = shoot(s0, x, kp, n_steps, div_term=div_term)
+    r = fin.q - y
+    return (sigma**2 * hamiltonian(s0, x, kp) + 0.5 * jnp.sum(r * r)) / c_ref
+
+
+_fit_vg = jax.jit(jax.value_and_grad(_fit_cost), static_argnums=(9, 10))
+
+
+def _gauss_np(a: np.ndarray, b: np.ndarray, width: float) -> np.ndarray:
+    d = a[:, None, :] - b[None, :, :]
+    return np.exp(-np.einsum("ijk,ijk->ij", d, d) / (2.0 * width * width))
+
+
+def _gram_cross(xs, qs, Js, x, q0, J0, kp: KernelParams) -> np.ndarray:
+    """Linearised flow Gram matrix (numpy): response at (xs, qs, Js) (M points) to momenta at
+    the landmarks (x, q0, J0): lam_w K_W I_m + lam_v K_V J_s J^T, shape (M m, N m)."""
+    M, m = qs.shape
+    N = q0.shape[0]
+    kw = _gauss_np(qs, q0, kp.sigma_w)
+    kv = _gauss_np(xs, x, kp.sigma_v)
+    jj = np.einsum("ian,jbn->iajb", Js, J0)
+    g = kp.lam_v * kv[:, None, :, None] * jj
+    g += kp.lam_w * kw[:, None, :, None] * np.eye(m)[None, :, None, :]
+    return g.reshape(M * m, N * m)
+
+
+def _gram(x, q0, J0, kp: KernelParams) -> np.ndarray:
+    return _gram_cross(x, q0, J0, x, q0, J0, kp)
+
+
+def _cho(G: np.ndarray, sigma: float):
+    return scipy.linalg.cho_factor(G + sigma**2 * np.eye(G.shape[0]), lower=True)
+
+
+@dataclass
+class FitInfo:
+    fit_seconds: float
+    n_iter: int
+    n_fev: int
+    cost_start: float
+    cost_end: float
+    rms_train_before: float
+    rms_train_linear: float
+    rms_train_after: float
+    message: str
+    cv_scores: dict[str, float] = field(default_factory=dict)
+
+
+class LddmmModel:
+    """Fitted calibration k = psi o k0 o phi^-1, encoded by (x_i, P0_i) and the kernels.
+
+    `predict(X)` integrates eq. (29) (same RK4 steps/stages as the fit, so at the training
+    configurations it returns exactly the fitted k_1(x_i)).
+    """
+
+    def __init__(
+        self,
+        k0: K0,
+        x: np.ndarray,
+        P0: np.ndarray,
+        kp: KernelParams,
+        sigma: float,
+        n_steps: int,
+        div_term: bool = False,
+        info: FitInfo | None = None,
+    ) -> None:
+        self.k0 = k0
+        self.x = np.asarray(x, dtype=float)
+        self.P0 = np.asarray(P0, dtype=float)
+        self.kp = KernelParams(*(float(v) for v in kp))
+        self.sigma = float(sigma)
+        self.n_steps = int(n_steps)
+        self.div_term = bool(div_term)
+        self.info = info
+        self._k0j = _k0_and_jac(k0)
+        q0, J0 = self._k0j(jnp.asarray(self.x))
+        self.dx = self.x.shape[1]
+        self.dy = int(q0.shape[1])
+        if self.P0.shape != (self.x.shape[0], self.dy):
+            raise ValueError(
+                f"P0 must have shape {(self.x.shape[0], self.dy)}, got {self.P0.shape}"
+            )
+        self._xj = jnp.asarray(self.x)
+        self._kpj = KernelParams(*(jnp.asarray(v) for v in self.kp))
+        s0 = State(q0, J0, jnp.asarray(self.P0))
+        self._final, self._sd, _ = _shoot_record(
+            s0, self._xj, self.n_steps, self.div_term, self._kpj
+        )
+        self.energy = float(hamiltonian(s0, self._xj, self._kpj))
+        self._pred = functools.partial(_pred_jit, k0)
+        self._dets = functools.partial(_dets_jit, k0)
+
+    # ---------------------------------------------------------------------------------------
+    @property
+    def fitted_landmarks(self) -> np.ndarray:
+        """k_1(x_i) at the training configurations (N, dy)."""
+        return np.asarray(self._final.q)
+
+    def _batched(self, fn, X: np.ndarray, batch: int):
+        M = X.shape[0]
+        outs = []
+        for s in range(0, M, batch):
+            chunk = X[s : s + batch]
+            nb = chunk.shape[0]
+            if nb < batch and M > batch:  # pad to keep one compiled shape
+                chunk = np.concatenate([chunk, np.repeat(chunk[-1:], batch - nb, 0)])
+            r = fn(jnp.asarray(chunk), self._sd, self._xj, self._kpj)
+            outs.append(jax.tree_util.tree_map(lambda a, nb=nb: np.asarray(a)[:nb], r))
+        return jax.tree_util.tree_map(lambda *a: np.concatenate(a), *outs)
+
+    def predict(self, X: Any, batch: int = 4096) -> np.ndarray:
+        """Calibrated kinematics k_1 at configurations X (M, dx) -> (M, dy), eq. (29)."""
+        X, _ = _check_xy(X)
+        if X.shape[1] != self.dx:
+            raise ValueError(f"X must have {self.dx} columns, got {X.shape[1]}")
+        return self._batched(self._pred, X, batch)
+
+    def jacobian_dets(self, X: Any, batch: int = 4096) -> tuple[np.ndarray, np.ndarray]:
+        """det D phi_1 at X and det D psi_1 at k0(X) (flows of v_t on X and w_t on Y)."""
+        X, _ = _check_xy(X)
+        if X.shape[1] != self.dx:
+            raise ValueError(f"X must have {self.dx} columns, got {X.shape[1]}")
+        return self._batched(self._dets, X, batch)
+
+    def min_jacobian_det(self, X: Any) -> tuple[float, float]:
+        """(min det D phi_1 over X, min det D psi_1 over k0(X)); both > 0 for a diffeomorphism."""
+        dphi, dpsi = self.jacobian_dets(X)
+        return float(np.min(dphi)), float(np.min(dpsi))
+
+    # ---------------------------------------------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able description (lists of floats). k0 is not stored: pass it to from_dict."""
+        return {
+            "format": _FORMAT,
+            "x_landmarks": self.x.tolist(),
+            "P0": self.P0.tolist(),
+            "sigma_v": self.kp.sigma_v,
+            "sigma_w": self.kp.sigma_w,
+            "lam_v": self.kp.lam_v,
+            "lam_w": self.kp.lam_w,
+            "sigma": self.sigma,
+            "n_steps": self.n_steps,
+            "div_term": self.div_term,
+            "dx": self.dx,
+            "dy": self.dy,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], k0: K0) -> LddmmModel:
+        if d.get("format") != _FORMAT:
+            raise ValueError(f"unknown LDDMM model format {d.get('format')!r}; want {_FORMAT!r}")
+        kp = KernelParams(d["sigma_v"], d["sigma_w"], d["lam_v"], d["lam_w"])
+        m = cls(
+            k0,
+            np.asarray(d["x_landmarks"], float),
+            np.asarray(d["P0"], float),
+            kp,
+            d["sigma"],
+            d["n_steps"],
+            d.get("div_term", False),
+        )
+        if m.dy != d["dy"] or m.dx != d["dx"]:
+            raise ValueError(
+                f"k0 maps R^{m.dx} -> R^{m.dy}, model was fitted for R^{d['dx']} -> R^{d['dy']}"
+            )
+        return m
+
+
+# ---------------------------------------------------------------------------------------------
+# Fitting
+# ---------------------------------------------------------------------------------------------
+
+
+def _rms_scale(A: np.ndarray) -> float:
+    s = float(np.sqrt(np.mean(np.var(A, axis=0))))
+    return s if s > 0 else 1.0
+
+
+def _linear_cv(x, q0, J0, y, grid, sigma, lam_v, lam_w, k_folds, seed):
+    N = x.shape[0]
+    rng = np.random.default_rng(seed)
+    folds = np.array_split(rng.permutation(N), k_folds)
+    scores = {}
+    for sv, sw in grid:
+        kp = KernelParams(sv, sw, lam_v, lam_w)
+        se = 0.0
+        for f in folds:
+            tr = np.setdiff1d(np.arange(N), f)
+            G = _gram(x[tr], q0[tr], J0[tr], kp)
+            c = _cho(G, sigma)
+            P = scipy.linalg.cho_solve(c, (y[tr] - q0[tr]).ravel())
+            Gc = _gram_cross(x[f], q0[f], J0[f], x[tr], q0[tr], J0[tr], kp)
+            pred = q0[f] + (Gc @ P).reshape(len(f), -1)
+            se += float(np.sum((pred - y[f]) ** 2))
+        scores[(sv, sw)] = math.sqrt(se / N)
+    return scores
+
+
+def fit_lddmm(
+    k0: K0,
+    X_train: Any,
+    Y_train: Any,
+    *,
+    sigma_v: float | None = None,
+    sigma_w: float | None = None,
+    sigma: float = 1e-3,
+    n_steps: int = 10,
+    max_iter: int = 200,
+    tol: float = 1e-9,
+    lam_v: float = 1.0,
+    lam_w: float = 1.0,
+    div_term: bool = False,
+    cv: str = "linear",
+    k_folds: int = 5,
+    seed: int = 0,
+    verbose: bool = False,
+) -> LddmmModel:
+    """Fit k = psi o k0 o phi^-1 to measurements (X_train (N,dx), Y_train (N,dy)).
+
+    k0: JAX-differentiable nominal kinematics (dx,) -> (dy,).
+    sigma_v / sigma_w: Gaussian widths on X / Y (None -> k-fold CV, see module docstring).
+    sigma: dimensionless data weight of (27) (ridge sigma^2). n_steps: RK4 steps on [0,1].
+    max_iter: L-BFGS iterations; tol: L-BFGS-B ftol on the cost normalised by its value at
+    P0 = 0 (stop when an iteration lowers it by less than tol). lam_v / lam_w: weights of the phi / psi fields
+    (lam_v=0: psi only; lam_w=0: phi only).
+    """
+    X, Y = _check_xy(X_train, Y_train)
+    if sigma <= 0 or not math.isfinite(sigma):
+        raise ValueError(f"sigma must be > 0, got {sigma}")
+    if n_steps < 1:
+        raise ValueError(f"n_steps must be >= 1, got {n_steps}")
+    if lam_v < 0 or lam_w < 0 or lam_v + lam_w == 0:
+        raise ValueError(f"need lam_v, lam_w >= 0 and not both 0, got {lam_v}, {lam_w}")
+    if cv not in ("linear", "full"):
+        raise ValueError(f"cv must be 'linear' or 'full', got {cv!r}")
+    t0 = time.perf_counter()
+    k0j = _k0_and_jac(k0)
+    xj = jnp.asarray(X)
+    q0, J0 = k0j(xj)
+    q0 = np.asarray(q0)
+    J0 = np.asarray(J0)
+    if q0.shape != Y.shape:
+        raise ValueError(f"k0 maps to R^{q0.shape[1]} but Y_train has shape {Y.shape}")
+    N, m = Y.shape
+
+    cv_scores: dict[str, float] = {}
+    if sigma_v is None or sigma_w is None:
+        if N < 2 * k_folds:
+            raise ValueError(f"need at least {2 * k_folds} points for {k_folds}-fold CV, got {N}")
+        svs = [sigma_v] if sigma_v is not None else [_rms_scale(X) * f for f in WIDTH_FACTORS]
+        sws = [sigma_w] if sigma_w is not None else [_rms_scale(q0) * f for f in WIDTH_FACTORS]
+        grid = [(a, b) for a in svs for b in sws]
+        if cv == "linear":
+            scores = _linear_cv(X, q0, J0, Y, grid, sigma, lam_v, lam_w, k_folds, seed)
+        else:
+            scores = _full_cv(k0, X, Y, grid, sigma, n_steps, lam_v, lam_w, div_term, k_folds, seed)
+        sigma_v, sigma_w = min(scores, key=scores.get)
+        cv_scores = {f"{a:.6g},{b:.6g}": s for (a, b), s in scores.items()}
+        if verbose:
+            print(f"[lddmm] CV picked sigma_v={sigma_v:.4g} sigma_w={sigma_w:.4g}")
+    if sigma_v <= 0 or sigma_w <= 0:
+        raise ValueError(f"kernel widths must be > 0, got {sigma_v}, {sigma_w}")
+    kp = KernelParams(float(sigma_v), float(sigma_w), float(lam_v), float(lam_w))
+
+    G = _gram(X, q0, J0, kp)
+    c_np = _cho(G, sigma)
+    delta = Y - q0
+    z0 = (delta / sigma).ravel()
+    c_ref = max(float(0.5 * np.sum(delta**2)), 1e-300)
+    kpj = KernelParams(*(jnp.asarray(v) for v in kp))
+    args = (
+        jnp.asarray(c_np[0]),
+        jnp.asarray(q0),
+        jnp.asarray(J0),
+        jnp.asarray(X),
+        jnp.asarray(Y),
+        kpj,
+        sigma,
+        c_ref,
+        n_steps,
+        div_term,
+    )
+
+    def P_of(z):
+        return (sigma * scipy.linalg.cho_solve(c_np, np.asarray(z))).reshape(N, m)
+
+    def fun(z):
+        v, g = _fit_vg(jnp.asarray(z), *args)
+        v = float(v)
+        g = np.asarray(g, dtype=float)
+        if not (math.isfinite(v) and np.all(np.isfinite(g))):
+            # the flow blew up for this trial step: report a large cost so the line search
+            # backtracks (L-BFGS-B stops with ABNORMAL on NaN)
+            return 1e6, np.zeros_like(z)
+        return v, g
+
+    cost_start = fun(z0)[0]
+    res = scipy.optimize.minimize(
+        fun,
+        z0,
+        jac=True,
+        method="L-BFGS-B",
+        options={"maxiter": int(max_iter), "ftol": tol, "gtol": 1e-12, "maxcor": 20},
+    )
+    P0 = P_of(res.x)
+    fit_s = time.perf_counter() - t0
+    model = LddmmModel(k0, X, P0, kp, sigma, n_steps, div_term)
+    lin = q0 + (G @ scipy.linalg.cho_solve(c_np, delta.ravel())).reshape(N, m)
+    model.info = FitInfo(
+        fit_seconds=fit_s,
+        n_iter=int(res.nit),
+        n_fev=int(res.nfev),
+        cost_start=float(cost_start),
+        cost_end=float(res.fun),
+        rms_train_before=float(np.sqrt(np.mean(np.sum(delta**2, 1)))),
+        rms_train_linear=float(np.sqrt(np.mean(np.sum((lin - Y) ** 2, 1)))),
+        rms_train_after=float(np.sqrt(np.mean(np.sum((model.fitted_landmarks - Y) ** 2, 1)))),
+        message=str(res.message),
+        cv_scores=cv_scores,
+    )
+    if verbose:
+        i = model.info
+        print(
+            f"[lddmm] N={N} sv={kp.sigma_v:.4g} sw={kp.sigma_w:.4g} iters={i.n_iter} "
+            f"fev={i.n_fev} cost {i.cost_start:.3e}->{i.cost_end:.3e} rms train "
+            f"{i.rms_train_before:.3e}->{i.rms_train_after:.3e} ({fit_s:.2f}s) {i.message}"
+        )
+    return model
+
+
+def _full_cv(k0, X, Y, grid, sigma, n_steps, lam_v, lam_w, div_term, k_folds, seed):
+    N = X.shape[0]
+    rng = np.random.default_rng(seed)
+    folds = np.array_split(rng.permutation(N), k_folds)
+    scores = {}
+    for sv, sw in grid:
+        se = 0.0
+        for f in folds:
+            tr = np.setdiff1d(np.arange(N), f)
+            mdl = fit_lddmm(
+                k0,
+                X[tr],
+                Y[tr],
+                sigma_v=sv,
+                sigma_w=sw,
+                sigma=sigma,
+                n_steps=n_steps,
+                max_iter=30,
+                lam_v=lam_v,
+                lam_w=lam_w,
+                div_term=div_term,
+            )
+            se += float(np.sum((mdl.predict(X[f]) - Y[f]) ** 2))
+        scores[(sv, sw)] = math.sqrt(se / N)
+    return scores
