@@ -25,9 +25,16 @@ same id is accepted (late replies to earlier requests are skipped and logged as 
 A malformed line, a CRC mismatch, a transient COM error code or a time-out triggers a resync --
 flush the input, send a bare LF (clears the instrument's receive buffer), then COM_NullProc until
 one clean reply with a matching id -- and the request is sent again, up to `retries` times.
+If a time-out is followed by a failed resync (not even COM_NullProc answers), the instrument is
+silent and `DeviceError` is raised at once instead of re-sending. A non-transient COM code (e.g.
+COM_PROC_UNAVAIL, COM_SRVR_IS_SLEEPING) raises `DeviceError` with its name. Worst cases with the
+defaults (timeout_s=2, retries=2): a silent instrument costs 4 x 2 s = 8 s per call; a port that
+vanished fails at the next read/write, immediately, with `DeviceUnreachable`; after that
+`measure()` keeps raising `DeviceUnreachable` until `reconnect()` succeeds.
+
 Everything handled is appended to `fault_log` as `(kind, message)`; drain it with `pop_faults()`.
 Kinds: `timeout`, `garbage`, `checksum`, `stale_reply`, `com_error`, `resync`, `resync_failed`,
-`gave_up`, `port_vanished`.
+`gave_up`, `port_vanished`. `fault_counts` keeps running totals per kind (never drained).
 """
 
 from __future__ import annotations
@@ -159,7 +166,7 @@ class SerialTracker:
                             f"COM_SetDoublePrecision failed: {rep.describe()}"
                         )
                     prec = 15
-                self.precision = int(prec)
+                self.precision = min(int(prec), 15)  # GeoCOM allows 0..15 digits
                 self.instrument_name = self._call_value(
                     gc.Rpc.CSV_GetInstrumentName, gc.decode_string
                 )
