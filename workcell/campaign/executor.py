@@ -23,7 +23,13 @@ import numpy as np
 
 from workcell.campaign.envelope import Envelope, EnvelopeViolation
 from workcell.campaign.plans import Plan, PoseTarget
-from workcell.drivers.protocols import DeviceError, ProtectiveStop, Robot, Tracker
+from workcell.drivers.protocols import (
+    DeviceError,
+    DeviceUnreachable,
+    ProtectiveStop,
+    Robot,
+    Tracker,
+)
 from workcell.kinematics.robots import RobotSpec
 
 
@@ -161,6 +167,25 @@ class Executor:
                 except DeviceError:
                     continue
 
+    def _reconnect_tracker(self, err: Exception) -> bool:
+        reconnect = getattr(self.tracker, "reconnect", None)
+        if reconnect is None:
+            return False
+        for attempt in range(1, self.cfg.max_reconnects + 1):
+            wait = self.cfg.reconnect_backoff_s * 2 ** (attempt - 1)
+            self.event(
+                "warning",
+                "reconnect",
+                f"tracker unreachable ({err}); reconnect {attempt} in {wait:.1f} s",
+            )
+            time.sleep(wait)
+            try:
+                reconnect()
+                return True
+            except DeviceError as e:
+                err = e
+        return False
+
     def _move(self, q: np.ndarray) -> None:
         speed, accel = self.env.cap(self.cfg.speed_rad_s, self.cfg.accel_rad_s2)
         while True:
@@ -236,8 +261,17 @@ class Executor:
         while len(good) < n:
             try:
                 r = self.tracker.measure()
+            except DeviceUnreachable as e:
+                failures += 1
+                for kind, msg in _pop_faults(self.tracker):
+                    self.event("warning", kind, msg)
+                if failures > self.cfg.max_beam_retries or not self._reconnect_tracker(e):
+                    break
+                continue
             except DeviceError as e:
                 failures += 1
+                for kind, msg in _pop_faults(self.tracker):
+                    self.event("warning", kind, msg)
                 self.event("warning", "retry", f"pose {t.pose_id}: tracker error ({e}); retrying")
                 if failures > self.cfg.max_beam_retries:
                     break

@@ -91,12 +91,14 @@ def read_recording(path: str | os.PathLike, *, streams: bool = True) -> Recordin
                 else:
                     handle(r)
         except (McapError, EOFError, ValueError, OSError, MemoryError, KeyError) as e:
+            rec.closed_cleanly = False
             where = f.tell()
             rec.problems.append(
                 f"file ends or is damaged near byte {where} of {rec.size_bytes} "
                 f"({type(e).__name__}); read everything before it"
             )
         except Exception as e:  # noqa: BLE001 - a reader must never crash on a bad file
+            rec.closed_cleanly = False
             rec.problems.append(f"unreadable data after byte {f.tell()} ({type(e).__name__}: {e})")
     if not rec.closed_cleanly and not any("ends" in x for x in rec.problems):
         rec.problems.append("no summary/footer: the writer did not finish (crash or still open)")

@@ -1,0 +1,185 @@
+"""Recording format v1: round trip, crash tolerance (truncation at any byte), bad input."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+from workcell.recording.dataset import Dataset
+from workcell.recording.reader import RecordingError, read_recording
+from workcell.recording.writer import RecordingWriter
+
+SESSION = {
+    "robot": {"model": "ur5e"},
+    "tool": {"smr_offset_m": [0.0, 0.0, 0.06]},
+    "tracker": {
+        "model": "t",
+        "base_in_tracker": {"translation_m": [2, 0, 0], "quaternion_wxyz": [1, 0, 0, 0]},
+    },
+    "payload": {"mass_kg": 0.5, "com_m": [0, 0, 0.03]},
+    "campaign": {"plan": "test"},
+}
+
+
+def sample(i, rng):
+    return {
+        "index": i,
+        "pose_id": i,
+        "q_commanded_rad": rng.normal(size=6).tolist(),
+        "q_measured_rad": rng.normal(size=6).tolist(),
+        "approach_sign": [1, -1, 1, 1, -1, 1],
+        "tracker_position_m": rng.normal(size=3).tolist(),
+        "tracker_sigma_m": [1e-5] * 3,
+        "n_readings": 5,
+        "joint_temperature_c": [25.0] * 6,
+        "ambient_temperature_c": None,
+        "elapsed_s": float(i),
+        "payload_kg": 0.5,
+    }
+
+
+def write(path, n=30, close=True, seed=0):
+    rng = np.random.default_rng(seed)
+    w = RecordingWriter(path, SESSION)
+    samples = []
+    for i in range(n):
+        for k in range(5):
+            w.joint_state(10**18 + i * 10**9 + k, rng.normal(size=6), np.zeros(6))
+            w.tracker_measurement(10**18 + i * 10**9 + k, rng.normal(size=3), [1e-5] * 3, "ok")
+        s = sample(i, rng)
+        w.sample(10**18 + i * 10**9 + 9, s)
+        samples.append(s)
+        if i % 7 == 3:
+            w.event(10**18 + i * 10**9 + 9, "warning", "beam_broken", "test")
+    if close:
+        w.close()
+    return samples
+
+
+def test_round_trip(tmp_path):
+    p = tmp_path / "r.mcap"
+    samples = write(p)
+    rec = read_recording(p)
+    assert rec.closed_cleanly and not rec.problems
+    assert [s["q_measured_rad"] for s in rec.samples] == [s["q_measured_rad"] for s in samples]
+    assert rec.channel_counts["/robot/joint_state"] == 150
+    assert len(rec.events) == 4
+    ds = Dataset.from_recording(p)
+    assert len(ds) == 30 and ds.robot.model == "ur5e"
+    np.testing.assert_allclose(ds.payload_kg, 0.5)
+    # Foxglove convention: json messages with jsonschema schemas; summary present
+    with open(p, "rb") as f:
+        r = make_reader(f)
+        summ = r.get_summary()
+        assert summ is not None and len(summ.chunk_indexes) >= 30
+        assert {s.encoding for s in summ.schemas.values()} == {"jsonschema"}
+        assert {c.message_encoding for c in summ.channels.values()} == {"json"}
+
+
+def test_refuses_to_overwrite(tmp_path):
+    p = tmp_path / "r.mcap"
+    write(p, n=2)
+    with pytest.raises(FileExistsError):
+        RecordingWriter(p, SESSION)
+
+
+def test_truncated_at_random_bytes_keeps_every_complete_pose(tmp_path):
+    p = tmp_path / "full.mcap"
+    samples = write(p, n=25)
+    data = p.read_bytes()
+    with open(p, "rb") as f:
+        summ = make_reader(f).get_summary()
+    sample_ch = next(c.id for c in summ.channels.values() if c.topic == "/campaign/sample")
+    session_ch = next(c.id for c in summ.channels.values() if c.topic == "/workcell/session")
+    # end offset of the chunk that holds each sample (the writer flushes a chunk per pose)
+    ends = sorted(
+        c.chunk_start_offset + c.chunk_length
+        for c in summ.chunk_indexes
+        if sample_ch in c.message_index_offsets
+    )
+    session_end = min(
+        c.chunk_start_offset + c.chunk_length
+        for c in summ.chunk_indexes
+        if session_ch in c.message_index_offsets
+    )
+    assert len(ends) == 25
+    rng = np.random.default_rng(42)
+    cuts = list(rng.integers(8, len(data), 40)) + [len(data) - 1, 9, ends[3], ends[3] - 1]
+    cuts += [session_end, session_end - 1]
+    for cut in cuts:
+        q = tmp_path / f"cut{cut}.mcap"
+        q.write_bytes(data[:cut])
+        try:
+            rec = read_recording(q)
+        except RecordingError as e:
+            assert "session" in str(e) and cut < session_end
+            continue
+        got = [s["pose_id"] for s in rec.samples]
+        complete = sum(1 for e in ends if e <= cut)
+        assert got == list(range(len(got))), "samples must be a prefix, in order"
+        assert len(got) == complete, (cut, len(got), complete)
+        for a, b in zip(rec.samples, samples, strict=False):
+            assert a["tracker_position_m"] == b["tracker_position_m"]
+        if cut < len(data):
+            assert not rec.closed_cleanly and rec.problems
+
+
+def test_unclosed_writer_is_readable(tmp_path):
+    p = tmp_path / "open.mcap"
+    write(p, n=10, close=False)
+    rec = read_recording(p)
+    assert len(rec.samples) == 10 and not rec.closed_cleanly
+    assert any("footer" in x or "ends" in x for x in rec.problems)
+
+
+def run_cli(*args):
+    return subprocess.run(
+        [sys.executable, "-m", "workcell.cli", *args], capture_output=True, text=True, timeout=120
+    )
+
+
+def assert_one_line_error(r, *words):
+    assert r.returncode != 0
+    assert "Traceback" not in r.stderr
+    lines = [x for x in r.stderr.strip().splitlines() if x.strip()]
+    assert len(lines) == 1, r.stderr
+    for w in words:
+        assert w in lines[0], lines[0]
+
+
+def test_bad_inputs_give_one_clear_line(tmp_path):
+    assert_one_line_error(run_cli("fit", str(tmp_path / "missing.mcap")), "no such file")
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"this is not an mcap file at all")
+    assert_one_line_error(run_cli("fit", str(junk)), "not an MCAP file")
+    assert_one_line_error(run_cli("info", str(junk)), "not an MCAP file")
+    # wrong schema: a session without the tracker object
+    bad = tmp_path / "schema.mcap"
+    with RecordingWriter(bad, {"robot": {"model": "ur5e"}, "tool": {}}) as w:
+        w.sample(1, sample(0, np.random.default_rng(0)))
+    assert_one_line_error(run_cli("fit", str(bad)), "tracker")
+    # NaN in a sample (bypassing the writer's own check, as another tool might)
+    nan = tmp_path / "nan.mcap"
+    with RecordingWriter(nan, SESSION) as w:
+        s = sample(0, np.random.default_rng(0))
+        w._write("/campaign/sample", {**s, "tracker_position_m": [float("nan"), 0, 0]}, 1)
+    assert_one_line_error(run_cli("fit", str(nan)), "sample 0", "tracker_position_m")
+    # unknown robot without a DH chain
+    unk = tmp_path / "unknown.mcap"
+    with RecordingWriter(unk, {**SESSION, "robot": {"model": "abb-irb-9999"}}) as w:
+        w.sample(1, sample(0, np.random.default_rng(0)))
+    assert_one_line_error(run_cli("fit", str(unk)), "unknown robot")
+    assert_one_line_error(run_cli("fit", str(tmp_path)), "directory")
+
+
+def test_info_reports_closed_state(tmp_path):
+    p = tmp_path / "r.mcap"
+    write(p, n=5)
+    r = run_cli("info", str(p), "--json")
+    assert r.returncode == 0, r.stderr
+    d = json.loads(r.stdout)
+    assert d["poses"] == 5 and d["closed_cleanly"] and d["robot"] == "ur5e"
+    assert d["events"] == {"beam_broken": 1}
