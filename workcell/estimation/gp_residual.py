@@ -1,0 +1,176 @@
+"""Non-parametric peer: Gaussian-process regression of the residual of a geometric model.
+
+p_tracker(q) = k_dh(q) + r(q), r ~ GP(0, s^2 ARD-RBF(q) + noise). Inputs are the six joint angles
+(radians, each scaled by its training spread), outputs the three residual components (shared
+kernel, independent outputs). Hyperparameters by marginal likelihood (scikit-learn, restarts).
+Prediction uses the stored training inputs and dual coefficients, so a model file is plain JSON.
+The predictive standard deviation is available (`predict_std`) as the uncertainty of the
+correction; the hyperparameters are reported without a standard deviation (they are not
+physical parameters).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from workcell.estimation.dh import DHModel, fit_dh
+from workcell.estimation.models import model_from_dict
+
+
+@dataclass
+class GPResidualModel:
+    base: DHModel
+    X: np.ndarray  # (N, 6) training joints
+    alpha: np.ndarray  # (N, 3) dual coefficients
+    scale: np.ndarray  # (6,) input scaling (divide q by it)
+    lengthscales: np.ndarray  # (6,) in scaled units
+    signal_var: float
+    noise_var: float
+    y_mean: np.ndarray  # (3,)
+    L: np.ndarray | None = None  # Cholesky of K + noise (for predict_std)
+    info: dict = field(default_factory=dict)
+    method: str = "gp"
+
+    @property
+    def unidentifiable(self):
+        return self.base.unidentifiable
+
+    def _k(self, A: np.ndarray, B: np.ndarray) -> np.ndarray:
+        a = A / self.scale / self.lengthscales
+        b = B / self.scale / self.lengthscales
+        d2 = (a**2).sum(1)[:, None] + (b**2).sum(1)[None, :] - 2 * a @ b.T
+        return self.signal_var * np.exp(-0.5 * np.maximum(d2, 0.0))
+
+    def residual(self, q: np.ndarray) -> np.ndarray:
+        q = np.atleast_2d(np.asarray(q, float))
+        out = np.empty((len(q), 3))
+        for s in range(0, len(q), 4096):
+            out[s : s + 4096] = self._k(q[s : s + 4096], self.X) @ self.alpha + self.y_mean
+        return out
+
+    def predict(self, q: np.ndarray, **aux) -> np.ndarray:
+        return self.base.predict(q) + self.residual(q)
+
+    def predict_std(self, q: np.ndarray) -> np.ndarray:
+        """Predictive 1-sigma of each residual component (N,) (same for x, y, z)."""
+        from scipy.linalg import cho_solve
+
+        q = np.atleast_2d(np.asarray(q, float))
+        if self.L is None:
+            K = self._k(self.X, self.X) + self.noise_var * np.eye(len(self.X))
+            self.L = np.linalg.cholesky(K)
+        Ks = self._k(q, self.X)
+        v = cho_solve((self.L, True), Ks.T)
+        var = self.signal_var - np.einsum("ij,ji->i", Ks, v)
+        return np.sqrt(np.clip(var, 0.0, None))
+
+    def parameters(self) -> dict[str, dict]:
+        out = dict(self.base.parameters())
+        for j in range(6):
+            out[f"gp_lengthscale_q{j + 1}"] = {
+                "value": float(self.lengthscales[j] * self.scale[j]),
+                "std": None,
+                "unit": "rad",
+            }
+        out["gp_signal_std"] = {"value": float(np.sqrt(self.signal_var)), "std": None, "unit": "m"}
+        out["gp_noise_std"] = {"value": float(np.sqrt(self.noise_var)), "std": None, "unit": "m"}
+        return out
+
+    def to_dict(self) -> dict:
+        return {
+            "method": self.method,
+            "base": self.base.to_dict(),
+            "X": self.X.tolist(),
+            "alpha": self.alpha.tolist(),
+            "scale": self.scale.tolist(),
+            "lengthscales": self.lengthscales.tolist(),
+            "signal_var": self.signal_var,
+            "noise_var": self.noise_var,
+            "y_mean": self.y_mean.tolist(),
+            "info": self.info,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> GPResidualModel:
+        return cls(
+            base=model_from_dict(d["base"]),
+            X=np.asarray(d["X"], float),
+            alpha=np.asarray(d["alpha"], float),
+            scale=np.asarray(d["scale"], float),
+            lengthscales=np.asarray(d["lengthscales"], float),
+            signal_var=float(d["signal_var"]),
+            noise_var=float(d["noise_var"]),
+            y_mean=np.asarray(d["y_mean"], float),
+            info=d.get("info", {}),
+        )
+
+
+def fit_gp_residual(
+    base: DHModel,
+    q: np.ndarray,
+    p: np.ndarray,
+    *,
+    restarts: int = 2,
+    seed: int = 0,
+    sigma_m: np.ndarray | None = None,
+) -> GPResidualModel:
+    from sklearn.gaussian_process import GaussianProcessRegressor
+    from sklearn.gaussian_process.kernels import RBF, ConstantKernel, WhiteKernel
+
+    r = p - base.predict(q)
+    y_mean = r.mean(0)
+    scale = np.maximum(q.std(0), 1e-3)
+    X = q / scale
+    s2 = float(np.var(r - y_mean)) + 1e-18
+    # the white noise cannot be below the stated measurement noise of one component
+    noise_lo = float(np.median(sigma_m) ** 2) if sigma_m is not None else s2 * 1e-4
+    kern = ConstantKernel(s2, (s2 * 1e-4, s2 * 1e2)) * RBF(np.ones(6), (1e-2, 1e2)) + WhiteKernel(
+        s2 * 0.3, (noise_lo, max(s2 * 2, noise_lo * 10))
+    )
+    gpr = GaussianProcessRegressor(
+        kern, normalize_y=False, n_restarts_optimizer=restarts, random_state=seed
+    )
+    gpr.fit(X, r - y_mean)
+    k = gpr.kernel_
+    signal_var = float(k.k1.k1.constant_value)
+    ls = np.asarray(k.k1.k2.length_scale, float)
+    noise_var = float(k.k2.noise_level)
+    K = signal_var * np.exp(
+        -0.5 * ((X[:, None, :] - X[None, :, :]) ** 2 / ls**2).sum(-1)
+    ) + noise_var * np.eye(len(X))
+    L = np.linalg.cholesky(K)
+    from scipy.linalg import cho_solve
+
+    alpha = cho_solve((L, True), r - y_mean)
+    return GPResidualModel(
+        base=base,
+        X=np.asarray(q, float),
+        alpha=alpha,
+        scale=scale,
+        lengthscales=ls,
+        signal_var=signal_var,
+        noise_var=noise_var,
+        y_mean=y_mean,
+        L=L,
+        info={
+            "log_marginal_likelihood": float(gpr.log_marginal_likelihood_value_),
+            "train_poses": int(len(q)),
+            "identifiability": base.info.get("identifiability"),
+            "outliers_rejected": base.info.get("outliers_rejected", 0),
+        },
+    )
+
+
+def fit_method(ds, *, on: str = "auto", progress=None, **_) -> tuple[GPResidualModel, dict]:
+    """`workcell fit --method gp`: DH fit, then a GP on its residual (training poses only)."""
+    base = fit_dh(ds)
+    model = fit_gp_residual(base, ds.q, ds.p_tracker, sigma_m=ds.sigma_m)
+    extra = {
+        "on": "dh",
+        "gp_lengthscales_rad": (model.lengthscales * model.scale).round(4).tolist(),
+        "gp_signal_std_m": float(np.sqrt(model.signal_var)),
+        "gp_noise_std_m": float(np.sqrt(model.noise_var)),
+    }
+    return model, extra
