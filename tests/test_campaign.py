@@ -1,0 +1,139 @@
+"""In-process simulated campaign: plans inside the envelope, refusal before motion, recording."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from workcell.campaign.envelope import EnvelopeViolation, default_envelope
+from workcell.campaign.executor import CampaignConfig, Executor
+from workcell.campaign.plans import PoseTarget, make_plan
+from workcell.campaign.run import run_campaign, sim_cell
+from workcell.kinematics.robots import UR5E
+from workcell.recording.reader import read_recording
+
+
+class RecordingRobot:
+    """A robot that records every motion command (to prove nothing moved)."""
+
+    def __init__(self):
+        self.moves = []
+
+    def connect(self):
+        pass
+
+    def close(self):
+        pass
+
+    def move_joints(self, q, speed, accel):
+        self.moves.append(np.array(q))
+
+    def state(self):
+        from workcell.drivers.protocols import RobotState
+
+        return RobotState(t_s=0.0, q_rad=np.zeros(6), qd_rad_s=np.zeros(6))
+
+    def stop(self):
+        pass
+
+    def sleep(self, s):
+        pass
+
+
+class NullSink:
+    def __init__(self):
+        self.events = []
+
+    def event(self, t, level, kind, msg):
+        self.events.append((kind, msg))
+
+    def joint_state(self, *a):
+        pass
+
+    def tracker_measurement(self, *a):
+        pass
+
+    def sample(self, *a):
+        raise AssertionError("nothing may be measured")
+
+
+@pytest.mark.parametrize("kind", ["random", "grid"])
+def test_plans_stay_inside_the_envelope_with_their_approach(kind):
+    env = default_envelope(UR5E)
+    tool = np.array([0, 0, 0.06])
+    gen, q = make_plan(kind, UR5E, env, 40, seed=3, tool_m=tool)
+    targets = list(gen)
+    assert len(targets) == 40
+    ex = Executor(None, None, UR5E, env, None, tool_m=tool)
+    assert ex.check_plan(targets) == []
+    signs = np.array([t.approach_sign for t in targets])
+    # approach directions are varied on purpose: both signs on every joint
+    assert np.all((signs > 0).any(0)) and np.all((signs < 0).any(0))
+
+
+def test_target_outside_envelope_refused_before_any_motion():
+    env = default_envelope(UR5E)
+    robot, sink = RecordingRobot(), NullSink()
+    ex = Executor(robot, None, UR5E, env, sink, tool_m=np.array([0, 0, 0.06]))
+    bad = [
+        np.array([0.0, 0.3, 0.0, 0.0, 0.0, 0.0]),  # joint 2 outside [-175, -5] deg
+        np.array([0.0, -1.0, 2.9, 0.0, 0.0, 0.0]),  # joint 3 beyond 160 deg
+        np.array([0.0, -0.1, 1.5, 0.0, 0.0, 0.0]),  # forearm down: SMR below the box
+        np.array([np.nan, -1.0, 1.0, 0.0, 0.0, 0.0]),
+    ]
+    for k, q in enumerate(bad):
+        assert ex.run_pose(PoseTarget(k, q, np.ones(6))) is None
+        with pytest.raises(EnvelopeViolation, match="refused before any motion"):
+            env.check(UR5E, q, np.array([0, 0, 0.06]))
+    assert robot.moves == []
+    assert [k for k, _ in sink.events] == ["refused"] * 4
+    assert env.cap(10.0, 10.0) == (env.max_speed_rad_s, env.max_accel_rad_s2)
+
+
+def test_sim_campaign_records_every_pose_or_an_event(tmp_path):
+    world, robot, tracker, cell = sim_cell("ur5e", "realistic", seed=4, beam_break_prob=0.15)
+    p = tmp_path / "c.mcap"
+    _, res = run_campaign(
+        robot,
+        tracker,
+        cell,
+        p,
+        poses=25,
+        seed=4,
+        config=CampaignConfig(readings_per_pose=3, max_beam_retries=2, payload_kg=cell.payload_kg),
+    )
+    rec = read_recording(p)
+    assert rec.closed_cleanly
+    ids = [s["pose_id"] for s in rec.samples]
+    skipped = [e for e in rec.events if e["kind"] == "skip"]
+    assert len(ids) == res.measured and len(skipped) == res.skipped
+    assert res.measured + res.skipped == 25
+    assert any(e["kind"] == "beam_broken" for e in rec.events)
+    s = rec.samples[0]
+    assert len(s["joint_temperature_c"]) == 6 and s["n_readings"] >= 2
+    assert set(map(abs, s["approach_sign"])) == {1}
+    # elapsed time grows and matches the log time
+    el = [x["elapsed_s"] for x in rec.samples]
+    assert all(b > a for a, b in zip(el, el[1:], strict=False))
+
+
+def test_campaign_cli_dry_run_and_required_out(tmp_path):
+    cmd = [
+        sys.executable,
+        "-m",
+        "workcell.cli",
+        "campaign",
+        "--robot",
+        "sim",
+        "--tracker",
+        "sim",
+        "--poses",
+        "5",
+        "--dry-run",
+    ]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert "nothing moved" in r.stdout and r.stdout.count("pose ") >= 5
+    r = subprocess.run(cmd[:-1], capture_output=True, text=True, timeout=120)
+    assert r.returncode != 0 and "--out" in r.stderr and "Traceback" not in r.stderr
