@@ -1,0 +1,594 @@
+"""Universal Robots arm over the unmodified `ur_rtde` client (RTDE receive + control, dashboard).
+
+`UrRobot(host)` implements the `Robot` Protocol. Reading: an RTDEReceiveInterface subscribed to
+an explicit list of outputs (positions, speeds, currents, target moments, temperatures, modes,
+status bits, runtime state). Moving: RTDEControlInterface.moveJ in asynchronous mode, then the
+driver itself watches the receive stream until the joints have arrived, so it notices at once a
+protective stop (safety status bit 2), an emergency stop (bit 7), a stopped control program or a
+lost connection, and is never stuck inside the client library when a connection drops.
+
+Errors (all `DeviceError`, the campaign fault policy decides):
+- `DeviceUnreachable`: nothing answers at `host` (checked with a short TCP connect first, so a
+  wrong address fails in `connect_timeout_s` instead of the operating system's minutes).
+- `ProtectiveStop`: the controller reports a protective stop; `unlock_protective_stop()` clears it
+  through the dashboard (retrying while PolyScope refuses during its first 5 s) and restarts the
+  control program.
+- `DeviceError`: connection lost, controller restarted, program stopped, move timed out. Call
+  `reconnect()` (the campaign executor does, with back-off).
+
+Time: `time_scale` is the simulated-controller speed-up (1.0 for a real robot). `sleep(s)` waits
+s / time_scale wall seconds and move timeouts are scaled the same way.
+
+The RTDEControlInterface lives in a small worker process (`python -m workcell.drivers.ur_robot
+--control-worker`), driven over a pipe. Reason: after its RTDE connection drops, ur_rtde 1.6.5's
+control interface reconnects from its own receive thread without ever clearing its "reconnect"
+flag, starts a second receive thread on the same socket and, in our tests, crashes the process
+(segmentation fault) within a second. In a worker, that takes down only the worker: the driver
+kills it, raises DeviceError, and `reconnect()` starts a fresh one. The receive interface and the
+dashboard client (which never reconnect by themselves) stay in this process.
+
+Note: the ur_rtde constructors hold the Python GIL while they connect; a simulated controller must
+therefore run in another process (see sim_devices/ur_process.py).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import select
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+
+from workcell.drivers.protocols import DeviceError, DeviceUnreachable, ProtectiveStop, RobotState
+
+RTDE_PORT = 30004
+DASHBOARD_PORT = 29999
+
+RECEIVE_VARIABLES = [
+    "timestamp", "actual_q", "actual_qd", "target_q", "actual_current", "target_moment",
+    "joint_temperatures", "robot_mode", "safety_mode", "safety_status_bits", "runtime_state",
+    "robot_status_bits",
+]
+
+ROBOT_MODES = {
+    -1: "NO_CONTROLLER", 0: "DISCONNECTED", 1: "CONFIRM_SAFETY", 2: "BOOTING", 3: "POWER_OFF",
+    4: "POWER_ON", 5: "IDLE", 6: "BACKDRIVE", 7: "RUNNING", 8: "UPDATING_FIRMWARE",
+}
+SAFETY_MODES = {
+    1: "NORMAL", 2: "REDUCED", 3: "PROTECTIVE_STOP", 4: "RECOVERY", 5: "SAFEGUARD_STOP",
+    6: "SYSTEM_EMERGENCY_STOP", 7: "ROBOT_EMERGENCY_STOP", 8: "VIOLATION", 9: "FAULT",
+    10: "VALIDATE_JOINT_ID", 11: "UNDEFINED_SAFETY_MODE",
+}
+BIT_PROTECTIVE_STOP = 1 << 2
+BIT_EMERGENCY_STOP = 1 << 7
+RUNTIME_PLAYING = 2
+MAX_JOINT_SPEED = 3.14  # rad/s, ur_rtde's accepted range
+MAX_JOINT_ACCEL = 40.0  # rad/s^2
+
+
+def _import_ur_rtde():
+    try:
+        import dashboard_client
+        import rtde_control
+        import rtde_receive
+    except ImportError as e:  # pragma: no cover - ur_rtde is a dependency
+        raise DeviceError(f"the ur_rtde package is not installed ({e.name})") from None
+    return rtde_receive, rtde_control, dashboard_client
+
+
+def _one_line(e: BaseException) -> str:
+    return " ".join(str(e).split()) or type(e).__name__
+
+
+class _ControlWorker:
+    """An RTDEControlInterface in a child process; JSON lines over its stdin/stdout."""
+
+    def __init__(self, host: str, frequency: float, timeout_s: float = 20.0) -> None:
+        self.host = host
+        debug = bool(os.environ.get("WORKCELL_UR_DEBUG"))
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "workcell.drivers.ur_robot", "--control-worker", host,
+             repr(float(frequency))],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+            stderr=None if debug else subprocess.DEVNULL,
+        )
+        self._buf = b""
+        self._read(timeout_s, "starting the RTDE control interface")
+
+    def alive(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
+    def call(self, name: str, *args, timeout_s: float = 10.0):
+        if not self.alive():
+            raise DeviceError(f"UR {self.host}: RTDE control interface has exited")
+        try:
+            self.proc.stdin.write((json.dumps([name, list(args)]) + "\n").encode())
+            self.proc.stdin.flush()
+        except OSError:
+            self.kill()
+            raise DeviceError(f"UR {self.host}: RTDE control interface has exited") from None
+        return self._read(timeout_s, name)
+
+    def _read(self, timeout_s: float, what: str):
+        fd = self.proc.stdout.fileno()
+        t_end = time.monotonic() + timeout_s
+        while b"\n" not in self._buf:
+            left = t_end - time.monotonic()
+            if left <= 0:
+                self.kill()
+                raise DeviceError(f"UR {self.host}: no answer to {what} within {timeout_s:g} s")
+            r, _, _ = select.select([fd], [], [], left)
+            if not r:
+                continue
+            chunk = os.read(fd, 65536)
+            if not chunk:
+                code = self.proc.poll()
+                self.kill()
+                raise DeviceError(f"UR {self.host}: RTDE control interface died during {what}"
+                                  f" (exit code {code})")
+            self._buf += chunk
+        line, self._buf = self._buf.split(b"\n", 1)
+        status, value = json.loads(line)
+        if status == "ok":
+            return value
+        if status == "value_error":
+            raise ValueError(value)
+        raise RuntimeError(value)
+
+    def kill(self) -> None:
+        p = self.proc
+        if p is None:
+            return
+        if p.poll() is None:
+            p.kill()
+        try:
+            p.wait(2.0)
+        except subprocess.TimeoutExpired:
+            pass
+        for f in (p.stdin, p.stdout):
+            try:
+                f.close()
+            except OSError:
+                pass
+
+    def close(self) -> None:
+        if self.alive():
+            try:
+                self.call("disconnect", timeout_s=3.0)
+            except (DeviceError, RuntimeError, ValueError):
+                pass
+        self.kill()
+
+
+def _control_worker_main(host: str, frequency: float) -> int:
+    """Child side: own the RTDEControlInterface, answer one JSON line per request."""
+    proto = os.fdopen(os.dup(1), "w", buffering=1)
+    os.dup2(2, 1)  # the C++ library prints on stdout: keep it off the protocol pipe
+    allowed = {"moveJ", "stopJ", "stopScript", "reuploadScript", "isConnected",
+               "isProgramRunning", "disconnect", "triggerProtectiveStop", "moveL"}
+
+    def answer(status: str, value) -> None:
+        proto.write(json.dumps([status, value]) + "\n")
+        proto.flush()
+
+    try:
+        import rtde_control
+
+        rc = rtde_control.RTDEControlInterface(host, frequency)
+    except Exception as e:
+        answer("error", _one_line(e))
+        os._exit(1)
+    answer("ok", True)
+    for line in sys.stdin:
+        try:
+            name, args = json.loads(line)
+            if name not in allowed:
+                raise RuntimeError(f"method {name!r} not available")
+            answer("ok", getattr(rc, name)(*args))
+            if name == "disconnect":
+                break
+        except ValueError as e:
+            answer("value_error", _one_line(e))
+        except Exception as e:
+            answer("error", _one_line(e))
+    os._exit(0)  # skip the destructor: it joins threads that a broken reconnect left behind
+
+
+class UrRobot:
+    """A UR arm (e-Series, PolyScope 5) through ur_rtde. See the module doc."""
+
+    def __init__(
+        self,
+        host: str,
+        *,
+        frequency: float = -1.0,
+        time_scale: float = 1.0,
+        reconnect_backoff_s: float = 0.5,
+        connect_timeout_s: float = 3.0,
+        arrival_tol_rad: float = 1e-4,
+        settle_speed_rad_s: float = 1e-3,
+        auto_power_on: bool = False,
+        poll_s: float = 0.002,
+    ) -> None:
+        if not host or not isinstance(host, str):
+            raise ValueError(f"host must be a non-empty string, got {host!r}")
+        if not time_scale > 0:
+            raise ValueError(f"time_scale must be > 0, got {time_scale!r}")
+        if not (frequency == -1.0 or frequency > 0):
+            raise ValueError(f"frequency must be > 0 Hz or -1 (controller default), got {frequency}")
+        self.host = host
+        self.frequency = float(frequency)
+        self.time_scale = float(time_scale)
+        self.reconnect_backoff_s = float(reconnect_backoff_s)
+        self.connect_timeout_s = float(connect_timeout_s)
+        self.arrival_tol_rad = float(arrival_tol_rad)
+        self.settle_speed_rad_s = float(settle_speed_rad_s)
+        self.auto_power_on = bool(auto_power_on)
+        self.poll_s = float(poll_s)
+        self._rr = None
+        self._rc = None
+        self._db = None
+        self._graveyard: list = []  # disconnected client objects (their destructors sleep)
+        self._lock = threading.RLock()
+
+    # ================================================================== connection
+    def connect(self) -> None:
+        with self._lock:
+            self._preflight()
+            rtde_receive, _, dashboard_client = _import_ur_rtde()
+            if self._db is None:
+                self._db = dashboard_client.DashboardClient(self.host)
+            self._db_connect()
+            self._check_powered()
+            if self._rr is None or not self._rr.isConnected():
+                self._bury("_rr")
+                try:
+                    self._rr = rtde_receive.RTDEReceiveInterface(
+                        self.host, self.frequency, RECEIVE_VARIABLES)
+                except RuntimeError as e:
+                    raise self._conn_error("RTDE receive", e) from None
+                if not self._rr.isConnected():
+                    raise DeviceError(f"UR {self.host}: RTDE receive connection closed at start")
+            if not self._protective_stopped():
+                self._ensure_program()
+
+    def close(self) -> None:
+        with self._lock:
+            rc, self._rc = self._rc, None
+            if rc is not None:
+                rc.close()
+            rr, self._rr = self._rr, None
+            if rr is not None:
+                try:
+                    rr.disconnect()
+                except Exception:  # closing must not raise
+                    pass
+            if self._db is not None:
+                try:
+                    self._db.disconnect()
+                except Exception:
+                    pass
+                self._db = None
+            self._graveyard.clear()
+
+    def reconnect(self, max_wait_s: float = 0.0) -> None:
+        """Re-establish every connection after a drop or a controller restart.
+
+        One attempt by default (the campaign executor owns the back-off); with `max_wait_s` > 0
+        (robot time) it retries while the controller is unreachable, pausing
+        `reconnect_backoff_s`, doubling, until that much time has passed.
+        """
+        t_end = time.monotonic() + max(max_wait_s, 0.0) / self.time_scale
+        pause = self.reconnect_backoff_s
+        while True:
+            try:
+                self._reconnect_once()
+                return
+            except DeviceUnreachable:
+                if time.monotonic() + pause / self.time_scale > t_end:
+                    raise
+                time.sleep(pause / self.time_scale)
+                pause *= 2.0
+
+    def _reconnect_once(self) -> None:
+        with self._lock:
+            self._preflight()  # DeviceUnreachable while the controller is down
+            self._kill_control()
+            if self._rr is not None and not self._rr.isConnected():
+                self._bury("_rr")
+            if self._db is not None:
+                try:
+                    self._db.disconnect()
+                except Exception:
+                    pass
+            self.connect()
+
+    def __enter__(self) -> UrRobot:
+        self.connect()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ================================================================== Robot protocol
+    def state(self) -> RobotState:
+        with self._lock:
+            rr = self._receiver()
+            try:
+                t = rr.getTimestamp()
+                q = np.array(rr.getActualQ())
+                qd = np.array(rr.getActualQd())
+                temps = np.array(rr.getJointTemperatures())
+                torque = np.array(rr.getTargetMoment())
+                current = np.array(rr.getActualCurrent())
+                mode = int(rr.getRobotMode())
+                safety = int(rr.getSafetyMode())
+                bits = int(rr.getSafetyStatusBits())
+            except RuntimeError as e:
+                raise DeviceError(f"UR {self.host}: reading the RTDE state failed: "
+                                  f"{_one_line(e)}") from None
+            if not rr.isConnected():
+                raise DeviceError(f"UR {self.host}: RTDE connection lost")
+            safety_name = SAFETY_MODES.get(safety, f"SAFETY_{safety}")
+            if bits & BIT_PROTECTIVE_STOP:
+                safety_name = "PROTECTIVE_STOP"
+            return RobotState(
+                t_s=float(t), q_rad=q, qd_rad_s=qd, temperature_c=temps, torque_nm=torque,
+                current_a=current, mode=ROBOT_MODES.get(mode, f"MODE_{mode}"), safety=safety_name,
+            )
+
+    def move_joints(self, q_rad: np.ndarray, speed_rad_s: float, accel_rad_s2: float) -> None:
+        q = np.asarray(q_rad, dtype=float)
+        if q.shape != (6,) or not np.all(np.isfinite(q)):
+            raise ValueError(f"q_rad: expected 6 finite joint angles, got {q.tolist()}")
+        if not 0 < speed_rad_s <= MAX_JOINT_SPEED:
+            raise ValueError(f"speed_rad_s must be in (0, {MAX_JOINT_SPEED}], got {speed_rad_s}")
+        if not 0 < accel_rad_s2 <= MAX_JOINT_ACCEL:
+            raise ValueError(f"accel_rad_s2 must be in (0, {MAX_JOINT_ACCEL}], got {accel_rad_s2}")
+        with self._lock:
+            rr = self._receiver()
+            self._raise_if_stopped(rr, "before a move")
+            rc = self._ensure_program()
+            q0 = np.array(rr.getActualQ())
+            try:
+                ok = rc.call("moveJ", q.tolist(), float(speed_rad_s), float(accel_rad_s2), True)
+            except RuntimeError as e:
+                raise DeviceError(f"UR {self.host}: moveJ failed: {_one_line(e)}") from None
+            if not ok:
+                self._diagnose("moveJ was refused")
+            dist = float(np.max(np.abs(q - q0)))
+            self._wait_arrival(q, self._duration(dist, speed_rad_s, accel_rad_s2))
+
+    def stop(self) -> None:
+        with self._lock:
+            rc = self._rc
+            if rc is None or not rc.alive():
+                raise DeviceError(f"UR {self.host}: not connected; cannot stop")
+            try:
+                rc.call("stopJ", 2.0, False)
+            except RuntimeError as e:
+                raise DeviceError(f"UR {self.host}: stopJ failed: {_one_line(e)}") from None
+
+    def sleep(self, seconds: float) -> None:
+        time.sleep(max(float(seconds), 0.0) / self.time_scale)
+
+    # ================================================================== protective stop
+    def unlock_protective_stop(self, timeout_s: float = 20.0) -> None:
+        """Release a protective stop (dashboard) and restart the control program.
+
+        PolyScope refuses an unlock during the first 5 s after the stop: retried until
+        `timeout_s` of robot time have passed.
+        """
+        with self._lock:
+            db = self._dashboard()
+            deadline = time.monotonic() + timeout_s / self.time_scale + 2.0
+            while True:
+                try:
+                    try:
+                        db.closeSafetyPopup()
+                    except RuntimeError:
+                        pass
+                    db.unlockProtectiveStop()
+                    break
+                except RuntimeError as e:
+                    msg = _one_line(e)
+                    if "Cannot unlock" in msg and time.monotonic() < deadline:
+                        time.sleep(0.5 / self.time_scale)
+                        continue
+                    raise DeviceError(f"UR {self.host}: unlock protective stop: {msg}") from None
+            rr = self._receiver()
+            while rr.isConnected() and int(rr.getSafetyStatusBits()) & BIT_PROTECTIVE_STOP:
+                if time.monotonic() > deadline:
+                    raise DeviceError(f"UR {self.host}: protective stop still active after unlock")
+                time.sleep(self.poll_s)
+            self._ensure_program()
+
+    # ================================================================== internals
+    def _preflight(self) -> None:
+        for port in (RTDE_PORT, DASHBOARD_PORT):
+            try:
+                with socket.create_connection((self.host, port), timeout=self.connect_timeout_s):
+                    pass
+            except OSError as e:
+                reason = e.strerror or type(e).__name__
+                if isinstance(e, TimeoutError) or "timed out" in str(e):
+                    reason = f"no answer within {self.connect_timeout_s:g} s"
+                raise DeviceUnreachable(
+                    f"UR controller {self.host} unreachable: port {port}: {reason} "
+                    "(check the address, the network and that the controller is on)") from None
+
+    def _conn_error(self, what: str, e: BaseException) -> DeviceError:
+        msg = _one_line(e)
+        if "connect" in msg.lower() or "timeout" in msg.lower():
+            return DeviceUnreachable(f"UR controller {self.host} unreachable ({what}): {msg}")
+        return DeviceError(f"UR {self.host}: {what}: {msg}")
+
+    def _db_connect(self) -> None:
+        try:
+            self._db.connect(int(self.connect_timeout_s * 1000))
+        except RuntimeError as e:
+            raise self._conn_error("dashboard", e) from None
+
+    def _dashboard(self):
+        if self._db is None or not self._db.isConnected():
+            if self._db is None:
+                _, _, dashboard_client = _import_ur_rtde()
+                self._db = dashboard_client.DashboardClient(self.host)
+            self._db_connect()
+        return self._db
+
+    def _check_powered(self) -> None:
+        db = self._db
+        try:
+            mode = db.robotmode().strip()
+        except RuntimeError as e:
+            raise DeviceError(f"UR {self.host}: dashboard robotmode: {_one_line(e)}") from None
+        if mode.endswith("RUNNING"):
+            return
+        if not self.auto_power_on:
+            raise DeviceError(f"UR {self.host}: {mode}; power the arm on and release the brakes "
+                              "(or use auto_power_on=True)")
+        try:
+            db.powerOn()
+            deadline = time.monotonic() + 30.0 / self.time_scale + 2.0
+            released = False
+            while time.monotonic() < deadline:
+                mode = db.robotmode().strip()
+                if mode.endswith("RUNNING"):
+                    return
+                if mode.endswith("IDLE") and not released:
+                    db.brakeRelease()
+                    released = True
+                time.sleep(0.05)
+        except RuntimeError as e:
+            raise DeviceError(f"UR {self.host}: power on: {_one_line(e)}") from None
+        raise DeviceError(f"UR {self.host}: arm did not reach RUNNING after power on ({mode})")
+
+    def _receiver(self):
+        rr = self._rr
+        if rr is None:
+            raise DeviceError(f"UR {self.host}: not connected; call connect()")
+        if not rr.isConnected():
+            self._kill_control()
+            raise DeviceError(f"UR {self.host}: RTDE connection lost")
+        return rr
+
+    def _protective_stopped(self) -> bool:
+        rr = self._rr
+        return rr is not None and bool(int(rr.getSafetyStatusBits()) & BIT_PROTECTIVE_STOP)
+
+    def _raise_if_stopped(self, rr, when: str) -> None:
+        bits = int(rr.getSafetyStatusBits())
+        if bits & BIT_PROTECTIVE_STOP:
+            raise ProtectiveStop(f"UR {self.host}: protective stop {when}")
+        if bits & BIT_EMERGENCY_STOP:
+            raise DeviceError(f"UR {self.host}: emergency stop {when}")
+
+    def _bury(self, name: str) -> None:
+        obj = getattr(self, name)
+        setattr(self, name, None)
+        if obj is None:
+            return
+        try:
+            obj.disconnect()
+        except Exception:
+            pass
+        self._graveyard.append(obj)
+
+    def _kill_control(self) -> None:
+        rc, self._rc = self._rc, None
+        if rc is not None:
+            rc.kill()
+
+    def _wait_playing(self, rr, timeout_s: float) -> bool:
+        t_end = time.monotonic() + timeout_s
+        while time.monotonic() < t_end and rr.isConnected():
+            if int(rr.getRuntimeState()) == RUNTIME_PLAYING:
+                return True
+            time.sleep(0.005)
+        return False
+
+    def _ensure_program(self) -> _ControlWorker:
+        """A live control interface whose control program is PLAYING."""
+        rr = self._receiver()
+        rc = self._rc
+        if rc is not None and not rc.alive():
+            self._kill_control()
+            rc = None
+        if rc is None:
+            try:
+                rc = _ControlWorker(self.host, self.frequency)
+            except RuntimeError as e:
+                raise self._conn_error("RTDE control", e) from None
+            self._rc = rc
+        if self._wait_playing(rr, 0.1):
+            return rc
+        try:
+            rc.call("reuploadScript")
+        except RuntimeError as e:
+            self._kill_control()
+            raise DeviceError(f"UR {self.host}: re-uploading the control script: "
+                              f"{_one_line(e)}") from None
+        if self._wait_playing(rr, 5.0):
+            return rc
+        self._kill_control()
+        raise DeviceError(f"UR {self.host}: the control program did not start")
+
+    def _diagnose(self, what: str) -> None:
+        """Raise the most specific error for a refused/aborted command."""
+        rr = self._rr
+        t_end = time.monotonic() + 0.2
+        while rr is not None and rr.isConnected() and time.monotonic() < t_end:
+            self._raise_if_stopped(rr, f"({what})")
+            time.sleep(self.poll_s)
+        if rr is None or not rr.isConnected():
+            self._kill_control()
+            raise DeviceError(f"UR {self.host}: RTDE connection lost ({what})")
+        if int(rr.getRuntimeState()) != RUNTIME_PLAYING:
+            raise DeviceError(f"UR {self.host}: control program not running ({what})")
+        raise DeviceError(f"UR {self.host}: {what}")
+
+    @staticmethod
+    def _duration(dist: float, speed: float, accel: float) -> float:
+        v = min(speed, MAX_JOINT_SPEED)
+        if dist <= v * v / accel:
+            return 2.0 * np.sqrt(dist / accel)
+        return dist / v + v / accel
+
+    def _wait_arrival(self, q: np.ndarray, expected_s: float) -> None:
+        timeout = (2.0 * expected_s + 2.0) / self.time_scale + 2.0
+        t_end = time.monotonic() + timeout
+        rr = self._rr
+        while True:
+            if not rr.isConnected():
+                self._kill_control()
+                raise DeviceError(f"UR {self.host}: RTDE connection lost during a move")
+            self._raise_if_stopped(rr, "during a move")
+            if int(rr.getRuntimeState()) != RUNTIME_PLAYING:
+                raise DeviceError(f"UR {self.host}: control program stopped during a move")
+            err = float(np.max(np.abs(np.array(rr.getActualQ()) - q)))
+            if err < self.arrival_tol_rad:
+                qd = float(np.max(np.abs(rr.getActualQd())))
+                if qd < self.settle_speed_rad_s:
+                    return
+            if time.monotonic() > t_end:
+                try:
+                    self._rc.call("stopJ", 2.0, False)
+                except Exception:
+                    pass
+                raise DeviceError(f"UR {self.host}: move did not arrive within {timeout:.1f} s "
+                                  f"(still {err:.2e} rad away)")
+            time.sleep(self.poll_s)
+
+
+if __name__ == "__main__":
+    if len(sys.argv) == 4 and sys.argv[1] == "--control-worker":
+        sys.exit(_control_worker_main(sys.argv[2], float(sys.argv[3])))
+    print("usage: python -m workcell.drivers.ur_robot --control-worker HOST FREQUENCY",
+          file=sys.stderr)
+    sys.exit(2)
