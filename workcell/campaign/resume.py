@@ -1,0 +1,126 @@
+"""`workcell campaign --resume OLD.mcap`: continue a campaign whose process died.
+
+Reads what survived in OLD (a file cut short by a crash is fine), re-creates the same plan from
+the session's `campaign` block (plan, poses, seed, devices, readings, settle), skips every pose
+already measured (by `pose_id`) and records the rest into a new file whose session carries
+`chained_from` {path, sha256, samples}. The old file is never modified. Sample `index` continues
+from the old file's count; `elapsed_s` continues from its last value.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import signal
+import sys
+from pathlib import Path
+
+from workcell.campaign.devices import open_cell
+from workcell.campaign.executor import CampaignConfig, CampaignControl
+from workcell.campaign.run import run_campaign
+from workcell.errors import UserError
+from workcell.recording.dataset import file_sha256
+from workcell.recording.reader import read_recording
+
+
+def resume_plan(old: str) -> dict:
+    """What a resume needs from the old recording."""
+    rec = read_recording(old)
+    camp = rec.session.get("campaign") or {}
+    for key in ("plan", "poses", "seed"):
+        if key not in camp:
+            raise UserError(
+                f"{old}: session campaign block has no {key!r}; cannot re-create the plan"
+            )
+    done = {int(s["pose_id"]) for s in rec.samples}
+    skipped_events = [e for e in rec.events if e.get("kind") in ("skip", "refused")]
+    return {
+        "recording": rec,
+        "campaign": camp,
+        "done": done,
+        "n_samples": len(rec.samples),
+        "last_elapsed": max((float(s.get("elapsed_s", 0.0)) for s in rec.samples), default=0.0),
+        "skipped_events": len(skipped_events),
+    }
+
+
+def default_out(old: Path) -> Path:
+    k = 1
+    while True:
+        p = old.with_name(f"{old.stem}.resumed{k}{old.suffix}")
+        if not p.exists():
+            return p
+        k += 1
+
+
+def resume_campaign(args: argparse.Namespace) -> int:
+    old = Path(args.resume)
+    info = resume_plan(str(old))
+    camp = info["campaign"]
+    if camp["plan"] in ("bo", "dopt"):
+        raise UserError(
+            f"{old}: resuming an adaptive ({camp['plan']}) campaign is not supported; "
+            "start a new campaign"
+        )
+    remaining = int(camp["poses"]) - len(info["done"])
+    out = Path(args.out) if args.out else default_out(old)
+    if out.exists():
+        raise UserError(f"{out} already exists; choose a new file with --out")
+    if remaining <= 0:
+        print(f"{old}: all {camp['poses']} poses already measured; nothing to resume")
+        return 0
+    ns = copy.copy(args)
+    ns.robot = camp.get("robot_url", args.robot)
+    ns.tracker = camp.get("tracker_url", args.tracker)
+    if camp.get("effects") is not None:
+        ns.effects = camp["effects"]
+    ns.seed = int(camp["seed"])
+    ns.model = info["recording"].session.get("robot", {}).get("model", args.model)
+    cell, robot, tracker, env = open_cell(ns)
+    cfg = CampaignConfig(
+        readings_per_pose=int(camp.get("readings_per_pose", args.readings)),
+        settle_s=float(camp.get("settle_s", args.settle)),
+        approach_rad=float(camp.get("approach_rad", 0.02)),
+        payload_kg=cell.payload_kg,
+    )
+    control = CampaignControl()
+    signal.signal(signal.SIGINT, lambda *_: control.abort.set())
+    chained = {"path": str(old), "sha256": file_sha256(old), "samples": info["n_samples"]}
+    print(
+        f"resuming {old}: {len(info['done'])} poses measured, {remaining} to go -> {out}",
+        file=sys.stderr,
+    )
+    extra = {
+        k: v
+        for k, v in camp.items()
+        if k
+        not in (
+            "plan",
+            "poses",
+            "seed",
+            "envelope",
+            "readings_per_pose",
+            "settle_s",
+            "approach_rad",
+        )
+    }
+    _, res = run_campaign(
+        robot,
+        tracker,
+        cell,
+        out,
+        plan=camp["plan"],
+        poses=int(camp["poses"]),
+        seed=ns.seed,
+        envelope=env,
+        config=cfg,
+        control=control,
+        extra_campaign=extra,
+        skip_ids=info["done"],
+        index0=info["n_samples"],
+        chained_from=chained,
+        elapsed0_s=info["last_elapsed"],
+        on_event=lambda e: print(f"  [{e['level']}] {e['kind']}: {e['message']}", file=sys.stderr),
+    )
+    print(f"recorded {res.measured} more poses, skipped {res.skipped} -> {out}")
+    return 130 if res.aborted else 0
