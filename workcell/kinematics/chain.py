@@ -17,8 +17,6 @@ All functions are pure JAX, vectorised over N poses, float64.
 
 from __future__ import annotations
 
-from functools import partial
-
 import numpy as np
 
 from workcell._jax import jax, jnp
@@ -142,38 +140,69 @@ def p_tracker_single(theta, base_ref, q):
     return T[:3, :3] @ tool + T[:3, 3]
 
 
+def _bucket(n: int) -> int:
+    """Pad batch sizes to a few buckets so jit compiles once per bucket, not once per N."""
+    if n <= 64:
+        return 64
+    return 1 << (n - 1).bit_length() if n <= 65536 else ((n + 65535) // 65536) * 65536
+
+
+def _batched(fn):
+    """Wrap a jitted (theta, [base_ref,] q) function: pad q to a bucket size, slice back."""
+
+    def wrapper(*args):
+        *head, q = args
+        q = jnp.asarray(q, dtype=jnp.float64)
+        n = q.shape[0]
+        m = _bucket(n)
+        if m != n:
+            q = jnp.concatenate([q, jnp.zeros((m - n, q.shape[1]), q.dtype)])
+        return fn(*head, q)[:n]
+
+    wrapper.__doc__ = fn.__doc__
+    wrapper.__wrapped__ = fn
+    return wrapper
+
+
 @jax.jit
-def p_tracker(theta, base_ref, q):
-    """SMR positions (N, 3) in the tracker frame for joints q (N, 6)."""
+def _p_tracker(theta, base_ref, q):
     return jax.vmap(p_tracker_single, in_axes=(None, None, 0))(theta, base_ref, q)
 
 
 @jax.jit
-def base_T_flange(theta, q):
-    """Flange poses (N, 4, 4) in base."""
+def _base_T_flange(theta, q):
     return jax.vmap(base_T_flange_single, in_axes=(None, 0))(theta, q)
 
 
 @jax.jit
-def jac_params(theta, base_ref, q):
-    """d p_tracker / d theta: (N, 3, 39)."""
+def _jac_params(theta, base_ref, q):
     return jax.vmap(jax.jacfwd(p_tracker_single, argnums=0), in_axes=(None, None, 0))(
         theta, base_ref, q
     )
 
 
 @jax.jit
-def jac_joints(theta, base_ref, q):
-    """d p_tracker / d q: (N, 3, 6)."""
+def _jac_joints(theta, base_ref, q):
     return jax.vmap(jax.jacfwd(p_tracker_single, argnums=2), in_axes=(None, None, 0))(
         theta, base_ref, q
     )
 
 
-@partial(jax.jit, static_argnums=())
-def base_T_frames(theta, q):
-    """DH frames 0..6 in base for each pose: (N, 7, 4, 4)."""
+@jax.jit
+def _base_T_frames(theta, q):
     return jax.vmap(base_T_frames_single, in_axes=(None, 0))(theta, q)
+
+
+p_tracker = _batched(_p_tracker)
+p_tracker.__doc__ = "SMR positions (N, 3) in the tracker frame for joints q (N, 6)."
+base_T_flange = _batched(_base_T_flange)
+base_T_flange.__doc__ = "Flange poses (N, 4, 4) in base."
+jac_params = _batched(_jac_params)
+jac_params.__doc__ = "d p_tracker / d theta: (N, 3, 39)."
+jac_joints = _batched(_jac_joints)
+jac_joints.__doc__ = "d p_tracker / d q: (N, 3, 6)."
+base_T_frames = _batched(_base_T_frames)
+base_T_frames.__doc__ = "DH frames 0..6 in base for each pose: (N, 7, 4, 4)."
 
 
 def check_joints(q: np.ndarray, name: str = "q_rad") -> np.ndarray:

@@ -1,0 +1,70 @@
+"""`workcell bench dh [--json] [--poses N]`: speed of the geometric fit and of FK/Jacobians.
+
+Simulated UR5e, DH errors + tracker noise only, in-process campaign (virtual time). Prints the
+fit time (first call includes JIT compilation), a second fit time (compiled), FK and
+Jacobian throughput.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def main(argv: list[str]) -> int:
+    ap = argparse.ArgumentParser(prog="workcell bench dh")
+    ap.add_argument("--poses", type=int, default=500)
+    ap.add_argument("--json", action="store_true")
+    a = ap.parse_args(argv)
+    from workcell.campaign.executor import CampaignConfig
+    from workcell.campaign.run import run_campaign, sim_cell
+    from workcell.estimation.dh import fit_dh
+    from workcell.kinematics.chain import jac_params, p_tracker
+    from workcell.recording.dataset import Dataset
+
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / "b.mcap"
+        _, robot, tracker, cell = sim_cell("ur5e", "none", 3)
+        t0 = time.perf_counter()
+        run_campaign(robot, tracker, cell, p, poses=a.poses, seed=3,
+                     config=CampaignConfig(readings_per_pose=3, payload_kg=cell.payload_kg))
+        camp_s = time.perf_counter() - t0
+        ds = Dataset.from_recording(p)
+    t0 = time.perf_counter()
+    m = fit_dh(ds)
+    first = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    fit_dh(ds)
+    second = time.perf_counter() - t0
+    q = np.random.default_rng(0).uniform(-3, 3, (100_000, 6))
+    np.asarray(p_tracker(m.theta, m.base_ref, q[:10]))
+    t0 = time.perf_counter()
+    np.asarray(p_tracker(m.theta, m.base_ref, q))
+    fk = len(q) / (time.perf_counter() - t0)
+    qj = q[:10_000]
+    np.asarray(jac_params(m.theta, m.base_ref, qj[:10]))
+    t0 = time.perf_counter()
+    np.asarray(jac_params(m.theta, m.base_ref, qj))
+    jac = len(qj) / (time.perf_counter() - t0)
+    out = {
+        "poses": len(ds),
+        "campaign_wall_s": camp_s,
+        "fit_seconds_first": first,
+        "fit_seconds_compiled": second,
+        "fk_points_per_s": fk,
+        "jacobian_points_per_s": jac,
+        "train_rms_m": m.info["train_rms_m"],
+    }
+    if a.json:
+        print(json.dumps(out))
+    else:
+        print(f"DH fit, {out['poses']} poses: {first:.2f} s (first, incl. JIT), "
+              f"{second:.2f} s (compiled)")
+        print(f"simulated campaign of {out['poses']} poses: {camp_s:.1f} s wall (virtual time)")
+        print(f"forward kinematics: {fk:,.0f} poses/s; parameter Jacobian: {jac:,.0f} poses/s")
+    return 0
