@@ -397,6 +397,11 @@ class UrControllerSim:
         self._prev_qd = np.zeros(6)
         self._prev_t = 0.0
         self._snap: dict | None = None
+        self._grav: np.ndarray | None = None
+        self._fk_key = b""
+        self._fk: tuple[np.ndarray, np.ndarray] = (np.zeros(6), np.zeros(3))
+        self._grav_key = b""
+        self._grav_wall = 0.0
         self._snap_wall = 0.0
 
         self._stop = threading.Event()
@@ -567,7 +572,7 @@ class UrControllerSim:
 
     # ================================================================== control loop
     def _control_loop(self) -> None:
-        period = 0.002
+        period = 0.004  # input packets also run the script step at once
         while not self._stop.is_set():
             try:
                 self._tick()
@@ -732,7 +737,7 @@ class UrControllerSim:
     def snapshot(self) -> dict:
         """The controller's current output values (cached for a millisecond)."""
         wall = time.monotonic()
-        if self._snap is not None and wall - self._snap_wall < 0.001:
+        if self._snap is not None and wall - self._snap_wall < 0.004:
             return self._snap
         with self.lock:
             t = self.clock.now()
@@ -741,17 +746,20 @@ class UrControllerSim:
             qdd = (qd - self._prev_qd) / dt if dt > 1e-6 else np.zeros(6)
             if dt > 1e-6:
                 self._prev_qd, self._prev_t = qd.copy(), t
-            tau_g = self.world.truth.gravity_torques(q)
+            tau_g = self._gravity(q, qd, wall)
             temps = self.world.joint_temperatures_c()
             moment = -tau_g
             current = moment / K_T_NM_PER_A
             q_act = q + self.rng.normal(0.0, ENCODER_NOISE_RAD, 6)
-            T = self.chain.fk(q_act)
-            pose = np.concatenate([T[:3, 3], _matrix_to_rotvec(T[:3, :3])])
+            key = q.tobytes()
+            if key != self._fk_key:  # the TCP pose of the (noise-free) joints, cached at rest
+                T = self.chain.fk(q)
+                pose = np.concatenate([T[:3, 3], _matrix_to_rotvec(T[:3, :3])])
+                accel = T[:3, :3].T @ np.array([0.0, 0.0, 9.80665])
+                self._fk_key, self._fk = key, (pose, accel)
+            pose, accel = self._fk
             h = 1e-3
-            pose_h = self.chain.pose(q + h * qd) if np.any(qd) else pose
-            tcp_speed = (pose_h - self.chain.pose(q)) / h if np.any(qd) else np.zeros(6)
-            accel = T[:3, :3].T @ np.array([0.0, 0.0, 9.80665])
+            tcp_speed = (self.chain.pose(q + h * qd) - pose) / h if np.any(qd) else np.zeros(6)
             pstop = self.safety_mode == SAFETY_PROTECTIVE_STOP
             safety_bits = (1 << 2) | (1 << 10) if pstop else 1
             playing = self.runtime_state == RT_PLAYING
@@ -788,6 +796,18 @@ class UrControllerSim:
             }
         self._snap, self._snap_wall = snap, wall
         return snap
+
+    def _gravity(self, q: np.ndarray, qd: np.ndarray, wall: float) -> np.ndarray:
+        """Gravity torques (the truth model costs milliseconds): exact at rest, refreshed at
+        most every 20 ms of wall time while moving."""
+        key = q.tobytes()
+        if key == self._grav_key:
+            return self._grav
+        if self._grav is not None and np.any(qd) and wall - self._grav_wall < 0.02:
+            return self._grav
+        self._grav = self.world.truth.gravity_torques(q)
+        self._grav_key, self._grav_wall = key, wall
+        return self._grav
 
     @staticmethod
     def _value(snap: dict, name: str):

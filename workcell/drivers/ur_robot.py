@@ -505,10 +505,11 @@ class UrRobot:
         if rc is not None:
             rc.kill()
 
-    def _wait_playing(self, rr, timeout_s: float) -> bool:
+    def _wait_playing(self, rr, rc: _ControlWorker, timeout_s: float) -> bool:
+        """Both views (our receive stream and the control interface's own) show PLAYING."""
         t_end = time.monotonic() + timeout_s
         while time.monotonic() < t_end and rr.isConnected():
-            if int(rr.getRuntimeState()) == RUNTIME_PLAYING:
+            if int(rr.getRuntimeState()) == RUNTIME_PLAYING and rc.call("isProgramRunning"):
                 return True
             time.sleep(0.005)
         return False
@@ -526,7 +527,7 @@ class UrRobot:
             except RuntimeError as e:
                 raise self._conn_error("RTDE control", e) from None
             self._rc = rc
-        if self._wait_playing(rr, 0.1):
+        if self._wait_playing(rr, rc, 0.1):
             return rc
         try:
             rc.call("reuploadScript")
@@ -534,7 +535,7 @@ class UrRobot:
             self._kill_control()
             raise DeviceError(f"UR {self.host}: re-uploading the control script: "
                               f"{_one_line(e)}") from None
-        if self._wait_playing(rr, 5.0):
+        if self._wait_playing(rr, rc, 5.0):
             return rc
         self._kill_control()
         raise DeviceError(f"UR {self.host}: the control program did not start")

@@ -1,0 +1,258 @@
+"""The simulated UR controller through the real, unmodified ur_rtde client, and the UrRobot driver.
+
+Every simulator runs in its own process (`SimProcess`, time-scaled) on its own loopback address
+127.0.0.2x, so this module does not clash with other tests; each process is stopped at teardown.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rtde_receive")
+
+import dashboard_client  # noqa: E402
+import rtde_control  # noqa: E402
+import rtde_receive  # noqa: E402
+
+from sim_devices.ur_process import SimProcess  # noqa: E402
+from workcell.drivers.protocols import (  # noqa: E402
+    DeviceError,
+    DeviceUnreachable,
+    ProtectiveStop,
+    Robot,
+)
+from workcell.drivers.ur_robot import UrRobot  # noqa: E402
+
+TS = 10.0  # simulated seconds per wall second
+HOME = np.array([0.0, -1.57, 1.57, -1.57, -1.57, 0.0])
+QA = np.array([0.3, -1.2, 1.3, -1.7, -1.4, 0.4])
+QB = np.array([-0.2, -1.8, 1.9, -1.4, -1.7, -0.3])
+
+
+@pytest.fixture(scope="module")
+def sim():
+    sp = SimProcess("127.0.0.21", seed=3, time_scale=TS)
+    sp.start()
+    try:
+        yield sp
+    finally:
+        sp.stop()
+
+
+@pytest.fixture
+def robot_factory():
+    made: list[UrRobot] = []
+
+    def make(host: str) -> UrRobot:
+        r = UrRobot(host, time_scale=TS)
+        made.append(r)
+        return r
+
+    yield make
+    for r in made:
+        r.close()
+
+
+def test_process_announces_itself(sim):
+    assert sim.info["ur_host"] == "127.0.0.21"
+    assert sim.info["pid"] == sim.pid and sim.pid > 0
+    assert sim.info["time_scale"] == TS
+    st = sim.state()
+    assert st["ok"] and len(st["q_rad"]) == 6
+
+
+def test_receive_interface_default_recipe_reads_joints(sim):
+    rr = rtde_receive.RTDEReceiveInterface("127.0.0.21")  # the ~40-output default recipe
+    try:
+        q_true = np.array(sim.state()["q_rad"])
+        q = np.array(rr.getActualQ())
+        assert q.shape == (6,)
+        assert np.max(np.abs(q - q_true)) < 1e-4
+        assert rr.getRobotMode() == 7 and rr.getSafetyMode() == 1
+        temps = np.array(rr.getJointTemperatures())
+        assert np.all((temps > 15.0) & (temps < 60.0))
+        t0 = rr.getTimestamp()
+        time.sleep(0.2)
+        dt = rr.getTimestamp() - t0
+        assert 0.5 * 0.2 * TS < dt < 2.0 * 0.2 * TS  # the clock runs TS times faster
+        # the shoulder holds the arm against gravity: clearly non-zero current
+        assert abs(rr.getActualCurrent()[1]) > 0.1
+        assert len(rr.getActualTCPPose()) == 6
+    finally:
+        rr.disconnect()
+
+
+def test_control_interface_movej_arrives_and_dashboard_answers(sim):
+    rr = rtde_receive.RTDEReceiveInterface("127.0.0.21", -1.0, ["timestamp", "actual_q",
+                                                                "runtime_state"])
+    rc = rtde_control.RTDEControlInterface("127.0.0.21")
+    db = dashboard_client.DashboardClient("127.0.0.21")
+    try:
+        assert rc.isProgramRunning()
+        assert rc.moveJ(QA.tolist(), 1.0, 2.0) is True  # blocking: returns on arrival
+        assert np.max(np.abs(np.array(sim.state()["q_rad"]) - QA)) < 1e-9
+        # our receive stream may be one packet (8 ms of wall time) behind the control stream
+        t_end = time.monotonic() + 0.5
+        while np.max(np.abs(np.array(rr.getActualQ()) - QA)) > 1e-4:
+            assert time.monotonic() < t_end, "receive stream never showed the arrival"
+            time.sleep(0.005)
+        db.connect()
+        assert db.robotmode() == "Robotmode: RUNNING"
+        assert db.safetystatus() == "Safetystatus: NORMAL"
+        assert db.isInRemoteControl()
+        assert db.polyscopeVersion().startswith("5.15.0")
+        assert db.running()
+        assert db.programState().startswith("PLAYING")
+        rc.stopScript()
+        time.sleep(0.05)
+        assert not db.running()
+        assert rr.getRuntimeState() == 1
+    finally:
+        rc.disconnect()
+        rr.disconnect()
+        db.disconnect()
+
+
+def test_urrobot_moves_and_reports_state(sim, robot_factory):
+    r = robot_factory("127.0.0.21")
+    assert isinstance(r, Robot)
+    r.connect()
+    s0 = r.state()
+    r.move_joints(QB, 1.0, 2.0)
+    s1 = r.state()
+    assert np.max(np.abs(s1.q_rad - QB)) < 1e-4
+    assert np.max(np.abs(s1.qd_rad_s)) < 1e-3
+    assert s1.t_s > s0.t_s
+    assert s1.mode == "RUNNING" and s1.safety == "NORMAL"
+    assert s1.temperature_c.shape == (6,) and s1.current_a.shape == (6,)
+    assert abs(s1.torque_nm[1]) > 1.0  # shoulder torque against gravity
+    # torques follow the pose (gravity), so two poses give different shoulder torques
+    r.move_joints(QA, 1.0, 2.0)
+    assert abs(r.state().torque_nm[1] - s1.torque_nm[1]) > 0.1
+    t_w = time.monotonic()
+    t_r = r.state().t_s
+    r.sleep(1.0)
+    assert time.monotonic() - t_w < 0.5  # 1 s of robot time at TS = 10
+    # robot time went on by about 1 s (each reading may be a packet old; loaded CI machines)
+    assert r.state().t_s - t_r > 0.5
+
+
+def test_speed_limit_enforced_on_ur10():
+    """UR10 base/shoulder are limited to 120 deg/s: a 3 rad/s moveJ cruises at 2.094 rad/s."""
+    with SimProcess("127.0.0.24", robot="ur10", time_scale=TS) as sp:
+        rr = rtde_receive.RTDEReceiveInterface("127.0.0.24", -1.0, ["actual_qd"])
+        rc = rtde_control.RTDEControlInterface("127.0.0.24")
+        try:
+            target = np.array(sp.state()["q_rad"]) + np.array([2.5, 0, 0, 0, 0, 0])
+            assert rc.moveJ(target.tolist(), 3.0, 10.0, True)
+            peak = 0.0
+            t_end = time.monotonic() + 0.4  # the move takes ~1.4 s of robot time
+            while time.monotonic() < t_end:
+                peak = max(peak, abs(rr.getActualQd()[0]))
+                time.sleep(0.002)
+            assert 1.9 < peak <= 2 * np.pi / 3 + 1e-9
+        finally:
+            rc.disconnect()
+            rr.disconnect()
+
+
+def test_protective_stop_surfaces_and_unlock_recovers(robot_factory):
+    with SimProcess("127.0.0.22", seed=5, time_scale=TS,
+                    faults={"protective_stop_at_move": [2]}) as sp:
+        r = robot_factory("127.0.0.22")
+        r.connect()
+        r.move_joints(QA, 1.0, 2.0)
+        with pytest.raises(ProtectiveStop):
+            r.move_joints(QB, 1.0, 2.0)  # stopped half-way
+        st = r.state()
+        assert st.safety == "PROTECTIVE_STOP"
+        assert np.max(np.abs(st.q_rad - QB)) > 0.05  # did not arrive
+        with pytest.raises(ProtectiveStop):
+            r.move_joints(QB, 1.0, 2.0)  # refused while stopped
+        r.unlock_protective_stop()
+        assert r.state().safety == "NORMAL"
+        r.move_joints(QB, 1.0, 2.0)
+        assert np.max(np.abs(r.state().q_rad - QB)) < 1e-4
+        assert sp.state()["stats"]["protective_stops"] == 1
+
+
+def test_rtde_drop_and_restart_surface_as_device_errors_and_reconnect(robot_factory):
+    with SimProcess("127.0.0.23", seed=7, time_scale=TS,
+                    faults={"rtde_drop_at_move": [2]}) as sp:
+        r = robot_factory("127.0.0.23")
+        r.connect()
+        r.move_joints(QA, 1.0, 2.0)
+        with pytest.raises(DeviceError) as ei:
+            r.move_joints(QB, 1.0, 2.0)  # every RTDE connection dropped half-way
+        assert not isinstance(ei.value, ProtectiveStop)
+        with pytest.raises(DeviceError):
+            r.state()
+        r.reconnect()
+        r.move_joints(QB, 1.0, 2.0)
+        assert np.max(np.abs(r.state().q_rad - QB)) < 1e-4
+
+        sp.inject("restart", down_s=3.0)  # 0.3 s of wall time with every port closed
+        t_end = time.monotonic() + 2.0
+        with pytest.raises(DeviceError):
+            while time.monotonic() < t_end:
+                r.state()
+                time.sleep(0.01)
+        with pytest.raises(DeviceUnreachable):
+            r.reconnect()  # still down
+        r.reconnect(max_wait_s=30.0)
+        r.move_joints(QA, 1.0, 2.0)
+        assert np.max(np.abs(r.state().q_rad - QA)) < 1e-4
+        stats = sp.state()["stats"]
+        assert stats["rtde_drops"] == 1 and stats["restarts"] == 1
+
+
+def test_unreachable_host_fails_fast_with_one_line():
+    r = UrRobot("127.0.0.29", connect_timeout_s=1.0)
+    t0 = time.monotonic()
+    with pytest.raises(DeviceUnreachable) as ei:
+        r.connect()
+    assert time.monotonic() - t0 < 3.0
+    msg = str(ei.value)
+    assert "\n" not in msg and "127.0.0.29" in msg
+
+
+def test_process_stops_when_parent_closes_stdin():
+    sp = SimProcess("127.0.0.25", time_scale=TS).start()
+    pid = sp.pid
+    sp.stop()
+    with pytest.raises(ProcessLookupError):
+        for _ in range(50):
+            os.kill(pid, 0)
+            time.sleep(0.05)
+
+
+def test_tracker_measures_the_arm_the_controller_moved():
+    pytest.importorskip("sim_devices.geocom_tracker")
+    from workcell.drivers.serial_tracker import SerialTracker
+
+    with SimProcess("127.0.0.26", seed=11, time_scale=TS, effects="none",
+                    with_tracker=True) as sp:
+        port = sp.info["tracker_port"]
+        assert port and port.startswith("/dev/")
+        r = UrRobot("127.0.0.26", time_scale=TS)
+        tr = SerialTracker(port)
+        try:
+            r.connect()
+            tr.connect()
+            seen = []
+            for q in (QA, QB):
+                r.move_joints(q, 1.0, 2.0)
+                p_true = np.array(sp.command({"cmd": "true_tracker"})["p_tracker"])
+                reads = [tr.measure() for _ in range(3)]
+                ok = [x.position_m for x in reads if x.status == "ok"]
+                assert ok, "no valid tracker reading"
+                assert np.linalg.norm(np.mean(ok, axis=0) - p_true) < 2e-4
+                seen.append(p_true)
+            assert np.linalg.norm(seen[0] - seen[1]) > 0.05  # the SMR moved with the arm
+        finally:
+            tr.close()
+            r.close()
