@@ -1,0 +1,344 @@
+"""Volumetric correction table: commanded = desired + delta(desired), trilinear in a box grid.
+
+One grid per declared tool orientation (UR rotation vector of the flange in base). The grid spacing
+is chosen for a stated interpolation error: the spacing is refined until the worst trilinear error
+on random points of the volume (against the exact correction) is below it. The same interpolation
+is written into the URScript export (`urscript.py`); `interpolate` here is its reference.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from workcell.errors import UserError
+from workcell.export.correction import (
+    Q_REF,
+    Corrector,
+    matrix_to_rotvec,
+    rotvec_to_matrix,
+)
+
+TABLE_FORMAT = "workcell-correction-table/1"
+DEFAULT_MAX_CORRECTION_M = 5e-3
+DEFAULT_INTERP_ERROR_M = 5e-6
+DEFAULT_ORIENTATION_TOL_RAD = 0.05
+OUTSIDE_TOL_M = 1e-6  # targets this far outside the box are still accepted (clamped cell)
+
+
+class CorrectionRefused(UserError):
+    """The model's correction is non-finite or too large somewhere in the declared volume."""
+
+
+def default_volume(robot_spec) -> tuple[np.ndarray, np.ndarray]:
+    """A working box in front of the robot, scaled by its arm length (SMR positions, base)."""
+    arm = float(abs(robot_spec.dh.a[1]) + abs(robot_spec.dh.a[2]))
+    lo = np.array([-0.3, -0.67, 0.2]) * arm
+    hi = np.array([0.3, -0.3, 0.55]) * arm
+    return lo, hi
+
+
+@dataclass
+class CorrectionTable:
+    lo_m: np.ndarray  # (3,)
+    hi_m: np.ndarray  # (3,)
+    shape: tuple[int, int, int]
+    orientations_rotvec: np.ndarray  # (K, 3)
+    delta_m: np.ndarray  # (K, nx, ny, nz, 3): commanded - desired
+    q_nodes: np.ndarray | None = None  # (K, nx, ny, nz, 6) corrected joints (seeds), not saved
+    meta: dict = field(default_factory=dict)
+    orientation_tol_rad: float = DEFAULT_ORIENTATION_TOL_RAD
+
+    @property
+    def spacing_m(self) -> np.ndarray:
+        return (self.hi_m - self.lo_m) / (np.asarray(self.shape) - 1)
+
+    def node_positions(self) -> np.ndarray:
+        """(nx, ny, nz, 3) grid node positions in base."""
+        axes = [np.linspace(self.lo_m[i], self.hi_m[i], self.shape[i]) for i in range(3)]
+        return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
+
+    def orientation_index(self, rotvec: np.ndarray | None) -> int:
+        if rotvec is None:
+            return 0
+        R = rotvec_to_matrix(rotvec)[0]
+        Rk = rotvec_to_matrix(self.orientations_rotvec)
+        ang = [np.linalg.norm(matrix_to_rotvec(Ri.T @ R)) for Ri in Rk]
+        k = int(np.argmin(ang))
+        if ang[k] > self.orientation_tol_rad:
+            raise UserError(
+                f"orientation {np.round(rotvec, 4).tolist()} is {ang[k]:.3f} rad from the nearest "
+                f"orientation of the table (tolerance {self.orientation_tol_rad} rad)"
+            )
+        return k
+
+    def interpolate(self, p: np.ndarray, k: int = 0) -> np.ndarray:
+        """Trilinear delta (N, 3) at positions p (N, 3); raises outside the box."""
+        p = np.atleast_2d(np.asarray(p, float))
+        out = np.empty_like(p)
+        for n, x in enumerate(p):
+            out[n] = self._interp_one(x, k)
+        return out
+
+    def _interp_one(self, x: np.ndarray, k: int) -> np.ndarray:
+        # Written operation for operation as the URScript function (see urscript.py).
+        if np.any(x < self.lo_m - OUTSIDE_TOL_M) or np.any(x > self.hi_m + OUTSIDE_TOL_M):
+            raise UserError(
+                f"target {np.round(x, 4).tolist()} m (base) is outside the correction volume "
+                f"{np.round(self.lo_m, 4).tolist()}..{np.round(self.hi_m, 4).tolist()}"
+            )
+        h = self.spacing_m
+        idx, t = [], []
+        for a in range(3):
+            f = (x[a] - self.lo_m[a]) / h[a]
+            i = math.floor(f)
+            i = min(max(i, 0), self.shape[a] - 2)
+            idx.append(i)
+            t.append(f - i)
+        D = self.delta_m[k]
+        i, j, l = idx
+        tx, ty, tz = t
+        c00 = D[i, j, l] * (1 - tx) + D[i + 1, j, l] * tx
+        c10 = D[i, j + 1, l] * (1 - tx) + D[i + 1, j + 1, l] * tx
+        c01 = D[i, j, l + 1] * (1 - tx) + D[i + 1, j, l + 1] * tx
+        c11 = D[i, j + 1, l + 1] * (1 - tx) + D[i + 1, j + 1, l + 1] * tx
+        c0 = c00 * (1 - ty) + c10 * ty
+        c1 = c01 * (1 - ty) + c11 * ty
+        return c0 * (1 - tz) + c1 * tz
+
+    def correct(self, p: np.ndarray, rotvec: np.ndarray | None = None) -> np.ndarray:
+        """Commanded positions for desired positions p (N, 3) at one tool orientation."""
+        k = self.orientation_index(rotvec)
+        p = np.atleast_2d(np.asarray(p, float))
+        return p + self.interpolate(p, k)
+
+    def seed_for(self, p: np.ndarray, k: int = 0) -> np.ndarray:
+        """Joint seeds (N, 6) for positions p: the corrected joints of the nearest node."""
+        if self.q_nodes is None:
+            return np.tile(Q_REF, (len(np.atleast_2d(p)), 1))
+        p = np.atleast_2d(np.asarray(p, float))
+        ijk = np.rint((p - self.lo_m) / self.spacing_m).astype(int)
+        ijk = np.clip(ijk, 0, np.asarray(self.shape) - 1)
+        return self.q_nodes[k][ijk[:, 0], ijk[:, 1], ijk[:, 2]]
+
+    # ------------------------------------------------------------------ files
+    def to_dict(self) -> dict:
+        return {
+            "format": TABLE_FORMAT,
+            "meta": self.meta,
+            "grid": {
+                "frame": "base (registered nominal base of the model)",
+                "units": "m",
+                "lo_m": self.lo_m.tolist(),
+                "hi_m": self.hi_m.tolist(),
+                "shape": list(self.shape),
+                "spacing_m": self.spacing_m.tolist(),
+                "index_order": "orientation, x, y, z (z fastest)",
+            },
+            "orientations_rotvec": np.asarray(self.orientations_rotvec).tolist(),
+            "orientation_tol_rad": self.orientation_tol_rad,
+            "delta_m": self.delta_m.tolist(),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> CorrectionTable:
+        if d.get("format") != TABLE_FORMAT:
+            raise UserError(f"not a correction table (format is not {TABLE_FORMAT})")
+        g = d["grid"]
+        return cls(
+            lo_m=np.asarray(g["lo_m"], float),
+            hi_m=np.asarray(g["hi_m"], float),
+            shape=tuple(int(x) for x in g["shape"]),
+            orientations_rotvec=np.asarray(d["orientations_rotvec"], float).reshape(-1, 3),
+            delta_m=np.asarray(d["delta_m"], float),
+            meta=d.get("meta", {}),
+            orientation_tol_rad=float(d.get("orientation_tol_rad", DEFAULT_ORIENTATION_TOL_RAD)),
+        )
+
+    def save(self, path: str | os.PathLike) -> tuple[Path, Path]:
+        """Write PATH.json (everything) and PATH.csv (one row per node). Returns both paths."""
+        p = Path(path)
+        base = p.with_suffix("") if p.suffix.lower() in (".json", ".csv") else p
+        base.parent.mkdir(parents=True, exist_ok=True)
+        pj, pc = base.with_suffix(".json"), base.with_suffix(".csv")
+        pj.write_text(json.dumps(self.to_dict(), indent=1, allow_nan=False))
+        X = self.node_positions()
+        with open(pc, "w", newline="") as f:
+            for key in ("model", "recording_sha256", "robot", "frame", "units"):
+                if key in self.meta:
+                    f.write(f"# {key}: {self.meta[key]}\n")
+            f.write(f"# grid: lo {self.lo_m.tolist()} hi {self.hi_m.tolist()} shape {self.shape}\n")
+            f.write(f"# max_interp_error_m: {self.meta.get('max_interp_error_m')}\n")
+            w = csv.writer(f)
+            w.writerow(
+                ["orientation", "rx", "ry", "rz", "i", "j", "k", "x_m", "y_m", "z_m"]
+                + ["dx_m", "dy_m", "dz_m"]
+            )
+            for o, rv in enumerate(self.orientations_rotvec):
+                for i in range(self.shape[0]):
+                    for j in range(self.shape[1]):
+                        for k in range(self.shape[2]):
+                            w.writerow(
+                                [o, *(repr(float(v)) for v in rv), i, j, k]
+                                + [repr(float(v)) for v in X[i, j, k]]
+                                + [repr(float(v)) for v in self.delta_m[o, i, j, k]]
+                            )
+        return pj, pc
+
+
+def load_table(path: str | os.PathLike) -> CorrectionTable:
+    p = Path(path)
+    if p.suffix.lower() != ".json":
+        p = p.with_suffix(".json")
+    if not p.exists():
+        raise UserError(f"{p}: no such correction table; write one with `workcell export`")
+    try:
+        return CorrectionTable.from_dict(json.loads(p.read_text()))
+    except (ValueError, KeyError) as e:
+        raise UserError(f"{p}: unreadable correction table ({e})") from None
+
+
+# ---------------------------------------------------------------------- building
+def _grid_shape(lo, hi, h) -> tuple[int, int, int]:
+    return tuple(int(max(2, math.ceil((hi[a] - lo[a]) / h - 1e-9) + 1)) for a in range(3))
+
+
+def _solve_grid(corr: Corrector, X: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Exact corrections at grid nodes X (nx, ny, nz, 3), solved outward from the node nearest the
+    reference configuration, each layer seeded from its already-solved neighbours."""
+    shape = X.shape[:3]
+    p_ref, _ = corr.nominal.fk(Q_REF)
+    # the start node: IK of the reference configuration to the box centre, then nearest node
+    centre = X.reshape(-1, 3).mean(0)
+    q_c, r_c = corr.nominal.ik(centre[None], R[None], Q_REF, iters=100)
+    flat = X.reshape(-1, 3)
+    start = np.unravel_index(int(np.argmin(np.linalg.norm(flat - centre, axis=1))), shape)
+    idx = np.stack(np.meshgrid(*[np.arange(s) for s in shape], indexing="ij"), -1).reshape(-1, 3)
+    off = idx - np.asarray(start)
+    layer = np.abs(off).sum(1)
+    D = np.full((*shape, 3), np.nan)
+    Q = np.full((*shape, 6), np.nan)
+    for L in range(int(layer.max()) + 1):
+        sel = np.where(layer == L)[0]
+        nodes = idx[sel]
+        if L == 0:
+            seeds = q_c
+        else:
+            parent = nodes.copy()
+            o = off[sel]
+            ax = np.argmax(np.abs(o), axis=1)
+            parent[np.arange(len(sel)), ax] -= np.sign(o[np.arange(len(sel)), ax])
+            seeds = Q[parent[:, 0], parent[:, 1], parent[:, 2]]
+            seeds = np.where(np.isfinite(seeds), seeds, Q_REF)
+        y = X[nodes[:, 0], nodes[:, 1], nodes[:, 2]]
+        c, q, _ = corr.correct_positions(y, R, seeds)
+        D[nodes[:, 0], nodes[:, 1], nodes[:, 2]] = c - y
+        Q[nodes[:, 0], nodes[:, 1], nodes[:, 2]] = q
+    return D, Q
+
+
+def check_corrections(
+    delta: np.ndarray, X: np.ndarray, bound_m: float, orientation: int = 0, where: str = "node"
+) -> None:
+    """Refuse non-finite or oversized corrections, naming where (one clear line)."""
+    delta = delta.reshape(-1, 3)
+    X = X.reshape(-1, 3)
+    bad = ~np.all(np.isfinite(delta), axis=1)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise CorrectionRefused(
+            f"refused: no finite correction at {bad.sum()} {where}(s), first at "
+            f"{np.round(X[i], 4).tolist()} m (base), orientation {orientation} "
+            "(IK or the model did not converge there); shrink the volume (--volume)"
+        )
+    mag = np.linalg.norm(delta, axis=1)
+    i = int(np.argmax(mag))
+    if mag[i] > bound_m:
+        raise CorrectionRefused(
+            f"refused: correction {mag[i] * 1e3:.3f} mm at {np.round(X[i], 4).tolist()} m (base), "
+            f"orientation {orientation}, exceeds the bound {bound_m * 1e3:g} mm "
+            f"({(mag > bound_m).sum()} {where}(s) over); check the model or raise --max-correction"
+        )
+
+
+def build_table(
+    corr: Corrector,
+    lo_m: np.ndarray,
+    hi_m: np.ndarray,
+    orientations_rotvec: np.ndarray,
+    *,
+    target_error_m: float = DEFAULT_INTERP_ERROR_M,
+    max_correction_m: float = DEFAULT_MAX_CORRECTION_M,
+    spacing_m: float | None = None,
+    n_check: int = 300,
+    max_nodes: int = 4000,
+    seed: int = 0,
+    meta: dict | None = None,
+    log=None,
+) -> CorrectionTable:
+    """Build the table, refining the spacing until the measured interpolation error is below
+    `target_error_m` (or `max_nodes` per orientation is reached, which is reported)."""
+    lo_m, hi_m = np.asarray(lo_m, float), np.asarray(hi_m, float)
+    if lo_m.shape != (3,) or hi_m.shape != (3,) or np.any(hi_m <= lo_m):
+        raise UserError(f"volume: need lo < hi per axis, got {lo_m.tolist()}..{hi_m.tolist()}")
+    rv = np.asarray(orientations_rotvec, float).reshape(-1, 3)
+    Rs = rotvec_to_matrix(rv)
+    rng = np.random.default_rng(seed)
+    P = rng.uniform(lo_m, hi_m, (n_check, 3))
+    K = len(rv)
+    h = float(spacing_m) if spacing_m else float(min(0.1, (hi_m - lo_m).max() / 2))
+    log = log or (lambda m: None)
+    exact = [None] * K
+    while True:
+        shape = _grid_shape(lo_m, hi_m, h)
+        tab = CorrectionTable(
+            lo_m, hi_m, shape, rv, np.zeros((K, *shape, 3)), np.zeros((K, *shape, 6))
+        )
+        X = tab.node_positions()
+        for k in range(K):
+            D, Q = _solve_grid(corr, X, Rs[k])
+            check_corrections(D, X, max_correction_m, k)
+            tab.delta_m[k], tab.q_nodes[k] = D, Q
+        errs = []
+        for k in range(K):
+            if exact[k] is None:
+                c, _, _ = corr.correct_positions(P, Rs[k], tab.seed_for(P, k))
+                check_corrections(c - P, P, max_correction_m, k, where="check point")
+                exact[k] = c - P
+            errs.append(np.linalg.norm(tab.interpolate(P, k) - exact[k], axis=1))
+        err = np.concatenate(errs)
+        log(
+            f"  table spacing {tab.spacing_m.max() * 1e3:.1f} mm, {np.prod(shape)} nodes/orientation: "
+            f"max interpolation error {err.max() * 1e6:.3f} um on {len(err)} random points"
+        )
+        finer = _grid_shape(lo_m, hi_m, h / 1.5)
+        if spacing_m or err.max() <= target_error_m or np.prod(finer) > max_nodes:
+            break
+        h /= 1.5
+    mags = np.linalg.norm(tab.delta_m.reshape(-1, 3), axis=1)
+    tab.meta = {
+        **(meta or {}),
+        "frame": "base = model's registered nominal base (tracker_T_base = base_ref); "
+        "positions are the SMR/TCP in base",
+        "units": "m, rad (UR rotation vectors)",
+        "semantics": "commanded = desired + delta(desired), delta trilinear in the grid",
+        "conditions": corr.conditions.to_dict(),
+        "base_ref": np.asarray(corr.nominal.base_ref).tolist(),
+        "tcp_m": np.asarray(corr.nominal.tool_m).tolist(),
+        "target_interp_error_m": float(target_error_m),
+        "max_interp_error_m": float(err.max()),
+        "rms_interp_error_m": float(np.sqrt(np.mean(err**2))),
+        "interp_error_points": int(len(err)),
+        "interp_error_target_met": bool(err.max() <= target_error_m),
+        "max_correction_m": float(mags.max()),
+        "correction_bound_m": float(max_correction_m),
+        "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
+    }
+    return tab
