@@ -327,14 +327,18 @@ class _Conn:
 
 # ------------------------------------------------------------------ the controller
 class UrControllerSim:
-    """Serve RTDE (30004), dashboard (29999) and the script port (30003) for one `SimWorld`."""
+    """Serve RTDE (30004), dashboard (29999) and the script port (30003) for one `SimWorld`.
+
+    Time is the world's clock: a `ScaledClock` is used as is (`time_scale`, if given, must match
+    it); a world with a virtual clock gets `ScaledClock(time_scale or 1.0)`.
+    """
 
     def __init__(
         self,
         world: SimWorld,
         host: str = "127.0.0.2",
         *,
-        time_scale: float = 1.0,
+        time_scale: float | None = None,
         faults: dict | None = None,
         seed: int = 0,
         max_stream_hz: float = 125.0,
@@ -343,14 +347,18 @@ class UrControllerSim:
         ports: tuple[int, int, int] = (RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT),
         log: Callable[[str], None] | None = None,
     ) -> None:
-        if not time_scale > 0:
+        if time_scale is not None and not time_scale > 0:
             raise ValueError(f"time_scale must be > 0, got {time_scale!r}")
         if not max_stream_hz > 0:
             raise ValueError(f"max_stream_hz must be > 0, got {max_stream_hz!r}")
         self.world = world
         with world.lock:
+            # a protocol server needs wall-clock time: give a virtual-clock world a scaled clock
             if not isinstance(world.clock, ScaledClock):
-                world.clock = ScaledClock(time_scale)
+                world.clock = ScaledClock(1.0 if time_scale is None else time_scale)
+            elif time_scale is not None and abs(world.clock.time_scale - time_scale) > 1e-12:
+                raise ValueError(f"time_scale {time_scale} differs from the world clock's "
+                                 f"{world.clock.time_scale}")
         self.clock = world.clock
         self.time_scale = float(self.clock.time_scale)
         self.host = host
