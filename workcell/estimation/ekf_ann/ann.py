@@ -1,0 +1,184 @@
+"""The non-geometric part: a fully connected network with one tanh hidden layer (seed 004, eq. 2).
+
+Inputs: the 6 joint angles, standardised per joint (u = (q - centre) / scale). Outputs: 3
+position corrections in the robot *base* frame, in units of `out_scale_m` (so the weights are
+O(1) for corrections of a few tenths of a millimetre); the output layer is linear.
+
+Weight vector layout (K = 10 H + 3 for 6 inputs and 3 outputs):
+    [W1 (H x 6, row-major), b1 (H), W2 (3 x H, row-major), b2 (3)]
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from workcell._jax import jax, jnp
+
+N_IN, N_OUT = 6, 3
+OUT_SCALE_M = 1e-4
+
+
+@dataclass(frozen=True)
+class AnnSpec:
+    hidden: int = 29
+    u_centre: tuple = (0.0,) * N_IN
+    u_scale: tuple = (1.0,) * N_IN
+    out_scale_m: float = OUT_SCALE_M
+
+    @property
+    def n_weights(self) -> int:
+        return n_weights(self.hidden)
+
+    def to_dict(self) -> dict:
+        return {
+            "hidden": self.hidden,
+            "u_centre": list(map(float, self.u_centre)),
+            "u_scale": list(map(float, self.u_scale)),
+            "out_scale_m": float(self.out_scale_m),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> AnnSpec:
+        return cls(
+            hidden=int(d["hidden"]),
+            u_centre=tuple(float(x) for x in d["u_centre"]),
+            u_scale=tuple(float(x) for x in d["u_scale"]),
+            out_scale_m=float(d["out_scale_m"]),
+        )
+
+    @classmethod
+    def from_joints(cls, q: np.ndarray, hidden: int = 29, min_scale_rad: float = 0.2) -> AnnSpec:
+        """Standardisation from joint samples (N, 6): centre = mean, scale = max(std, floor)."""
+        q = np.asarray(q, float)
+        if q.ndim != 2 or q.shape[1] != N_IN or len(q) < 1:
+            raise ValueError(f"joint samples: expected shape (N>=1, 6), got {q.shape}")
+        if hidden < 1:
+            raise ValueError(f"hidden nodes must be >= 1, got {hidden}")
+        sc = np.maximum(q.std(axis=0), min_scale_rad)
+        return cls(hidden, tuple(q.mean(axis=0).tolist()), tuple(sc.tolist()))
+
+
+def n_weights(hidden: int) -> int:
+    return hidden * N_IN + hidden + N_OUT * hidden + N_OUT
+
+
+def unpack(w: jnp.ndarray, hidden: int):
+    H = hidden
+    i = 0
+    W1 = w[i : i + H * N_IN].reshape(H, N_IN)
+    i += H * N_IN
+    b1 = w[i : i + H]
+    i += H
+    W2 = w[i : i + N_OUT * H].reshape(N_OUT, H)
+    i += N_OUT * H
+    b2 = w[i : i + N_OUT]
+    return W1, b1, W2, b2
+
+
+def apply_raw(w: jnp.ndarray, u: jnp.ndarray, hidden: int) -> jnp.ndarray:
+    """Network output (3,) in output units for one standardised input u (6,)."""
+    W1, b1, W2, b2 = unpack(w, hidden)
+    return W2 @ jnp.tanh(W1 @ u + b1) + b2
+
+
+def standardise(q: jnp.ndarray, spec: AnnSpec) -> jnp.ndarray:
+    return (q - jnp.asarray(spec.u_centre)) / jnp.asarray(spec.u_scale)
+
+
+def correction_base_m(w: jnp.ndarray, q: jnp.ndarray, spec: AnnSpec) -> jnp.ndarray:
+    """Position correction (3,) in metres in the base frame for one joint vector q (6,)."""
+    return spec.out_scale_m * apply_raw(w, standardise(q, spec), spec.hidden)
+
+
+def predict_base_m(w: np.ndarray, q: np.ndarray, spec: AnnSpec) -> np.ndarray:
+    """Corrections (N, 3) in metres, base frame, for joints q (N, 6)."""
+    q = jnp.atleast_2d(jnp.asarray(q, float))
+    return np.asarray(_batch(jnp.asarray(w, float), q, spec))
+
+
+def _batch_impl(w, q, spec):
+    return jax.vmap(lambda qq: correction_base_m(w, qq, spec))(q)
+
+
+_batch = jax.jit(_batch_impl, static_argnums=2)
+
+
+def random_weights(hidden: int, seed: int | np.random.Generator = 0) -> np.ndarray:
+    """Glorot-normal weights, zero biases (what 'a random ANN' means in this package)."""
+    rng = np.random.default_rng(seed)
+    W1 = rng.normal(0.0, np.sqrt(2.0 / (N_IN + hidden)), (hidden, N_IN))
+    b1 = rng.normal(0.0, 0.1, hidden)
+    W2 = rng.normal(0.0, np.sqrt(2.0 / (hidden + N_OUT)), (N_OUT, hidden))
+    b2 = np.zeros(N_OUT)
+    return np.concatenate([W1.ravel(), b1, W2.ravel(), b2])
+
+
+# ------------------------------------------------------------------ Levenberg-Marquardt
+def _lm_impl(w, U, D, mask, lam, steps, hidden):
+    """`steps` LM iterations minimising sum mask_i |apply_raw(w, U_i) - D_i|^2."""
+
+    def resid(w):
+        r = jax.vmap(lambda u: apply_raw(w, u, hidden))(U) - D
+        return (r * mask[:, None]).ravel()
+
+    def cost(w):
+        r = resid(w)
+        return r @ r
+
+    def body(_, carry):
+        w, lam, c = carry
+        r = resid(w)
+        J = jax.jacfwd(resid)(w)
+        A = J.T @ J
+        g = J.T @ r
+        dA = jnp.diag(A)
+        step = -jnp.linalg.solve(A + lam * (dA + 1e-9) * jnp.eye(A.shape[0]), g)
+        w_try = w + step
+        c_try = cost(w_try)
+        ok = c_try < c
+        w = jnp.where(ok, w_try, w)
+        c = jnp.where(ok, c_try, c)
+        lam = jnp.where(ok, jnp.maximum(lam * 0.3, 1e-7), jnp.minimum(lam * 10.0, 1e7))
+        return w, lam, c
+
+    w, lam, c = jax.lax.fori_loop(0, steps, body, (w, lam, cost(w)))
+    return w, lam, c
+
+
+_lm = jax.jit(_lm_impl, static_argnums=(5, 6))
+
+
+def lm_fit(
+    w0: np.ndarray,
+    q: np.ndarray,
+    corr_base_m: np.ndarray,
+    spec: AnnSpec,
+    *,
+    steps: int = 50,
+    max_samples: int = 800,
+    rng: np.random.Generator | int = 0,
+    lam0: float = 1e-2,
+) -> np.ndarray:
+    """Levenberg-Marquardt training of the weights on position corrections (N, 3) in metres.
+
+    A shuffled subset of at most `max_samples` samples is used (the shape is padded to
+    `max_samples` with zero weight, so one compiled function serves every call).
+    """
+    q = np.asarray(q, float)
+    d = np.asarray(corr_base_m, float) / spec.out_scale_m
+    n = len(q)
+    if n == 0:
+        return np.asarray(w0, float)
+    rng = np.random.default_rng(rng)
+    m = max_samples
+    idx = rng.permutation(n)[:m]
+    U = np.zeros((m, N_IN))
+    D = np.zeros((m, N_OUT))
+    mask = np.zeros(m)
+    U[: len(idx)] = (q[idx] - np.asarray(spec.u_centre)) / np.asarray(spec.u_scale)
+    D[: len(idx)] = d[idx]
+    mask[: len(idx)] = 1.0
+    w, _, _ = _lm(jnp.asarray(w0, float), U, D, mask, lam0, int(steps), spec.hidden)
+    return np.asarray(w)

@@ -1,0 +1,381 @@
+"""The integrated EKF-ANN filter of seed 004 (Horvath & Neuner), and its adaptive extension.
+
+State x = [w (K network weights), then per mode:]
+- mode "paper": p (3) = SMR position in the tracker frame. Prediction by relative kinematics
+  between consecutive samples, eqs (13)-(16): p_bar = p + f(q_i+1) - f(q_i) with the (fixed)
+  geometric model f = tracker_T_base . base_T_flange . tool; weights static (17). Cofactor
+  propagation (19): P <- P + B Q_uu B^T + Q_pp with B = [-df/dq_i, df/dq_i+1], Q_uu = sigma_q^2 I.
+  Observation (20): y = p_bar + R_tb . ANN(q_i+1; w). Extra ANN iteration (22): every
+  `ann_iter_every` samples (up to `n_train`) the weights are re-trained by Levenberg-Marquardt
+  on the position corrections R_tb^T (y - p_bar) of all samples so far (a shuffled subset) and
+  fed back as the new prediction of w.
+- mode "adaptive" (beyond the paper): g (k) = corrections of an identifiable subset of the 39
+  geometric parameters (DH errors, base pose, SMR lever arm; `workcell.kinematics.chain`). The
+  position is not a separate random-walk state: it is back-substituted by the absolute model,
+  y = f(q; theta0 + E g) + R_tb(g) . ANN(q; w), so the base transformation the paper lost in the
+  relative formulation returns to the filter. Joint noise enters the observation cofactor as
+  J_q Q_uu J_q^T (white encoder noise does not accumulate along the trajectory, which the
+  relative formulation's B Q_uu B^T random walk assumes). The extra ANN iteration uses the
+  corrections R_tb^T (y - f(q; theta)) with the current geometric state.
+
+Both modes run sample by sample in a jitted `lax.scan` over chunks (rank-3 updates, see
+`core.update`); chunk boundaries fall on multiples of `ann_iter_every`, so processing a stream in
+any chunking (live: one sample at a time) gives the same estimate.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from functools import partial
+
+import numpy as np
+
+from workcell._jax import jax, jnp
+from workcell.estimation.ekf_ann import ann as A
+from workcell.estimation.ekf_ann.core import symmetrise, update
+from workcell.kinematics.chain import IDX, N_PARAMS, PARAM_NAMES, p_tracker, tracker_T_base
+from workcell.kinematics.chain import p_tracker_single as _pts
+
+MODES = ("paper", "adaptive")
+
+
+@dataclass(frozen=True)
+class FilterConfig:
+    mode: str = "adaptive"
+    sigma_q_rad: float = 1e-5  # joint angle noise (Q_uu)
+    sigma_w0: float = 0.1  # initial std of every weight (network units)
+    q_w: float = 0.0  # weight process noise variance per sample
+    sigma_p0_m: float = 1e-4  # paper mode: initial position std
+    q_p_m2: float = 0.0  # paper mode: extra position process noise per sample
+    geometric: tuple[str, ...] = ()  # adaptive mode: geometric states (names in PARAM_NAMES)
+    sigma_g0_m: float = 1e-4  # adaptive: prior std of length/position parameters
+    sigma_g0_rad: float = 2e-4  # adaptive: prior std of angle parameters
+    ann_iter_every: int = 500  # extra ANN iteration every this many samples (0 = never)
+    ann_iter_steps: int = 20
+    ann_iter_max_samples: int = 800
+    n_train: int | None = None  # no extra ANN iterations after this many samples
+    joseph: bool = False
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
+        bad = [n for n in self.geometric if n not in IDX]
+        if bad:
+            raise ValueError(f"unknown geometric parameter(s) {bad}; see chain.PARAM_NAMES")
+        if self.mode == "paper" and self.geometric:
+            raise ValueError("geometric states need mode='adaptive' (the paper's filter has none)")
+
+
+def _geo_fns(theta0, base_ref, E):
+    def h_geo(g, q):
+        th = theta0 + E @ g
+        return _pts(th, base_ref, q), tracker_T_base(th, base_ref)[:3, :3]
+
+    return h_geo
+
+
+@partial(jax.jit, static_argnames=("spec", "cfg"))
+def _scan_paper(x, P, q_prev, Q, Y, SIG, theta0, base_ref, *, spec, cfg):
+    K = spec.n_weights
+    s = spec.out_scale_m
+    R_tb = tracker_T_base(theta0, base_ref)[:3, :3]
+
+    def geo(q):
+        return _pts(theta0, base_ref, q)
+
+    jq = jax.jacfwd(geo)
+    qdiag = jnp.concatenate([jnp.full(K, cfg.q_w), jnp.full(3, cfg.q_p_m2)])
+
+    def ann_t(w, q):
+        return R_tb @ A.correction_base_m(w, q, spec)
+
+    def step(carry, inp):
+        x, P, qp = carry
+        q, y, sig = inp
+        w, p = x[:K], x[K : K + 3]
+        p_bar = p + geo(q) - geo(qp)
+        Jp, Jn = jq(qp), jq(q)
+        BQB = symmetrise(cfg.sigma_q_rad**2 * (Jp @ Jp.T + Jn @ Jn.T) + jnp.diag(qdiag[K:]))
+        if cfg.q_w > 0:
+            P = P.at[jnp.arange(K), jnp.arange(K)].add(cfg.q_w)
+        P = P.at[K:, K:].add(BQB)
+        x_bar = x.at[K : K + 3].set(p_bar)
+        c = ann_t(w, q)
+        Hw = jax.jacrev(ann_t)(w, q)
+        H = jnp.concatenate([Hw, jnp.eye(3)], axis=1)
+        r = update(x_bar, P, y, p_bar + c, H, jnp.diag(sig**2), joseph=cfg.joseph)
+        delta = R_tb.T @ (y - p_bar)
+        return (r.x, r.P, q), (r.innovation, r.nis, p_bar, delta / s)
+
+    (x, P, q_prev), out = jax.lax.scan(step, (x, P, q_prev), (Q, Y, SIG))
+    return x, P, q_prev, out
+
+
+@partial(jax.jit, static_argnames=("spec", "cfg"))
+def _scan_adaptive(x, P, Q, Y, SIG, theta0, base_ref, E, *, spec, cfg):
+    K = spec.n_weights
+    k = E.shape[1]
+    h_geo = _geo_fns(theta0, base_ref, E)
+
+    def h(g, q, w):
+        pg, R_tb = h_geo(g, q)
+        return pg + R_tb @ A.correction_base_m(w, q, spec)
+
+    def step(carry, inp):
+        x, P = carry
+        q, y, sig = inp
+        w, g = x[:K], x[K:]
+        hx = h(g, q, w)
+        if k:
+            Jg, Jq = jax.jacfwd(h, argnums=(0, 1))(g, q, w)
+        else:
+            Jq = jax.jacfwd(h, argnums=1)(g, q, w)
+            Jg = jnp.zeros((3, 0))
+        Hw = jax.jacrev(h, argnums=2)(g, q, w)
+        H = jnp.concatenate([Hw, Jg], axis=1)
+        Robs = jnp.diag(sig**2) + cfg.sigma_q_rad**2 * (Jq @ Jq.T)
+        if cfg.q_w > 0:
+            P = P.at[jnp.arange(K), jnp.arange(K)].add(cfg.q_w)
+        r = update(x, P, y, hx, H, Robs, joseph=cfg.joseph)
+        return (r.x, r.P), (r.innovation, r.nis, hx)
+
+    (x, P), out = jax.lax.scan(step, (x, P), (Q, Y, SIG))
+    return x, P, out
+
+
+@dataclass
+class StepLog:
+    """Per-sample outputs of `EkfAnnFilter.process`."""
+
+    innovation_m: np.ndarray  # (N, 3)
+    nis: np.ndarray  # (N,) normalised innovation squared, chi^2(3) if the model is adequate
+
+
+@dataclass
+class EkfAnnFilter:
+    """The running filter. Build with `EkfAnnFilter.create`; feed with `process`."""
+
+    cfg: FilterConfig
+    spec: A.AnnSpec
+    theta0: np.ndarray  # (39,) geometric parameters the model starts from
+    base_ref: np.ndarray  # (4, 4)
+    x: np.ndarray
+    P: np.ndarray
+    count: int = 0
+    q_prev: np.ndarray | None = None
+    ann_iterations: int = 0
+    # history for the extra ANN iteration
+    _q: list = field(default_factory=list)
+    _y: list = field(default_factory=list)
+    _d: list = field(default_factory=list)  # paper mode: corrections / out_scale
+    seed: int = 0
+
+    @classmethod
+    def create(
+        cls,
+        cfg: FilterConfig,
+        spec: A.AnnSpec,
+        theta0: np.ndarray,
+        base_ref: np.ndarray,
+        w0: np.ndarray,
+        *,
+        p0_m: np.ndarray | None = None,
+        seed: int = 0,
+    ) -> EkfAnnFilter:
+        theta0 = np.asarray(theta0, float)
+        if theta0.shape != (N_PARAMS,):
+            raise ValueError(f"theta0: expected shape ({N_PARAMS},), got {theta0.shape}")
+        w0 = np.asarray(w0, float)
+        if w0.shape != (spec.n_weights,):
+            raise ValueError(f"w0: expected {spec.n_weights} weights, got shape {w0.shape}")
+        Pw = np.full(spec.n_weights, cfg.sigma_w0**2)
+        if cfg.mode == "paper":
+            p0 = np.zeros(3) if p0_m is None else np.asarray(p0_m, float)
+            x = np.concatenate([w0, p0])
+            Pd = np.concatenate([Pw, np.full(3, cfg.sigma_p0_m**2)])
+        else:
+            g_sd = [
+                cfg.sigma_g0_rad
+                if n.startswith(("alpha", "theta", "beta", "base_r"))
+                else cfg.sigma_g0_m
+                for n in cfg.geometric
+            ]
+            x = np.concatenate([w0, np.zeros(len(cfg.geometric))])
+            Pd = np.concatenate([Pw, np.square(g_sd)])
+        return cls(cfg, spec, theta0, np.asarray(base_ref, float), x, np.diag(Pd), seed=seed)
+
+    # ------------------------------------------------------------------ geometry
+    @property
+    def n_weights(self) -> int:
+        return self.spec.n_weights
+
+    @property
+    def E(self) -> np.ndarray:
+        E = np.zeros((N_PARAMS, len(self.cfg.geometric)))
+        for j, n in enumerate(self.cfg.geometric):
+            E[IDX[n], j] = 1.0
+        return E
+
+    @property
+    def w(self) -> np.ndarray:
+        return self.x[: self.n_weights]
+
+    @property
+    def theta(self) -> np.ndarray:
+        if self.cfg.mode == "adaptive":
+            return self.theta0 + self.E @ self.x[self.n_weights :]
+        return self.theta0
+
+    def geometric_std(self) -> dict[str, float]:
+        K = self.n_weights
+        sd = np.sqrt(np.clip(np.diag(self.P)[K:], 0, None))
+        if self.cfg.mode == "paper":
+            return dict(zip(["p_x", "p_y", "p_z"], sd.tolist(), strict=True))
+        return dict(zip(self.cfg.geometric, sd.tolist(), strict=True))
+
+    def offset_m(self) -> np.ndarray:
+        """Translation to add to f(q; theta) (paper mode: position state minus the geometric
+        model at the last sample, i.e. the relative kinematics continued from the last state)."""
+        if self.cfg.mode == "paper" and self.q_prev is not None:
+            pg = np.asarray(p_tracker(self.theta0, self.base_ref, self.q_prev[None]))[0]
+            return self.x[self.n_weights : self.n_weights + 3] - pg
+        return np.zeros(3)
+
+    def predict(self, q: np.ndarray) -> np.ndarray:
+        """Predicted SMR positions (N, 3) in the tracker frame (no update)."""
+        q = np.atleast_2d(np.asarray(q, float))
+        th = self.theta
+        R = np.asarray(tracker_T_base(th, self.base_ref))[:3, :3]
+        geo = np.asarray(p_tracker(th, self.base_ref, q)) + self.offset_m()
+        return geo + A.predict_base_m(self.w, q, self.spec) @ R.T
+
+    def ann_tracker_m(self, q: np.ndarray) -> np.ndarray:
+        """The non-geometric part (N, 3) in the tracker frame: R_tb . ANN(q)."""
+        R = np.asarray(tracker_T_base(self.theta, self.base_ref))[:3, :3]
+        return A.predict_base_m(self.w, np.atleast_2d(q), self.spec) @ R.T
+
+    # ------------------------------------------------------------------ processing
+    def process(self, q: np.ndarray, y: np.ndarray, sigma: np.ndarray) -> StepLog:
+        """Filter the samples (N, 6), (N, 3), (N, 3) in order; returns per-sample outputs."""
+        q = np.atleast_2d(np.asarray(q, float))
+        y = np.atleast_2d(np.asarray(y, float))
+        sigma = np.atleast_2d(np.asarray(sigma, float))
+        n = len(q)
+        if q.shape != (n, 6) or y.shape != (n, 3) or sigma.shape != (n, 3):
+            raise ValueError(f"process: shapes q {q.shape}, y {y.shape}, sigma {sigma.shape}")
+        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(y))):
+            raise ValueError("process: non-finite joints or positions")
+        if np.any(~np.isfinite(sigma) | (sigma <= 0)):
+            raise ValueError("process: sigma must be positive and finite")
+        every = self.cfg.ann_iter_every
+        innov, nis = [], []
+        i = 0
+        while i < n:
+            m = n - i if every <= 0 else min(n - i, every - self.count % every)
+            sl = slice(i, i + m)
+            e, s2 = self._run(q[sl], y[sl], sigma[sl])
+            innov.append(e)
+            nis.append(s2)
+            i += m
+            if every > 0 and self.count % every == 0:
+                if self.cfg.n_train is None or self.count <= self.cfg.n_train:
+                    self.ann_iteration()
+        return StepLog(np.concatenate(innov), np.concatenate(nis))
+
+    def _run(self, q, y, sig):
+        cfg, spec = self.cfg, self.spec
+        if cfg.mode == "paper":
+            if self.q_prev is None:  # first sample: the position state starts at it
+                c0 = (
+                    np.asarray(tracker_T_base(self.theta0, self.base_ref))[:3, :3]
+                    @ A.predict_base_m(self.w, q[:1], spec)[0]
+                )
+                self.x[self.n_weights : self.n_weights + 3] = y[0] - c0
+                self.q_prev = q[0].copy()
+            x, P, qp, out = _scan_paper(
+                self.x,
+                self.P,
+                self.q_prev,
+                q,
+                y,
+                sig,
+                self.theta0,
+                self.base_ref,
+                spec=spec,
+                cfg=cfg,
+            )
+            e, s2, _, d = (np.asarray(o) for o in out)
+            self.q_prev = np.asarray(qp)
+            self._d.append(d)
+        else:
+            x, P, out = _scan_adaptive(
+                self.x,
+                self.P,
+                q,
+                y,
+                sig,
+                self.theta0,
+                self.base_ref,
+                jnp.asarray(self.E),
+                spec=spec,
+                cfg=cfg,
+            )
+            e, s2, _ = (np.asarray(o) for o in out)
+        self.x, self.P = np.array(x), np.array(P)
+        self._q.append(q)
+        self._y.append(y)
+        self.count += len(q)
+        return e, s2
+
+    def corrections_m(self) -> tuple[np.ndarray, np.ndarray]:
+        """(q, position corrections in the base frame) of all samples so far (eq. 22)."""
+        q = np.concatenate(self._q) if self._q else np.zeros((0, 6))
+        if self.cfg.mode == "paper":
+            d = np.concatenate(self._d) * self.spec.out_scale_m if self._d else np.zeros((0, 3))
+            return q, d
+        y = np.concatenate(self._y) if self._y else np.zeros((0, 3))
+        th = self.theta
+        R = np.asarray(tracker_T_base(th, self.base_ref))[:3, :3]
+        return q, (y - np.asarray(p_tracker(th, self.base_ref, q))) @ R
+
+    def ann_iteration(self) -> None:
+        """The extra ANN iteration: LM on the position corrections of all samples so far."""
+        q, d = self.corrections_m()
+        if len(q) == 0 or self.cfg.ann_iter_steps <= 0:
+            return
+        w = A.lm_fit(
+            self.w,
+            q,
+            d,
+            self.spec,
+            steps=self.cfg.ann_iter_steps,
+            max_samples=self.cfg.ann_iter_max_samples,
+            rng=self.seed + self.ann_iterations,
+        )
+        self.x[: self.n_weights] = w
+        self.ann_iterations += 1
+
+    def copy_config(self, **kw) -> FilterConfig:
+        return replace(self.cfg, **kw)
+
+
+def prefit_weights(
+    w0: np.ndarray,
+    q: np.ndarray,
+    y: np.ndarray,
+    theta: np.ndarray,
+    base_ref: np.ndarray,
+    spec: A.AnnSpec,
+    *,
+    steps: int = 200,
+    max_samples: int = 800,
+    seed: int = 0,
+) -> np.ndarray:
+    """Initialisation from a random network: batch LM pre-fit of the weights on the position
+    corrections R^T (y - f(q; theta)) of the first samples (the filter then refines it)."""
+    R = np.asarray(tracker_T_base(theta, base_ref))[:3, :3]
+    d = (np.asarray(y) - np.asarray(p_tracker(theta, base_ref, np.asarray(q)))) @ R
+    return A.lm_fit(w0, q, d, spec, steps=steps, max_samples=max_samples, rng=seed)
+
+
+__all__ = ["FilterConfig", "EkfAnnFilter", "StepLog", "prefit_weights", "PARAM_NAMES"]
