@@ -25,7 +25,6 @@ from workcell.recording.dataset import Dataset
 def sim_ds():
     """40 random poses of a simulated UR5e with DH errors (no other effects), tracker noise."""
     from sim_devices.truth import NOMINAL_SMR_M, TrackerNoise, make_truth
-
     from workcell.campaign.envelope import default_envelope
     from workcell.campaign.plans import random_configurations
 
@@ -91,9 +90,7 @@ def test_active_bounds_are_respected_and_optimal(sim_ds):
     f = m.free
     assert np.all(m.theta[f] >= lo[f] - 1e-15) and np.all(m.theta[f] <= hi[f] + 1e-15)
     # the unbounded optimum violates them, so some must be active
-    viol = [
-        n for n in spec["bounds"] if not lo[IDX[n]] <= free_fit.theta[IDX[n]] <= hi[IDX[n]]
-    ]
+    viol = [n for n in spec["bounds"] if not lo[IDX[n]] <= free_fit.theta[IDX[n]] <= hi[IDX[n]]]
     assert viol, "test setup: the tight bounds should cut the unbounded optimum"
     assert set(viol) & set(m.info["active_bounds"])
     assert set(m.info["active_bounds"]) <= set(spec["bounds"])
