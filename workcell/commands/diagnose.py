@@ -1,0 +1,197 @@
+"""`workcell diagnose REC.mcap [--json] [--report DIR] [--out MODEL]`: locate the mismatch between
+the nominal model and a recording, name the physics left out, model it, show the fit improve.
+
+See `workcell.estimation.discovery` for the method. Needs only the `/workcell/session` and
+`/campaign/sample` channels, so it runs on recordings made by other tools too; the nominal base
+pose in the session may be rough (the geometry registers the base itself).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from workcell.errors import UserError
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "recording", help="an .mcap recording (needs /workcell/session + /campaign/sample)"
+    )
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument(
+        "--report",
+        metavar="DIR",
+        help="write report.json, summary.txt, residual plots (PNG) and the models into DIR",
+    )
+    p.add_argument("--out", help="write the augmented model here (JSON); default: in --report DIR")
+    p.add_argument("--holdout", type=float, default=0.25, help="held-out fraction (0.1-0.5)")
+    p.add_argument(
+        "--alpha",
+        type=float,
+        default=0.01,
+        help="level of the likelihood-ratio test per selection step (Bonferroni over candidates)",
+    )
+    p.add_argument(
+        "--tracker-mpe",
+        default="15e-6,6e-6",
+        help="tracker MPE A,B in m and m/m (sigma per axis >= (A + B*range)/4); default 15 um + 6 um/m",
+    )
+    p.add_argument("--no-np", action="store_true", help="skip the non-parametric residual check")
+
+
+def _json_default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(type(o))
+
+
+def run(args: argparse.Namespace) -> int:
+    from workcell.estimation.discovery import DiagnoseConfig, diagnose
+    from workcell.estimation.models import save_model
+    from workcell.recording.dataset import Dataset
+
+    if not 0.1 <= args.holdout <= 0.5:
+        raise UserError(f"--holdout must be in [0.1, 0.5], got {args.holdout}")
+    if not 0.0 < args.alpha < 0.5:
+        raise UserError(f"--alpha must be in (0, 0.5), got {args.alpha}")
+    try:
+        mpe = tuple(float(x) for x in args.tracker_mpe.split(","))
+        if len(mpe) != 2 or min(mpe) < 0:
+            raise ValueError
+    except ValueError:
+        raise UserError(
+            f"--tracker-mpe must be two non-negative numbers A,B; got {args.tracker_mpe!r}"
+        ) from None
+    ds = Dataset.from_recording(args.recording)
+    log = (
+        (lambda m: print(m, file=sys.stderr, flush=True))
+        if args.json
+        else (lambda m: print(m, file=sys.stderr, flush=True))
+    )
+    cfg = DiagnoseConfig(
+        holdout=args.holdout, alpha=args.alpha, tracker_mpe=mpe, nonparametric=not args.no_np
+    )
+    diag = diagnose(ds, cfg, progress=log)
+    rep = diag.report
+    outdir = Path(args.report) if args.report else None
+    if outdir:
+        outdir.mkdir(parents=True, exist_ok=True)
+    model_path = (
+        Path(args.out) if args.out else (outdir / "augmented.model.json" if outdir else None)
+    )
+    if model_path:
+        rep["model"] = str(save_model(diag.model, model_path))
+        if diag.model_np is not None:
+            p_np = model_path.with_name(model_path.name.replace(".json", ".np.json"))
+            if p_np == model_path:
+                p_np = model_path.with_suffix(".np.json")
+            rep["unexplained"].setdefault("np_model", {})["model"] = str(
+                save_model(diag.model_np, p_np)
+            )
+    if outdir:
+        rep["plots"] = write_plots(diag, outdir)
+        (outdir / "summary.txt").write_text(rep["summary"] + "\n")
+        (outdir / "report.json").write_text(json.dumps(rep, indent=1, default=_json_default))
+    if args.json:
+        print(json.dumps(rep, default=_json_default))
+    else:
+        print_report(rep)
+    return 0
+
+
+def um(x) -> str:
+    return "-" if x is None else f"{x * 1e6:.1f} um"
+
+
+def print_report(r: dict) -> None:
+    print(f"recording   {r['recording']}")
+    print(
+        f"poses       {r['train_poses']} train, {r['heldout_poses']} held out "
+        f"({r['outliers_rejected']} outliers set aside)"
+    )
+    print()
+    print(r["summary"])
+    print()
+    print(f"{'model':42s}{'held-out RMS':>14}{'max':>12}")
+    print(
+        f"{'geometry (DH + offsets + base + SMR)':42s}{um(r['rms_before_m']):>14}{um(r['max_before_m']):>12}"
+    )
+    for s in r["steps"]:
+        print(f"{'  + ' + s['after']:42s}{um(s['heldout_rms_m']):>14}{um(s['heldout_max_m']):>12}")
+    print(
+        f"{'final (nonlinear joint refit)':42s}{um(r['rms_after_m']):>14}{um(r['max_after_m']):>12}"
+    )
+    npm = r["unexplained"].get("np_model")
+    if npm:
+        print(
+            f"{'final + non-parametric residual (GP)':42s}{um(npm['heldout_rms_m']):>14}{um(npm['heldout_max_m']):>12}"
+        )
+    print(f"{'noise floor (expected)':42s}{um(r['noise_floor_m']):>14}")
+    if r.get("model"):
+        print(f"\nmodel       {r['model']}")
+    if r.get("plots"):
+        for p in r["plots"].values():
+            print(f"plot        {p}")
+
+
+def write_plots(diag, outdir: Path) -> dict:
+    """Residual plots before/after (PNG): held-out residual norm over the workspace + histogram."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    P = diag.plots
+    rep = diag.report
+    p = P["p_te"]
+    before = np.linalg.norm(P["res_before"], axis=1) * 1e6
+    after = np.linalg.norm(P["res_after"], axis=1) * 1e6
+    panels = [("geometry only", before), ("geometry + effects", after)]
+    if "res_np" in P:
+        panels.append(("+ non-parametric", np.linalg.norm(P["res_np"], axis=1) * 1e6))
+    vmax = float(np.percentile(before, 98))
+    fig, axes = plt.subplots(2, len(panels), figsize=(4.2 * len(panels), 7.2), squeeze=False)
+    c = p - p.mean(0)
+    for k, (title, e) in enumerate(panels):
+        ax = axes[0, k]
+        sc = ax.scatter(c[:, 0], c[:, 1], c=e, s=14, cmap="viridis", vmin=0, vmax=vmax)
+        ax.set_title(f"{title}\nRMS {np.sqrt(np.mean(e**2)):.1f} um")
+        ax.set_xlabel("x tracker - mean (m)")
+        ax.set_ylabel("y tracker - mean (m)")
+        ax.set_aspect("equal", adjustable="datalim")
+        fig.colorbar(sc, ax=ax, label="held-out error (um)")
+        ax = axes[1, k]
+        bins = np.linspace(0, max(vmax, 1.0) * 1.2, 30)
+        ax.hist(np.clip(e, 0, bins[-1]), bins=bins, color="C0" if k == 0 else "C2")
+        ax.axvline(rep["noise_floor_m"] * 1e6, color="k", ls="--", lw=1, label="noise floor RMS")
+        ax.set_xlabel("held-out error (um)")
+        ax.set_ylabel("poses")
+        ax.legend(fontsize=8)
+    fig.suptitle(Path(rep["recording"]).name)
+    fig.tight_layout()
+    out = outdir / "residuals_before_after.png"
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    # per-step bar chart
+    fig, ax = plt.subplots(figsize=(6.5, 3.2))
+    labels = ["geometry"] + [s["after"] for s in rep["steps"]]
+    vals = [rep["rms_before_m"]] + [s["heldout_rms_m"] for s in rep["steps"]]
+    ax.bar(range(len(vals)), np.array(vals) * 1e6, color="C0")
+    ax.axhline(rep["noise_floor_m"] * 1e6, color="k", ls="--", lw=1, label="noise floor")
+    ax.set_xticks(range(len(vals)), labels, rotation=20, ha="right", fontsize=8)
+    ax.set_ylabel("held-out RMS (um)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    out2 = outdir / "heldout_rms_steps.png"
+    fig.savefig(out2, dpi=110)
+    plt.close(fig)
+    return {"residuals": str(out), "steps": str(out2)}

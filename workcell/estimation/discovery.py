@@ -1,0 +1,984 @@
+"""Discrepancy discovery: locate the mismatch between the nominal model and a recording, name the
+physics that was left out, model it, and show the held-out fit improve.
+
+Pipeline (`diagnose(ds)`):
+1. Split. The recording's deterministic hold-out split (`Dataset.holdout_split`); everything
+   below up to step 7 sees the training poses only.
+2. Geometry. `fit_dh` (simultaneous DH + joint offsets + Hayati tilts + base + SMR, with its
+   identifiability analysis). Poses whose geometric residual is a gross outlier are set aside.
+   Weights: per pose sigma = max(recorded sigma, tracker MPE model (A + B * range) / 4) - the
+   recorded sigma of a mean often misses the tracker's per-pose systematic error.
+3. Locate. The geometry-only residual, made out-of-sample by K-fold cross-validation, is examined
+   along each joint's direction of motion against gravity torque, approach direction and the
+   joint angle's harmonics, against time/temperature and over the workspace.
+4. Name: joint estimation, not sequential. The augmented forward model
+   (`workcell.estimation.effects`) is linearised at the geometric solution with respect to all
+   free geometric parameters and every candidate of the library at once; each candidate is then
+   always estimated *together with the whole geometry* (and the effects already accepted), so an
+   effect the geometry can partly absorb is judged only on what the geometry cannot absorb.
+   - Identifiability per candidate: rho = smallest singular value of the candidate's
+     column-normalised signature after projecting out the geometry and the accepted effects
+     (1: orthogonal to them, 0: fully absorbed). rho < `rho_min` -> "not identifiable", with the
+     geometric parameters that absorb it.
+   - Selection: greedy forward selection with backward pruning. At each step the candidate with
+     the best BIC is tested, and accepted only if BOTH
+       (a) a likelihood-ratio (F) test of the nested linear-Gaussian models rejects "no effect"
+           at level `alpha` / m (Bonferroni over the m identifiable candidates of that step;
+           variance from the residual, so stated sigmas need not be right), and
+       (b) K-fold cross-validation (folds by pose) lowers the out-of-fold error by more than
+           chance: one-sided paired t-test over poses of the per-pose CV squared error at
+           level `cv_alpha`.
+     After each acceptance, every earlier effect is re-tested given the others (F-test at
+     `alpha`); those no longer significant are removed (backward pruning).
+   Why greedy + pruning and not sparse regression over the library: the candidates come in groups
+   of very different signature sizes (sin/cos pairs, per-joint parameters), several are strongly
+   correlated with each other and with the geometry (compliance of joint 3 vs deflection of link
+   2), and the user needs a test statistic and a p-value per accepted effect. A lasso path on
+   correlated groups picks one of a correlated pair for reasons of scaling, and its penalty
+   biases the physical sizes; greedy selection with a stated test gives unbiased sizes with
+   covariance, an explicit false-alarm level (clean recordings), and pruning repairs an early
+   wrong pick.
+5. Model. The accepted effects are re-estimated with the geometry by nonlinear least squares
+   (full augmented model); covariance with the a-posteriori variance factor.
+6. Show. Held-out RMS / max before (geometry) and after, step by step per accepted effect.
+7. Unknown effects. A GP over joint space (`discovery_np`, or `gp_residual` if present) is fitted
+   to the final training residual and judged on the held-out poses (one-sided paired test,
+   level 0.01, and at least 5 % RMS reduction). If it helps, a structured residual remains that
+   no candidate explains: it is reported, located (ARD length scales -> joints; workspace region)
+   and offered as a non-parametric correction with its held-out improvement.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from scipy import stats
+from scipy.optimize import least_squares
+
+from workcell.errors import UserError
+from workcell.estimation.dh import DHModel, fit_dh, pose_sigma
+from workcell.estimation.effects import (
+    EFF_NAMES,
+    N_EFF,
+    AugmentedModel,
+    Candidate,
+    FeatureSpec,
+    jac_aug,
+    library,
+    p_aug,
+    padded_call,
+    thermal_signal,
+    thermal_source,
+)
+from workcell.estimation.models import error_stats
+from workcell.kinematics.chain import PARAM_NAMES, jac_joints
+from workcell.recording.dataset import Dataset
+
+
+@dataclass
+class DiagnoseConfig:
+    holdout: float = 0.25
+    alpha: float = 0.01  # family level of the LR/F test per step (Bonferroni over candidates)
+    cv_folds: int = 5
+    cv_alpha: float = 0.05  # one-sided paired test of per-pose CV errors
+    rho_min: float = 0.05  # identifiability threshold
+    max_effects: int = 8
+    orders: tuple[int, ...] = (1, 2, 3)
+    tracker_mpe: tuple[float, float] = (15e-6, 6e-6)  # A [m] + B [m/m] * range; sigma=MPE/4
+    np_alpha: float = 0.01
+    np_min_gain: float = 0.05
+    nonparametric: bool = True
+    seed: int = 0
+
+
+@dataclass
+class Diagnosis:
+    report: dict
+    dh_model: DHModel
+    model: AugmentedModel
+    model_np: AugmentedModel | None
+    plots: dict = field(default_factory=dict)  # arrays for the report plots
+
+
+# ----------------------------------------------------------------------------- helpers
+def pose_sigma_model(ds: Dataset, mpe: tuple[float, float]) -> np.ndarray:
+    """Per-pose isotropic 1-sigma per axis: max(recorded, tracker MPE model / 4)."""
+    rec = pose_sigma(ds)
+    spec = (mpe[0] + mpe[1] * np.linalg.norm(ds.p_tracker, axis=1)) / 4.0
+    return np.maximum(rec, spec)
+
+
+def _with_sigma(ds: Dataset, sig: np.ndarray) -> Dataset:
+    return replace(ds, sigma_m=np.repeat(sig[:, None], 3, 1))
+
+
+def _fold_ids(n: int, k: int, seed: int) -> np.ndarray:
+    return np.random.default_rng(seed + 17).permutation(n) % k
+
+
+class _Linear:
+    """The linearised joint problem on the training poses: residual r (N,3) and columns.
+
+    Rows are poses x 3 axes, weighted by 1/sigma. Columns: free geometry (G) then all effect
+    candidates (C), each normalised to unit norm (`scale` keeps the factors)."""
+
+    def __init__(self, r: np.ndarray, G: np.ndarray, C: np.ndarray, folds: np.ndarray):
+        n = r.shape[0]
+        self.n_pose = n
+        self.r = r.reshape(-1)
+        self.gs = np.linalg.norm(G.reshape(3 * n, -1), axis=0) + 1e-300
+        self.cs = np.linalg.norm(C.reshape(3 * n, -1), axis=0)
+        self.G = G.reshape(3 * n, -1) / self.gs
+        csafe = np.where(self.cs > 0, self.cs, 1.0)
+        self.C = C.reshape(3 * n, -1) / csafe
+        self.folds = np.repeat(folds, 3)
+        self.pose_of_row = np.repeat(np.arange(n), 3)
+        self.Qg, _ = np.linalg.qr(self.G)
+        self.rp = self.r - self.Qg @ (self.Qg.T @ self.r)
+        self.Cp = self.C - self.Qg @ (self.Qg.T @ self.C)
+        self._cv_cache: dict[tuple, np.ndarray] = {}
+
+    def cols(self, idx: list[int]) -> np.ndarray:
+        return self.Cp[:, idx]
+
+    def rss(self, idx: list[int]) -> float:
+        if not idx:
+            return float(self.rp @ self.rp)
+        A = self.cols(idx)
+        x, *_ = np.linalg.lstsq(A, self.rp, rcond=None)
+        e = self.rp - A @ x
+        return float(e @ e)
+
+    def coef(self, idx: list[int]) -> tuple[np.ndarray, np.ndarray]:
+        """Least squares of [G, C_idx]: (geometry coefficients, effect coefficients), unscaled."""
+        A = np.hstack([self.G, self.C[:, idx]])
+        x, *_ = np.linalg.lstsq(A, -self.r, rcond=None)
+        ng = self.G.shape[1]
+        cs = np.where(self.cs[idx] > 0, self.cs[idx], 1.0)
+        return x[:ng] / self.gs, x[ng:] / cs
+
+    def rho(self, cand: list[int], given: list[int]) -> float:
+        """Share of the candidate's (unit) signature not absorbed by geometry + `given`."""
+        if np.any(self.cs[cand] <= 0):
+            return 0.0
+        B = self.cols(cand)
+        if given:
+            Q, _ = np.linalg.qr(self.cols(given))
+            B = B - Q @ (Q.T @ B)
+        return float(np.linalg.svd(B, compute_uv=False).min())
+
+    def absorbers(self, cand: list[int], names: list[str], top: int = 4) -> list[str]:
+        """Geometric parameters that best reproduce the candidate's signature."""
+        b = self.C[:, cand[0]]
+        x, *_ = np.linalg.lstsq(self.G, b, rcond=None)
+        contrib = np.abs(x) * np.linalg.norm(self.G, axis=0)
+        order = np.argsort(-contrib)[:top]
+        return [names[i] for i in order if contrib[i] > 0.05 * contrib.max()]
+
+    def cv_errors(self, idx: list[int]) -> np.ndarray:
+        """Per-pose out-of-fold squared error (weighted) of the model geometry + C_idx."""
+        key = tuple(sorted(idx))
+        if key in self._cv_cache:
+            return self._cv_cache[key]
+        A = np.hstack([self.G, self.C[:, list(key)]]) if key else self.G
+        e = np.zeros_like(self.r)
+        for f in np.unique(self.folds):
+            tr = self.folds != f
+            x, *_ = np.linalg.lstsq(A[tr], -self.r[tr], rcond=None)
+            e[~tr] = self.r[~tr] + A[~tr] @ x
+        per_pose = np.bincount(self.pose_of_row, weights=e * e, minlength=self.n_pose)
+        self._cv_cache[key] = per_pose
+        return per_pose
+
+    def cv_residual_vectors(self, idx: list[int]) -> np.ndarray:
+        """Out-of-fold weighted residual vectors (N, 3)."""
+        A = np.hstack([self.G, self.C[:, idx]]) if idx else self.G
+        e = np.zeros_like(self.r)
+        for f in np.unique(self.folds):
+            tr = self.folds != f
+            x, *_ = np.linalg.lstsq(A[tr], -self.r[tr], rcond=None)
+            e[~tr] = self.r[~tr] + A[~tr] @ x
+        return e.reshape(-1, 3)
+
+
+def _ftest(rss0: float, rss1: float, k: int, n: int, p1: int) -> tuple[float, float]:
+    dof = max(n - p1, 1)
+    if rss1 <= 0 or k <= 0:
+        return float("inf"), 0.0
+    F = ((rss0 - rss1) / k) / (rss1 / dof)
+    return float(F), float(stats.f.sf(F, k, dof))
+
+
+def _cv_test(e0: np.ndarray, e1: np.ndarray) -> tuple[float, float]:
+    """(CV MSE ratio new/old, one-sided p of 'new is better')."""
+    d = e0 - e1
+    ratio = float(e1.mean() / max(e0.mean(), 1e-300))
+    if np.allclose(d, 0):
+        return ratio, 1.0
+    p = float(stats.ttest_1samp(d, 0.0, alternative="greater").pvalue)
+    return ratio, p
+
+
+# ----------------------------------------------------------------------------- selection
+@dataclass
+class Step:
+    action: str  # "add" | "remove"
+    cand: Candidate
+    f: float
+    p: float
+    alpha_used: float
+    cv_ratio: float
+    cv_p: float
+    bic_change: float
+    rho: float
+
+
+def select_effects(
+    lin: _Linear, cands: list[Candidate], cfg: DiagnoseConfig, log: Callable[[str], None]
+) -> tuple[list[Candidate], list[Step], dict[str, dict]]:
+    """Greedy forward selection with backward pruning (see module doc)."""
+    n = lin.r.size
+    ng = lin.G.shape[1]
+    M: list[Candidate] = []
+    steps: list[Step] = []
+    screen: dict[str, dict] = {}
+    removed: set[str] = set()
+
+    def idx_of(cs: list[Candidate]) -> list[int]:
+        return [i for c in cs for i in c.idx]
+
+    def bic(rss: float, p: int) -> float:
+        return n * np.log(max(rss, 1e-300) / n) + p * np.log(n)
+
+    for _it in range(3 * cfg.max_effects):
+        if len(M) >= cfg.max_effects:
+            break
+        cur = idx_of(M)
+        rss0 = lin.rss(cur)
+        best = None
+        tried = 0
+        for c in cands:
+            if c in M or c.key in removed:
+                continue
+            rho = lin.rho(list(c.idx), cur)
+            if not M:
+                screen[c.key] = {"rho": rho}
+            if rho < cfg.rho_min:
+                if not M:
+                    screen[c.key]["absorbed_by"] = lin.absorbers(list(c.idx), _free_names(lin))
+                continue
+            tried += 1
+            rss1 = lin.rss(cur + list(c.idx))
+            db = bic(rss1, ng + len(cur) + len(c.idx)) - bic(rss0, ng + len(cur))
+            if not M:
+                screen[c.key]["r2"] = 1.0 - rss1 / rss0
+            if best is None or db < best[1]:
+                best = (c, db, rss1, rho)
+        if best is None:
+            break
+        c, db, rss1, rho = best
+        p1 = ng + len(cur) + len(c.idx)
+        F, p = _ftest(rss0, rss1, len(c.idx), n, p1)
+        a_used = cfg.alpha / max(tried, 1)
+        ratio, cv_p = _cv_test(lin.cv_errors(cur), lin.cv_errors(cur + list(c.idx)))
+        ok = p < a_used and cv_p < cfg.cv_alpha and ratio < 1.0
+        log(
+            f"  candidate {c.key:34s} F={F:9.1f} p={p:.2e} (level {a_used:.1e}) "
+            f"CV ratio {ratio:.3f} p={cv_p:.2e} -> {'accept' if ok else 'stop'}"
+        )
+        if not ok:
+            break
+        M.append(c)
+        steps.append(Step("add", c, F, p, a_used, ratio, cv_p, db, rho))
+        # backward pruning
+        changed = True
+        while changed and len(M) > 1:
+            changed = False
+            full = idx_of(M)
+            rss_full = lin.rss(full)
+            worst = None
+            for d in M[:-1]:
+                rest = [x for x in M if x is not d]
+                F_d, p_d = _ftest(lin.rss(idx_of(rest)), rss_full, len(d.idx), n, ng + len(full))
+                if p_d > cfg.alpha and (worst is None or p_d > worst[2]):
+                    worst = (d, F_d, p_d)
+            if worst is not None:
+                d, F_d, p_d = worst
+                M.remove(d)
+                removed.add(d.key)
+                steps.append(Step("remove", d, F_d, p_d, cfg.alpha, float("nan"), 1.0, 0.0, 0.0))
+                log(f"  prune     {d.key:34s} F={F_d:9.1f} p={p_d:.2e} -> removed")
+                changed = True
+    return M, steps, screen
+
+
+_FREE_NAMES_ATTR = "_free_names"
+
+
+def _free_names(lin: _Linear) -> list[str]:
+    return getattr(lin, _FREE_NAMES_ATTR)
+
+
+# ----------------------------------------------------------------------------- locate
+def locate(
+    ds_tr: Dataset,
+    X: np.ndarray,
+    E: np.ndarray,
+    theta: np.ndarray,
+    base_ref: np.ndarray,
+    source: str,
+) -> dict:
+    """Where the geometry-only (out-of-fold) residual E (N, 3) [m] concentrates."""
+    n = len(E)
+    Jq = padded_call(lambda qq: jac_joints(theta, base_ref, qq), ds_tr.q)  # (N, 3, 6)
+    norms = np.linalg.norm(Jq, axis=1)  # (N, 6)
+    U = Jq / np.maximum(norms[:, None, :], 1e-12)
+    # apparent joint error along each joint's direction of motion (rad): residual . u / |J|
+    s = np.einsum("nk,nkj->nj", E, U)
+    dq = s / np.maximum(norms, 1e-3)
+    tau, sgn, dT = X[:, 0:6], X[:, 6:12], X[:, 12:18]
+    thr = 3.0 / np.sqrt(n)
+    findings: list[dict] = []
+    per_joint = []
+    for j in range(6):
+        row: dict = {"joint": j + 1}
+        ok = norms[:, j] > 0.05  # joint moves the SMR by > 5 cm per rad
+        if ok.sum() < 10:
+            row["note"] = "joint barely moves the target; not observable"
+            per_joint.append(row)
+            continue
+        y = dq[ok, j]
+        w_rms = float(np.sqrt(np.mean(s[ok, j] ** 2)))
+        row["residual_along_motion_rms_m"] = w_rms
+        if np.std(tau[ok, j]) > 1e-6:
+            r = float(np.corrcoef(tau[ok, j], y)[0, 1])
+            slope = float(np.polyfit(tau[ok, j], y, 1)[0])
+            row["torque_corr"] = r
+            row["torque_slope_rad_per_nm"] = slope
+            if abs(r) > thr:
+                findings.append(
+                    {
+                        "score": abs(r),
+                        "text": f"residual along joint {j + 1}'s motion grows with the gravity "
+                        f"torque on joint {j + 1} (r = {r:+.2f}, {slope * 1e6:+.2f} urad/(N m))",
+                    }
+                )
+        pos, neg = sgn[ok, j] > 0, sgn[ok, j] < 0
+        if pos.sum() > 3 and neg.sum() > 3:
+            diff = float(y[pos].mean() - y[neg].mean())
+            se = float(np.sqrt(y[pos].var() / pos.sum() + y[neg].var() / neg.sum()))
+            row["approach_flip_rad"] = diff
+            z = abs(diff) / max(se, 1e-15)
+            if z > 4:
+                findings.append(
+                    {
+                        "score": min(z / np.sqrt(n), 1.0),
+                        "text": f"residual flips sign with the approach direction of joint {j + 1} "
+                        f"({diff * 1e6:+.1f} urad between + and - approach, {z:.0f} sigma)",
+                    }
+                )
+        qj = ds_tr.q[ok, j]
+        best_h = (0.0, 0)
+        for k in (1, 2, 3):
+            B = np.column_stack([np.sin(k * qj), np.cos(k * qj), np.ones_like(qj)])
+            c, *_ = np.linalg.lstsq(B, y, rcond=None)
+            r2 = 1 - np.sum((y - B @ c) ** 2) / max(np.sum((y - y.mean()) ** 2), 1e-300)
+            if r2 > best_h[0]:
+                best_h = (float(r2), k, float(np.hypot(c[0], c[1])))
+        if best_h[1]:
+            row["periodic_r2"] = best_h[0]
+            row["periodic_order"] = best_h[1]
+            if np.sqrt(best_h[0]) > thr * 1.2:
+                findings.append(
+                    {
+                        "score": float(np.sqrt(best_h[0])),
+                        "text": f"residual along joint {j + 1}'s motion is periodic in joint "
+                        f"{j + 1}'s angle (order {best_h[1]}, amplitude "
+                        f"{best_h[2] * 1e6:.1f} urad, R2 {best_h[0]:.2f})",
+                    }
+                )
+        per_joint.append(row)
+    e = np.linalg.norm(E, axis=1)
+    total = float(np.sqrt(np.mean(e**2)))
+    # time / temperature
+    t = ds_tr.elapsed_s
+    time_trend = None
+    if np.all(np.isfinite(t)) and np.ptp(t) > 0:
+        order = np.argsort(t)
+        thirds = np.array_split(order, 3)
+        rm = [float(np.sqrt(np.mean(e[i] ** 2))) for i in thirds]
+        time_trend = {"rms_first_third_m": rm[0], "rms_last_third_m": rm[2]}
+        # the mean radial residual (distance from tracker) vs time: length drift
+        pr = ds_tr.p_tracker / np.linalg.norm(ds_tr.p_tracker, axis=1)[:, None]
+        radial = np.einsum("nk,nk->n", E, pr)
+        r_t = float(np.corrcoef(t, np.abs(E).sum(1))[0, 1]) if n > 3 else 0.0
+        time_trend["corr_abs_residual_time"] = r_t
+        if source != "none":
+            sig = dT.mean(1)
+            if np.std(sig) > 0:
+                r_T = float(np.corrcoef(sig, radial)[0, 1])
+                time_trend["corr_radial_temperature"] = r_T
+    # workspace regions: distance from the base axis and height, in tertiles
+    p_b = ds_tr.p_tracker - ds_tr.p_tracker.mean(0)
+    regions = {}
+    for name, v in (
+        ("height", p_b[:, 2]),
+        ("reach", np.linalg.norm(p_b[:, :2], axis=1)),
+    ):
+        order = np.argsort(v)
+        thirds = np.array_split(order, 3)
+        regions[name] = [float(np.sqrt(np.mean(e[i] ** 2))) for i in thirds]
+    joint_region = []
+    for j in range(6):
+        order = np.argsort(ds_tr.q[:, j])
+        thirds = np.array_split(order, 3)
+        rms3 = [float(np.sqrt(np.mean(e[i] ** 2))) for i in thirds]
+        joint_region.append(
+            {
+                "joint": j + 1,
+                "rms_by_angle_tertile_m": rms3,
+                "ratio": max(rms3) / max(min(rms3), 1e-15),
+            }
+        )
+    jr = max(joint_region, key=lambda d: d["ratio"])
+    if jr["ratio"] > 1.5:
+        k = int(np.argmax(jr["rms_by_angle_tertile_m"]))
+        findings.append(
+            {
+                "score": 0.1 * jr["ratio"],
+                "text": f"residual is largest in the {['low', 'middle', 'high'][k]} third of "
+                f"joint {jr['joint']}'s range ({jr['ratio']:.1f}x the quietest third)",
+            }
+        )
+    findings.sort(key=lambda f: -f["score"])
+    return {
+        "rms_m": total,
+        "statements": [f["text"] for f in findings[:5]],
+        "per_joint": per_joint,
+        "time": time_trend,
+        "workspace_rms_by_tertile_m": regions,
+        "joint_angle_tertiles": joint_region,
+    }
+
+
+# ----------------------------------------------------------------------------- final fit
+def _fit_augmented(
+    ds_tr: Dataset,
+    w: np.ndarray,
+    X: np.ndarray,
+    theta0: np.ndarray,
+    base_ref: np.ndarray,
+    free: np.ndarray,
+    eff0: np.ndarray,
+    active: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Nonlinear weighted least squares over theta[free] and eff[active]."""
+    nf = int(free.sum())
+
+    def unpack(x):
+        th = theta0.copy()
+        th[free] = x[:nf]
+        ef = eff0.copy()
+        ef[active] = x[nf:]
+        return th, ef
+
+    def fun(x):
+        th, ef = unpack(x)
+        return ((p_aug(th, ef, base_ref, ds_tr.q, X) - ds_tr.p_tracker) * w[:, None]).ravel()
+
+    def jac(x):
+        th, ef = unpack(x)
+        Jt, Je = jac_aug(th, ef, base_ref, ds_tr.q, X)
+        J = np.concatenate([Jt[:, :, free], Je[:, :, active]], axis=2) * w[:, None, None]
+        return J.reshape(-1, J.shape[2])
+
+    x0 = np.concatenate([theta0[free], eff0[active]])
+    res = least_squares(fun, x0, jac=jac, method="lm", x_scale="jac", max_nfev=50)
+    th, ef = unpack(res.x)
+    J = jac(res.x)
+    r = res.fun
+    dof = max(len(r) - len(x0), 1)
+    s0_2 = float(r @ r / dof)
+    cov = s0_2 * np.linalg.pinv(J.T @ J)
+    return th, ef, cov
+
+
+# ----------------------------------------------------------------------------- main entry
+def diagnose(
+    ds: Dataset,
+    cfg: DiagnoseConfig | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> Diagnosis:
+    cfg = cfg or DiagnoseConfig()
+    log = progress or (lambda m: None)
+    t0 = time.perf_counter()
+    if not 0.1 <= cfg.holdout <= 0.5:
+        raise ValueError(f"holdout must be in [0.1, 0.5], got {cfg.holdout}")
+    if len(ds) < 40:
+        raise UserError(f"only {len(ds)} poses; diagnosis needs at least 40")
+    sig = pose_sigma_model(ds, cfg.tracker_mpe)
+    dsw = _with_sigma(ds, sig)
+    train, test = dsw.holdout_split(cfg.holdout)
+    dtr, dte = dsw.subset(train), dsw.subset(test)
+    log(f"{len(ds)} poses: {len(train)} train, {len(test)} held out")
+
+    # ---- 2. geometry
+    dh = fit_dh(dtr)
+    theta, base_ref, free = dh.theta.copy(), dh.base_ref.copy(), dh.free.copy()
+    e_tr = np.linalg.norm(padded_call(dh.predict, dtr.q) - dtr.p_tracker, axis=1) / sig[train]
+    med = np.median(e_tr)
+    mad = 1.4826 * np.median(np.abs(e_tr - med)) + 1e-12
+    keep = e_tr < med + 15.0 * mad
+    if keep.sum() < 0.8 * len(train):
+        keep = np.ones(len(train), bool)
+    n_out = int((~keep).sum())
+    dfit = dtr.subset(np.flatnonzero(keep))
+    w = 1.0 / sig[train][keep]
+    log(
+        f"geometry: train RMS {dh.info['train_rms_m'] * 1e6:.1f} um, {n_out} outlier poses set aside"
+    )
+
+    # ---- features
+    src = thermal_source(dfit.joint_temperature_c, dfit.ambient_temperature_c, dfit.elapsed_s)
+    tsig = thermal_signal(
+        src, dfit.joint_temperature_c, dfit.ambient_temperature_c, dfit.elapsed_s, len(dfit)
+    )
+    fs = FeatureSpec(
+        spec=ds.robot,
+        payload_com_m=np.asarray(ds.payload_com_m, float),
+        thermal_source=src,
+        thermal_ref=tsig.mean(0),
+        payload_kg_default=float(np.nanmedian(ds.payload_kg)) if len(ds) else 0.0,
+    )
+
+    def aux(d: Dataset) -> dict:
+        return {
+            "approach_sign": d.approach_sign,
+            "joint_temperature_c": d.joint_temperature_c,
+            "ambient_temperature_c": d.ambient_temperature_c,
+            "elapsed_s": d.elapsed_s,
+            "payload_kg": d.payload_kg,
+        }
+
+    X = fs.features(theta, dfit.q, **aux(dfit))
+    eff0 = np.zeros(N_EFF)
+    p0 = p_aug(theta, eff0, base_ref, dfit.q, X)
+    Jt, Je = jac_aug(theta, eff0, base_ref, dfit.q, X)
+    folds = _fold_ids(len(dfit), cfg.cv_folds, cfg.seed)
+    lin = _Linear(
+        (p0 - dfit.p_tracker) * w[:, None],
+        Jt[:, :, free] * w[:, None, None],
+        Je * w[:, None, None],
+        folds,
+    )
+    setattr(lin, _FREE_NAMES_ATTR, [PARAM_NAMES[i] for i in np.flatnonzero(free)])
+
+    # ---- 3. locate (geometry-only out-of-fold residual, metres)
+    E_geo = lin.cv_residual_vectors([]) / w[:, None]
+    loc = locate(dfit, X, E_geo, theta, base_ref, src)
+    for s in loc["statements"]:
+        log(f"locate: {s}")
+
+    # ---- 4. name
+    cands = library(tuple(cfg.orders))
+    M, steps, screen = select_effects(lin, cands, cfg, log)
+
+    # ---- 5. model: joint nonlinear refit of geometry + accepted effects
+    idx = [i for c in M for i in c.idx]
+    _, beta = lin.coef(idx)
+    eff_lin = eff0.copy()
+    eff_lin[idx] = beta
+    active = np.asarray(sorted(idx), int)
+    if len(active):
+        th_f, eff_f, cov = _fit_augmented(dfit, w, X, theta, base_ref, free, eff_lin, active)
+    else:
+        th_f, eff_f = theta, eff0
+        cov = dh.cov[np.ix_(free, free)]
+    model = AugmentedModel(
+        features_spec=fs,
+        theta=th_f,
+        base_ref=base_ref,
+        eff=eff_f,
+        accepted=list(M),
+        free=free,
+        cov=cov,
+        nominal_tool_m=np.asarray(ds.tool_offset_m, float),
+        info={
+            "recording": ds.source,
+            "recording_sha256": ds.source_sha256,
+            "train_poses": int(len(train)),
+            "outliers_rejected": n_out,
+            "thermal_source": src,
+        },
+    )
+
+    # ---- 6. show: held-out before/after, per step (linearised prefix models)
+    pred_dh_te = padded_call(dh.predict, dte.q)
+    pred_te = model.predict_parametric(dte.q, **aux(dte))
+    before = error_stats(pred_dh_te, dte.p_tracker)
+    after = error_stats(pred_te, dte.p_tracker)
+    X_te = fs.features(theta, dte.q, **aux(dte))
+    Jt_te, Je_te = jac_aug(theta, eff0, base_ref, dte.q, X_te)
+    p0_te = p_aug(theta, eff0, base_ref, dte.q, X_te)
+
+    def lin_pred_te(sel: list[Candidate]) -> np.ndarray:
+        ii = [i for c in sel for i in c.idx]
+        g, b = lin.coef(ii)
+        return p0_te + Jt_te[:, :, free] @ g + (Je_te[:, :, ii] @ b if ii else 0.0)
+
+    per_step = []
+    for k in range(len(M)):
+        st = error_stats(lin_pred_te(M[: k + 1]), dte.p_tracker)
+        per_step.append(
+            {"after": M[k].key, "heldout_rms_m": st["rms_m"], "heldout_max_m": st["max_m"]}
+        )
+
+    # explained fractions (CV, training) and per-effect held-out change when left out
+    cv_geo = lin.cv_errors([])
+    cv_full = lin.cv_errors(idx)
+    floor = noise_floor_m(dh, dtr, dte, sig[train], sig[test])
+    effects_out = []
+    step_of = {s.cand.key: s for s in steps if s.action == "add"}
+    for c in M:
+        rest = [i for d in M if d is not c for i in d.idx]
+        cv_wo = lin.cv_errors(rest)
+        frac = float((cv_wo.mean() - cv_full.mean()) / max(cv_geo.mean(), 1e-300))
+        wo = error_stats(lin_pred_te([d for d in M if d is not c]), dte.p_tracker)
+        s = step_of.get(c.key)
+        effects_out.append(
+            {
+                "kind": c.kind,
+                "joint": c.joint,
+                "key": c.key,
+                "description": c.describe(),
+                "parameters": model.effect_parameters(c),
+                "explained_fraction": max(frac, 0.0),
+                "evidence": {
+                    "f_statistic": s.f if s else None,
+                    "p_value": s.p if s else None,
+                    "test_level": s.alpha_used if s else None,
+                    "cv_mse_ratio": s.cv_ratio if s else None,
+                    "cv_p_value": s.cv_p if s else None,
+                    "bic_change": s.bic_change if s else None,
+                    "identifiability_rho": s.rho if s else None,
+                    "heldout_rms_without_m": wo["rms_m"],
+                    "heldout_rms_with_m": after["rms_m"],
+                },
+            }
+        )
+
+    not_identifiable = [
+        {"candidate": k, "rho": v["rho"], "absorbed_by": v.get("absorbed_by", [])}
+        for k, v in screen.items()
+        if v["rho"] < cfg.rho_min
+    ]
+
+    # ---- 7. unexplained structure
+    res_tr = dfit.p_tracker - model.predict_parametric(dfit.q, **aux(dfit))
+    res_te = dte.p_tracker - pred_te
+    unexplained = {
+        "rms_m": after["rms_m"],
+        "excess_over_floor_m": float(np.sqrt(max(after["rms_m"] ** 2 - floor**2, 0.0))),
+        "structured": False,
+        "where": [],
+    }
+    model_np = None
+    if cfg.nonparametric:
+        unexplained_np, model_np = _nonparametric(model, dfit, res_tr, dte, res_te, after, cfg, log)
+        unexplained.update(unexplained_np)
+
+    geometry = _geometry_items(dh)
+    report = {
+        "recording": ds.source,
+        "recording_sha256": ds.source_sha256,
+        "robot": ds.robot.model,
+        "poses": int(len(ds)),
+        "train_poses": int(len(train)),
+        "heldout_poses": int(len(test)),
+        "outliers_rejected": n_out,
+        "rms_before_m": before["rms_m"],
+        "max_before_m": before["max_m"],
+        "rms_after_m": after["rms_m"],
+        "max_after_m": after["max_m"],
+        "noise_floor_m": floor,
+        "noise_floor_basis": (
+            f"per-pose sigma = max(recorded, tracker MPE ({cfg.tracker_mpe[0] * 1e6:.0f} um + "
+            f"{cfg.tracker_mpe[1] * 1e6:.0f} um/m) / 4), plus the geometric fit's uncertainty"
+        ),
+        "effects": effects_out,
+        "steps": per_step,
+        "selection": [
+            {
+                "action": s.action,
+                "candidate": s.cand.key,
+                "f_statistic": s.f,
+                "p_value": s.p,
+                "test_level": s.alpha_used,
+                "cv_mse_ratio": s.cv_ratio,
+                "cv_p_value": s.cv_p,
+            }
+            for s in steps
+        ],
+        "method": {
+            "selection": "greedy forward selection (BIC-ranked) with backward pruning",
+            "acceptance": f"F (likelihood-ratio) test at {cfg.alpha} / m candidates (Bonferroni) "
+            f"AND {cfg.cv_folds}-fold CV improvement, one-sided paired t-test at {cfg.cv_alpha}",
+            "identifiability": f"rho >= {cfg.rho_min} (unabsorbed share of the signature)",
+            "estimation": "every candidate estimated jointly with all free geometric parameters",
+        },
+        "not_identifiable": not_identifiable,
+        "locate": loc,
+        "geometry": geometry,
+        "unexplained": unexplained,
+        "thermal_source": src,
+        "seconds": time.perf_counter() - t0,
+    }
+    report["summary"] = summary_text(report)
+    plots = {
+        "p_te": dte.p_tracker,
+        "res_before": dte.p_tracker - pred_dh_te,
+        "res_after": res_te,
+        "q_te": dte.q,
+    }
+    if model_np is not None and unexplained.get("np_model"):
+        plots["res_np"] = dte.p_tracker - model_np.predict(dte.q, **aux(dte))
+    log(f"diagnosis done in {report['seconds']:.1f} s")
+    return Diagnosis(report=report, dh_model=dh, model=model, model_np=model_np, plots=plots)
+
+
+def _nonparametric(model, dfit, res_tr, dte, res_te, after, cfg, log):
+    """Fit a residual GP; judge it on the held-out poses."""
+    from workcell.estimation.discovery_np import fit_residual_gp, relevant_joints
+
+    out: dict = {}
+    try:
+        gp = fit_residual_gp(dfit.q, res_tr, seed=cfg.seed)
+    except Exception as e:  # noqa: BLE001 - the optional part must not sink the diagnosis
+        log(f"non-parametric residual model failed: {e}")
+        return {"np_error": str(e)}, None
+    corr = gp.predict(dte.q)
+    e0 = np.sum(res_te**2, axis=1)
+    e1 = np.sum((res_te - corr) ** 2, axis=1)
+    rms1 = float(np.sqrt(e1.mean()))
+    gain = 1.0 - rms1 / max(after["rms_m"], 1e-300)
+    p = float(stats.ttest_1samp(e0 - e1, 0.0, alternative="greater").pvalue) if len(e0) > 2 else 1.0
+    structured = bool(p < cfg.np_alpha and gain >= cfg.np_min_gain)
+    q_range = np.ptp(dfit.q, axis=0)
+    joints = relevant_joints(gp, q_range)
+    where = []
+    if structured:
+        if joints:
+            where.append(
+                "depends on joint(s) "
+                + ", ".join(f"{j} (length scale {ls:.2f} rad)" for j, ls in joints[:3])
+            )
+        en = np.linalg.norm(res_tr, axis=1)
+        for j, _ in joints[:2]:
+            order = np.argsort(dfit.q[:, j - 1])
+            thirds = np.array_split(order, 3)
+            rms3 = [float(np.sqrt(np.mean(en[i] ** 2))) for i in thirds]
+            k = int(np.argmax(rms3))
+            lo, hi = dfit.q[thirds[k], j - 1].min(), dfit.q[thirds[k], j - 1].max()
+            where.append(
+                f"largest for joint {j} in [{lo:+.2f}, {hi:+.2f}] rad "
+                f"(RMS {rms3[k] * 1e6:.1f} um vs {min(rms3) * 1e6:.1f} um elsewhere)"
+            )
+    out.update(
+        {
+            "structured": structured,
+            "where": where,
+            "np_test": {
+                "method": "gp (discovery_np: ARD-RBF GP over joint angles)",
+                "heldout_rms_with_m": rms1,
+                "heldout_rms_without_m": after["rms_m"],
+                "gain": gain,
+                "p_value": p,
+                "level": cfg.np_alpha,
+                "lengthscales_rad": gp.lengthscales.tolist(),
+            },
+        }
+    )
+    model_np = None
+    if structured:
+        model_np = replace(model, residual=gp.to_dict())
+        out["np_model"] = {
+            "method": "augmented + gp residual",
+            "heldout_rms_m": rms1,
+            "heldout_max_m": float(np.sqrt(e1.max())),
+        }
+    log(
+        f"non-parametric check: held-out RMS {after['rms_m'] * 1e6:.1f} -> {rms1 * 1e6:.1f} um "
+        f"(p={p:.1e}) -> {'structured residual remains' if structured else 'no structure left'}"
+    )
+    return out, model_np
+
+
+def noise_floor_m(dh: DHModel, dtr: Dataset, dte: Dataset, sig_tr, sig_te) -> float:
+    """Expected held-out RMS from noise alone: sqrt(mean(3 sigma^2 + tr(J Cov J^T)))."""
+    from workcell.kinematics.chain import jac_params
+
+    free = dh.free
+    Jt = padded_call(lambda qq: jac_params(dh.theta, dh.base_ref, qq), dtr.q)[:, :, free]
+    Jh = padded_call(lambda qq: jac_params(dh.theta, dh.base_ref, qq), dte.q)[:, :, free]
+    A = np.einsum("nkp,n,nkq->pq", Jt, 1.0 / sig_tr**2, Jt)
+    cov = np.linalg.pinv(A)
+    par = np.einsum("nkp,pq,nkq->n", Jh, cov, Jh)
+    return float(np.sqrt(np.mean(3 * sig_te**2 + par)))
+
+
+def _geometry_items(dh: DHModel) -> list[dict]:
+    """Geometric kinds: the estimated deviations from nominal, grouped."""
+    params = dh.parameters()
+    items = []
+    for j in range(1, 7):
+        n = f"theta{j}_offset"
+        v = params[n]
+        if v["estimated"]:
+            items.append(
+                {
+                    "kind": "joint_offset",
+                    "joint": j,
+                    "parameters": {
+                        n: {"value": v["value"] - v["nominal"], "std": v["std"], "unit": "rad"}
+                    },
+                }
+            )
+    for j in range(1, 7):
+        ps = {}
+        for base in ("a", "d", "alpha", "beta"):
+            n = f"{base}{j}"
+            v = params[n]
+            if v["estimated"]:
+                ps[n] = {"value": v["value"] - v["nominal"], "std": v["std"], "unit": v["unit"]}
+        if ps:
+            items.append({"kind": "link_geometry", "joint": j, "parameters": ps})
+    items.append(
+        {
+            "kind": "base_frame",
+            "joint": None,
+            "parameters": {
+                n: {"value": params[n]["value"], "std": params[n]["std"], "unit": params[n]["unit"]}
+                for n in ("base_tx", "base_ty", "base_tz", "base_rx", "base_ry", "base_rz")
+                if params[n]["estimated"]
+            },
+        }
+    )
+    items.append(
+        {
+            "kind": "tool_offset",
+            "joint": None,
+            "parameters": {
+                n: {"value": params[n]["value"], "std": params[n]["std"], "unit": "m"}
+                for n in ("tool_x", "tool_y", "tool_z")
+                if params[n]["estimated"]
+            },
+        }
+    )
+    return items
+
+
+# ----------------------------------------------------------------------------- plain language
+def _fmt_value(v: float, sd: float, unit: str) -> str:
+    scales = {
+        "rad/(N m)": (1e6, "urad/(N m)"),
+        "rad": (1e6, "urad"),
+        "m/N": (1e6, "um/N"),
+        "1/K": (1e6, "ppm/K"),
+        "1/h": (1e6, "ppm/h"),
+        "1": (1e6, "ppm"),
+        "m": (1e6, "um"),
+    }
+    k, u = scales.get(unit, (1.0, unit))
+    return f"{v * k:.3g} +- {sd * k:.2g} {u}"
+
+
+def effect_sentence(e: dict) -> str:
+    p = e["parameters"]
+    if e["kind"] == "transmission_error":
+        a = p["amplitude"]
+        size = f"amplitude {_fmt_value(a['value'], a['std'], 'rad')}, phase {p['phase']['value']:+.2f} rad"
+    else:
+        ((name, v),) = [(k, x) for k, x in p.items()]
+        size = f"{name.replace('_', ' ')} {_fmt_value(v['value'], v['std'], v['unit'])}"
+    ev = e["evidence"]
+    return (
+        f"{e['description']}: {size}; explains {100 * e['explained_fraction']:.0f} % of the "
+        f"geometry-only residual power (F test p = {ev['p_value']:.1g}, CV p = "
+        f"{ev['cv_p_value']:.1g}; held-out RMS without it {ev['heldout_rms_without_m'] * 1e6:.1f} um)"
+    )
+
+
+def summary_text(r: dict) -> str:
+    um = lambda x: f"{x * 1e6:.1f} um"  # noqa: E731
+    lines = [
+        f"Geometric calibration alone (DH, joint offsets, base, SMR; estimated jointly) leaves a "
+        f"held-out RMS of {um(r['rms_before_m'])} (max {um(r['max_before_m'])}); the noise floor "
+        f"expected from the tracker is {um(r['noise_floor_m'])} "
+        f"({r['rms_before_m'] / r['noise_floor_m']:.1f}x).",
+    ]
+    if r["locate"]["statements"]:
+        lines.append(
+            "Where the residual concentrates: " + "; ".join(r["locate"]["statements"][:3]) + "."
+        )
+    if r["effects"]:
+        lines.append(
+            "Physics left out of the nominal model (each accepted by an F test and by "
+            "cross-validation):"
+        )
+        for e in r["effects"]:
+            lines.append("  - " + effect_sentence(e))
+        lines.append(
+            f"With these effects the held-out RMS is {um(r['rms_after_m'])} (max "
+            f"{um(r['max_after_m'])}), {r['rms_after_m'] / r['noise_floor_m']:.2f}x the noise floor."
+        )
+    else:
+        lines.append(
+            "No physical effect of the library improves the fit by more than chance: the geometric "
+            "model explains the recording "
+            + (
+                "down to the noise floor."
+                if r["rms_before_m"] < 1.3 * r["noise_floor_m"]
+                else "as well as any candidate does."
+            )
+        )
+    ni = [x["candidate"] for x in r["not_identifiable"]]
+    if ni:
+        short = ", ".join(ni[:6]) + (" ..." if len(ni) > 6 else "")
+        lines.append(
+            f"Not identifiable from this recording (absorbed by the geometry or not excited): {short}."
+        )
+        if "tracker_scale" in ni:
+            lines.append(
+                "A uniform tracker scale error is absorbed by the link lengths and base position "
+                "(a point-only tracker without a length reference cannot see it); check the "
+                "tracker's scale with a calibrated scale bar."
+            )
+    u = r["unexplained"]
+    if u.get("structured"):
+        lines.append(
+            f"What is not explained: a structured residual of {um(u['excess_over_floor_m'])} above "
+            f"the noise floor remains that no candidate explains; it "
+            + "; ".join(u["where"])
+            + f". A non-parametric correction (GP over joint space) lowers the held-out RMS from "
+            f"{um(u['np_test']['heldout_rms_without_m'])} to {um(u['np_test']['heldout_rms_with_m'])}."
+        )
+    elif "np_test" in u:
+        lines.append(
+            f"What is not explained: {um(u['excess_over_floor_m'])} above the noise floor; a "
+            f"non-parametric model finds no further structure on the held-out poses."
+        )
+    return "\n".join(lines)
+
+
+__all__ = [
+    "DiagnoseConfig",
+    "Diagnosis",
+    "diagnose",
+    "locate",
+    "select_effects",
+    "summary_text",
+    "EFF_NAMES",
+]
