@@ -61,24 +61,36 @@ def build_sim(
             ctrl.stop()
             raise RuntimeError(f"simulated tracker not available: {e}") from None
         # the tracker's time_scale multiplies simulated durations into wall seconds
-        tracker = SimGeoComTracker(world.read_tracker, faults=tracker_faults, seed=seed,
-                                   time_scale=1.0 / time_scale)
+        tracker = SimGeoComTracker(
+            world.read_tracker, faults=tracker_faults, seed=seed, time_scale=1.0 / time_scale
+        )
         tracker.start()
     return world, ctrl, tracker
 
 
 def _info(ctrl: UrControllerSim, tracker) -> dict:
-    return {"ur_host": ctrl.host, "tracker_port": None if tracker is None else tracker.port,
-            "pid": os.getpid(), "time_scale": ctrl.time_scale}
+    return {
+        "ur_host": ctrl.host,
+        "tracker_port": None if tracker is None else tracker.port,
+        "pid": os.getpid(),
+        "time_scale": ctrl.time_scale,
+    }
 
 
 def _state(world: SimWorld, ctrl: UrControllerSim) -> dict:
     q, qd = world.joint_state()
     with ctrl.lock:
-        return {"t_s": world.clock.now(), "q_rad": q.tolist(), "qd_rad_s": qd.tolist(),
-                "robot_mode": ctrl.robot_mode, "safety_mode": ctrl.safety_mode,
-                "runtime_state": ctrl.runtime_state, "moves": ctrl.move_count,
-                "stats": dict(ctrl.stats), "events": [list(e) for e in ctrl.events[-50:]]}
+        return {
+            "t_s": world.clock.now(),
+            "q_rad": q.tolist(),
+            "qd_rad_s": qd.tolist(),
+            "robot_mode": ctrl.robot_mode,
+            "safety_mode": ctrl.safety_mode,
+            "runtime_state": ctrl.runtime_state,
+            "moves": ctrl.move_count,
+            "stats": dict(ctrl.stats),
+            "events": [list(e) for e in ctrl.events[-50:]],
+        }
 
 
 def _handle(cmd: dict, world: SimWorld, ctrl: UrControllerSim) -> dict:
@@ -110,6 +122,7 @@ def run_sim(
     replies=None,
     stop_event: threading.Event | None = None,
     verbose: bool = False,
+    tracker_faults: dict | None = None,
 ) -> int:
     """Host the world, the controller and optionally the tracker until told to stop.
 
@@ -118,8 +131,17 @@ def run_sim(
     set or SIGTERM/SIGINT.
     """
     log = (lambda m: print(m, file=sys.stderr, flush=True)) if verbose else None
-    world, ctrl, tracker = build_sim(host, seed, effects, time_scale, faults, with_tracker,
-                                     robot=robot, log=log)
+    world, ctrl, tracker = build_sim(
+        host,
+        seed,
+        effects,
+        time_scale,
+        faults,
+        with_tracker,
+        robot=robot,
+        log=log,
+        tracker_faults=tracker_faults,
+    )
     stop = stop_event or threading.Event()
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGTERM, signal.SIGINT):
@@ -158,8 +180,9 @@ def run_sim(
         ctrl.stop()
 
 
-def run_controller_process(host, seed, effects, time_scale, faults, ready=None,
-                           with_tracker: bool = False) -> None:
+def run_controller_process(
+    host, seed, effects, time_scale, faults, ready=None, with_tracker: bool = False
+) -> None:
     """multiprocessing target (spawn): `ready` is a queue (gets the info dict) or an fd."""
 
     def announce(info: dict) -> None:
@@ -188,15 +211,30 @@ class SimProcess:
         with_tracker: bool = False,
         robot: str = "ur5e",
         startup_timeout_s: float = 30.0,
+        tracker_faults: dict | None = None,
         verbose: bool = False,
     ) -> None:
-        self.args = [sys.executable, "-m", "sim_devices.ur_process", "--host", host,
-                     "--seed", str(seed), "--effects", effects, "--time-scale", str(time_scale),
-                     "--robot", robot]
+        self.args = [
+            sys.executable,
+            "-m",
+            "sim_devices.ur_process",
+            "--host",
+            host,
+            "--seed",
+            str(seed),
+            "--effects",
+            effects,
+            "--time-scale",
+            str(time_scale),
+            "--robot",
+            robot,
+        ]
         if faults:
             self.args += ["--faults", json.dumps(faults)]
         if with_tracker:
             self.args.append("--tracker")
+        if tracker_faults:
+            self.args += ["--tracker-faults", json.dumps(tracker_faults)]
         if verbose:
             self.args.append("--verbose")
         self.startup_timeout_s = startup_timeout_s
@@ -208,8 +246,15 @@ class SimProcess:
         root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
         env = dict(os.environ)
         env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")
-        self.proc = subprocess.Popen(self.args, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                     stderr=None, text=True, bufsize=1, env=env)
+        self.proc = subprocess.Popen(
+            self.args,
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=None,
+            text=True,
+            bufsize=1,
+            env=env,
+        )
         box: dict = {}
 
         def read_ready() -> None:
@@ -222,8 +267,10 @@ class SimProcess:
         if not line:
             rc = self.proc.poll()
             self.stop()
-            raise RuntimeError(f"simulated UR controller did not start (exit code {rc}); "
-                               f"command: {' '.join(self.args)}")
+            raise RuntimeError(
+                f"simulated UR controller did not start (exit code {rc}); "
+                f"command: {' '.join(self.args)}"
+            )
         self.info = json.loads(line)
         return self
 
@@ -238,8 +285,9 @@ class SimProcess:
             self.proc.stdin.write(json.dumps(cmd) + "\n")
             self.proc.stdin.flush()
             box: dict = {}
-            t = threading.Thread(target=lambda: box.setdefault("l", self.proc.stdout.readline()),
-                                 daemon=True)
+            t = threading.Thread(
+                target=lambda: box.setdefault("l", self.proc.stdout.readline()), daemon=True
+            )
             t.start()
             t.join(timeout_s)
             if "l" not in box or not box["l"]:
@@ -279,34 +327,54 @@ class SimProcess:
 
 # ------------------------------------------------------------------ command line
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m sim_devices.ur_process",
-                                 description="Simulated UR controller (+ GeoCOM tracker) process.")
+    ap = argparse.ArgumentParser(
+        prog="python -m sim_devices.ur_process",
+        description="Simulated UR controller (+ GeoCOM tracker) process.",
+    )
     ap.add_argument("--host", default="127.0.0.2", help="address to listen on (loopback alias)")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--effects", default="realistic",
-                    help="none, realistic, all, or a comma list of effect kinds")
-    ap.add_argument("--time-scale", type=float, default=1.0,
-                    help="simulated seconds per wall second")
+    ap.add_argument(
+        "--effects",
+        default="realistic",
+        help="none, realistic, all, or a comma list of effect kinds",
+    )
+    ap.add_argument(
+        "--time-scale", type=float, default=1.0, help="simulated seconds per wall second"
+    )
     ap.add_argument("--faults", default=None, help="JSON dict of controller faults")
+    ap.add_argument("--tracker-faults", default=None, help="JSON dict of tracker faults")
     ap.add_argument("--robot", default="ur5e")
     ap.add_argument("--tracker", action="store_true", help="also serve a GeoCOM tracker on a pty")
-    ap.add_argument("--no-stdin", action="store_true",
-                    help="ignore stdin; run until SIGTERM/SIGINT")
+    ap.add_argument(
+        "--no-stdin", action="store_true", help="ignore stdin; run until SIGTERM/SIGINT"
+    )
     ap.add_argument("--verbose", action="store_true", help="log controller events on stderr")
     a = ap.parse_args(argv)
     try:
         faults = json.loads(a.faults) if a.faults else None
+        tfaults = json.loads(a.tracker_faults) if a.tracker_faults else None
     except json.JSONDecodeError as e:
-        print(f"--faults: not valid JSON ({e})", file=sys.stderr)
+        print(f"--faults/--tracker-faults: not valid JSON ({e})", file=sys.stderr)
         return 2
 
     def announce(info: dict) -> None:
         print(json.dumps(info), flush=True)
 
     try:
-        return run_sim(a.host, a.seed, a.effects, a.time_scale, faults, a.tracker, robot=a.robot,
-                       ready=announce, commands=None if a.no_stdin else sys.stdin,
-                       replies=sys.stdout, verbose=a.verbose)
+        return run_sim(
+            a.host,
+            a.seed,
+            a.effects,
+            a.time_scale,
+            faults,
+            a.tracker,
+            robot=a.robot,
+            ready=announce,
+            commands=None if a.no_stdin else sys.stdin,
+            replies=sys.stdout,
+            verbose=a.verbose,
+            tracker_faults=tfaults,
+        )
     except (OSError, ValueError, RuntimeError) as e:
         print(f"ur_process: {e}", file=sys.stderr)
         return 1

@@ -1,0 +1,97 @@
+"""`workcell sim`: start the protocol-level simulators and print one JSON line.
+
+One process hosts the simulated true cell, the UR controller (RTDE 30004, dashboard 29999,
+script 30003 on a loopback address) and a GeoCOM tracker on a pseudo-terminal that measures the
+robot the controller moves. Prints `{"ur_host": ..., "tracker_port": "/dev/pts/N", "pid": ...}`
+and runs until interrupted (Ctrl-C / SIGTERM). Point a campaign at it exactly as at hardware:
+
+    workcell campaign --robot ur://127.0.0.2 --tracker serial:///dev/pts/N --time-scale X ...
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from workcell.errors import UserError
+
+FAULT_PRESETS = {
+    "none": {},
+    "default": {
+        "tracker": {"beam_break_rate": 0.05, "garbage_rate": 0.01},
+        "robot": {"rtde_drop_at_move": [10, 30, 50]},
+    },
+}
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--host", default="127.0.0.2", help="loopback address for the UR controller")
+    p.add_argument("--robot", default="ur5e", help="robot model (ur5e, ur10)")
+    p.add_argument(
+        "--effects",
+        default="realistic",
+        help="simulated physics: none, realistic, all, or a comma list",
+    )
+    p.add_argument("--seed", type=int, default=0, help="seed of the simulated truth")
+    p.add_argument(
+        "--time-scale",
+        type=float,
+        default=1.0,
+        help="run X times faster than real time (pass the same to the campaign)",
+    )
+    p.add_argument(
+        "--faults", default="none", help='none, default, or JSON {"robot": {...}, "tracker": {...}}'
+    )
+    p.add_argument("--no-tracker", action="store_true", help="only the UR controller")
+
+
+def parse_faults(text: str) -> tuple[dict, dict]:
+    if text in FAULT_PRESETS:
+        d = FAULT_PRESETS[text]
+    else:
+        try:
+            d = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise UserError(
+                f"--faults: not a preset ({', '.join(FAULT_PRESETS)}) and not valid JSON ({e.msg})"
+            ) from None
+        if not isinstance(d, dict) or set(d) - {"robot", "tracker"}:
+            raise UserError('--faults JSON must look like {"robot": {...}, "tracker": {...}}')
+    return dict(d.get("robot") or {}), dict(d.get("tracker") or {})
+
+
+def run(args: argparse.Namespace) -> int:
+    if not args.time_scale > 0:
+        raise UserError(f"--time-scale must be > 0, got {args.time_scale}")
+    if not args.host.startswith("127."):
+        raise UserError(f"--host {args.host}: the simulator only listens on loopback (127.x.y.z)")
+    robot_faults, tracker_faults = parse_faults(args.faults)
+    from sim_devices.ur_process import run_sim
+
+    def announce(info: dict) -> None:
+        print(json.dumps({k: info[k] for k in ("ur_host", "tracker_port", "pid")}), flush=True)
+        print(
+            f"simulators running ({args.robot}, effects {args.effects}, seed {args.seed}, "
+            f"time scale {args.time_scale}); Ctrl-C to stop",
+            file=sys.stderr,
+            flush=True,
+        )
+
+    try:
+        return run_sim(
+            args.host,
+            args.seed,
+            args.effects,
+            args.time_scale,
+            robot_faults or None,
+            not args.no_tracker,
+            robot=args.robot,
+            ready=announce,
+            tracker_faults=tracker_faults or None,
+        )
+    except OSError as e:
+        raise UserError(
+            f"cannot start the simulators on {args.host}: {e.strerror or e}; is "
+            "another simulator using that address?"
+        ) from None
