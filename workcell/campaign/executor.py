@@ -57,7 +57,11 @@ class CampaignControl:
 
     abort: threading.Event = field(default_factory=threading.Event)
     pause: threading.Event = field(default_factory=threading.Event)
+    # after a protective stop: resume at once (True) or wait until `resume` is set (a UI asks
+    # the operator, who checks the cell, then sets it)
     auto_resume_protective_stop: bool = True
+    resume: threading.Event = field(default_factory=threading.Event)
+    waiting_for_resume: threading.Event = field(default_factory=threading.Event)
 
 
 @dataclass
@@ -199,8 +203,13 @@ class Executor:
     def _wait_protective_stop(self) -> None:
         self.event("warning", "pause", "campaign paused by a protective stop")
         if not self.control.auto_resume_protective_stop:
-            while not self.control.abort.is_set() and self.control.pause.is_set() is False:
-                time.sleep(0.1)
+            self.control.resume.clear()
+            self.control.waiting_for_resume.set()
+            try:
+                while not self.control.abort.is_set() and not self.control.resume.is_set():
+                    time.sleep(0.05)
+            finally:
+                self.control.waiting_for_resume.clear()
         if self.control.abort.is_set():
             raise KeyboardInterrupt
         unlock = getattr(self.robot, "unlock_protective_stop", None)

@@ -38,6 +38,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dry-run", action="store_true", help="print and check the plan; do not move")
     p.add_argument("--resume", help="continue this interrupted recording in a new chained file")
     p.add_argument("--online", choices=["ekf-ann"], help="feed samples to an online estimator")
+    p.add_argument("--on-protective-stop", choices=["ask", "resume"], default=None,
+                   help="after a protective stop: ask on the terminal before resuming (default "
+                        "when interactive) or resume at once")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -64,6 +67,10 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"{args.out} already exists; choose a new file or use --resume")
     control = CampaignControl()
     signal.signal(signal.SIGINT, lambda *_: control.abort.set())
+    mode = args.on_protective_stop or ("ask" if sys.stdin.isatty() else "resume")
+    if mode == "ask":
+        control.auto_resume_protective_stop = False
+        _ask_on_protective_stop(control)
     n = [0]
 
     def on_sample(s: dict) -> None:
@@ -109,6 +116,26 @@ def run(args: argparse.Namespace) -> int:
     )
     print(f"recorded {res.measured} poses, skipped {res.skipped}, events {res.events} -> {path}")
     return 130 if res.aborted else 0
+
+
+def _ask_on_protective_stop(control: CampaignControl) -> None:
+    """A thread that asks the operator on the terminal when the campaign waits to resume."""
+    import threading
+
+    def loop() -> None:
+        while not control.abort.is_set():
+            if control.waiting_for_resume.wait(0.2):
+                print("protective stop: check the cell, then press Enter to resume "
+                      "(Ctrl-C aborts)", file=sys.stderr, flush=True)
+                try:
+                    sys.stdin.readline()
+                except (OSError, ValueError):
+                    return
+                control.resume.set()
+                while control.waiting_for_resume.is_set():
+                    control.abort.wait(0.05)
+
+    threading.Thread(target=loop, name="pstop-prompt", daemon=True).start()
 
 
 def dry_run(args, cell, env, cfg) -> int:
