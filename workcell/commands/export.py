@@ -1,0 +1,169 @@
+"""`workcell export MODEL --format F --out PATH`: a correction the robot controller can use."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+
+from workcell.errors import UserError
+
+FORMATS = ("table", "urscript", "ros-yaml", "targets")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("model", help="fitted model file (.json from `workcell fit`)")
+    p.add_argument("--format", required=True, choices=FORMATS, help="what to write")
+    p.add_argument("--out", required=True, help="output path")
+    p.add_argument(
+        "--volume",
+        help="work volume x0,y0,z0,x1,y1,z1 in m (SMR in the robot base); default: a box in "
+        "front of the robot scaled by its arm length",
+    )
+    p.add_argument(
+        "--orientation",
+        action="append",
+        help="tool orientation rx,ry,rz (UR rotation vector, rad); repeatable; default 0,pi,0",
+    )
+    p.add_argument(
+        "--interp-error", type=float, default=5e-6, help="target max interpolation error, m"
+    )
+    p.add_argument("--spacing", type=float, help="fixed grid spacing in m (skips refinement)")
+    p.add_argument(
+        "--max-correction", type=float, default=5e-3, help="refuse corrections above this, m"
+    )
+    p.add_argument(
+        "--approach", default="1,1,1,1,1,1", help="approach sign per joint (the table's conditions)"
+    )
+    p.add_argument("--recording", help="the model's recording (models without a nominal chain)")
+    p.add_argument(
+        "--in",
+        dest="targets_in",
+        help="targets: CSV with x,y,z[,rx,ry,rz][,q1..q6 seeds] (m, rad, base) or q1..q6 only",
+    )
+    p.add_argument("--json", action="store_true", help="print a JSON summary")
+
+
+def run(args: argparse.Namespace) -> int:
+    from workcell.estimation.models import load_model
+    from workcell.export.build import make_table, parse_vec
+    from workcell.export.correction import Conditions
+
+    model = load_model(args.model)
+    out = Path(args.out)
+    summary: dict = {"format": args.format, "model": args.model}
+    if args.format == "ros-yaml":
+        from workcell.export.build import model_recording
+        from workcell.export.ros_yaml import export_ros_yaml
+
+        rec, sha = model_recording(model)
+        path, info = export_ros_yaml(
+            model, out, meta={"model": args.model, "recording_sha256": sha}
+        )
+        summary["files"] = [str(path)]
+        return _report(args, summary)
+    cond = Conditions(approach_sign=np.sign(parse_vec(args.approach, 6, "--approach")))
+    if args.format == "targets":
+        return _targets(args, model, cond, summary)
+    volume = parse_vec(args.volume, 6, "--volume") if args.volume else None
+    oris = (
+        [parse_vec(o, 3, "--orientation") for o in args.orientation] if args.orientation else None
+    )
+    log = (lambda m: None) if args.json else print
+    table, _ = make_table(
+        model,
+        model_path=args.model,
+        volume=volume,
+        orientations=oris,
+        conditions=cond,
+        target_error_m=args.interp_error,
+        max_correction_m=args.max_correction,
+        spacing_m=args.spacing,
+        recording=args.recording,
+        log=log,
+    )
+    summary["grid"] = {"shape": list(table.shape), "spacing_m": table.spacing_m.tolist()}
+    summary["max_interp_error_m"] = table.meta["max_interp_error_m"]
+    summary["max_correction_m"] = table.meta["max_correction_m"]
+    if args.format == "table":
+        summary["files"] = [str(p) for p in table.save(out)]
+    else:
+        from workcell.export.urscript import write_urscript
+
+        script = out if out.suffix else out.with_suffix(".script")
+        files = [str(write_urscript(table, script))]
+        files += [str(p) for p in table.save(script.with_suffix(""))]
+        summary["files"] = files
+    return _report(args, summary)
+
+
+def _report(args, summary: dict) -> int:
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        for f in summary["files"]:
+            print(f"wrote {f}")
+        if "max_interp_error_m" in summary:
+            print(
+                f"grid {summary['grid']['shape']}, max interpolation error "
+                f"{summary['max_interp_error_m'] * 1e6:.2f} um, max correction "
+                f"{summary['max_correction_m'] * 1e3:.3f} mm"
+            )
+    return 0
+
+
+def _targets(args, model, cond, summary) -> int:
+    from workcell.export.build import nominal_for_model
+    from workcell.export.correction import Q_REF, Corrector, matrix_to_rotvec, rotvec_to_matrix
+    from workcell.export.table import check_corrections
+
+    if not args.targets_in:
+        raise UserError("--format targets needs --in CSV")
+    src = Path(args.targets_in)
+    if not src.exists():
+        raise UserError(f"{src}: no such file")
+    with open(src, newline="") as f:
+        rows = [r for r in csv.DictReader(f)]
+    if not rows:
+        raise UserError(f"{src}: no targets")
+    cols = set(rows[0])
+    qcols = [f"q{i}" for i in range(1, 7)]
+    try:
+        num = {c: np.array([float(r[c]) for r in rows]) for c in cols if c}
+    except ValueError as e:
+        raise UserError(f"{src}: non-numeric value ({e})") from None
+    corr = Corrector(model, nominal_for_model(model, args.recording), cond)
+    nom = corr.nominal
+    if {"x", "y", "z"} <= cols:
+        P = np.stack([num["x"], num["y"], num["z"]], 1)
+        if {"rx", "ry", "rz"} <= cols:
+            R = rotvec_to_matrix(np.stack([num["rx"], num["ry"], num["rz"]], 1))
+        else:
+            R = np.broadcast_to(rotvec_to_matrix([0.0, np.pi, 0.0])[0], (len(P), 3, 3))
+        seeds = np.stack([num[c] for c in qcols], 1) if set(qcols) <= cols else Q_REF
+        seeds = np.broadcast_to(seeds, (len(P), 6))
+    elif set(qcols) <= cols:
+        seeds = np.stack([num[c] for c in qcols], 1)
+        P, R = nom.fk(seeds)
+    else:
+        raise UserError(f"{src}: need columns x,y,z (and optional rx,ry,rz, q1..q6) or q1..q6")
+    c, q, _ = corr.correct_positions(P, R, seeds)
+    check_corrections(c - P, P, args.max_correction, where="target")
+    rv = matrix_to_rotvec(R)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with open(out, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(
+            ["x", "y", "z", "rx", "ry", "rz", "x_cmd", "y_cmd", "z_cmd"]
+            + [f"{qc}_cmd" for qc in qcols]
+        )
+        for i in range(len(P)):
+            w.writerow([repr(float(v)) for v in (*P[i], *rv[i], *c[i], *q[i])])
+    summary["files"] = [str(out)]
+    summary["targets"] = len(P)
+    summary["max_correction_m"] = float(np.max(np.linalg.norm(c - P, axis=1)))
+    return _report(args, summary)

@@ -1,0 +1,136 @@
+"""`workcell validate MODEL --robot sim|ur://HOST --tracker sim|serial://...`: closed-loop check
+of the exported correction table (before/after position accuracy on random targets)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+
+from workcell.errors import UserError
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("model", help="fitted model file")
+    p.add_argument("--robot", default="sim", help="sim or ur://HOST")
+    p.add_argument("--tracker", default="sim", help="sim or serial:///dev/ttyX")
+    p.add_argument("--targets", type=int, default=50, help="random targets to measure")
+    p.add_argument("--table", help="exported table (.json); default: build it from the model")
+    p.add_argument("--volume", help="x0,y0,z0,x1,y1,z1 in m (when building the table)")
+    p.add_argument("--seed", type=int, default=12345, help="seed of the random targets")
+    p.add_argument("--sim-seed", type=int, help="simulated truth seed (default: the recording's)")
+    p.add_argument("--effects", help="simulated effects (default: the recording's)")
+    p.add_argument("--model-name", dest="robot_model", help="robot model for real cells")
+    p.add_argument("--readings", type=int, default=5, help="tracker readings per target (real)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+
+
+def run(args: argparse.Namespace) -> int:
+    from workcell.campaign.envelope import default_envelope
+    from workcell.estimation.models import load_model
+    from workcell.export.build import make_table, model_recording, nominal_for_model, parse_vec
+    from workcell.export.correction import Conditions
+    from workcell.export.table import load_table
+    from workcell.export.validate import (
+        robot_mover,
+        run_validation,
+        sim_measure,
+        tracker_measure,
+    )
+
+    model = load_model(args.model)
+    log = (lambda m: None) if args.json else print
+    rec, _ = model_recording(model)
+    session = {}
+    if rec:
+        try:
+            from workcell.recording.reader import read_recording
+
+            session = read_recording(rec).session
+        except Exception:  # noqa: BLE001 - the recording is optional here
+            session = {}
+    camp = session.get("campaign", {}) or {}
+    if args.robot == "sim" and args.tracker == "sim":
+        from workcell.campaign.run import sim_cell
+
+        seed = args.sim_seed if args.sim_seed is not None else camp.get("seed")
+        effects = args.effects or camp.get("effects")
+        if seed is None or effects is None:
+            raise UserError(
+                "simulation: the model's recording does not give the simulated seed/effects; "
+                "pass --sim-seed and --effects (they must match the recording's campaign)"
+            )
+        robot_name = (session.get("robot") or {}).get("model") or getattr(
+            model, "robot_model", "ur5e"
+        )
+        world, robot, tracker, cell = sim_cell(robot_name, effects, int(seed))
+        # the recording's robot was warm: warm-up plus the campaign
+        world.clock.advance(float(camp.get("warmup_s", 0.0)) + 3600.0)
+        measure = sim_measure(world)
+        spec, tool = cell.spec, cell.tool_m
+        temps = world.joint_temperatures_c()
+    else:
+        from workcell.campaign.devices import open_cell
+
+        ns = argparse.Namespace(
+            robot=args.robot,
+            tracker=args.tracker,
+            model=args.robot_model or getattr(model, "robot_model", "ur5e"),
+            effects=None,
+            seed=0,
+        )
+        cell, robot, tracker, _ = open_cell(ns)
+        measure = tracker_measure(tracker, args.readings)
+        spec, tool = cell.spec, cell.tool_m
+        temps = None
+    robot.connect()
+    tracker.connect()
+    try:
+        if args.table:
+            table = load_table(args.table)
+            nominal = nominal_for_model(model)
+        else:
+            vol = parse_vec(args.volume, 6, "--volume") if args.volume else None
+            cond = Conditions(
+                approach_sign=np.ones(6),
+                joint_temperature_c=None if temps is None else np.asarray(temps, float),
+                payload_kg=float(cell.payload_kg),
+            )
+            table, corr = make_table(
+                model, model_path=args.model, volume=vol, conditions=cond, log=log
+            )
+            nominal = corr.nominal
+        env = default_envelope(spec)
+        res = run_validation(
+            nominal,
+            table,
+            robot_mover(robot),
+            measure,
+            n=args.targets,
+            seed=args.seed,
+            check=lambda q: env.violations(spec, q, tool)[0],
+            log=log,
+        )
+    finally:
+        for dev in (robot, tracker):
+            try:
+                dev.close()
+            except Exception:  # noqa: BLE001
+                pass
+    res["truth"] = "simulated robot" if args.robot == "sim" else "tracker"
+    if args.json:
+        print(json.dumps(res))
+        return 0
+    print(
+        f"{'':10}{'mean':>12}{'RMS':>12}{'max':>12}   ({res['targets']} targets, "
+        f"truth: {res['truth']})"
+    )
+    for key in ("before", "after"):
+        s = res[key]
+        print(
+            f"{key:10}{s['mean_m'] * 1e6:>9.1f} um{s['rms_m'] * 1e6:>9.1f} um"
+            f"{s['max_m'] * 1e6:>9.1f} um"
+        )
+    print(f"improvement (RMS): {res['improvement']:.1f}x")
+    return 0

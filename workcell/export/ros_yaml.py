@@ -1,0 +1,256 @@
+"""The geometric part of a calibrated model as the UR ROS drivers' calibration YAML.
+
+Convention (the one `ur_calibration` writes and `ur_description` reads; see
+Universal_Robots_ROS2_Driver ur_calibration/src/calibration.cpp and
+Universal_Robots_ROS2_Description config/<type>/default_kinematics.yaml):
+- each DH link i splits into seg1_i = Rz(theta_i) Tz(d_i) and seg2_i = Tx(a_i) Rx(alpha_i);
+- the six YAML frames are shoulder = seg1_1, upper_arm = seg2_1 seg1_2, forearm = seg2_2 seg1_3,
+  wrist_1 = seg2_3 seg1_4, wrist_2 = seg2_4 seg1_5, wrist_3 = seg2_5 seg1_6; the last seg2_6
+  (a6, alpha6) is not written;
+- the description composes base_link_inertia -> [frame_i (x, y, z, rpy), then Rz(q_i)] for the
+  six joints, then wrist_3 -> flange -> tool0 (fixed rpy (0,-pi/2,-pi/2) and (pi/2,0,pi/2), whose
+  product is the identity). URDF rpy means R = Rz(yaw) Ry(pitch) Rx(roll).
+- base_link_inertia is the controller's base frame (ROS `base_link` is it turned by pi about z).
+
+What this export adds and what it cannot carry:
+- Hayati tilts beta_i (Ry after Rx(alpha_i)) go into seg2_i, hence into the next frame: carried.
+- The calibrated base offset (relative to the registered nominal base) goes into `shoulder`:
+  carried. The base is the model's registered base (the frame of the correction table).
+- a6, alpha6, beta6 (seg2_6) cannot be written in the six frames; with the SMR offset they form
+  the TCP (`tcp_in_tool0` in the header comment), which reproduces the SMR exactly.
+- Anything non-geometric (compliance, backlash, thermal, data-driven residuals of lddmm/gp models)
+  cannot be carried: use the correction table or URScript export for those.
+- Euler angles: ur_calibration writes Eigen's eulerAngles(0, 1, 2) (R = Rx Ry Rz) as roll, pitch,
+  yaw. That agrees with URDF rpy only when the rotation is about one axis (all nominal frames); we
+  keep its numbers where they are a valid URDF rpy (so the nominal file matches the published one)
+  and write the URDF-correct rpy elsewhere.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import re
+from pathlib import Path
+
+import numpy as np
+
+from workcell.errors import UserError
+
+LINKS = ("shoulder", "upper_arm", "forearm", "wrist_1", "wrist_2", "wrist_3")
+KEYS = ("x", "y", "z", "roll", "pitch", "yaw")
+
+
+def _rz(t: float) -> np.ndarray:
+    c, s = math.cos(t), math.sin(t)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _rx(t: float) -> np.ndarray:
+    c, s = math.cos(t), math.sin(t)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def _ry(t: float) -> np.ndarray:
+    c, s = math.cos(t), math.sin(t)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def _T(R: np.ndarray, t=(0.0, 0.0, 0.0)) -> np.ndarray:
+    M = np.eye(4)
+    M[:3, :3], M[:3, 3] = R, t
+    return M
+
+
+def _axis_angle(t: float, axis: int) -> np.ndarray:
+    """Rotation matrix as Eigen's AngleAxis::toRotationMatrix computes it (same rounding)."""
+    u = np.zeros(3)
+    u[axis] = 1.0
+    s, c = math.sin(t), math.cos(t)
+    sa, ca = s * u, (1.0 - c) * u
+    R = np.empty((3, 3))
+    R[0, 1] = ca[0] * u[1] - sa[2]
+    R[1, 0] = ca[0] * u[1] + sa[2]
+    R[0, 2] = ca[0] * u[2] + sa[1]
+    R[2, 0] = ca[0] * u[2] - sa[1]
+    R[1, 2] = ca[1] * u[2] - sa[0]
+    R[2, 1] = ca[1] * u[2] + sa[0]
+    for i in range(3):
+        R[i, i] = ca[i] * u[i] + c
+    return R
+
+
+def segments(theta: np.ndarray, base_T: np.ndarray | None = None) -> list[np.ndarray]:
+    """The seven simplified-chain transforms (4x4): six YAML frames and the unwritten seg2_6."""
+    th = np.asarray(theta, float)
+    a, d, al, off, be = th[0:6], th[6:12], th[12:18], th[18:24], th[24:30]
+    seg1 = [_T(_axis_angle(off[i], 2), (0.0, 0.0, d[i])) for i in range(6)]
+    seg2 = []
+    for i in range(6):
+        R = _axis_angle(al[i], 0)
+        if be[i] != 0.0:
+            R = R @ _ry(be[i])
+        seg2.append(_T(R, (a[i], 0.0, 0.0)))
+    out = [seg1[0] if base_T is None else np.asarray(base_T, float) @ seg1[0]]
+    out += [seg2[i] @ seg1[i + 1] for i in range(5)]
+    out.append(seg2[5])
+    return out
+
+
+def eigen_euler_xyz(R: np.ndarray) -> np.ndarray:
+    """Eigen's MatrixBase::eulerAngles(0, 1, 2): R = Rx(a) Ry(b) Rz(c), a in [0, pi]."""
+    i, j, k = 0, 1, 2
+    res = np.zeros(3)
+    res[0] = math.atan2(R[j, k], R[k, k])
+    c2 = math.hypot(R[i, i], R[i, j])
+    if res[0] > 0.0:  # (!odd && res0 > 0) branch
+        res[0] -= math.pi
+        res[1] = math.atan2(-R[i, k], -c2)
+    else:
+        res[1] = math.atan2(-R[i, k], c2)
+    s1, c1 = math.sin(res[0]), math.cos(res[0])
+    res[2] = math.atan2(s1 * R[k, i] - c1 * R[j, i], c1 * R[j, j] - s1 * R[k, j])
+    return -res
+
+
+def rpy_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """URDF rpy: R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    return _rz(yaw) @ _ry(pitch) @ _rx(roll)
+
+
+def urdf_rpy(R: np.ndarray) -> tuple[float, float, float]:
+    """(roll, pitch, yaw) with rpy_matrix(...) == R; ur_calibration's numbers where valid."""
+    r, p, y = eigen_euler_xyz(R)
+    if np.max(np.abs(rpy_matrix(r, p, y) - R)) < 1e-12:
+        return float(r), float(p), float(y)
+    p = math.asin(max(-1.0, min(1.0, -R[2, 0])))
+    r = math.atan2(R[2, 1], R[2, 2])
+    y = math.atan2(R[1, 0], R[0, 0])
+    return r, p, y
+
+
+def ros_kinematics(theta: np.ndarray, base_T: np.ndarray | None = None) -> dict:
+    """{link: {x, y, z, roll, pitch, yaw}} for a parameter vector (39,) (DH part used)."""
+    segs = segments(theta, base_T)
+    out = {}
+    for name, S in zip(LINKS, segs[:6], strict=True):
+        r, p, y = urdf_rpy(S[:3, :3])
+        out[name] = {"x": S[0, 3], "y": S[1, 3], "z": S[2, 3], "roll": r, "pitch": p, "yaw": y}
+    return {k: {kk: float(vv) for kk, vv in v.items()} for k, v in out.items()}
+
+
+# wrist_3_link -> flange -> tool0 as fixed in ur_description (their product is the identity)
+WRIST3_T_TOOL0 = _T(rpy_matrix(0.0, -math.pi / 2, -math.pi / 2)) @ _T(
+    rpy_matrix(math.pi / 2, 0.0, math.pi / 2)
+)
+
+
+def fk_tool0(kin: dict, q: np.ndarray) -> np.ndarray:
+    """tool0 poses (N, 4, 4) in base_link_inertia, as the ROS description composes them."""
+    q = np.atleast_2d(np.asarray(q, float))
+    F = [
+        _T(
+            rpy_matrix(kin[n]["roll"], kin[n]["pitch"], kin[n]["yaw"]),
+            (kin[n]["x"], kin[n]["y"], kin[n]["z"]),
+        )
+        for n in LINKS
+    ]
+    out = np.empty((len(q), 4, 4))
+    for m, qq in enumerate(q):
+        T = np.eye(4)
+        for i in range(6):
+            T = T @ F[i] @ _T(_rz(qq[i]))
+        out[m] = T @ WRIST3_T_TOOL0
+    return out
+
+
+def _fmt(x: float) -> str:
+    if x == 0.0:
+        return "0"
+    return repr(float(x))
+
+
+def to_yaml(kin: dict, *, comments: list[str] | None = None, hash_: str | None = None) -> str:
+    if hash_ is None:
+        h = hashlib.sha256(repr([[kin[n][k] for k in KEYS] for n in LINKS]).encode()).digest()
+        hash_ = f"calib_{int.from_bytes(h[:8], 'big')}"
+    lines = [f"# {c}" for c in (comments or [])]
+    lines.append("kinematics:")
+    for n in LINKS:
+        lines.append(f"  {n}:")
+        for k in KEYS:
+            lines.append(f"    {k}: {_fmt(kin[n][k])}")
+    lines.append(f"  hash: {hash_}")
+    return "\n".join(lines) + "\n"
+
+
+def read_ros_yaml(text: str) -> dict:
+    """Parse the calibration YAML shape above (enough for tests and round trips)."""
+    kin: dict = {}
+    cur = None
+    seen_root = False
+    for n, raw in enumerate(text.splitlines(), 1):
+        line = raw.split("#", 1)[0].rstrip()
+        if not line.strip():
+            continue
+        if line == "kinematics:":
+            seen_root = True
+            continue
+        m2 = re.match(r"^  (\w+):\s*(\S*)$", line)
+        m4 = re.match(r"^    (\w+):\s*(\S+)$", line)
+        if m2 and seen_root:
+            if m2[2]:
+                kin[m2[1]] = m2[2]
+                cur = None
+            else:
+                cur = kin.setdefault(m2[1], {})
+        elif m4 and cur is not None:
+            cur[m4[1]] = float(m4[2])
+        else:
+            raise ValueError(f"line {n}: unexpected {raw!r}")
+    for name in LINKS:
+        if name not in kin or set(kin[name]) != set(KEYS):
+            raise ValueError(f"calibration YAML: link {name!r} missing or incomplete")
+    return kin
+
+
+def model_geometry(model) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
+    """(theta (39,), base offset (4x4, registered base -> calibrated base), base_ref, note) of the
+    geometric part of a model; refuses models without one."""
+    from workcell.kinematics.chain import tracker_T_base
+
+    for attr in (None, "base_model", "dh_model", "geometric"):
+        m = model if attr is None else getattr(model, attr, None)
+        if m is not None and hasattr(m, "theta") and hasattr(m, "base_ref"):
+            th = np.asarray(m.theta, float)
+            base_ref = np.asarray(m.base_ref, float)
+            B = np.linalg.solve(base_ref, np.asarray(tracker_T_base(th, base_ref)))
+            note = "" if attr is None else f"geometric part ({attr}) of a {model.method} model"
+            return th, B, base_ref, note
+    raise UserError(
+        f"model {getattr(model, 'method', '?')!r} has no geometric (DH) part to write as ROS "
+        "calibration YAML; use --format table or urscript"
+    )
+
+
+def export_ros_yaml(model, path, meta: dict | None = None) -> tuple[Path, dict]:
+    from workcell.export.correction import matrix_to_rotvec
+
+    th, B, base_ref, note = model_geometry(model)
+    kin = ros_kinematics(th, B)
+    S6 = segments(th, B)[6]
+    tcp = S6 @ _T(np.eye(3), th[36:39])
+    meta = meta or {}
+    comments = [
+        "UR calibration kinematics generated by workcell (ur_description kinematics_params_file)",
+        f"model: {meta.get('model', '?')} ({getattr(model, 'method', '?')}) {note}".rstrip(),
+        f"recording sha256: {meta.get('recording_sha256', '?')}",
+        "base_link_inertia = the model's registered robot base (controller base frame)",
+        f"tcp_in_tool0 (SMR, incl. a6/alpha6/beta6): xyz {np.round(tcp[:3, 3], 9).tolist()} m, "
+        f"rotvec {np.round(matrix_to_rotvec(tcp[:3, :3]), 12).tolist()} rad",
+        "not carried: non-geometric effects (compliance, backlash, thermal, data-driven residuals)",
+    ]
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    p.write_text(to_yaml(kin, comments=comments))
+    return p, {"kinematics": kin, "tcp_in_tool0": tcp.tolist()}

@@ -1,0 +1,152 @@
+"""Closed-loop validation of an exported correction table.
+
+N random targets (SMR positions in base, one of the table's tool orientations) inside the volume
+are each visited twice: uncorrected (the controller is asked for the target itself) and corrected
+through the table (the same trilinear interpolation the URScript does). "The controller" is
+emulated: the commanded pose goes through the nominal IK (branch of the seed), the joints are
+approached from the table's declared approach direction (pre-pose q - sign * approach_rad) and the
+SMR is measured. Errors are distances to the target mapped to the tracker with the model's
+registered base. Reported per ISO 9283 style (one cycle per target): mean, RMS, max of the
+position error, plus the mean error vector (the accuracy bias).
+
+In simulation the measurement is the simulated truth (noise-free SMR position of the true robot);
+on a real cell it is the tracker (mean of several readings).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from workcell.errors import UserError
+from workcell.export.correction import Q_REF, Nominal, rotvec_to_matrix
+from workcell.export.table import CorrectionTable
+
+
+def random_targets(
+    table: CorrectionTable, n: int, seed: int = 0, margin: float = 0.02
+) -> tuple[np.ndarray, np.ndarray]:
+    """n random positions (N, 3) inside the volume (shrunk by `margin` of each side) and their
+    orientation indices (N,)."""
+    if n < 1:
+        raise UserError(f"--targets must be at least 1, got {n}")
+    rng = np.random.default_rng(seed)
+    span = table.hi_m - table.lo_m
+    P = rng.uniform(table.lo_m + margin * span, table.hi_m - margin * span, (n, 3))
+    k = rng.integers(0, len(table.orientations_rotvec), n)
+    return P, k
+
+
+def accuracy_stats(err_vec: np.ndarray) -> dict:
+    e = np.linalg.norm(err_vec, axis=1)
+    return {
+        "mean_m": float(e.mean()),
+        "rms_m": float(np.sqrt(np.mean(e**2))),
+        "max_m": float(e.max()),
+        "bias_m": err_vec.mean(0).tolist(),
+    }
+
+
+def commanded_joints(
+    nominal: Nominal, table: CorrectionTable, P: np.ndarray, k: np.ndarray, corrected: bool
+) -> np.ndarray:
+    """Joints the (emulated) controller goes to when asked for P (or its table correction)."""
+    q = np.full((len(P), 6), np.nan)
+    for kk in np.unique(k):
+        sel = k == kk
+        R = rotvec_to_matrix(table.orientations_rotvec[kk])[0]
+        seeds = table.seed_for(P[sel], int(kk)) if table.q_nodes is not None else Q_REF
+        target = P[sel]
+        if corrected:
+            target = target + table.interpolate(target, int(kk))
+        qq, r = nominal.ik(target, R, seeds, iters=100)
+        qq[r > 1e-9] = np.nan
+        q[sel] = qq
+    return q
+
+
+def run_validation(
+    nominal: Nominal,
+    table: CorrectionTable,
+    move: Callable[[np.ndarray], None],
+    measure: Callable[[], np.ndarray],
+    *,
+    n: int = 50,
+    seed: int = 0,
+    approach_rad: float = 0.02,
+    check: Callable[[np.ndarray], str | None] | None = None,
+    log: Callable[[str], None] | None = None,
+) -> dict:
+    """Measure n targets uncorrected and corrected. `move(q)` moves the robot (blocking),
+    `measure()` returns the SMR position in the tracker frame, `check(q)` returns a reason to skip
+    (envelope) or None."""
+    log = log or (lambda m: None)
+    P, k = random_targets(table, n, seed)
+    sign = np.sign(np.asarray(table.meta.get("conditions", {}).get("approach_sign", [1.0] * 6)))
+    q_u = commanded_joints(nominal, table, P, k, corrected=False)
+    q_c = commanded_joints(nominal, table, P, k, corrected=True)
+    p_goal = nominal.to_tracker(P)
+    keep = np.all(np.isfinite(q_u), 1) & np.all(np.isfinite(q_c), 1)
+    skipped = []
+    if check is not None:
+        for i in range(len(P)):
+            if not keep[i]:
+                continue
+            for q in (q_u[i], q_c[i], q_u[i] - sign * approach_rad, q_c[i] - sign * approach_rad):
+                why = check(q)
+                if why:
+                    keep[i] = False
+                    skipped.append(f"target {i}: {why}")
+                    break
+    if not keep.any():
+        raise UserError("no target could be reached inside the envelope; check the volume")
+    meas = {"before": [], "after": []}
+    for i in np.where(keep)[0]:
+        for key, q in (("before", q_u[i]), ("after", q_c[i])):
+            move(q - sign * approach_rad)
+            move(q)
+            meas[key].append(measure())
+    out = {"targets": int(keep.sum()), "skipped": skipped}
+    for key in ("before", "after"):
+        ev = np.asarray(meas[key]) - p_goal[keep]
+        st = accuracy_stats(ev)
+        out[key] = st
+    out["before_rms_m"] = out["before"]["rms_m"]
+    out["after_rms_m"] = out["after"]["rms_m"]
+    out["improvement"] = out["before_rms_m"] / max(out["after_rms_m"], 1e-15)
+    log(
+        f"  validation on {out['targets']} targets: RMS {out['before_rms_m'] * 1e6:.1f} um -> "
+        f"{out['after_rms_m'] * 1e6:.1f} um ({out['improvement']:.1f}x), max "
+        f"{out['before']['max_m'] * 1e6:.1f} -> {out['after']['max_m'] * 1e6:.1f} um"
+    )
+    return out
+
+
+def sim_measure(world) -> Callable[[], np.ndarray]:
+    """Simulated truth: the true SMR position at the robot's current joints and approach."""
+    return lambda: np.asarray(world.true_smr_tracker(), float)
+
+
+def tracker_measure(tracker, readings: int = 5, max_failures: int = 10) -> Callable[[], np.ndarray]:
+    def f() -> np.ndarray:
+        good, fails = [], 0
+        while len(good) < readings:
+            r = tracker.measure()
+            if r.status == "ok" and np.all(np.isfinite(r.position_m)):
+                good.append(np.asarray(r.position_m, float))
+            else:
+                fails += 1
+                if fails > max_failures:
+                    raise UserError(f"tracker: {fails} failed readings at one target ({r.status})")
+        return np.mean(good, axis=0)
+
+    return f
+
+
+def robot_mover(robot, speed: float = 0.5, accel: float = 1.0, settle_s: float = 0.5):
+    def move(q: np.ndarray) -> None:
+        robot.move_joints(np.asarray(q, float), speed, accel)
+        robot.sleep(settle_s)
+
+    return move
