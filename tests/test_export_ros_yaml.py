@@ -1,0 +1,118 @@
+"""ROS calibration YAML: the published UR defaults for nominal chains, exact FK for calibrated ones."""
+
+import numpy as np
+import pytest
+
+from workcell.errors import UserError
+from workcell.estimation.dh import DHModel
+from workcell.export.ros_yaml import (
+    LINKS,
+    WRIST3_T_TOOL0,
+    export_ros_yaml,
+    fk_tool0,
+    read_ros_yaml,
+    ros_kinematics,
+    to_yaml,
+)
+from workcell.kinematics.chain import base_T_flange, p_tracker, pack
+from workcell.kinematics.robots import UR5E, UR10
+
+# Universal_Robots_ROS2_Description config/ur5e/default_kinematics.yaml and ur10 (published data)
+PUBLISHED = {
+    "ur5e": {
+        "shoulder": (0, 0, 0.1625, 0, 0, 0),
+        "upper_arm": (0, 0, 0, 1.570796327, 0, 0),
+        "forearm": (-0.425, 0, 0, 0, 0, 0),
+        "wrist_1": (-0.3922, 0, 0.1333, 0, 0, 0),
+        "wrist_2": (0, -0.0997, -2.044881182297852e-11, 1.570796327, 0, 0),
+        "wrist_3": (
+            0,
+            0.09959999999999999,
+            -2.042830148012698e-11,
+            1.570796326589793,
+            3.141592653589793,
+            3.141592653589793,
+        ),
+    },
+    "ur10": {
+        "shoulder": (0, 0, 0.1273, 0, 0, 0),
+        "upper_arm": (0, 0, 0, 1.570796327, 0, 0),
+        "forearm": (-0.612, 0, 0, 0, 0, 0),
+        "wrist_1": (-0.5723, 0, 0.163941, 0, 0, 0),
+        "wrist_2": (0, -0.1157, -2.373046667922381e-11, 1.570796327, 0, 0),
+        "wrist_3": (
+            0,
+            0.0922,
+            -1.891053610911353e-11,
+            1.570796326589793,
+            3.141592653589793,
+            3.141592653589793,
+        ),
+    },
+}
+KEYS = ("x", "y", "z", "roll", "pitch", "yaw")
+
+
+@pytest.mark.parametrize("spec", [UR5E, UR10], ids=["ur5e", "ur10"])
+def test_nominal_equals_published_default(spec):
+    kin = read_ros_yaml(to_yaml(ros_kinematics(pack(spec.dh))))
+    for link in LINKS:
+        got = np.array([kin[link][k] for k in KEYS])
+        np.testing.assert_allclose(
+            got, PUBLISHED[spec.model][link], rtol=0, atol=1e-9, err_msg=link
+        )
+
+
+def test_description_fixed_frames_are_identity_and_nominal_fk_matches_dh():
+    np.testing.assert_allclose(WRIST3_T_TOOL0, np.eye(4), atol=1e-15)
+    q = np.random.default_rng(0).uniform(-3, 3, (20, 6))
+    kin = ros_kinematics(pack(UR5E.dh))
+    np.testing.assert_allclose(fk_tool0(kin, q), base_T_flange(pack(UR5E.dh), q), atol=1e-12)
+
+
+def _calibrated_model(seed):
+    rng = np.random.default_rng(seed)
+    th = pack(UR5E.dh, tool=(0.0, 0.0, 0.06))
+    th[:24] += rng.normal(0, [3e-4] * 12 + [5e-4] * 6 + [1e-3] * 6)
+    th[[25, 26]] += rng.normal(0, 3e-4, 2)  # Hayati beta2, beta3
+    th[30:36] += rng.normal(0, [1e-3] * 3 + [2e-3] * 3)  # base offset
+    th[36:39] += rng.normal(0, 3e-4, 3)
+    base_ref = np.eye(4)
+    base_ref[:3, 3] = (2.0, -0.5, -0.3)
+    c, s = np.cos(0.7), np.sin(0.7)
+    base_ref[:2, :2] = [[c, -s], [s, c]]
+    return DHModel(
+        robot_model="ur5e",
+        nominal_dh=UR5E.dh,
+        theta=th,
+        base_ref=base_ref,
+        cov=np.zeros((39, 39)),
+        free=np.ones(39, bool),
+        info={"nominal_tool_m": [0, 0, 0.06]},
+    )
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_calibrated_yaml_reproduces_calibrated_fk(tmp_path, seed):
+    m = _calibrated_model(seed)
+    path, info = export_ros_yaml(m, tmp_path / "cal.yaml")
+    kin = read_ros_yaml(path.read_text())
+    q = np.random.default_rng(seed + 10).uniform(-3, 3, (50, 6))
+    smr_yaml = (fk_tool0(kin, q) @ np.asarray(info["tcp_in_tool0"]))[:, :3, 3]
+    p = np.asarray(p_tracker(m.theta, m.base_ref, q))
+    smr_model = (p - m.base_ref[:3, 3]) @ m.base_ref[:3, :3]
+    assert np.abs(smr_yaml - smr_model).max() < 1e-9
+    # and the nominal YAML does not (the test can fail)
+    nom = ros_kinematics(pack(UR5E.dh))
+    assert (
+        np.abs((fk_tool0(nom, q) @ np.asarray(info["tcp_in_tool0"]))[:, :3, 3] - smr_model).max()
+        > 1e-5
+    )
+
+
+def test_model_without_geometry_is_refused(tmp_path):
+    class Blob:
+        method = "gp"
+
+    with pytest.raises(UserError, match="no geometric"):
+        export_ros_yaml(Blob(), tmp_path / "x.yaml")

@@ -1,0 +1,141 @@
+"""Correction of targets and the correction table: exactness, interpolation error, refusals, CLI."""
+
+import json
+
+import numpy as np
+import pytest
+
+from workcell.estimation.dh import DHModel
+from workcell.estimation.models import save_model
+from workcell.export.correction import (
+    Q_REF,
+    Corrector,
+    nominal_for,
+    rotvec_to_matrix,
+)
+from workcell.export.table import CorrectionRefused, build_table
+from workcell.kinematics.chain import pack
+from workcell.kinematics.robots import UR5E
+
+LO, HI = np.array([-0.15, -0.5, 0.2]), np.array([0.15, -0.3, 0.4])
+DOWN = [0.0, np.pi, 0.0]
+
+
+def make_model(seed=0, scale=1.0):
+    rng = np.random.default_rng(seed)
+    th = pack(UR5E.dh, tool=(0.0, 0.0, 0.06))
+    th[:24] += scale * rng.normal(0, [3e-4] * 12 + [5e-4] * 6 + [1e-3] * 6)
+    th[36:39] += scale * rng.normal(0, 3e-4, 3)
+    base_ref = np.eye(4)
+    base_ref[:3, 3] = (2.0, 0.3, -0.4)
+    return DHModel(
+        robot_model="ur5e",
+        nominal_dh=UR5E.dh,
+        theta=th,
+        base_ref=base_ref,
+        cov=np.zeros((39, 39)),
+        free=np.ones(39, bool),
+        info={"nominal_tool_m": [0, 0, 0.06]},
+    )
+
+
+def test_cartesian_and_joint_corrections_land_on_target():
+    m = make_model(1)
+    corr = Corrector(m, nominal_for(m))
+    R = rotvec_to_matrix(DOWN)[0]
+    P = np.random.default_rng(2).uniform(LO, HI, (30, 3))
+    c, q, res = corr.correct_positions(P, R, Q_REF)
+    assert np.all(np.isfinite(c))
+    # the model's robot at the corrected joints lands on the target ...
+    assert np.abs(corr.real_base(q) - P).max() < 1e-9
+    # ... and the controller's nominal kinematics reaches q when asked for c with orientation R
+    p_nom, R_nom = corr.nominal.fk(q)
+    assert np.abs(p_nom - c).max() < 1e-9 and np.abs(R_nom - R).max() < 1e-9
+    # uncorrected targets miss by the model's error (so the test can fail)
+    q_u, _ = corr.nominal.ik(P, R, Q_REF)
+    assert np.linalg.norm(corr.real_base(q_u) - P, axis=1).min() > 1e-5
+    # joint-space form: q_nominal -> q_corrected with k_real(q_corrected) = k_nominal(q_nominal)
+    qc = corr.correct_joints(q_u[:5])
+    assert np.abs(corr.real_base(qc) - corr.nominal.fk(q_u[:5])[0]).max() < 1e-9
+
+
+def test_table_interpolation_error_is_measured_and_met():
+    m = make_model(3)
+    corr = Corrector(m, nominal_for(m))
+    tab = build_table(corr, LO, HI, [DOWN], target_error_m=3e-6, n_check=100)
+    assert tab.meta["interp_error_target_met"]
+    assert tab.meta["max_interp_error_m"] <= 3e-6
+    # independent check on fresh random points against the exact correction
+    P = np.random.default_rng(9).uniform(LO, HI, (50, 3))
+    c, _, _ = corr.correct_positions(P, rotvec_to_matrix(DOWN)[0], tab.seed_for(P))
+    err = np.linalg.norm(tab.correct(P, DOWN) - c, axis=1)
+    assert err.max() < 2 * 3e-6
+    # at the nodes the table is exact
+    X = tab.node_positions().reshape(-1, 3)[:20]
+    c, _, _ = corr.correct_positions(X, rotvec_to_matrix(DOWN)[0], tab.seed_for(X))
+    assert np.abs(tab.correct(X, DOWN) - c).max() < 1e-9
+
+
+def test_oversized_correction_is_refused_with_where():
+    m = make_model(4, scale=30.0)  # ~1 cm errors
+    corr = Corrector(m, nominal_for(m))
+    with pytest.raises(CorrectionRefused, match=r"refused: correction .* mm at \[.*\] m \(base\)"):
+        build_table(corr, LO, HI, [DOWN], spacing_m=0.1)
+
+
+def test_non_finite_correction_is_refused_with_where():
+    m = make_model(5)
+
+    class Holey:
+        method = "holey"
+        nominal_dh, base_ref, info, robot_model = m.nominal_dh, m.base_ref, m.info, "ur5e"
+
+        def predict(self, q, **aux):
+            p = np.array(m.predict(q))
+            p[q[:, 0] > 1.6] = np.nan  # the model is undefined in part of the volume
+            return p
+
+    corr = Corrector(Holey(), nominal_for(Holey()))
+    with pytest.raises(CorrectionRefused, match="no finite correction"):
+        build_table(corr, LO, HI, [DOWN], spacing_m=0.1)
+
+
+def test_cli_export_refuses_and_writes(tmp_path):
+    from workcell.cli import main
+
+    path = save_model(make_model(6), tmp_path / "m.json")
+    vol = ",".join(str(v) for v in [*LO, *HI])
+    rc = main(
+        [
+            "export",
+            str(path),
+            "--format",
+            "table",
+            "--out",
+            str(tmp_path / "t"),
+            f"--volume={vol}",
+            "--spacing",
+            "0.1",
+            "--max-correction",
+            "1e-5",
+        ]
+    )
+    assert rc != 0
+    rc = main(
+        [
+            "export",
+            str(path),
+            "--format",
+            "table",
+            "--out",
+            str(tmp_path / "t"),
+            f"--volume={vol}",
+            "--spacing",
+            "0.1",
+            "--json",
+        ]
+    )
+    assert rc == 0
+    d = json.loads((tmp_path / "t.json").read_text())
+    assert d["meta"]["robot"] == "ur5e" and d["meta"]["max_interp_error_m"] > 0
+    assert (tmp_path / "t.csv").read_text().count("\n") > 20
