@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from test_export_table import DOWN, HI, LO, make_model  # noqa: E402
 
 from workcell.export.correction import Corrector, nominal_for
 from workcell.export.table import build_table
@@ -11,8 +12,6 @@ from workcell.export.urscript import (
     run_urscript,
     translate_urscript,
 )
-
-from test_export_table import DOWN, HI, LO, make_model  # noqa: E402
 
 TILT = [0.0, np.pi * 0.9, 0.0]
 
