@@ -202,9 +202,9 @@ def main(argv: list[str]) -> int:
         choices=list(SCENARIOS),
         help="run only this scenario (repeatable)",
     )
-    ap.add_argument("--sigma", type=float, default=1e-3, help="data weight of cost (27)")
+    ap.add_argument("--sigma", type=float, default=0.1, help="data weight of cost (27)")
     ap.add_argument("--n-steps", type=int, default=10, help="RK4 steps")
-    ap.add_argument("--max-iter", type=int, default=200, help="L-BFGS iterations")
+    ap.add_argument("--max-iter", type=int, default=100, help="L-BFGS iterations")
     args = ap.parse_args(argv)
     res = run_scenarios(
         args.scenario,

@@ -5,7 +5,7 @@ fields on joint space X and task space Y. See `shooting` for the equations (and 
 deviations from the printed eq. 28) and `model` for fitting, scaling and width selection.
 
 Public API:
-    fit_lddmm(k0, X_train, Y_train, *, sigma_v=None, sigma_w=None, sigma=1e-3, n_steps=10,
+    fit_lddmm(k0, X_train, Y_train, *, sigma_v=None, sigma_w=None, sigma=0.1, n_steps=10,
               max_iter=200, lam_v=1.0, lam_w=1.0, ...) -> LddmmModel
     LddmmModel.predict(X) -> (M, dy)
     LddmmModel.min_jacobian_det(X) -> (min det D phi_1, min det D psi_1)

@@ -4,7 +4,8 @@ Units and scaling. X is used as given (joint angles in rad), Y as given (positio
 kernel widths are in those units. The momenta P carry the units of Y (the kernels are
 dimensionless), so the weight `sigma` of the data term in (27) is dimensionless: linearised, the
 fit is kernel ridge regression with ridge sigma^2 on a Gram matrix whose diagonal is ~1
-(sigma = 1e-3 means "trust the data, ~1e-6 ridge").
+(default sigma = 0.1, ridge 1e-2: much smaller sigma gives huge, cancelling momenta
+with the wide kernels CV prefers, and the nonlinear flow then blows up).
 
 Conditioning. The optimiser works on z with P0 = sigma (G + sigma^2 I)^-1 z, where G (N m x N m)
 is the Gram matrix of the linearised flow at t=0:
@@ -308,7 +309,7 @@ def fit_lddmm(
     *,
     sigma_v: float | None = None,
     sigma_w: float | None = None,
-    sigma: float = 1e-3,
+    sigma: float = 0.1,
     n_steps: int = 10,
     max_iter: int = 200,
     tol: float = 1e-9,
