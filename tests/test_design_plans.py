@@ -1,0 +1,185 @@
+"""Adaptive campaign plans `bo` (GP-UCB on S3 x R3) and `dopt` (greedy O1): live in the campaign
+engine, recorded like any other plan, and really driven by the measurements."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from workcell.bench.design import _cell, drive_plan
+from workcell.campaign.adaptive import (
+    candidate_poses,
+    identifiable_mask,
+    make_adaptive_plan,
+    maximin_indices,
+    pose_distance2,
+)
+from workcell.campaign.executor import CampaignConfig
+from workcell.campaign.plans import make_plan, random_configurations
+from workcell.campaign.run import run_campaign, sim_cell
+from workcell.estimation.bounded import jacobian_padded
+from workcell.estimation.identifiability import observability
+from workcell.kinematics.chain import pack
+from workcell.recording.dataset import Dataset
+from workcell.recording.reader import read_recording
+
+FAST = CampaignConfig(readings_per_pose=2, settle_s=0.1)
+
+
+@pytest.mark.parametrize("kind,poses", [("bo", 15), ("dopt", 12)])
+def test_adaptive_campaign_end_to_end(tmp_path, kind, poses):
+    world, robot, tracker, cell = sim_cell("ur5e", "none", seed=4)
+    choices: list[dict] = []
+    out = tmp_path / f"{kind}.mcap"
+    path, res = run_campaign(
+        robot, tracker, cell, out, plan=kind, poses=poses, seed=4,
+        config=CampaignConfig(readings_per_pose=2, settle_s=0.1, payload_kg=cell.payload_kg),
+        plan_kwargs={"n_candidates": 256, "on_choice": choices.append},
+    )  # fmt: skip
+    assert res.measured + res.skipped == poses and not res.aborted
+    rec = read_recording(path)
+    assert rec.closed_cleanly and not rec.problems
+    assert rec.session["campaign"]["plan"] == kind
+    ds = Dataset.from_recording(path)
+    assert len(ds) == res.measured
+    assert sorted(ds.pose_id.tolist()) == sorted(
+        c["pose_id"] for c in choices if c["pose_id"] not in res.skipped_ids
+    )
+    assert len({c["candidate"] for c in choices}) == poses  # never the same pose twice
+    rules = [c["rule"] for c in choices]
+    if kind == "bo":
+        assert rules[:5] == ["space-filling seed"] * 5
+        assert set(rules[5:]) == {"GP-UCB"}
+        # the objective is evaluated with a calibrated model once the fit is identifiable
+        assert any(c.get("calibrated") for c in choices[5:])
+        late = [c["rms_error_m"] for c in choices if c.get("calibrated")]
+        assert max(late) < 1e-4  # the refitted geometry explains the measurements (~noise)
+    else:
+        assert rules[0] == "space-filling seed"
+        assert set(rules[1:]) == {"max O1 (D-optimal)"}
+    # every measured configuration is inside the envelope (the executor checks it too)
+    from workcell.campaign.envelope import default_envelope
+
+    env = default_envelope(cell.spec)
+    assert all(v is None for v in env.violations(cell.spec, ds.q_commanded, cell.tool_m))
+
+
+def _o1(spec, tool, q, free, scale):
+    J = jacobian_padded(pack(spec.dh, tool=tool), np.eye(4), q)[:, :, free] / scale
+    return observability(J.reshape(-1, free.sum()))
+
+
+def test_dopt_is_more_observable_than_random():
+    """For the same pose count, the greedy design has a higher O1 and min singular value than
+    random poses from the same envelope, on every seed."""
+    for seed in range(3):
+        truth, env, tool = _cell(seed)
+        spec = truth.nominal
+        gen, _ = make_plan("dopt", spec, env, 14, seed=seed, tool_m=tool, n_candidates=256)
+        s_d = drive_plan(gen, truth, np.random.default_rng(seed))
+        q_r = random_configurations(spec, env, 14, np.random.default_rng(seed + 50), tool)
+        q_d = np.array([s["q_commanded_rad"] for s in s_d])
+        Jall = jacobian_padded(pack(spec.dh, tool=tool), np.eye(4), np.vstack([q_d, q_r]))
+        free = identifiable_mask(spec, Jall)
+        scale = np.linalg.norm(Jall[:, :, free].reshape(-1, free.sum()), axis=0)
+        d, r = _o1(spec, tool, q_d, free, scale), _o1(spec, tool, q_r, free, scale)
+        assert d["o1"] > r["o1"], (seed, d, r)
+        assert d["min_singular_value"] > r["min_singular_value"], (seed, d, r)
+
+
+def test_bo_choices_depend_on_the_measurements():
+    """Same plan seed, same candidates, two different true cells: after the space-filling seeds
+    GP-UCB picks different poses, because it models the calibrated model's errors."""
+    seqs = []
+    for truth_seed in (1, 2):
+        truth, env, tool = _cell(truth_seed)
+        gen = make_adaptive_plan(
+            "bo", truth.nominal, env, 18, seed=7, tool_m=tool, n_candidates=256
+        )
+        seqs.append(
+            [s["q_commanded_rad"] for s in drive_plan(gen, truth, np.random.default_rng(0))]
+        )
+    a, b = np.array(seqs[0]), np.array(seqs[1])
+    np.testing.assert_allclose(a[:5], b[:5])  # the seeds do not depend on measurements
+    assert not np.allclose(a[5:], b[5:])
+
+
+def test_skipped_poses_and_skip_ids():
+    truth, env, tool = _cell(0)
+    for kind in ("bo", "dopt"):
+        gen = make_adaptive_plan(
+            kind, truth.nominal, env, 14, seed=1, tool_m=tool, n_candidates=256,
+            skip_ids={0, 3},
+        )  # fmt: skip
+        ids, qs = [], []
+        t = next(gen)
+        try:
+            while True:
+                ids.append(t.pose_id)
+                qs.append(t.q_rad)
+                if t.pose_id % 4 == 1:  # pretend the executor skipped it (beam broken)
+                    t = gen.send(None)
+                    continue
+                p = truth.smr_in_tracker(t.q_rad, t.approach_sign, 0.0)
+                t = gen.send(
+                    {"q_measured_rad": list(t.q_rad), "tracker_position_m": list(p),
+                     "tracker_sigma_m": [1e-5] * 3}
+                )  # fmt: skip
+        except StopIteration:
+            pass
+        assert ids == [i for i in range(14) if i not in (0, 3)], kind
+        assert len({tuple(q) for q in qs}) == len(qs)
+
+
+def test_candidates_and_space_filling():
+    truth, env, tool = _cell(0)
+    spec = truth.nominal
+    q = random_configurations(spec, env, 200, np.random.default_rng(0), tool)
+    poses = candidate_poses(spec, q, tool)
+    assert poses.shape == (200, 7)
+    np.testing.assert_allclose(np.linalg.norm(poses[:, :4], axis=1), 1.0, atol=1e-12)
+    # the SMR position is the nominal FK (independent check with the tracker-frame model at I)
+    from workcell.estimation.bounded import predict_padded
+
+    np.testing.assert_allclose(
+        poses[:, 4:], predict_padded(pack(spec.dh, tool=tool), np.eye(4), q), atol=1e-12
+    )
+    # quaternion sign does not matter for the distance
+    flipped = poses.copy()
+    flipped[:, :4] *= -1
+    assert np.allclose(np.diag(pose_distance2(poses, flipped)), 0.0, atol=1e-12)
+    sel = maximin_indices(poses, 8)
+    rnd = np.random.default_rng(1).choice(200, 8, replace=False)
+
+    def min_gap(idx):
+        d = pose_distance2(poses[idx], poses[idx])
+        return d[~np.eye(len(idx), dtype=bool)].min()
+
+    assert min_gap(sel) > min_gap(rnd)
+
+
+def test_plan_argument_errors():
+    truth, env, tool = _cell(0)
+    with pytest.raises(ValueError, match="unknown adaptive plan"):
+        make_adaptive_plan("ucb", truth.nominal, env, 5, seed=0, tool_m=tool)
+    with pytest.raises(ValueError, match="n_candidates"):
+        make_adaptive_plan("bo", truth.nominal, env, 50, seed=0, tool_m=tool, n_candidates=10)
+    with pytest.raises(ValueError, match="index"):
+        make_adaptive_plan("dopt", truth.nominal, env, 5, seed=0, tool_m=tool, index="trace")
+
+
+@pytest.mark.slow
+def test_campaign_cli_plan_dopt(tmp_path):
+    out = tmp_path / "d.mcap"
+    r = subprocess.run(
+        [sys.executable, "-m", "workcell.cli", "campaign", "--plan", "dopt", "--robot", "sim",
+         "--tracker", "sim", "--poses", "10", "--readings", "2", "--settle", "0.1",
+         "--effects", "none", "--out", str(out)],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    ds = Dataset.from_recording(out)
+    assert len(ds) == 10 and ds.session["campaign"]["plan"] == "dopt"

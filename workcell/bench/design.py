@@ -1,0 +1,287 @@
+"""`workcell bench design [--json]`: how many tracker poses does each plan need? (seed 002)
+
+Setting: a simulated UR5e whose geometry differs from nominal (the simulator's DH, base and SMR
+errors: sigma 0.3 mm lengths, 0.5 mrad twists, 1 mrad joint offsets, 0.3 mm Hayati tilts of
+joints 2-3; `sim_devices.truth.make_truth(effects="none")`), measured by the simulated tracker
+(per-axis sigma (15 um + 6 um/m * range)/4 per reading, 80 % of it systematic per pose; a pose
+is the mean of 5 readings). One true cell per seed.
+
+Plans (all from `workcell.campaign.plans.make_plan`, the code `workcell campaign --plan` runs):
+``random`` (uniform in the envelope), ``dopt`` (greedy O1 / D-optimal) and ``bo`` (GP-UCB on
+S3 x R3, the paper's Algorithm 1). Each plan is driven for up to ``--max-poses`` poses by a fast
+in-process measurement loop (the true cell's SMR position plus the tracker noise of a 5-reading
+pose mean, fed back to the plan as a sample dict exactly as the campaign executor does).
+
+Held-out set: per seed, ``--holdout`` (default 100) independent random configurations inside the
+envelope, measured once in the same simulated cell (its own noise draws).
+Noise floor: the RMS of the measurement error alone on that set,
+``floor = sqrt(mean_i 3 sigma_i^2)`` with ``sigma_i`` the simulator's per-axis sigma of a
+5-reading mean at that pose's range: the held-out RMS a perfect model would show.
+Fitted model: the DH fit on the first n poses (`fit_dh_bounded(bounds=None)`, which is the
+unbounded nonlinear fit: identical to `workcell.estimation.dh.fit_dh`, see
+tests/test_design_bounded.py; the padded-shape version avoids recompiling per n).
+Poses to target: the smallest n on the schedule (every pose from ceil(L/3), L = number of
+identifiable parameters, the rank bound of Theorem 1) whose held-out RMS is <= 2 x floor
+(`--target-factor`); the plan is stopped there. A run that does not reach the target within
+--max-poses counts as max-poses + 1 and is reported under `censored`.
+`ratio_best_to_random` = mean poses of the better of dopt/bo over mean poses of random.
+
+`--envelope compact` restricts the joints to +-30 deg (`--half-width-deg`) around the home pose
+(0, -90, 90, -90, -90, 0) deg, a cell where the tracker's line of sight or fixtures confine the
+arm; random poses are then much less informative and the design matters more.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+
+import numpy as np
+
+PLANS = ("random", "dopt", "bo")
+
+
+HOME_RAD = np.deg2rad([0.0, -90.0, 90.0, -90.0, -90.0, 0.0])
+
+
+def _cell(seed: int, envelope: str = "default", half_width_deg: float = 30.0):
+    from sim_devices.truth import NOMINAL_SMR_M, TrackerNoise, make_truth
+    from workcell.campaign.envelope import default_envelope
+
+    truth = make_truth(
+        "ur5e", "none", seed, noise=TrackerNoise(beam_break_prob=0.0, outlier_prob=0.0)
+    )
+    env = default_envelope(truth.nominal)
+    if envelope == "compact":
+        h = np.deg2rad(half_width_deg)
+        lim = env.joint_limits_rad
+        env.joint_limits_rad = np.column_stack(
+            [np.maximum(lim[:, 0], HOME_RAD - h), np.minimum(lim[:, 1], HOME_RAD + h)]
+        )
+    elif envelope != "default":
+        raise ValueError(f"envelope must be 'default' or 'compact', got {envelope!r}")
+    return truth, env, NOMINAL_SMR_M.copy()
+
+
+def measure(truth, q: np.ndarray, sign: np.ndarray, rng: np.random.Generator, n_read: int = 5):
+    """One pose: (noisy SMR position in the tracker frame (3,), per-axis sigma (3,))."""
+    p = truth.smr_in_tracker(np.asarray(q, float), np.asarray(sign, float), 0.0)
+    sig = truth.noise.sigma_of_mean(float(np.linalg.norm(p)), n_read)
+    return p + rng.normal(0.0, sig, 3), np.full(3, sig)
+
+
+def drive_plan(gen, truth, rng: np.random.Generator, stop=None) -> list[dict]:
+    """Run a plan generator against the true cell; returns the sample dicts in order.
+
+    `stop(samples) -> bool` is asked after every sample; True ends the plan early."""
+    samples: list[dict] = []
+    try:
+        t = next(gen)
+        while True:
+            p, sig = measure(truth, t.q_rad, t.approach_sign, rng)
+            s = {
+                "index": len(samples),
+                "pose_id": int(t.pose_id),
+                "q_commanded_rad": np.asarray(t.q_rad, float).tolist(),
+                "q_measured_rad": np.asarray(t.q_rad, float).tolist(),
+                "approach_sign": [int(x) for x in np.sign(t.approach_sign)],
+                "tracker_position_m": p.tolist(),
+                "tracker_sigma_m": sig.tolist(),
+            }
+            samples.append(s)
+            if stop is not None and stop(samples):
+                gen.close()
+                break
+            t = gen.send(s)
+    except StopIteration:
+        pass
+    return samples
+
+
+def dataset_of(samples: list[dict], truth, tool_m):
+    from workcell.recording.dataset import Dataset
+
+    return Dataset(
+        robot=truth.nominal,
+        tool_offset_m=np.asarray(tool_m, float),
+        tracker_T_base_nominal=np.eye(4),
+        q=np.array([s["q_measured_rad"] for s in samples]),
+        p_tracker=np.array([s["tracker_position_m"] for s in samples]),
+        sigma_m=np.array([s["tracker_sigma_m"] for s in samples]),
+    )
+
+
+def one_run(
+    plan: str,
+    seed: int,
+    max_poses: int,
+    n_holdout: int,
+    log=None,
+    target_factor: float = 2.0,
+    envelope: str = "default",
+    half_width_deg: float = 30.0,
+) -> dict:
+    from workcell.campaign.adaptive import identifiable_mask
+    from workcell.campaign.plans import make_plan, random_configurations
+    from workcell.estimation.bounded import fit_dh_bounded, jacobian_padded, predict_padded
+    from workcell.kinematics.chain import pack
+
+    truth, env, tool = _cell(seed, envelope, half_width_deg)
+    spec = truth.nominal
+    # held-out set: independent configurations and noise draws (seed-specific)
+    rng_v = np.random.default_rng(10_000 + seed)
+    q_v = random_configurations(spec, env, n_holdout, rng_v, tool)
+    meas_v = [measure(truth, q, np.ones(6), rng_v) for q in q_v]
+    p_v = np.array([m[0] for m in meas_v])
+    floor = float(np.sqrt(np.mean([3.0 * m[1][0] ** 2 for m in meas_v])))
+    free = identifiable_mask(spec, jacobian_padded(pack(spec.dh, tool=tool), np.eye(4), q_v))
+    n_min = int(math.ceil(free.sum() / 3))  # Theorem 1: 3 n >= L
+    curve: list[tuple[int, float]] = []
+
+    def reached(samples: list[dict]) -> bool:
+        n = len(samples)
+        if n < n_min:
+            return False
+        ds = dataset_of(samples, truth, tool)
+        try:
+            m = fit_dh_bounded(ds, bounds=None, min_poses=n_min)
+        except (ValueError, np.linalg.LinAlgError):
+            return False
+        err = predict_padded(m.theta, m.base_ref, q_v) - p_v
+        rms = float(np.sqrt(np.mean(np.sum(err**2, axis=1))))
+        curve.append((n, rms))
+        return rms <= target_factor * floor
+
+    t0 = time.perf_counter()
+    gen, _ = make_plan(plan, spec, env, max_poses, seed=seed, tool_m=tool)
+    samples = drive_plan(gen, truth, np.random.default_rng(20_000 + seed), stop=reached)
+    seconds = time.perf_counter() - t0
+    first = len(samples) if curve and curve[-1][1] <= target_factor * floor else None
+    out = {
+        "plan": plan,
+        "seed": seed,
+        "poses_to_target": first if first is not None else max_poses + 1,
+        "censored": first is None,
+        "noise_floor_m": floor,
+        "curve": curve,
+        "seconds": seconds,
+    }
+    if log:
+        log(
+            f"  {plan:6s} seed {seed:2d}: {out['poses_to_target']:3d} poses"
+            f"{' (not reached)' if first is None else ''}; floor {floor * 1e6:.1f} um, "
+            f"last RMS {curve[-1][1] * 1e6 if curve else float('nan'):.1f} um "
+            f"({seconds:.1f} s)"
+        )
+    return out
+
+
+def summarise(runs: dict[str, list[dict]]) -> dict:
+    res = {}
+    for plan, rs in runs.items():
+        v = np.array([r["poses_to_target"] for r in rs], float)
+        res[plan] = {
+            "mean": float(v.mean()),
+            "std": float(v.std(ddof=1)) if len(v) > 1 else 0.0,
+            "median": float(np.median(v)),
+            "runs": [int(x) for x in v],
+            "censored": int(sum(r["censored"] for r in rs)),
+        }
+    return res
+
+
+def main(argv: list[str]) -> int:
+    ap = argparse.ArgumentParser(prog="workcell bench design", description=__doc__.split("\n")[0])
+    ap.add_argument("--seeds", type=int, default=10, help="number of simulated cells (>= 1)")
+    ap.add_argument("--seed0", type=int, default=0, help="first seed")
+    ap.add_argument("--max-poses", type=int, default=80, help="poses per run at most")
+    ap.add_argument("--holdout", type=int, default=100, help="held-out poses per cell")
+    ap.add_argument("--plans", default=",".join(PLANS), help="comma list of random,dopt,bo")
+    ap.add_argument(
+        "--target-factor", type=float, default=2.0, help="target: held-out RMS <= this x floor"
+    )
+    ap.add_argument(
+        "--envelope",
+        choices=["default", "compact"],
+        default="default",
+        help="default: the campaign's default envelope; compact: joints within "
+        "+-HALF_WIDTH of the home pose (0,-90,90,-90,-90,0) deg",
+    )
+    ap.add_argument("--half-width-deg", type=float, default=30.0, help="compact envelope")
+    ap.add_argument("--json", action="store_true", help="print one JSON object")
+    ap.add_argument("--runs", action="store_true", help="include per-run curves in the JSON")
+    a = ap.parse_args(argv)
+    plans = [p.strip() for p in a.plans.split(",") if p.strip()]
+    for p in plans:
+        if p not in PLANS:
+            ap.error(f"unknown plan {p!r}; choose from {', '.join(PLANS)}")
+    if a.seeds < 1 or a.max_poses < 12 or a.holdout < 10:
+        ap.error("need --seeds >= 1, --max-poses >= 12, --holdout >= 10")
+    log = (lambda m: print(m, file=sys.stderr, flush=True)) if a.json else print
+    t0 = time.perf_counter()
+    runs: dict[str, list[dict]] = {p: [] for p in plans}
+    for s in range(a.seed0, a.seed0 + a.seeds):
+        for p in plans:
+            runs[p].append(
+                one_run(
+                    p,
+                    s,
+                    a.max_poses,
+                    a.holdout,
+                    log,
+                    a.target_factor,
+                    a.envelope,
+                    a.half_width_deg,
+                )  # fmt: skip
+            )
+    summary = summarise(runs)
+    ratio = None
+    if "random" in summary and len(summary) > 1:
+        best = min((p for p in summary if p != "random"), key=lambda p: summary[p]["mean"])
+        ratio = {
+            "plan": best,
+            "ratio": summary[best]["mean"] / summary["random"]["mean"],
+        }
+    floors = [r["noise_floor_m"] for rs in runs.values() for r in rs]
+    out = {
+        "robot": "ur5e",
+        "effects": "none (DH, base and SMR errors only)",
+        "seeds": list(range(a.seed0, a.seed0 + a.seeds)),
+        "max_poses": a.max_poses,
+        "heldout_poses": a.holdout,
+        "envelope": a.envelope
+        if a.envelope == "default"
+        else f"compact (+-{a.half_width_deg:g} deg around home)",
+        "target": f"held-out RMS <= {a.target_factor:g} x noise floor",
+        "noise_floor_m": {
+            "mean": float(np.mean(floors)),
+            "min": float(np.min(floors)),
+            "max": float(np.max(floors)),
+        },
+        "poses_to_target": summary,
+        "ratio_best_to_random": ratio["ratio"] if ratio else None,
+        "best_plan": ratio["plan"] if ratio else None,
+        "wall_seconds": time.perf_counter() - t0,
+    }
+    if a.runs:
+        out["runs"] = runs
+    if a.json:
+        print(json.dumps(out))
+        return 0
+    print()
+    print(f"{'plan':8}{'mean':>8}{'std':>8}{'median':>8}  runs (poses to target)")
+    for p, r in summary.items():
+        cens = f"  [{r['censored']} not reached]" if r["censored"] else ""
+        print(f"{p:8}{r['mean']:8.1f}{r['std']:8.1f}{r['median']:8.1f}  {r['runs']}{cens}")
+    fl = out["noise_floor_m"]
+    print(
+        f"noise floor {fl['mean'] * 1e6:.1f} um (mean over cells); target {a.target_factor:g}x "
+        f"floor; envelope {out['envelope']}"
+    )
+    if ratio:
+        print(f"ratio best ({ratio['plan']}) / random: {ratio['ratio']:.2f}")
+    print(f"wall {out['wall_seconds']:.0f} s")
+    return 0

@@ -1,0 +1,360 @@
+"""Adaptive campaign plans: each next pose is chosen from the measurements so far (seed 002).
+
+Both plans choose from a finite candidate set drawn once per campaign: joint configurations
+sampled uniformly inside the envelope (`plans.random_configurations`), so every candidate is
+reachable and *is* its own IK solution; approach signs are chosen so the approach pre-pose stays
+inside the envelope too (`plans.approach_signs`). A candidate's pose on S3 x R3 is the nominal
+flange quaternion (wxyz, base frame) and the nominal SMR position (base frame).
+
+``bo`` (Das, Touma & Burdick, Algorithm 1): GP-UCB over the candidates with the S3 x R3 product
+kernel (heat kernel on S3 times SE on R3, `workcell.estimation.design`). The objective is the
+paper's eq. (6)-(7) restricted to position (the tracker measures position only):
+``f = -||p_measured - p_model|| / max``, where ``p_model`` is the *current calibrated model*:
+after every pose the geometry is refitted on all poses so far (iterated bounded QP,
+`workcell.estimation.bounded`, warm-started from the previous fit); before enough poses for an
+identifiable fit exist, the nominal chain with the base registered by Kabsch is used (as the
+paper's Algorithm 1 does with nominal DH). The first ``n_seed`` poses are space-filling
+(greedy max-min distance on S3 x R3). Beta: the Srinivas et al. finite-domain schedule.
+
+``dopt``: greedy maximisation of the D-optimality / O1 observability index. With the
+identification Jacobian Js restricted to the identifiable parameters (Theorem 1 analysis on the
+candidates) and column-scaled once, O1 = det(Js^T Js)^(1/2L) / sqrt(N); for a fixed N the
+candidate that maximises O1 of the augmented set maximises
+``log det(I_3 + J_c (A + eps I)^-1 J_c^T)`` (matrix determinant lemma, A = information so
+far; eps regularises the first, rank-deficient steps). ``index="min_sv"`` maximises the minimum
+singular value instead once A has full rank. The Jacobian is re-linearised at the current
+calibrated model every ``relinearise_every`` poses once a fit is possible, and skipped poses
+(sample None) add no information.
+
+`skip_ids`: pose ids that are not yielded (already measured in a recording being resumed); the
+plan then chooses the remaining ``n - |skip_ids & range(n)|`` poses without knowing those
+measurements.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from workcell.campaign.envelope import Envelope
+from workcell.campaign.plans import Plan, PoseTarget, approach_signs, random_configurations
+from workcell.estimation.identifiability import analyse
+from workcell.kinematics.chain import (
+    N_PARAMS,
+    PARAM_NAMES,
+    base_T_flange,
+    pack,
+    parallel_beta_names,
+)
+from workcell.kinematics.robots import RobotSpec
+from workcell.recording.dataset import Dataset
+
+ADAPTIVE_KINDS = ("bo", "dopt")
+
+
+# ---------------------------------------------------------------------------- candidates
+
+
+def candidate_poses(spec: RobotSpec, q: np.ndarray, tool_m: np.ndarray) -> np.ndarray:
+    """(M, 7) = [qw qx qy qz px py pz]: nominal flange orientation and SMR position in base."""
+    from workcell.estimation.bounded import _pad
+
+    q = np.atleast_2d(np.asarray(q, float))
+    T = np.asarray(base_T_flange(pack(spec.dh), _pad(q)))[: len(q)]
+    xyzw = Rotation.from_matrix(T[:, :3, :3]).as_quat()
+    wxyz = np.column_stack([xyzw[:, 3], xyzw[:, :3]])
+    p = np.einsum("nab,b->na", T[:, :3, :3], np.asarray(tool_m, float)) + T[:, :3, 3]
+    return np.hstack([wxyz, p])
+
+
+def pose_distance2(
+    a: np.ndarray, b: np.ndarray, length_m: float = 0.3, angle_rad: float = 1.0
+) -> np.ndarray:
+    """Squared distance on S3 x R3 between pose sets (N, 7), (M, 7) -> (N, M): position over
+    `length_m` plus rotation angle (q ~ -q) over `angle_rad`."""
+    dp = np.sum((a[:, None, 4:] - b[None, :, 4:]) ** 2, axis=-1) / length_m**2
+    c = np.clip(np.abs(a[:, :4] @ b[:, :4].T), 0.0, 1.0)
+    ang = 2.0 * np.arccos(c)
+    return dp + (ang / angle_rad) ** 2
+
+
+def maximin_indices(poses: np.ndarray, k: int, first: int = 0) -> list[int]:
+    """Greedy farthest-point (max-min distance) selection of k rows of `poses`."""
+    k = min(k, len(poses))
+    chosen = [first]
+    d = pose_distance2(poses, poses[[first]])[:, 0]
+    while len(chosen) < k:
+        i = int(np.argmax(d))
+        chosen.append(i)
+        d = np.minimum(d, pose_distance2(poses, poses[[i]])[:, 0])
+    return chosen
+
+
+def _candidates(spec, env, n_candidates, seed, tool_m, approach_rad):
+    rng = np.random.default_rng(seed)
+    q = random_configurations(spec, env, int(n_candidates * 1.1) + 2, rng, tool_m)
+    q, s = approach_signs(spec, env, q, tool_m, approach_rad, seed)
+    return q[:n_candidates], s[:n_candidates]
+
+
+def identifiable_mask(spec: RobotSpec, J: np.ndarray) -> np.ndarray:
+    """Bool (39,): identifiable parameters for the Jacobian J (N, 3, 39) (Theorem 1 analysis)."""
+    betas = set(parallel_beta_names(spec.dh))
+    cand = [n for n in PARAM_NAMES if not n.startswith("beta") or n in betas]
+    ident = analyse(J.reshape(-1, N_PARAMS), candidates=cand)
+    free = np.zeros(N_PARAMS, bool)
+    free[[PARAM_NAMES.index(n) for n in ident.identifiable]] = True
+    return free
+
+
+# ------------------------------------------------------------------------- measurements
+
+
+class _Measurements:
+    """What the plan has learnt: measured configurations, SMR positions, and the current fit."""
+
+    def __init__(self, spec: RobotSpec, tool_m: np.ndarray, free: np.ndarray) -> None:
+        self.spec, self.tool_m, self.free = spec, np.asarray(tool_m, float), free
+        self.q: list[np.ndarray] = []
+        self.p: list[np.ndarray] = []
+        self.sigma: list[np.ndarray] = []
+        self.theta = pack(spec.dh, tool=self.tool_m)
+        self.base_ref: np.ndarray | None = None
+        self.calibrated = False
+        self.n_fit = int(math.ceil(free.sum() / 3.0)) + 3
+
+    def add(self, sample: dict) -> None:
+        self.q.append(np.asarray(sample["q_measured_rad"], float))
+        self.p.append(np.asarray(sample["tracker_position_m"], float))
+        sig = np.asarray(sample.get("tracker_sigma_m") or [1e-5] * 3, float)
+        self.sigma.append(np.where(np.isfinite(sig) & (sig > 0), sig, 1e-5))
+
+    def __len__(self) -> int:
+        return len(self.q)
+
+    def dataset(self) -> Dataset:
+        return Dataset(
+            robot=self.spec,
+            tool_offset_m=self.tool_m,
+            tracker_T_base_nominal=np.eye(4),
+            q=np.array(self.q),
+            p_tracker=np.array(self.p),
+            sigma_m=np.array(self.sigma),
+        )
+
+    def refit(self) -> None:
+        """Current model: bounded QP fit once identifiable, else nominal + Kabsch registration."""
+        from workcell.estimation.bounded import fit_dh_bounded, register_base_padded
+
+        if len(self) < 3:
+            return
+        ds = self.dataset()
+        if len(self) < self.n_fit:
+            self.theta = pack(self.spec.dh, tool=self.tool_m)
+            self.base_ref = register_base_padded(ds, self.theta)
+            return
+        try:
+            m = fit_dh_bounded(
+                ds,
+                bounds="default",
+                theta0=self.theta if self.calibrated else None,
+                base_ref=self.base_ref if self.calibrated else None,
+                free=self.free,
+                robust=False,
+                max_iter=15,
+                xtol=1e-9,
+                min_poses=self.n_fit,
+            )
+        except (ValueError, np.linalg.LinAlgError):
+            return
+        self.theta, self.base_ref, self.calibrated = m.theta, m.base_ref, True
+
+    def errors_m(self) -> np.ndarray:
+        from workcell.estimation.bounded import predict_padded
+
+        if self.base_ref is None:
+            return np.zeros(len(self))
+        pred = predict_padded(self.theta, self.base_ref, np.array(self.q))
+        return np.linalg.norm(np.array(self.p) - pred, axis=1)
+
+
+# ---------------------------------------------------------------------------------- plans
+
+
+def make_adaptive_plan(
+    kind: str,
+    spec: RobotSpec,
+    env: Envelope,
+    n: int,
+    *,
+    seed: int,
+    tool_m: np.ndarray,
+    skip_ids: set[int] | None = None,
+    approach_rad: float = 0.02,
+    n_candidates: int = 1000,
+    n_seed: int | None = None,
+    index: str = "o1",
+    beta_schedule="srinivas",
+    negate_objective: bool = True,
+    relinearise_every: int = 5,
+    on_choice: Callable[[dict], None] | None = None,
+) -> Plan:
+    """A generator of `PoseTarget`s that receives each recorded sample (or None) via `.send()`.
+
+    kind "bo" or "dopt" (see the module docstring). `n_candidates` reachable configurations are
+    drawn once (seeded); `n_seed` space-filling poses start the campaign (default 5 for bo,
+    1 for dopt). `on_choice` is called with a small dict per chosen pose (for logs and tests).
+    """
+    if kind not in ADAPTIVE_KINDS:
+        raise ValueError(f"unknown adaptive plan {kind!r}; choose bo or dopt")
+    if n <= 0:
+        raise ValueError(f"number of poses must be positive, got {n}")
+    if index not in ("o1", "min_sv"):
+        raise ValueError(f"index must be 'o1' or 'min_sv', got {index!r}")
+    if n_candidates < n:
+        raise ValueError(f"n_candidates ({n_candidates}) must be at least the pose count ({n})")
+    from workcell.estimation.bounded import jacobian_padded
+
+    tool_m = np.asarray(tool_m, float)
+    q_c, s_c = _candidates(spec, env, n_candidates, seed, tool_m, approach_rad)
+    if len(q_c) < n:
+        raise ValueError(f"only {len(q_c)} candidate poses fit the envelope; need {n}")
+    poses = candidate_poses(spec, q_c, tool_m)
+    th_nom = pack(spec.dh, tool=tool_m)
+    J_c = jacobian_padded(th_nom, np.eye(4), q_c)  # (M, 3, 39)
+    free = identifiable_mask(spec, J_c)
+    n_seed = (5 if kind == "bo" else 1) if n_seed is None else int(n_seed)
+    ids = [i for i in range(n) if not (skip_ids and i in skip_ids)]
+    if kind == "bo":
+        return _bo_plan(
+            spec, q_c, s_c, poses, free, tool_m, ids, n_seed, seed, beta_schedule,
+            negate_objective, on_choice,
+        )  # fmt: skip
+    return _dopt_plan(
+        spec, q_c, s_c, poses, J_c, free, tool_m, ids, n_seed, seed, index, relinearise_every,
+        on_choice,
+    )  # fmt: skip
+
+
+def _seed_order(poses: np.ndarray, n_seed: int, seed: int) -> list[int]:
+    first = int(np.random.default_rng(seed + 2).integers(len(poses)))
+    return maximin_indices(poses, max(n_seed, 1), first=first)[:n_seed] if n_seed > 0 else []
+
+
+def _bo_plan(
+    spec, q_c, s_c, poses, free, tool_m, ids, n_seed, seed, beta_schedule, negate, on_choice
+) -> Plan:
+    from workcell.estimation.design.gp import pose_error_objective, select_next_pose
+
+    meas = _Measurements(spec, tool_m, free)
+    available = np.ones(len(q_c), bool)
+    measured_idx: list[int] = []
+    seeds = _seed_order(poses, n_seed, seed)
+    for k, pid in enumerate(ids):
+        info: dict = {"plan": "bo", "pose_id": pid, "k": k}
+        if k < len(seeds) or len(measured_idx) < 3:
+            pending = [i for i in seeds if available[i]]
+            i = pending[0] if pending else _farthest(poses, measured_idx, available)
+            info["rule"] = "space-filling seed"
+        else:
+            meas.refit()
+            err = meas.errors_m()
+            y = pose_error_objective(err, negate=negate)
+            cand = np.where(available)[0]
+            j = select_next_pose(
+                poses[cand], poses[measured_idx], y, beta_schedule=beta_schedule,
+                iteration=len(measured_idx) + 1,
+            )  # fmt: skip
+            i = int(cand[j])
+            info.update(
+                rule="GP-UCB",
+                calibrated=meas.calibrated,
+                rms_error_m=float(np.sqrt(np.mean(err**2))),
+            )
+        available[i] = False
+        info["candidate"] = i
+        if on_choice:
+            on_choice(info)
+        sample = yield PoseTarget(pose_id=pid, q_rad=q_c[i].copy(), approach_sign=s_c[i].copy())
+        if sample is not None:
+            meas.add(sample)
+            measured_idx.append(i)
+
+
+def _farthest(poses, measured_idx, available) -> int:
+    cand = np.where(available)[0]
+    if not measured_idx:
+        return int(cand[0])
+    d = pose_distance2(poses[cand], poses[measured_idx]).min(axis=1)
+    return int(cand[np.argmax(d)])
+
+
+def _dopt_plan(
+    spec, q_c, s_c, poses, J_c, free, tool_m, ids, n_seed, seed, index, relin_every, on_choice
+) -> Plan:
+    from workcell.estimation.bounded import jacobian_padded
+
+    L = int(free.sum())
+    scale = np.linalg.norm(J_c[:, :, free].reshape(-1, L), axis=0) / math.sqrt(len(J_c))
+    scale = np.where(scale > 0, scale, 1.0)
+
+    def scaled(J):
+        return J[:, :, free] / scale  # (M, 3, L)
+
+    Js = scaled(J_c)
+    eps = 1e-6 * float(np.mean(np.einsum("mkl,mkl->l", Js, Js))) / len(Js)
+    meas = _Measurements(spec, tool_m, free)
+    available = np.ones(len(q_c), bool)
+    measured_idx: list[int] = []
+    seeds = _seed_order(poses, n_seed, seed)
+    last_relin = 0
+    for k, pid in enumerate(ids):
+        info: dict = {"plan": "dopt", "pose_id": pid, "k": k}
+        if relin_every > 0 and len(meas) >= meas.n_fit and len(meas) - last_relin >= relin_every:
+            meas.refit()
+            if meas.calibrated:
+                Js = scaled(jacobian_padded(meas.theta, np.eye(4), q_c))
+                last_relin = len(meas)
+                info["relinearised"] = True
+        A = np.einsum("mkl,mkp->lp", Js[measured_idx], Js[measured_idx]) if measured_idx else None
+        if A is None:
+            A = np.zeros((L, L))
+        pending = [i for i in seeds if available[i]]
+        if k < len(seeds) and pending:
+            i = pending[0]
+            info["rule"] = "space-filling seed"
+        else:
+            cand = np.where(available)[0]
+            full_rank = len(measured_idx) * 3 >= L and np.linalg.matrix_rank(A) == L
+            if index == "min_sv" and full_rank:
+                M = A[None] + np.einsum("mkl,mkp->mlp", Js[cand], Js[cand])
+                score = np.linalg.eigvalsh(M)[:, 0]
+                info["rule"] = "max min singular value"
+            else:
+                Ainv = np.linalg.inv(A + eps * np.eye(L))
+                S = np.eye(3)[None] + np.einsum("mkl,lp,mjp->mkj", Js[cand], Ainv, Js[cand])
+                score = np.linalg.slogdet(S)[1]
+                info["rule"] = "max O1 (D-optimal)"
+            i = int(cand[np.argmax(score)])
+            info["score"] = float(np.max(score))
+        available[i] = False
+        info["candidate"] = i
+        if on_choice:
+            on_choice(info)
+        sample = yield PoseTarget(pose_id=pid, q_rad=q_c[i].copy(), approach_sign=s_c[i].copy())
+        if sample is not None:
+            meas.add(sample)
+            measured_idx.append(i)
+
+
+__all__ = [
+    "ADAPTIVE_KINDS",
+    "candidate_poses",
+    "identifiable_mask",
+    "make_adaptive_plan",
+    "maximin_indices",
+    "pose_distance2",
+]
