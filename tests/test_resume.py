@@ -66,3 +66,26 @@ def test_kill9_then_resume(tmp_path):
     assert len(set(done) | set(more)) + skipped >= 40
     assert [s["index"] for s in second.samples][0] == len(done)
     assert any(e["kind"] == "resume_from" for e in second.events)
+
+
+def test_ctrl_c_finishes_the_recording_cleanly(tmp_path):
+    rec = tmp_path / "c.mcap"
+    cmd = [sys.executable, "-m", "workcell.cli", "campaign", "--robot", "sim", "--tracker", "sim",
+           "--poses", "60", "--seed", "6", "--readings", "3", "--out", str(rec)]
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 120
+    while time.time() < deadline and p.poll() is None:
+        time.sleep(0.2)
+        try:
+            if rec.exists() and len(read_recording(rec).samples) >= 5:
+                break
+        except Exception:  # noqa: BLE001 - the file may not hold its session yet
+            pass
+    assert p.poll() is None
+    p.send_signal(signal.SIGINT)
+    _, err = p.communicate(timeout=60)
+    assert p.returncode == 130, err
+    r = read_recording(rec)
+    assert r.closed_cleanly and not r.problems
+    assert r.events[-1]["kind"] == "abort"
+    assert 5 <= len(r.samples) < 60
