@@ -66,6 +66,7 @@ from workcell.estimation.effects import (
     AugmentedModel,
     Candidate,
     FeatureSpec,
+    batch_bucket,
     jac_aug,
     library,
     p_aug,
@@ -512,7 +513,12 @@ def diagnose(
     cfg: DiagnoseConfig | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> Diagnosis:
-    cfg = cfg or DiagnoseConfig()
+    """Locate, name, model and show (see the module doc). Needs >= 40 poses."""
+    with batch_bucket(len(ds)):
+        return _diagnose(ds, cfg or DiagnoseConfig(), progress)
+
+
+def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
     log = progress or (lambda m: None)
     t0 = time.perf_counter()
     if not 0.1 <= cfg.holdout <= 0.5:
@@ -685,6 +691,7 @@ def diagnose(
         "structured": False,
         "where": [],
     }
+    unexplained["serial_correlation"] = _serial_correlation(res_tr, dfit.elapsed_s)
     model_np = None
     if cfg.nonparametric:
         unexplained_np, model_np = _nonparametric(model, dfit, res_tr, dte, res_te, after, cfg, log)
@@ -747,6 +754,17 @@ def diagnose(
         plots["res_np"] = dte.p_tracker - model_np.predict(dte.q, **aux(dte))
     log(f"diagnosis done in {report['seconds']:.1f} s")
     return Diagnosis(report=report, dh_model=dh, model=model, model_np=model_np, plots=plots)
+
+
+def _serial_correlation(res: np.ndarray, t: np.ndarray) -> dict:
+    """Lag-1 autocorrelation of the residual in recording order (mean over axes): a slow drift
+    or a change of set-up shows as correlation between consecutive poses."""
+    n = len(res)
+    order = np.argsort(np.nan_to_num(t, nan=0.0), kind="stable")
+    r = res[order] - res.mean(0)
+    den = float(np.sum(r * r))
+    rho = float(np.sum(r[1:] * r[:-1]) / den) if den > 0 and n > 3 else 0.0
+    return {"lag1": rho, "significant": bool(abs(rho) > 3.0 / np.sqrt(max(n, 1)))}
 
 
 def _nonparametric(model, dfit, res_tr, dte, res_te, after, cfg, log):
@@ -966,10 +984,24 @@ def summary_text(r: dict) -> str:
             f"{um(u['np_test']['heldout_rms_without_m'])} to {um(u['np_test']['heldout_rms_with_m'])}."
         )
     elif "np_test" in u:
-        lines.append(
+        sc = u.get("serial_correlation", {})
+        big = r["rms_after_m"] > 1.5 * r["noise_floor_m"]
+        txt = (
             f"What is not explained: {um(u['excess_over_floor_m'])} above the noise floor; a "
-            f"non-parametric model finds no further structure on the held-out poses."
+            f"non-parametric model over the joint angles finds no further structure on the "
+            f"held-out poses"
         )
+        if sc.get("significant"):
+            txt += (
+                f"; the residual is correlated between consecutive poses (lag-1 "
+                f"{sc['lag1']:+.2f}): look for a drift or a change of set-up during the recording"
+            )
+        elif big:
+            txt += (
+                " and it is not correlated in time: it behaves like pose-to-pose scatter "
+                "(repeatability of the arm or of the measurement) larger than the stated noise"
+            )
+        lines.append(txt + ".")
     return "\n".join(lines)
 
 

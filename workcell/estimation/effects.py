@@ -32,6 +32,7 @@ optional non-parametric residual model), saved and replayed like any other model
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -226,14 +227,29 @@ def p_aug_single(theta, eff, base_ref, q, x):
 
 
 _p_aug = jax.jit(jax.vmap(p_aug_single, in_axes=(None, None, None, 0, 0)))
+# reverse mode: 3 outputs per pose against 91 inputs (much cheaper than forward mode here)
 _jac_aug = jax.jit(
-    jax.vmap(jax.jacfwd(p_aug_single, argnums=(0, 1)), in_axes=(None, None, None, 0, 0))
+    jax.vmap(jax.jacrev(p_aug_single, argnums=(0, 1)), in_axes=(None, None, None, 0, 0))
 )
+
+_MIN_BUCKET = [64]
+
+
+@contextmanager
+def batch_bucket(n: int):
+    """Within this context every padded call uses at least the bucket of n poses, so one
+    diagnosis compiles each jitted function once (train and held-out sets share a shape)."""
+    old = _MIN_BUCKET[0]
+    _MIN_BUCKET[0] = max(old, 1 << int(np.ceil(np.log2(max(n, 1)))))
+    try:
+        yield
+    finally:
+        _MIN_BUCKET[0] = old
 
 
 def _pad(n: int) -> int:
-    """Bucketed batch size (powers of two from 64): few distinct shapes, few recompilations."""
-    return max(64, 1 << int(np.ceil(np.log2(max(n, 1)))))
+    """Bucketed batch size (powers of two, at least the current bucket): few recompilations."""
+    return max(_MIN_BUCKET[0], 1 << int(np.ceil(np.log2(max(n, 1)))))
 
 
 def padded_call(fn, q: np.ndarray, *args, **kw) -> np.ndarray:
