@@ -182,7 +182,7 @@ def nominal_for(model, ds=None) -> Nominal:
     expose them through a wrapped `base_model`/`dh_model`; otherwise the recording `ds` is needed
     (the nominal chain registered on its poses, as `fit` does for the nominal baseline).
     """
-    for attr in (None, "base_model", "dh_model", "dh", "geometric"):
+    for attr in (None, "base", "base_model", "dh_model", "dh", "geometric"):
         m = model if attr is None else getattr(model, attr, None)
         if m is None or isinstance(m, np.ndarray):
             continue

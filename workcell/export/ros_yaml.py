@@ -219,7 +219,7 @@ def model_geometry(model) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
     geometric part of a model; refuses models without one."""
     from workcell.kinematics.chain import tracker_T_base
 
-    for attr in (None, "base_model", "dh_model", "geometric"):
+    for attr in (None, "base", "base_model", "dh_model", "geometric"):
         m = model if attr is None else getattr(model, attr, None)
         if m is not None and hasattr(m, "theta") and hasattr(m, "base_ref"):
             th = np.asarray(m.theta, float)
