@@ -51,8 +51,8 @@ class FilterConfig:
     sigma_g0_m: float = 1e-4  # adaptive: prior std of length/position parameters
     sigma_g0_rad: float = 2e-4  # adaptive: prior std of angle parameters
     ann_iter_every: int = 500  # extra ANN iteration every this many samples (0 = never)
-    ann_iter_steps: int = 20
-    ann_iter_max_samples: int = 800
+    ann_iter_steps: int = 10
+    ann_iter_max_samples: int = 400
     n_train: int | None = None  # no extra ANN iterations after this many samples
     joseph: bool = False
 
@@ -66,80 +66,77 @@ class FilterConfig:
             raise ValueError("geometric states need mode='adaptive' (the paper's filter has none)")
 
 
-def _geo_fns(theta0, base_ref, E):
-    def h_geo(g, q):
-        th = theta0 + E @ g
-        return _pts(th, base_ref, q), tracker_T_base(th, base_ref)[:3, :3]
+@partial(jax.jit, static_argnames=("k",))
+def _geometry(theta, base_ref, Q, E, *, k):
+    """Vectorised geometric model at theta for joints Q (N, 6): f (N,3), df/dq (N,3,6),
+    df/dg (N,3,k) and the base rotation R_tb (3,3)."""
 
-    return h_geo
+    def f(g, q):
+        return _pts(theta + E @ g, base_ref, q)
+
+    g0 = jnp.zeros(k)
+    pg = jax.vmap(lambda q: f(g0, q))(Q)
+    Jq = jax.vmap(lambda q: jax.jacfwd(f, argnums=1)(g0, q))(Q)
+    Jg = jax.vmap(lambda q: jax.jacfwd(f, argnums=0)(g0, q))(Q) if k else jnp.zeros((len(Q), 3, 0))
+    return pg, Jq, Jg, tracker_T_base(theta, base_ref)[:3, :3]
 
 
 @partial(jax.jit, static_argnames=("spec", "cfg"))
-def _scan_paper(x, P, q_prev, Q, Y, SIG, theta0, base_ref, *, spec, cfg):
+def _scan_paper(x, P, dpg, BQB, Q, Y, SIG, R_tb, *, spec, cfg):
+    """Paper mode over a chunk; dpg (N,3) = f(q_i+1) - f(q_i) and BQB (N,3,3) precomputed
+    (the geometry is fixed in this mode, so this is exact)."""
     K = spec.n_weights
     s = spec.out_scale_m
-    R_tb = tracker_T_base(theta0, base_ref)[:3, :3]
-
-    def geo(q):
-        return _pts(theta0, base_ref, q)
-
-    jq = jax.jacfwd(geo)
-    qdiag = jnp.concatenate([jnp.full(K, cfg.q_w), jnp.full(3, cfg.q_p_m2)])
 
     def ann_t(w, q):
         return R_tb @ A.correction_base_m(w, q, spec)
 
-    def step(carry, inp):
-        x, P, qp = carry
-        q, y, sig = inp
-        w, p = x[:K], x[K : K + 3]
-        p_bar = p + geo(q) - geo(qp)
-        Jp, Jn = jq(qp), jq(q)
-        BQB = symmetrise(cfg.sigma_q_rad**2 * (Jp @ Jp.T + Jn @ Jn.T) + jnp.diag(qdiag[K:]))
-        if cfg.q_w > 0:
-            P = P.at[jnp.arange(K), jnp.arange(K)].add(cfg.q_w)
-        P = P.at[K:, K:].add(BQB)
-        x_bar = x.at[K : K + 3].set(p_bar)
-        c = ann_t(w, q)
-        Hw = jax.jacrev(ann_t)(w, q)
-        H = jnp.concatenate([Hw, jnp.eye(3)], axis=1)
-        r = update(x_bar, P, y, p_bar + c, H, jnp.diag(sig**2), joseph=cfg.joseph)
-        delta = R_tb.T @ (y - p_bar)
-        return (r.x, r.P, q), (r.innovation, r.nis, p_bar, delta / s)
-
-    (x, P, q_prev), out = jax.lax.scan(step, (x, P, q_prev), (Q, Y, SIG))
-    return x, P, q_prev, out
-
-
-@partial(jax.jit, static_argnames=("spec", "cfg"))
-def _scan_adaptive(x, P, Q, Y, SIG, theta0, base_ref, E, *, spec, cfg):
-    K = spec.n_weights
-    k = E.shape[1]
-    h_geo = _geo_fns(theta0, base_ref, E)
-
-    def h(g, q, w):
-        pg, R_tb = h_geo(g, q)
-        return pg + R_tb @ A.correction_base_m(w, q, spec)
+    jw = jax.jacrev(ann_t)
 
     def step(carry, inp):
         x, P = carry
-        q, y, sig = inp
+        q, y, sig, d, bqb = inp
+        w, p = x[:K], x[K : K + 3]
+        p_bar = p + d
+        if cfg.q_w > 0:
+            P = P.at[jnp.arange(K), jnp.arange(K)].add(cfg.q_w)
+        P = P.at[K:, K:].add(bqb)
+        x_bar = x.at[K : K + 3].set(p_bar)
+        H = jnp.concatenate([jw(w, q), jnp.eye(3)], axis=1)
+        r = update(x_bar, P, y, p_bar + ann_t(w, q), H, jnp.diag(sig**2), joseph=cfg.joseph)
+        delta = R_tb.T @ (y - p_bar)
+        return (r.x, r.P), (r.innovation, r.nis, p_bar, delta / s)
+
+    (x, P), out = jax.lax.scan(step, (x, P), (Q, Y, SIG, dpg, BQB))
+    return x, P, out
+
+
+@partial(jax.jit, static_argnames=("spec", "cfg"))
+def _scan_adaptive(x, P, g_lin, pg, Jq, Jg, Q, Y, SIG, R_tb, *, spec, cfg):
+    """Adaptive mode over a chunk. The geometric model and its Jacobians are evaluated
+    (vectorised) at the chunk's starting geometric state g_lin and used to first order in
+    g - g_lin inside the chunk (g moves by micro-units within a chunk: the neglected second-order
+    term is below 1e-9 m); the network and the update are exact per sample."""
+    K = spec.n_weights
+
+    def ann_t(w, q):
+        return R_tb @ A.correction_base_m(w, q, spec)
+
+    jw = jax.jacrev(ann_t)
+
+    def step(carry, inp):
+        x, P = carry
+        q, y, sig, pgi, Jqi, Jgi = inp
         w, g = x[:K], x[K:]
-        hx = h(g, q, w)
-        if k:
-            Jg, Jq = jax.jacfwd(h, argnums=(0, 1))(g, q, w)
-        else:
-            Jq = jax.jacfwd(h, argnums=1)(g, q, w)
-            Jg = jnp.zeros((3, 0))
-        Hw = jax.jacrev(h, argnums=2)(g, q, w)
-        H = jnp.concatenate([Hw, Jg], axis=1)
-        Robs = jnp.diag(sig**2) + cfg.sigma_q_rad**2 * (Jq @ Jq.T)
+        hx = pgi + Jgi @ (g - g_lin) + ann_t(w, q)
+        H = jnp.concatenate([jw(w, q), Jgi], axis=1)
+        Robs = jnp.diag(sig**2) + cfg.sigma_q_rad**2 * symmetrise(Jqi @ Jqi.T)
         if cfg.q_w > 0:
             P = P.at[jnp.arange(K), jnp.arange(K)].add(cfg.q_w)
         r = update(x, P, y, hx, H, Robs, joseph=cfg.joseph)
         return (r.x, r.P), (r.innovation, r.nis, hx)
 
-    (x, P), out = jax.lax.scan(step, (x, P), (Q, Y, SIG))
+    (x, P), out = jax.lax.scan(step, (x, P), (Q, Y, SIG, pg, Jq, Jg))
     return x, P, out
 
 
@@ -163,6 +160,8 @@ class EkfAnnFilter:
     P: np.ndarray
     count: int = 0
     q_prev: np.ndarray | None = None
+    _pg_prev: np.ndarray | None = None
+    _jq_prev: np.ndarray | None = None
     ann_iterations: int = 0
     # history for the extra ANN iteration
     _q: list = field(default_factory=list)
@@ -284,39 +283,42 @@ class EkfAnnFilter:
 
     def _run(self, q, y, sig):
         cfg, spec = self.cfg, self.spec
+        K = self.n_weights
+        k = len(cfg.geometric)
+        th = self.theta
+        pg, Jq, Jg, R_tb = _geometry(th, self.base_ref, q, jnp.asarray(self.E), k=k)
         if cfg.mode == "paper":
             if self.q_prev is None:  # first sample: the position state starts at it
-                c0 = (
-                    np.asarray(tracker_T_base(self.theta0, self.base_ref))[:3, :3]
-                    @ A.predict_base_m(self.w, q[:1], spec)[0]
-                )
-                self.x[self.n_weights : self.n_weights + 3] = y[0] - c0
+                c0 = np.asarray(R_tb) @ A.predict_base_m(self.w, q[:1], spec)[0]
+                self.x[K : K + 3] = y[0] - c0
                 self.q_prev = q[0].copy()
-            x, P, qp, out = _scan_paper(
-                self.x,
-                self.P,
-                self.q_prev,
-                q,
-                y,
-                sig,
-                self.theta0,
-                self.base_ref,
-                spec=spec,
-                cfg=cfg,
+                self._pg_prev, self._jq_prev = np.asarray(pg[0]), np.asarray(Jq[0])
+            pg, Jq = np.asarray(pg), np.asarray(Jq)
+            pg_prev = np.concatenate([self._pg_prev[None], pg[:-1]])
+            jq_prev = np.concatenate([self._jq_prev[None], Jq[:-1]])
+            BQB = cfg.sigma_q_rad**2 * (
+                np.einsum("nij,nkj->nik", jq_prev, jq_prev) + np.einsum("nij,nkj->nik", Jq, Jq)
+            )
+            BQB = 0.5 * (BQB + BQB.transpose(0, 2, 1)) + cfg.q_p_m2 * np.eye(3)
+            x, P, out = _scan_paper(
+                self.x, self.P, pg - pg_prev, BQB, q, y, sig, R_tb, spec=spec, cfg=cfg
             )
             e, s2, _, d = (np.asarray(o) for o in out)
-            self.q_prev = np.asarray(qp)
+            self.q_prev = q[-1].copy()
+            self._pg_prev, self._jq_prev = pg[-1], Jq[-1]
             self._d.append(d)
         else:
             x, P, out = _scan_adaptive(
                 self.x,
                 self.P,
+                self.x[K:].copy(),
+                pg,
+                Jq,
+                Jg,
                 q,
                 y,
                 sig,
-                self.theta0,
-                self.base_ref,
-                jnp.asarray(self.E),
+                R_tb,
                 spec=spec,
                 cfg=cfg,
             )

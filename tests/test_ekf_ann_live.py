@@ -1,0 +1,156 @@
+"""EKF-ANN live use: replay equals live processing; chunking; model save/load; trajectory data."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from workcell.estimation.ekf_ann import ann as A
+from workcell.estimation.ekf_ann.filter import EkfAnnFilter, FilterConfig
+from workcell.estimation.ekf_ann.live import LiveFilter
+from workcell.estimation.ekf_ann.model import EkfAnnModel
+from workcell.estimation.models import load_model, save_model
+from workcell.kinematics.chain import pack
+from workcell.recording.reader import read_recording
+
+
+@pytest.fixture(scope="module")
+def campaign(tmp_path_factory):
+    from workcell.campaign.executor import CampaignConfig
+    from workcell.campaign.run import run_campaign, sim_cell
+
+    _, robot, tracker, cell = sim_cell("ur5e", "realistic", seed=3)
+    live = LiveFilter.for_cell(cell, n_init=8, hidden=6)
+    lines = []
+    out = tmp_path_factory.mktemp("ekf") / "c.mcap"
+    run_campaign(
+        robot,
+        tracker,
+        cell,
+        out,
+        plan="random",
+        poses=14,
+        seed=3,
+        config=CampaignConfig(readings_per_pose=2, settle_s=0.2, payload_kg=cell.payload_kg),
+        on_sample=lambda s: lines.append(live.update(s)),
+    )
+    return out, live, lines
+
+
+def test_replay_gives_the_same_estimate_as_live(campaign):
+    path, live, lines = campaign
+    rec = read_recording(path, streams=False)
+    assert len(rec.samples) == len(lines) >= 10
+    rep = LiveFilter.from_session(rec.session, n_init=8, hidden=6)
+    lines2 = [rep.update(s) for s in rec.samples]
+    assert lines2 == lines
+    np.testing.assert_array_equal(rep.filter.x, live.filter.x)
+    np.testing.assert_array_equal(rep.filter.P, live.filter.P)
+    assert "s0^2" in lines[-1] and "collecting" in lines[0]
+
+
+def test_replay_command_prints_the_live_lines(campaign, capsys):
+    from workcell.cli import main
+
+    path, _, lines = campaign
+    # the CLI uses the default network size; compare against a live filter built the same way
+    rc = main(["replay", str(path), "--online", "ekf-ann"])
+    assert rc == 0
+    out = capsys.readouterr().out.splitlines()
+    rec = read_recording(path, streams=False)
+    ref = LiveFilter.from_session(rec.session)
+    assert [ln.strip() for ln in out[:-1]] == [ref.update(s) for s in rec.samples]
+
+
+def test_model_roundtrip_predicts_the_same(campaign, tmp_path):
+    _, live, _ = campaign
+    m = live.model()
+    p = save_model(m, tmp_path / "m.json")
+    m2 = load_model(p)
+    assert isinstance(m2, EkfAnnModel) and m2.method == "ekf-ann"
+    q = np.array([[0.1, -1.3, 1.2, -1.4, -1.5, 0.2], [0.3, -1.0, 1.0, -1.6, -1.6, 0.0]])
+    np.testing.assert_array_equal(m.predict(q), m2.predict(q))
+    np.testing.assert_allclose(m.predict(q), live.filter.predict(q), atol=1e-12)
+    assert "ann_w000" in m.parameters()
+
+
+def _small_problem(n=240, seed=0):
+    rng = np.random.default_rng(seed)
+    from workcell.kinematics.robots import robot_by_name
+
+    spec_r = robot_by_name("ur5e")
+    th = pack(spec_r.dh, tool=(0, 0, 0.06))
+    t = np.arange(n) / 10.0
+    q = np.array([0.3, -1.2, 1.0, -1.4, -1.57, 0.0]) + 0.3 * np.sin(
+        2 * np.pi * t[:, None] / np.array([7.0, 11.0, 13.0, 5.0, 9.0, 6.0])
+    )
+    base = np.eye(4)
+    base[:3, 3] = (2.0, 0.3, -0.2)
+    spec = A.AnnSpec.from_joints(q, hidden=5)
+    w_true = A.random_weights(5, 1) * 3
+    from workcell.kinematics.chain import p_tracker
+
+    y = np.asarray(p_tracker(th, base, q)) + A.predict_base_m(w_true, q, spec)
+    y = y + rng.normal(0, 5e-6, y.shape)
+    return th, base, q, y, np.full_like(y, 5e-6), spec
+
+
+@pytest.mark.parametrize("mode", ["paper", "adaptive"])
+def test_chunked_equals_sample_by_sample(mode):
+    th, base, q, y, s, spec = _small_problem()
+    # without geometric states the geometry is fixed, so chunking changes nothing (with them,
+    # a chunk is linearised at its starting geometric state: live = one-sample chunks)
+    cfg = FilterConfig(mode=mode, ann_iter_every=100, ann_iter_steps=3, ann_iter_max_samples=50)
+    w0 = A.random_weights(5, 2)
+    a = EkfAnnFilter.create(cfg, spec, th, base, w0)
+    la = a.process(q, y, s)
+    b = EkfAnnFilter.create(cfg, spec, th, base, w0)
+    nis = [b.process(q[i : i + 1], y[i : i + 1], s[i : i + 1]).nis[0] for i in range(len(q))]
+    assert a.ann_iterations == b.ann_iterations == 2
+    tol = 1e-9
+    np.testing.assert_allclose(a.x, b.x, rtol=0, atol=tol * (1 + np.abs(a.x).max()))
+    np.testing.assert_allclose(la.nis, nis, rtol=1e-5, atol=1e-6)
+
+
+def test_filter_learns_the_network_part():
+    """From a wrong network the filter reduces the prediction error of the network's part."""
+    th, base, q, y, s, spec = _small_problem(n=400)
+    from workcell.kinematics.chain import p_tracker
+
+    truth_ng = y - np.asarray(p_tracker(th, base, q))
+    f = EkfAnnFilter.create(FilterConfig(ann_iter_every=0), spec, th, base, A.random_weights(5, 9))
+    before = np.sqrt(np.mean((f.ann_tracker_m(q[300:]) - truth_ng[300:]) ** 2))
+    log = f.process(q[:300], y[:300], s[:300])
+    after = np.sqrt(np.mean((f.ann_tracker_m(q[300:]) - truth_ng[300:]) ** 2))
+    assert after < 0.3 * before
+    assert np.all(np.isfinite(log.nis))
+
+
+def test_validation_errors():
+    th, base, q, y, s, spec = _small_problem(n=20)
+    with pytest.raises(ValueError, match="mode"):
+        FilterConfig(mode="nope")
+    with pytest.raises(ValueError, match="unknown geometric"):
+        FilterConfig(geometric=("a9",))
+    f = EkfAnnFilter.create(FilterConfig(), spec, th, base, A.random_weights(5, 0))
+    with pytest.raises(ValueError, match="shapes"):
+        f.process(q[:, :5], y, s)
+    with pytest.raises(ValueError, match="sigma"):
+        f.process(q, y, 0 * s)
+    with pytest.raises(ValueError, match="w0"):
+        EkfAnnFilter.create(FilterConfig(), spec, th, base, np.zeros(3))
+
+
+def test_trajectory_recording_in_shared_format(tmp_path):
+    from sim_devices.trajectory import make_trajectory, record_trajectory
+    from workcell.recording.dataset import Dataset
+
+    tr = make_trajectory(n=400, seed=2)
+    assert abs(tr.variation_m - 0.6e-3) < 0.06e-3
+    p = record_trajectory(tmp_path / "t.mcap", tr)
+    ds = Dataset.from_recording(p)
+    assert len(ds) == 400
+    np.testing.assert_allclose(ds.q, tr.q_meas_rad)
+    np.testing.assert_allclose(ds.p_tracker, tr.p_meas_m)
+    rec = read_recording(p, streams=False)
+    assert rec.closed_cleanly and not rec.problems

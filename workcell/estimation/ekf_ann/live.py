@@ -1,0 +1,195 @@
+"""Live use of the EKF-ANN: feed it every sample as it is measured (campaign) or replayed.
+
+`LiveFilter.update(sample)` takes a /campaign/sample dict and returns one progress line.
+
+Initialisation (documented scheme for a random network, issue item 2b):
+1. The first `n_init` samples are buffered. The nominal chain (session DH, nominal SMR offset)
+   is registered rigidly to them (Kabsch) - this replaces the session's rough base pose.
+2. The geometric states are the parameters the identification Jacobian of these samples can
+   separate (`workcell.estimation.identifiability.analyse`, the project's priority order: base
+   and lever arm first, dependent DH parameters stay fixed at nominal).
+3. The network input standardisation comes from the buffered joints; the weights are drawn at
+   random (Glorot, seeded) and pre-fitted by LM on the position corrections
+   R^T (y - f(q)) of the buffered samples.
+4. The filter then processes the buffered samples and every later one, one at a time.
+
+Model adequacy (2c): the innovation-based variance factor s0^2 = mean(e^T S^-1 e) / 3 over the
+last `window` samples is reported on every line with the chi^2 test (95 %): "ok" if
+sum(e^T S^-1 e) <= chi2_0.95(3 n), else "REJECT" (the model or the stated noise is inadequate).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+from scipy.stats import chi2
+
+from workcell.estimation.ekf_ann import ann as A
+from workcell.estimation.ekf_ann.filter import EkfAnnFilter, FilterConfig, prefit_weights
+from workcell.estimation.ekf_ann.model import EkfAnnModel
+from workcell.estimation.identifiability import analyse
+from workcell.kinematics.chain import (
+    N_PARAMS,
+    PARAM_NAMES,
+    jac_params,
+    p_tracker,
+    pack,
+    parallel_beta_names,
+)
+from workcell.kinematics.frames import kabsch
+from workcell.kinematics.robots import DH, RobotSpec, robot_from_session
+
+
+def identifiable_geometry(
+    dh: DH, theta: np.ndarray, base_ref: np.ndarray, q: np.ndarray, sigma: np.ndarray
+) -> list[str]:
+    """Geometric parameters separately identifiable from these samples (weighted Jacobian)."""
+    w = 1.0 / np.sqrt(np.mean(np.asarray(sigma) ** 2, axis=1))
+    J = np.asarray(jac_params(theta, base_ref, np.asarray(q))) * w[:, None, None]
+    betas = set(parallel_beta_names(dh))
+    cand = [n for n in PARAM_NAMES if not n.startswith("beta") or n in betas]
+    return analyse(J.reshape(-1, N_PARAMS), candidates=cand).identifiable
+
+
+class LiveFilter:
+    """Online EKF-ANN for a cell. Not thread-safe; call `update` from one thread."""
+
+    def __init__(
+        self,
+        spec: RobotSpec,
+        tool_m: np.ndarray,
+        *,
+        n_init: int = 30,
+        cfg: FilterConfig | None = None,
+        hidden: int = 29,
+        seed: int = 0,
+        adaptive_geometry: bool = True,
+        window: int = 100,
+    ) -> None:
+        if n_init < 6:
+            raise ValueError(
+                f"n_init must be >= 6 (registration needs several poses), got {n_init}"
+            )
+        self.robot = spec
+        self.tool_m = np.asarray(tool_m, float)
+        self.n_init = int(n_init)
+        self.cfg = cfg or FilterConfig()
+        self.hidden = hidden
+        self.seed = seed
+        self.adaptive_geometry = adaptive_geometry
+        self.filter: EkfAnnFilter | None = None
+        self._buf: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self._nis: deque = deque(maxlen=window)
+        self.n = 0
+        self.last_innovation_m = float("nan")
+
+    @classmethod
+    def for_cell(cls, cell, **kw) -> LiveFilter:
+        """From a campaign CellSetup (spec, tool_m)."""
+        return cls(cell.spec, np.asarray(cell.tool_m, float), **kw)
+
+    @classmethod
+    def from_session(cls, session: dict, **kw) -> LiveFilter:
+        """From a recording's session message (replay)."""
+        spec = robot_from_session(session["robot"])
+        return cls(spec, np.asarray(session["tool"]["smr_offset_m"], float), **kw)
+
+    # ------------------------------------------------------------------ feeding
+    @staticmethod
+    def _parse(sample: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        try:
+            q = np.asarray(sample["q_measured_rad"], float)
+            y = np.asarray(sample["tracker_position_m"], float)
+            s = sample.get("tracker_sigma_m")
+            s = np.full(3, 1e-5) if s is None else np.asarray(s, float)
+        except (KeyError, TypeError, ValueError) as e:
+            raise ValueError(f"sample {sample.get('index')}: malformed ({e})") from None
+        if q.shape != (6,) or y.shape != (3,) or s.shape != (3,):
+            raise ValueError(f"sample {sample.get('index')}: q {q.shape}, position {y.shape}")
+        s = np.where(np.isfinite(s) & (s > 0), s, 1e-5)
+        return q, y, s
+
+    def update(self, sample: dict) -> str:
+        """Process one /campaign/sample dict; return a one-line progress string."""
+        q, y, s = self._parse(sample)
+        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(y))):
+            return f"ekf-ann {self.n:5d}  sample {sample.get('index')} skipped (non-finite)"
+        self.n += 1
+        if self.filter is None:
+            self._buf.append((q, y, s))
+            if len(self._buf) < self.n_init:
+                return f"ekf-ann {self.n:5d}  collecting {len(self._buf)}/{self.n_init} samples"
+            Q, Y, S = (np.array(v) for v in zip(*self._buf, strict=True))
+            self._initialise(Q, Y, S)
+            log = self.filter.process(Q, Y, S)
+            self._buf = []
+        else:
+            log = self.filter.process(q[None], y[None], s[None])
+        self._nis.extend(log.nis.tolist())
+        self.last_innovation_m = float(np.linalg.norm(log.innovation_m[-1]))
+        return self.status_line(q)
+
+    def _initialise(self, Q: np.ndarray, Y: np.ndarray, S: np.ndarray) -> None:
+        th = pack(self.robot.dh, tool=self.tool_m)
+        base_ref = kabsch(np.asarray(p_tracker(th, np.eye(4), Q)), Y)
+        cfg = self.cfg
+        if self.adaptive_geometry and cfg.mode == "adaptive" and not cfg.geometric:
+            names = identifiable_geometry(self.robot.dh, th, base_ref, Q, S)
+            from dataclasses import replace
+
+            cfg = replace(cfg, geometric=tuple(names))
+        spec = A.AnnSpec.from_joints(Q, hidden=self.hidden)
+        w0 = prefit_weights(
+            A.random_weights(self.hidden, self.seed), Q, Y, th, base_ref, spec, seed=self.seed
+        )
+        self.filter = EkfAnnFilter.create(cfg, spec, th, base_ref, w0, seed=self.seed)
+
+    # ------------------------------------------------------------------ reporting
+    def variance_test(self) -> tuple[float, bool]:
+        """(s0^2 over the window, passes the 95 % chi^2 test)."""
+        if not self._nis:
+            return float("nan"), True
+        v = np.asarray(self._nis)
+        dof = 3 * len(v)
+        return float(v.sum() / dof), bool(v.sum() <= chi2.ppf(0.95, dof))
+
+    def status_line(self, q: np.ndarray | None = None) -> str:
+        s0, ok = self.variance_test()
+        f = self.filter
+        ng = ""
+        if f is not None and q is not None:
+            ng = f"  |ng| {np.linalg.norm(f.ann_tracker_m(q[None])[0]) * 1e3:6.3f} mm"
+        return (
+            f"ekf-ann {self.n:5d}  innov {self.last_innovation_m * 1e6:7.1f} um  "
+            f"s0^2 {s0:6.2f} {'ok' if ok else 'REJECT'}{ng}"
+            f"  ann-iter {0 if f is None else f.ann_iterations}"
+        )
+
+    def estimate(self) -> dict:
+        """The current estimate as plain data (what `replay --json` prints)."""
+        s0, ok = self.variance_test()
+        f = self.filter
+        out = {
+            "samples": self.n,
+            "variance_factor": s0,
+            "variance_test_ok": ok,
+            "initialised": f is not None,
+        }
+        if f is not None:
+            out.update(
+                {
+                    "mode": f.cfg.mode,
+                    "geometric_states": list(f.cfg.geometric),
+                    "theta": f.theta.tolist(),
+                    "geometric_std": f.geometric_std(),
+                    "ann_iterations": f.ann_iterations,
+                    "state_norm": float(np.linalg.norm(f.x)),
+                }
+            )
+        return out
+
+    def model(self) -> EkfAnnModel:
+        if self.filter is None:
+            raise ValueError(f"not initialised yet: {self.n} of {self.n_init} samples seen")
+        return EkfAnnModel.from_filter(self.filter, self.robot.model, self.robot.dh)
