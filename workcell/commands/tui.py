@@ -1,0 +1,56 @@
+"""`workcell tui [--robot sim|ur://HOST] [--tracker sim|serial://PORT] [--sim]`: the shop-floor
+terminal UI (Textual). `--sim` starts the protocol-level simulators (UR controller + GeoCOM
+tracker, `workcell sim`) and connects to them; `--robot sim --tracker sim` (the default) is the
+in-process simulation."""
+
+from __future__ import annotations
+
+import argparse
+
+from workcell.errors import UserError
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--robot", default="sim", help="sim (in-process) or ur://HOST")
+    p.add_argument("--tracker", default="sim", help="sim (in-process) or serial:///dev/ttyX")
+    p.add_argument(
+        "--sim",
+        action="store_true",
+        help="start the protocol simulators (UR controller + GeoCOM tracker) and connect",
+    )
+    p.add_argument("--model", default="ur5e", help="robot model (ur5e, ur10)")
+    p.add_argument("--effects", default="realistic", help="simulated physics (simulators only)")
+    p.add_argument("--seed", type=int, default=0, help="simulated truth seed / plan seed")
+    p.add_argument(
+        "--time-scale",
+        type=float,
+        default=None,
+        help="simulators run this many times faster (default 10 with --sim, else 1)",
+    )
+    p.add_argument("--sim-host", default="127.0.0.2", help="loopback address for --sim")
+    p.add_argument("--poses", type=int, default=50, help="default number of poses in the plan")
+    p.add_argument("--out", default="campaign.mcap", help="default recording path")
+
+
+def run(args: argparse.Namespace) -> int:
+    from workcell.tui.app import make_app
+    from workcell.tui.backend import PlanConfig
+
+    scale = args.time_scale if args.time_scale is not None else (10.0 if args.sim else 1.0)
+    if not scale > 0:
+        raise UserError(f"--time-scale must be > 0, got {scale}")
+    if args.poses <= 0:
+        raise UserError(f"--poses must be positive, got {args.poses}")
+    app = make_app(
+        args.robot,
+        args.tracker,
+        sim=args.sim,
+        model=args.model,
+        effects=args.effects,
+        seed=args.seed,
+        time_scale=scale,
+        sim_host=args.sim_host,
+        plan=PlanConfig(poses=args.poses, seed=args.seed, out=args.out),
+    )
+    app.run()
+    return 0

@@ -1,0 +1,629 @@
+"""The shop-floor terminal UI: `make_app(...)` builds it for `workcell tui` and for the tests.
+
+The app owns the state (open devices, the plan, the campaign control flags, the last recording
+and model) and runs every blocking call (device I/O, campaign, fits, diagnosis, export) in a
+thread worker. Screens post request messages up; workers post result messages up (from their
+threads); the app then sets attributes on the screens. Every failure becomes a notification.
+"""
+
+from __future__ import annotations
+
+import functools
+import time
+import traceback
+from collections.abc import Callable
+from pathlib import Path
+
+from textual.app import App
+from textual.binding import Binding
+
+from workcell.errors import UserError
+from workcell.tui import backend
+from workcell.tui import messages as m
+from workcell.tui.backend import DeviceConfig, PlanConfig
+from workcell.tui.screens import (
+    CampaignScreen,
+    DevicesScreen,
+    DiagnoseScreen,
+    ExportScreen,
+    FitScreen,
+    PlanScreen,
+)
+from workcell.tui.widgets import ConfirmScreen
+
+# events the operator must see even when not looking at the Campaign screen
+NOTIFY_KINDS = {
+    "reconnect": "warning",
+    "skip": "warning",
+    "refused": "error",
+    "protective_stop": "error",
+    "pause": "warning",
+    "resume": "information",
+    "abort": "warning",
+}
+
+
+def guarded(handler):
+    """A message handler that reports its own failure as a notification instead of crashing
+    the app (a display bug must never stop a campaign)."""
+
+    @functools.wraps(handler)
+    def wrapper(self, *args, **kw):
+        try:
+            return handler(self, *args, **kw)
+        except Exception as e:  # noqa: BLE001
+            tb = traceback.format_exception_only(type(e), e)[-1].strip()
+            self.notify(f"{handler.__name__}: {tb}", title="UI error", severity="error",
+                        timeout=10)
+            return None
+
+    return wrapper
+
+
+def next_free(path: Path) -> Path:
+    if not path.exists():
+        return path
+    k = 2
+    while True:
+        p = path.with_name(f"{path.stem}-{k}{path.suffix}")
+        if not p.exists():
+            return p
+        k += 1
+
+
+class WorkcellApp(App):
+    TITLE = "workcell"
+    ENABLE_COMMAND_PALETTE = False
+    CSS = """
+    Screen { background: $background; }
+    """
+    BINDINGS = [
+        Binding("f1", "show('devices')", "Devices"),
+        Binding("f2", "show('plan')", "Plan"),
+        Binding("f3", "show('campaign')", "Campaign"),
+        Binding("f4", "show('fit')", "Fit"),
+        Binding("f5", "show('diagnose')", "Diagnose"),
+        Binding("f6", "show('export')", "Export"),
+        Binding("ctrl+q", "quit", "Quit", priority=True),
+    ]
+
+    def __init__(
+        self,
+        devices: DeviceConfig,
+        plan: PlanConfig,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+        status_poll_s: float = 2.0,
+        autoconnect: bool = False,
+        start_screen: str = "devices",
+        notify_timeout_s: float = 6.0,
+        online: bool = True,
+    ) -> None:
+        super().__init__()
+        self.online = online
+        self.device_config = devices
+        self.plan = plan
+        self.clock = clock
+        self.status_poll_s = status_poll_s
+        self.autoconnect = autoconnect
+        self.start_screen = start_screen
+        self.notify_timeout_s = notify_timeout_s
+        self.devices: backend.Devices | None = None
+        self.control = None  # CampaignControl while a campaign runs
+        self.campaign_running = False
+        self.last_recording: str | None = None
+        self.last_model: str | None = None
+        self.last_fit: dict | None = None
+        self.last_diagnosis: dict | None = None
+        self.last_export: dict | None = None
+        self.campaign_log: list[dict] = []  # events of the current campaign (tests read it)
+        self.finished: list[m.CampaignFinished] = []
+        self._t0 = None
+        self._awaiting_recovery = False
+        self._quit_after_campaign = False
+        self.views = {
+            "devices": DevicesScreen(devices),
+            "plan": PlanScreen(plan),
+            "campaign": CampaignScreen(),
+            "fit": FitScreen(),
+            "diagnose": DiagnoseScreen(),
+            "export": ExportScreen(out="correction"),
+        }
+
+    # ------------------------------------------------------------------ navigation
+    def on_mount(self) -> None:
+        for name, screen in self.views.items():
+            self.install_screen(screen, name)
+        self.push_screen(self.start_screen)
+        self.current_view = self.start_screen
+        self._push_context()
+        if self.status_poll_s and self.status_poll_s > 0:
+            self.set_interval(self.status_poll_s, self._poll_status)
+        if self.autoconnect:
+            self.call_after_refresh(self._connect, self.device_config)
+
+    def action_show(self, name: str) -> None:
+        if name not in self.views:
+            return
+        if getattr(self, "current_view", None) == name and self.screen is self.views[name]:
+            return
+        if self.screen is not self.views.get(self.current_view):
+            return  # a modal is open; answer it first
+        self.current_view = name
+        self.switch_screen(name)
+
+    def notify_error(self, text: str, title: str = "") -> None:
+        self.notify(text, title=title, severity="error", timeout=max(self.notify_timeout_s, 8.0))
+
+    def _push_context(self) -> None:
+        """Attributes down: what each screen shows about the shared state."""
+        self.views["campaign"].set_context(self.plan, self.devices is not None)
+
+    async def action_quit(self) -> None:
+        if self.campaign_running and self.control is not None:
+
+            def answer(ok: bool | None) -> None:
+                if ok:
+                    self._quit_after_campaign = True
+                    self.control.abort.set()
+                    self.notify("aborting the campaign before quitting ...", severity="warning")
+
+            self.push_screen(
+                ConfirmScreen("A campaign is running. Abort it and quit?", yes="Abort + quit"),
+                answer,
+            )
+            return
+        self._close_devices()
+        self.exit()
+
+    def _close_devices(self) -> None:
+        if self.devices is not None:
+            self.devices.close()
+            self.devices = None
+
+    # ------------------------------------------------------------------ workers
+    def _thread(self, fn, job: str, *, group: str | None = None) -> None:
+        """Run fn() in a thread worker; any exception becomes a JobFailed message."""
+
+        def run() -> None:
+            try:
+                fn()
+            except UserError as e:
+                self.post_message(m.JobFailed(job, str(e)))
+            except (ValueError, OSError, RuntimeError) as e:
+                self.post_message(m.JobFailed(job, f"{type(e).__name__}: {e}"))
+            except Exception as e:  # noqa: BLE001 - the UI reports, it never crashes
+                tb = traceback.format_exception_only(type(e), e)[-1].strip()
+                self.post_message(m.JobFailed(job, f"unexpected error: {tb}"))
+
+        self.run_worker(run, name=job, group=group or job, thread=True, exit_on_error=False)
+
+    @guarded
+    def on_job_failed(self, msg: m.JobFailed) -> None:
+        self.notify_error(msg.error, title=msg.job)
+        if msg.job == "connect":
+            self.views["devices"].show_status(None)
+        elif msg.job == "dry-run":
+            self.views["plan"].show_result(f"[red]dry run failed[/red]: {msg.error}")
+        elif msg.job == "fit":
+            self.views["fit"].set_running(False, f"fit failed: {msg.error}")
+        elif msg.job == "diagnose":
+            self.views["diagnose"].done(f"diagnosis failed: {msg.error}")
+        elif msg.job == "export":
+            self.views["export"].refused(msg.error)
+
+    # ------------------------------------------------------------------ devices
+    @guarded
+    def on_connect_requested(self, msg: m.ConnectRequested) -> None:
+        self._connect(msg.config)
+
+    def _connect(self, cfg: DeviceConfig) -> None:
+        if self.campaign_running:
+            self.notify_error("a campaign is running; abort it before reconnecting")
+            return
+        self.device_config = cfg
+        old, self.devices = self.devices, None
+        self._push_context()
+
+        def work() -> None:
+            if old is not None:
+                old.close()
+            dev = backend.open_devices(cfg)
+            self.post_message(m.DevicesOpened(dev, backend.probe(dev)))
+
+        self.views["devices"].show_busy(f"connecting to {cfg.robot} / {cfg.tracker} ...")
+        self._thread(work, "connect")
+
+    @guarded
+    def on_devices_opened(self, msg: m.DevicesOpened) -> None:
+        self.devices = msg.devices
+        self.views["devices"].show_status(msg.status)
+        self.views["plan"].show_envelope(backend.envelope_summary(msg.devices.envelope))
+        for note in msg.devices.notes:
+            self.notify(note, severity="warning", title="Devices")
+        self.notify(
+            f"connected: {msg.devices.kind}", title="Devices", timeout=self.notify_timeout_s
+        )
+        self._push_context()
+
+    @guarded
+    def on_disconnect_requested(self, msg: m.DisconnectRequested) -> None:
+        if self.campaign_running:
+            self.notify_error("a campaign is running; abort it first")
+            return
+        dev, self.devices = self.devices, None
+        self._push_context()
+        self.views["devices"].show_status(None)
+        if dev is not None:
+            self._thread(dev.close, "disconnect")
+            self.notify("disconnected", title="Devices", timeout=self.notify_timeout_s)
+
+    @guarded
+    def on_status_requested(self, msg: m.StatusRequested) -> None:
+        self._poll_status(force=True)
+
+    def _poll_status(self, force: bool = False) -> None:
+        dev = self.devices
+        if dev is None or (self.campaign_running and not force):
+            return
+        if self.campaign_running:
+            self.notify("status is shown on the Campaign screen while it runs")
+            return
+        self._thread(lambda: self.post_message(m.DeviceStatus(backend.probe(dev))), "status")
+
+    @guarded
+    def on_device_status(self, msg: m.DeviceStatus) -> None:
+        if self.devices is not None:
+            self.views["devices"].show_status(msg.status)
+            if not msg.status.get("robot_ok", True):
+                self.notify(
+                    f"robot unreachable: {msg.status.get('robot_error', '')}",
+                    severity="warning",
+                    title="Devices",
+                )
+
+    # ------------------------------------------------------------------ plan
+    @guarded
+    def on_dry_run_requested(self, msg: m.DryRunRequested) -> None:
+        self.plan = msg.plan
+        self._push_context()
+        dev = self.devices
+        if dev is None:
+            self.views["plan"].show_result(
+                "[yellow]not connected[/yellow]: the dry run needs the cell (robot model, tool, "
+                "envelope); connect on F1 Devices"
+            )
+            self.notify_error("connect the devices first (F1)", title="Plan")
+            return
+        self._thread(
+            lambda: self.post_message(m.PlanChecked(msg.plan, backend.dry_run(msg.plan, dev))),
+            "dry-run",
+        )
+
+    @guarded
+    def on_plan_checked(self, msg: m.PlanChecked) -> None:
+        self.views["plan"].show_check(msg.plan, msg.result)
+        if not msg.result.get("ok"):
+            self.notify_error(
+                f"dry run: {len(msg.result.get('problems', []))} problem(s); nothing will move",
+                title="Plan",
+            )
+
+    # ------------------------------------------------------------------ campaign
+    @guarded
+    def on_campaign_start_requested(self, msg: m.CampaignStartRequested) -> None:
+        if self.campaign_running:
+            self.notify_error("a campaign is already running")
+            return
+        dev = self.devices
+        if dev is None:
+            self.notify_error("connect the devices first (F1)")
+            return
+        from workcell.campaign.executor import CampaignControl
+
+        plan = msg.plan
+        self.control = control = CampaignControl()
+        self.campaign_running = True
+        self.campaign_log = []
+        self._awaiting_recovery = False
+        self.views["campaign"].set_state("starting")
+
+        def work() -> None:
+            path = None
+            try:
+                if not msg.resume_from:
+                    chk = backend.dry_run(plan, dev)
+                    self.post_message(m.PlanChecked(plan, chk))
+                    if not chk["ok"]:
+                        raise UserError(
+                            f"dry run found {len(chk['problems'])} problem(s); nothing moved"
+                        )
+                live = backend.LiveResidual(dev.cell)
+                est = None
+                note = "EKF-ANN off"
+                if self.online:
+                    est = backend.LiveEstimator(
+                        dev.cell,
+                        on_result=lambda i, e: self.post_message(m.EstimateUpdated(i, e)),
+                    )
+                    note = "" if est.available else "EKF-ANN unavailable"
+                out = plan.out
+                if msg.resume_from:
+                    from workcell.campaign.resume import default_out, resume_plan
+
+                    info = resume_plan(msg.resume_from)
+                    total = int(info["campaign"]["poses"]) - len(info["done"])
+                    old = Path(msg.resume_from)
+                    if not out or Path(out) == old or Path(out).exists():
+                        out = str(default_out(old))
+                    plan_run = PlanConfig(**{**plan.__dict__, "out": out})
+                else:
+                    total = plan.poses
+                    plan_run = plan
+                self.post_message(m.CampaignStarted(total, out, note))
+                if est is not None and not est.available:
+                    self.post_message(
+                        m.CampaignEvent({"level": "info", "kind": "ekf-ann", "message": est.reason})
+                    )
+
+                def on_sample(s: dict) -> None:
+                    self.post_message(m.SampleRecorded(s, live.update(s), None))
+                    if est is not None:
+                        est.submit(s)
+
+                def on_event(e: dict) -> None:
+                    self.post_message(m.CampaignEvent(e))
+
+                try:
+                    path, result = backend.start_campaign(
+                        dev,
+                        plan_run,
+                        control=control,
+                        on_sample=on_sample,
+                        on_event=on_event,
+                        resume_from=msg.resume_from,
+                    )
+                finally:
+                    if est is not None:
+                        est.close()
+                self.post_message(
+                    m.CampaignFinished(str(path), result, backend.check_recording(path))
+                )
+            except BaseException:
+                rec = None
+                p = Path(plan.out) if plan.out else None
+                if path is None and p is not None and p.exists():
+                    try:
+                        rec = backend.check_recording(p)
+                    except Exception:  # noqa: BLE001
+                        rec = None
+                self.post_message(m.CampaignFinished(None, None, rec))
+                raise
+
+        self._thread(work, "campaign")
+
+    @guarded
+    def on_campaign_started(self, msg: m.CampaignStarted) -> None:
+        self._t0 = self.clock()
+        self._n0 = 0
+        self.views["campaign"].begin(msg.total, msg.recording, msg.ekf_note)
+
+    @guarded
+    def on_sample_recorded(self, msg: m.SampleRecorded) -> None:
+        scr = self.views["campaign"]
+        n = scr.done + 1
+        eta = None
+        if self._t0 is not None and n > 0:
+            dt = self.clock() - self._t0
+            eta = dt / n * max(scr.total - n, 0) if dt > 0 else None
+        scr.add_sample(msg.sample, msg.live, msg.estimate, eta)
+        if self._awaiting_recovery:
+            self._awaiting_recovery = False
+            self.notify(
+                f"campaign recovered: pose {msg.sample['pose_id']} recorded after the reconnect",
+                title="Campaign",
+                timeout=self.notify_timeout_s,
+            )
+
+    @guarded
+    def on_estimate_updated(self, msg: m.EstimateUpdated) -> None:
+        self.views["campaign"].add_estimate(msg.index, msg.estimate)
+
+    @guarded
+    def on_campaign_event(self, msg: m.CampaignEvent) -> None:
+        ev = msg.event
+        self.campaign_log.append(ev)
+        self.views["campaign"].add_event(ev)
+        kind = ev.get("kind")
+        if kind == "reconnect":
+            self._awaiting_recovery = True
+        sev = NOTIFY_KINDS.get(kind)
+        if sev:
+            self.notify(
+                f"{kind}: {ev.get('message')}",
+                title="Campaign",
+                severity=sev,
+                timeout=self.notify_timeout_s,
+            )
+
+    @guarded
+    def on_pause_requested(self, msg: m.PauseRequested) -> None:
+        c = self.control
+        if c is None or not self.campaign_running:
+            return
+        scr = self.views["campaign"]
+        if c.pause.is_set():
+            c.pause.clear()
+            scr.set_state("running")
+            self.notify("resumed", title="Campaign", timeout=self.notify_timeout_s)
+        else:
+            c.pause.set()
+            scr.set_state("paused")
+            self.notify("pausing after the current pose", title="Campaign",
+                        timeout=self.notify_timeout_s)
+
+    @guarded
+    def on_abort_requested(self, msg: m.AbortRequested) -> None:
+        if self.control is not None and self.campaign_running:
+            self.control.abort.set()
+            self.control.pause.clear()
+            self.views["campaign"].set_state("aborting")
+
+    @guarded
+    def on_campaign_finished(self, msg: m.CampaignFinished) -> None:
+        self.campaign_running = False
+        self.finished.append(msg)
+        scr = self.views["campaign"]
+        res, rec = msg.result, msg.recording or {}
+        if res is None:
+            state = "failed"
+            summary = (
+                f"campaign failed; recording {rec.get('path', '-')} holds "
+                f"{rec.get('samples', 0)} samples" if rec else "campaign failed before recording"
+            )
+        else:
+            state = "aborted" if res.aborted else "finished"
+            ok = "closed cleanly" if rec.get("closed_cleanly") else "NOT closed cleanly"
+            summary = (
+                f"{res.measured} measured, {res.skipped} skipped, {res.events} events; "
+                f"{Path(msg.path).name}: {rec.get('samples', '?')} samples, {ok}"
+            )
+        scr.finish(state, summary)
+        if rec.get("samples"):
+            self.last_recording = rec["path"]
+            self.views["fit"].set_recording(rec["path"])
+            self.views["diagnose"].set_recording(rec["path"])
+        if state != "failed":
+            self.notify(summary, title=f"Campaign {state}", timeout=self.notify_timeout_s,
+                        severity="information" if state == "finished" else "warning")
+        # next campaign: a fresh recording path
+        if self.plan and self.plan.out and Path(self.plan.out).exists():
+            new = next_free(Path(self.plan.out))
+            self.plan = PlanConfig(**{**self.plan.__dict__, "out": str(new)})
+            self.views["plan"].set_out(str(new))
+        self.control = None
+        self._push_context()
+        if self._quit_after_campaign:
+            self._close_devices()
+            self.exit()
+
+    # ------------------------------------------------------------------ fit / diagnose / export
+    @guarded
+    def on_fit_requested(self, msg: m.FitRequested) -> None:
+        def progress(text: str) -> None:
+            self.post_message(m.JobProgress("fit", str(text)))
+
+        def work() -> None:
+            rep = backend.fit(msg.recording, msg.method, holdout=msg.holdout, progress=progress)
+            self.post_message(m.FitFinished(rep))
+
+        self._thread(work, "fit")
+
+    @guarded
+    def on_job_progress(self, msg: m.JobProgress) -> None:
+        view = self.views.get(msg.job)
+        if view is not None and hasattr(view, "show_progress"):
+            view.show_progress(msg.text)
+
+    @guarded
+    def on_fit_finished(self, msg: m.FitFinished) -> None:
+        self.last_fit = msg.report
+        self.views["fit"].show_report(msg.report)
+        if msg.report.get("model"):
+            self.last_model = msg.report["model"]
+            self.views["export"].set_model(msg.report["model"])
+        self.notify(
+            f"{msg.report.get('method')}: held-out RMS "
+            f"{(msg.report.get('heldout_rms_m') or float('nan')) * 1e6:.1f} um",
+            title="Fit done",
+            timeout=self.notify_timeout_s,
+        )
+
+    @guarded
+    def on_diagnose_requested(self, msg: m.DiagnoseRequested) -> None:
+        def progress(text: str) -> None:
+            self.post_message(m.JobProgress("diagnose", str(text)))
+
+        def work() -> None:
+            rep = backend.diagnose(msg.recording, quick=msg.quick, progress=progress)
+            self.post_message(m.DiagnoseFinished(rep))
+
+        self._thread(work, "diagnose")
+
+    @guarded
+    def on_diagnose_finished(self, msg: m.DiagnoseFinished) -> None:
+        self.last_diagnosis = msg.report
+        self.views["diagnose"].show_report(msg.report)
+        self.notify(
+            f"{len(msg.report.get('effects', []))} effect(s) found",
+            title="Diagnosis done",
+            timeout=self.notify_timeout_s,
+        )
+
+    @guarded
+    def on_export_requested(self, msg: m.ExportRequested) -> None:
+        def log(text: str) -> None:
+            self.post_message(m.JobProgress("export", str(text)))
+
+        def work() -> None:
+            self.post_message(m.ExportFinished(backend.export(msg.config, log=log)))
+
+        self._thread(work, "export")
+
+    @guarded
+    def on_export_finished(self, msg: m.ExportFinished) -> None:
+        self.last_export = msg.summary
+        self.views["export"].show_summary(msg.summary)
+        self.notify(
+            f"wrote {', '.join(Path(f).name for f in msg.summary.get('files', []))}",
+            title="Export done",
+            timeout=self.notify_timeout_s,
+        )
+
+
+def make_app(
+    robot: str = "sim",
+    tracker: str = "sim",
+    *,
+    sim: bool = False,
+    model: str = "ur5e",
+    effects: str = "realistic",
+    seed: int = 0,
+    time_scale: float = 1.0,
+    sim_host: str = "127.0.0.2",
+    sim_faults: dict | None = None,
+    sim_tracker_faults: dict | None = None,
+    plan: PlanConfig | None = None,
+    clock: Callable[[], float] = time.monotonic,
+    status_poll_s: float = 2.0,
+    autoconnect: bool | None = None,
+    start_screen: str = "devices",
+    notify_timeout_s: float = 6.0,
+    online: bool = True,
+) -> WorkcellApp:
+    """The app, configured. `sim=True` starts the protocol simulators on connect (and connects
+    at start unless `autoconnect=False`); `robot="sim"` with `tracker="sim"` is the in-process
+    simulation (virtual time). `clock` feeds the ETA (tests pass a fixed clock); `online` feeds
+    the samples to the EKF-ANN online estimate (in its own thread) during campaigns."""
+    cfg = DeviceConfig(
+        robot=robot,
+        tracker=tracker,
+        model=model,
+        effects=effects,
+        seed=seed,
+        time_scale=time_scale,
+        start_sim=sim,
+        sim_host=sim_host,
+        sim_faults=sim_faults,
+        sim_tracker_faults=sim_tracker_faults,
+    )
+    return WorkcellApp(
+        cfg,
+        plan or PlanConfig(),
+        clock=clock,
+        status_poll_s=status_poll_s,
+        autoconnect=sim if autoconnect is None else autoconnect,
+        start_screen=start_screen,
+        notify_timeout_s=notify_timeout_s,
+        online=online,
+    )

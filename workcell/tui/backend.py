@@ -1,0 +1,661 @@
+"""What the terminal UI calls: thin, UI-free wrappers over the campaign, estimation and export
+packages. Everything here may block (device I/O, fitting); the app runs it in thread workers.
+
+Nothing here re-implements calibration logic; it opens devices, builds the arguments the library
+functions take and turns their results into plain dicts for the screens.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from workcell.errors import UserError
+
+
+class Unavailable(UserError):
+    """A feature whose module is not in this build (yet)."""
+
+
+# ----------------------------------------------------------------------------- devices
+@dataclass
+class DeviceConfig:
+    robot: str = "sim"  # sim (in-process) or ur://HOST
+    tracker: str = "sim"  # sim or serial:///dev/ttyX
+    model: str = "ur5e"
+    effects: str = "realistic"
+    seed: int = 0
+    time_scale: float = 1.0
+    start_sim: bool = False  # start the protocol-level simulators and connect to them
+    sim_host: str = "127.0.0.2"
+    sim_faults: dict | None = None  # robot faults for the simulated controller
+    sim_tracker_faults: dict | None = None
+
+
+@dataclass
+class Devices:
+    """An open cell: what `workcell.campaign.devices.open_cell` returns, plus bookkeeping."""
+
+    cell: object  # CellSetup
+    robot: object
+    tracker: object
+    envelope: object
+    robot_url: str
+    tracker_url: str
+    kind: str  # "in-process simulation", "protocol simulators", "hardware"
+    config: DeviceConfig
+    sim_process: object | None = None  # sim_devices.ur_process.SimProcess when we started it
+    notes: list[str] = field(default_factory=list)
+
+    def close(self) -> None:
+        for dev in (self.robot, self.tracker):
+            try:
+                dev.close()
+            except Exception:  # noqa: BLE001 - closing is best effort
+                pass
+        if self.sim_process is not None:
+            try:
+                self.sim_process.stop()
+            except Exception:  # noqa: BLE001
+                pass
+            self.sim_process = None
+
+
+def _namespace(cfg: DeviceConfig, robot: str, tracker: str) -> argparse.Namespace:
+    return argparse.Namespace(
+        robot=robot,
+        tracker=tracker,
+        model=cfg.model,
+        effects=cfg.effects,
+        seed=cfg.seed,
+        time_scale=cfg.time_scale,
+    )
+
+
+def open_devices(cfg: DeviceConfig) -> Devices:
+    """Open (and connect) the devices. With `start_sim`, start the protocol simulators first
+    (`sim_devices.ur_process.SimProcess`); without that module, fall back on the in-process
+    simulation and say so in `notes`."""
+    from workcell.campaign.devices import open_cell
+
+    notes: list[str] = []
+    robot_url, tracker_url = cfg.robot, cfg.tracker
+    proc = None
+    if cfg.start_sim:
+        try:
+            from sim_devices.ur_process import SimProcess
+        except ModuleNotFoundError:
+            SimProcess = None  # noqa: N806
+        if SimProcess is None:
+            notes.append("protocol simulators not available; using the in-process simulation")
+            robot_url = tracker_url = "sim"
+        else:
+            proc = SimProcess(
+                cfg.sim_host,
+                seed=cfg.seed,
+                effects=cfg.effects,
+                time_scale=cfg.time_scale,
+                faults=cfg.sim_faults,
+                with_tracker=True,
+                robot=cfg.model,
+                tracker_faults=cfg.sim_tracker_faults,
+            )
+            try:
+                proc.start()
+            except (RuntimeError, OSError) as e:
+                raise UserError(f"could not start the simulators: {e}") from None
+            robot_url = f"ur://{proc.info['ur_host']}"
+            tracker_url = f"serial://{proc.info['tracker_port']}"
+    try:
+        cell, robot, tracker, env = open_cell(_namespace(cfg, robot_url, tracker_url))
+        robot.connect()
+        tracker.connect()
+    except Exception:
+        if proc is not None:
+            proc.stop()
+        raise
+    kind = (
+        "in-process simulation"
+        if robot_url == "sim"
+        else ("protocol simulators" if proc is not None else "hardware")
+    )
+    return Devices(cell, robot, tracker, env, robot_url, tracker_url, kind, cfg, proc, notes)
+
+
+def probe(dev: Devices) -> dict:
+    """One status snapshot: robot mode and safety, joints, tracker connection. Never raises."""
+    out: dict = {"robot": dev.robot_url, "tracker": dev.tracker_url, "kind": dev.kind}
+    try:
+        st = dev.robot.state()
+        out.update(
+            robot_ok=True,
+            robot_mode=st.mode,
+            safety=st.safety,
+            q_rad=np.asarray(st.q_rad, float).tolist(),
+        )
+    except Exception as e:  # noqa: BLE001 - a status poll reports, it does not fail
+        out.update(robot_ok=False, robot_mode="UNREACHABLE", safety="?", robot_error=str(e))
+    conn = getattr(dev.tracker, "is_connected", None)
+    if conn is None:
+        conn = getattr(dev.tracker, "connected", None)
+    out["tracker_ok"] = bool(conn) if conn is not None else True
+    out["tracker_status"] = "connected" if out["tracker_ok"] else "disconnected"
+    out["tracker_model"] = getattr(dev.cell, "tracker_model", "?")
+    return out
+
+
+# ----------------------------------------------------------------------------- plan
+@dataclass
+class PlanConfig:
+    kind: str = "random"
+    poses: int = 10
+    seed: int = 0
+    settle_s: float = 1.0
+    readings_per_pose: int = 5
+    envelope: str = "default"  # or a JSON file written by Envelope.to_dict
+    out: str = "campaign.mcap"
+    warmup_s: float = 0.0
+
+    def validate(self) -> None:
+        if self.kind not in ("grid", "random", "bo", "dopt"):
+            raise UserError(f"plan type {self.kind!r}: choose grid, random, bo or dopt")
+        if self.poses <= 0:
+            raise UserError(f"number of poses must be positive, got {self.poses}")
+        if self.readings_per_pose <= 0:
+            raise UserError(f"readings per pose must be positive, got {self.readings_per_pose}")
+        if not self.settle_s >= 0:
+            raise UserError(f"settle time must be >= 0 s, got {self.settle_s}")
+        if not self.out:
+            raise UserError("give a recording path (.mcap)")
+
+
+def envelope_for(plan: PlanConfig, dev: Devices):
+    if plan.envelope in ("", "default"):
+        return dev.envelope
+    import json
+
+    from workcell.campaign.envelope import Envelope
+
+    p = Path(plan.envelope)
+    if not p.exists():
+        raise UserError(f"envelope file {p} does not exist")
+    try:
+        return Envelope.from_dict(json.loads(p.read_text()))
+    except (ValueError, KeyError) as e:
+        raise UserError(f"envelope file {p}: {e}") from None
+
+
+def campaign_config(plan: PlanConfig, dev: Devices):
+    from workcell.campaign.executor import CampaignConfig
+
+    return CampaignConfig(
+        readings_per_pose=plan.readings_per_pose,
+        settle_s=plan.settle_s,
+        payload_kg=dev.cell.payload_kg,
+        warmup_s=plan.warmup_s,
+    )
+
+
+def dry_run(plan: PlanConfig, dev: Devices) -> dict:
+    """Check every planned target and pre-pose against the envelope; nothing moves."""
+    from workcell.campaign.executor import Executor
+    from workcell.campaign.plans import make_plan
+
+    plan.validate()
+    env = envelope_for(plan, dev)
+    cfg = campaign_config(plan, dev)
+    cell = dev.cell
+    gen, q = make_plan(
+        plan.kind, cell.spec, env, plan.poses, seed=plan.seed, tool_m=cell.tool_m,
+        approach_rad=cfg.approach_rad,
+    )
+    if q is None:
+        gen.close()
+        return {"adaptive": True, "targets": plan.poses, "problems": [], "ok": True}
+    targets = list(gen)
+    ex = Executor(None, None, cell.spec, env, None, tool_m=cell.tool_m, config=cfg)
+    problems = ex.check_plan(targets)
+    return {
+        "adaptive": False,
+        "targets": len(targets),
+        "problems": problems,
+        "ok": not problems and len(targets) > 0,
+        "first_q_rad": [np.asarray(t.q_rad).tolist() for t in targets[:3]],
+    }
+
+
+def envelope_summary(env) -> list[str]:
+    lim = np.rad2deg(np.asarray(env.joint_limits_rad))
+    rows = [
+        "joints (deg): "
+        + " ".join(f"J{j + 1}[{lim[j, 0]:.0f},{lim[j, 1]:.0f}]" for j in range(6)),
+        "box (m): "
+        + f"{np.round(env.box_min_m, 2).tolist()} .. {np.round(env.box_max_m, 2).tolist()}",
+        f"floor {env.floor_z_m:.2f} m, speed <= {env.max_speed_rad_s:g} rad/s",
+    ]
+    return rows
+
+
+# ----------------------------------------------------------------------------- live residual
+class LiveResidual:
+    """Residual of each recorded sample against the nominal model, the base registered (Kabsch)
+    on the samples so far (needs 4). Called from the campaign worker thread."""
+
+    MIN_SAMPLES = 4
+
+    def __init__(self, cell) -> None:
+        from workcell.kinematics.chain import pack
+
+        self.theta = pack(cell.spec.dh, tool=np.asarray(cell.tool_m, float))
+        self.p_base: list[np.ndarray] = []
+        self.p_meas: list[np.ndarray] = []
+
+    def update(self, sample: dict) -> dict:
+        from workcell.kinematics.chain import p_tracker
+        from workcell.kinematics.frames import apply_transform, kabsch
+
+        q = np.asarray(sample["q_measured_rad"], float)[None, :]
+        self.p_base.append(np.asarray(p_tracker(self.theta, np.eye(4), q))[0])
+        self.p_meas.append(np.asarray(sample["tracker_position_m"], float))
+        n = len(self.p_meas)
+        if n < self.MIN_SAMPLES:
+            return {"n": n, "residual_m": None, "rms_m": None, "residuals_m": []}
+        P, M = np.array(self.p_base), np.array(self.p_meas)
+        T = kabsch(P, M)
+        r = np.linalg.norm(apply_transform(T, P) - M, axis=1)
+        return {
+            "n": n,
+            "residual_m": float(r[-1]),
+            "rms_m": float(np.sqrt(np.mean(r**2))),
+            "residuals_m": r.tolist(),
+        }
+
+
+class LiveEstimator:
+    """The online EKF-ANN estimate (`workcell.estimation.ekf_ann.live.LiveFilter`), fed in its
+    own thread so the campaign never waits for it (its initialisation pre-fits a network).
+
+    `submit(sample)` queues a sample; `on_result(index, estimate)` is called from the
+    estimator's thread with {"text", "innovation_m", "rms_m" (RMS of the last innovations,
+    i.e. the a-priori prediction error), "variance_factor", "initialised"}. If the module is
+    missing or fails, `available` is False and `reason` says why; the campaign goes on."""
+
+    WINDOW = 10
+
+    def __init__(self, cell, on_result: Callable[[int, dict], None] | None = None) -> None:
+        import queue
+        import threading
+
+        self.filter = None
+        self.reason = ""
+        self.on_result = on_result
+        self._innov: list[float] = []
+        self._q: queue.Queue = queue.Queue()
+        try:
+            mod = importlib.import_module("workcell.estimation.ekf_ann.live")
+            self.filter = mod.LiveFilter.for_cell(cell)
+        except ModuleNotFoundError as e:
+            self.reason = f"EKF-ANN unavailable: {e.name} is not in this build"
+        except Exception as e:  # noqa: BLE001 - optional estimator: report, go on
+            self.reason = f"EKF-ANN unavailable ({type(e).__name__}: {e})"
+        self._thread = None
+        if self.filter is not None:
+            self._thread = threading.Thread(target=self._loop, name="ekf-ann-live", daemon=True)
+            self._thread.start()
+
+    @property
+    def available(self) -> bool:
+        return self.filter is not None
+
+    def submit(self, sample: dict) -> None:
+        if self.filter is not None:
+            self._q.put(sample)
+
+    def close(self) -> None:
+        """Stop after the queued samples (the thread is a daemon; nothing waits for it)."""
+        self._q.put(None)
+
+    def _loop(self) -> None:
+        while True:
+            sample = self._q.get()
+            if sample is None or self.filter is None:
+                return
+            est = self.update(sample)
+            if self.on_result is not None:
+                self.on_result(int(sample.get("index", -1)), est)
+
+    def update(self, sample: dict) -> dict:
+        """Process one sample (blocking); the estimate, or {"error": reason} once it failed."""
+        f = self.filter
+        if f is None:
+            return {"error": self.reason}
+        try:
+            text = str(f.update(sample))
+        except Exception as e:  # noqa: BLE001
+            self.filter = None
+            self.reason = f"EKF-ANN unavailable (failed: {type(e).__name__}: {e})"
+            return {"error": self.reason}
+        out: dict = {"text": text, "initialised": getattr(f, "filter", None) is not None}
+        innov = getattr(f, "last_innovation_m", float("nan"))
+        if out["initialised"] and isinstance(innov, int | float) and np.isfinite(innov):
+            self._innov.append(float(innov))
+            w = np.array(self._innov[-self.WINDOW :])
+            out["innovation_m"] = float(innov)
+            out["rms_m"] = float(np.sqrt(np.mean(w**2)))
+        vt = getattr(f, "variance_test", None)
+        if callable(vt):
+            try:
+                out["variance_factor"], out["variance_ok"] = vt()
+            except Exception:  # noqa: BLE001
+                pass
+        return out
+
+
+# ----------------------------------------------------------------------------- campaign
+def start_campaign(
+    dev: Devices,
+    plan: PlanConfig,
+    *,
+    control,
+    on_sample: Callable[[dict], None],
+    on_event: Callable[[dict], None],
+    resume_from: str | None = None,
+):
+    """Run a campaign (blocking) -> (path, CampaignResult). With `resume_from`, continue that
+    interrupted recording into a new chained file (the plan is re-created from its session)."""
+    from workcell.campaign.run import run_campaign
+
+    plan.validate()
+    out = Path(plan.out)
+    kw: dict = {}
+    if resume_from:
+        from workcell.campaign.resume import default_out, resume_plan
+        from workcell.recording.dataset import file_sha256
+
+        old = Path(resume_from)
+        info = resume_plan(str(old))
+        camp = info["campaign"]
+        if camp["plan"] in ("bo", "dopt"):
+            raise UserError(f"{old}: resuming an adaptive ({camp['plan']}) campaign is not supported")
+        if int(camp["poses"]) - len(info["done"]) <= 0:
+            raise UserError(f"{old}: all {camp['poses']} poses already measured")
+        out = default_out(old) if (not plan.out or out == old or out.exists()) else out
+        plan = PlanConfig(
+            kind=camp["plan"],
+            poses=int(camp["poses"]),
+            seed=int(camp["seed"]),
+            settle_s=float(camp.get("settle_s", plan.settle_s)),
+            readings_per_pose=int(camp.get("readings_per_pose", plan.readings_per_pose)),
+            envelope=plan.envelope,
+            out=str(out),
+        )
+        kw = dict(
+            skip_ids=info["done"],
+            index0=info["n_samples"],
+            chained_from={
+                "path": str(old),
+                "sha256": file_sha256(old),
+                "samples": info["n_samples"],
+            },
+            elapsed0_s=info["last_elapsed"],
+        )
+    if out.exists():
+        raise UserError(f"{out} already exists; choose a new recording path or resume it")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    return run_campaign(
+        dev.robot,
+        dev.tracker,
+        dev.cell,
+        out,
+        plan=plan.kind,
+        poses=plan.poses,
+        seed=plan.seed,
+        envelope=envelope_for(plan, dev),
+        config=campaign_config(plan, dev),
+        control=control,
+        on_sample=on_sample,
+        on_event=on_event,
+        extra_campaign={
+            "robot_url": dev.robot_url,
+            "tracker_url": dev.tracker_url,
+            "effects": dev.config.effects if dev.kind != "hardware" else None,
+            "ui": "workcell tui",
+        },
+        **kw,
+    )
+
+
+def check_recording(path: str | Path) -> dict:
+    """What a reader sees in a (possibly interrupted) recording."""
+    from workcell.recording.reader import read_recording
+
+    rec = read_recording(path)
+    return {
+        "path": str(path),
+        "samples": len(rec.samples),
+        "events": len(rec.events),
+        "closed_cleanly": bool(rec.closed_cleanly),
+        "problems": list(rec.problems),
+    }
+
+
+# ----------------------------------------------------------------------------- fit
+FIT_CHOICES = ("dh", "lddmm", "gp", "ekf-ann")
+
+
+def fit(
+    recording: str | Path,
+    method: str,
+    *,
+    holdout: float = 0.25,
+    model_out: str | Path | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> dict:
+    """Fit `method` on the recording with a held-out split; save the model next to it.
+
+    Returns the `fit_dataset` report plus `model` (path) and `residuals` (held-out per-pose
+    error before/after, m) for the plot. `ekf-ann` replays the recording through the online
+    filter (`workcell.commands.replay`) when that module exists."""
+    from workcell.estimation.fitting import fit_dataset
+    from workcell.estimation.models import aux_from_dataset, save_model
+    from workcell.recording.dataset import Dataset
+
+    if method == "ekf-ann":
+        return _replay(recording, progress, holdout, model_out)
+    ds = Dataset.from_recording(recording)
+    model, report = fit_dataset(ds, method=method, holdout=holdout, progress=progress)
+    out = Path(model_out) if model_out else Path(recording).with_suffix(f".{method}.model.json")
+    info = getattr(model, "info", None)
+    if isinstance(info, dict):
+        info.setdefault("recording", ds.source)
+        info.setdefault("recording_sha256", ds.source_sha256)
+        info["heldout_rms_m"] = report["heldout_rms_m"]
+    report["model"] = str(save_model(model, out))
+    _, test = ds.holdout_split(holdout)
+    ev = ds.subset(test) if len(test) else ds
+    after = np.linalg.norm(model.predict(ev.q, **aux_from_dataset(ev)) - ev.p_tracker, axis=1)
+    from workcell.estimation.dh import nominal_registered
+    from workcell.kinematics.chain import p_tracker
+
+    train, _ = ds.holdout_split(holdout)
+    th, base = nominal_registered(ds.subset(train))
+    before = np.linalg.norm(np.asarray(p_tracker(th, base, ev.q)) - ev.p_tracker, axis=1)
+    report["residuals"] = {"before_m": before.tolist(), "after_m": after.tolist()}
+    return report
+
+
+def _replay(recording, progress, holdout: float = 0.25, model_out=None) -> dict:
+    """EKF-ANN replay (what `workcell replay --online ekf-ann` does): the training samples in
+    recording order through `LiveFilter`, then the final model on the held-out poses."""
+    try:
+        live = importlib.import_module("workcell.estimation.ekf_ann.live")
+    except ModuleNotFoundError:
+        raise Unavailable("EKF-ANN replay is not available in this build") from None
+    from workcell.estimation.dh import nominal_registered
+    from workcell.estimation.models import aux_from_dataset, error_stats, save_model
+    from workcell.kinematics.chain import p_tracker
+    from workcell.recording.dataset import Dataset
+    from workcell.recording.reader import read_recording
+
+    rec = read_recording(recording)
+    ds = Dataset.from_recording(recording)
+    train, test = ds.holdout_split(holdout)
+    keep = {int(ds.pose_id[i]) for i in train}
+    samples = [s for s in rec.samples if int(s["pose_id"]) in keep]
+    try:
+        lf = live.LiveFilter.from_session(rec.session)
+    except (KeyError, ValueError) as e:
+        raise UserError(f"{recording}: session unusable for the online filter ({e})") from None
+    if len(samples) < getattr(lf, "n_init", 0):
+        raise UserError(
+            f"EKF-ANN replay: {len(samples)} training samples, the filter needs {lf.n_init} "
+            "to initialise"
+        )
+    t0 = time.perf_counter()
+    line = ""
+    for k, smp in enumerate(samples):
+        line = lf.update(smp)
+        if progress and (k % 10 == 0 or k == len(samples) - 1):
+            progress(line)
+    model = lf.model()
+    ev = ds.subset(test) if len(test) else ds.subset(train)
+    dtr = ds.subset(train)
+    th, base = nominal_registered(dtr)
+    pred = model.predict(ev.q, **aux_from_dataset(ev))
+    held = error_stats(pred, ev.p_tracker)
+    nom_pred = np.asarray(p_tracker(th, base, ev.q))
+    nominal = error_stats(nom_pred, ev.p_tracker)
+    out = Path(model_out) if model_out else Path(recording).with_suffix(".ekf-ann.model.json")
+    report = {
+        "method": "ekf-ann",
+        "recording": ds.source,
+        "train_poses": int(len(train)),
+        "heldout_poses": int(len(test)),
+        "nominal_rms_m": nominal["rms_m"],
+        "nominal_max_m": nominal["max_m"],
+        "heldout_rms_m": held["rms_m"],
+        "heldout_max_m": held["max_m"],
+        "fit_seconds": time.perf_counter() - t0,
+        "estimate": lf.estimate(),
+        "last_line": line,
+        "model": str(save_model(model, out)),
+        "residuals": {
+            "before_m": np.linalg.norm(nom_pred - ev.p_tracker, axis=1).tolist(),
+            "after_m": np.linalg.norm(pred - ev.p_tracker, axis=1).tolist(),
+        },
+    }
+    return report
+
+
+# ----------------------------------------------------------------------------- diagnose
+def diagnose(
+    recording: str | Path, *, quick: bool = False, progress: Callable[[str], None] | None = None
+) -> dict:
+    """The discovery report (`workcell.estimation.discovery.diagnose`) as a plain dict with the
+    held-out residuals before/after for the plot."""
+    try:
+        disc = importlib.import_module("workcell.estimation.discovery")
+    except ModuleNotFoundError:
+        raise Unavailable("diagnosis (discovery) is not available in this build") from None
+    fn = getattr(disc, "diagnose", None)
+    if fn is None:
+        raise Unavailable("diagnosis: workcell.estimation.discovery has no diagnose()")
+    from workcell.recording.dataset import Dataset
+
+    ds = Dataset.from_recording(recording)
+    cfg = disc.DiagnoseConfig(nonparametric=not quick) if hasattr(disc, "DiagnoseConfig") else None
+    diag = fn(ds, cfg, progress=progress)
+    rep = dict(diag.report)
+    plots = getattr(diag, "plots", {}) or {}
+    if "res_before" in plots and "res_after" in plots:
+        rep["residuals"] = {
+            "before_m": np.linalg.norm(np.asarray(plots["res_before"]), axis=1).tolist(),
+            "after_m": np.linalg.norm(np.asarray(plots["res_after"]), axis=1).tolist(),
+        }
+    return rep
+
+
+# ----------------------------------------------------------------------------- export
+EXPORT_FORMATS = ("table", "urscript", "ros-yaml")
+
+
+@dataclass
+class ExportConfig:
+    model: str = ""
+    format: str = "table"
+    out: str = "correction"
+    volume: str = ""  # x0,y0,z0,x1,y1,z1 (m, base) or empty for the default box
+    spacing_m: float | None = None  # fixed spacing (skips refinement) or None
+    max_correction_m: float = 5e-3
+
+
+def export(cfg: ExportConfig, log: Callable[[str], None] | None = None) -> dict:
+    """Write the correction (`workcell.export`); returns the summary with its validation
+    numbers. Refusals (`CorrectionRefused`) propagate as UserError with one clear line."""
+    try:
+        build = importlib.import_module("workcell.export.build")
+    except ModuleNotFoundError:
+        raise Unavailable("export is not available in this build") from None
+    from workcell.estimation.models import load_model
+
+    if cfg.format not in EXPORT_FORMATS:
+        raise UserError(f"format {cfg.format!r}: choose {', '.join(EXPORT_FORMATS)}")
+    if not cfg.model:
+        raise UserError("choose a fitted model first (fit a recording on the Fit screen)")
+    if not Path(cfg.model).exists():
+        raise UserError(f"model file {cfg.model} does not exist")
+    model = load_model(cfg.model)
+    out = Path(cfg.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    summary: dict = {"format": cfg.format, "model": cfg.model}
+    t0 = time.perf_counter()
+    if cfg.format == "ros-yaml":
+        from workcell.export.ros_yaml import export_ros_yaml
+
+        rec, sha = build.model_recording(model)
+        path, info = export_ros_yaml(model, out, meta={"model": cfg.model, "recording_sha256": sha})
+        summary["files"] = [str(path)]
+        summary["validation"] = {
+            k: v for k, v in (info or {}).items() if isinstance(v, int | float | str)
+        }
+        summary["seconds"] = time.perf_counter() - t0
+        return summary
+    volume = build.parse_vec(cfg.volume, 6, "volume") if cfg.volume.strip() else None
+    table, _ = build.make_table(
+        model,
+        model_path=cfg.model,
+        volume=volume,
+        max_correction_m=cfg.max_correction_m,
+        spacing_m=cfg.spacing_m,
+        log=log,
+    )
+    summary["grid"] = {"shape": list(table.shape), "spacing_m": table.spacing_m.tolist()}
+    summary["validation"] = {
+        k: table.meta.get(k)
+        for k in (
+            "max_interp_error_m",
+            "rms_interp_error_m",
+            "target_interp_error_m",
+            "interp_error_target_met",
+            "interp_error_points",
+            "max_correction_m",
+            "correction_bound_m",
+        )
+    }
+    if cfg.format == "table":
+        summary["files"] = [str(p) for p in table.save(out)]
+    else:
+        from workcell.export.urscript import write_urscript
+
+        script = out if out.suffix else out.with_suffix(".script")
+        summary["files"] = [str(write_urscript(table, script))] + [
+            str(p) for p in table.save(script.with_suffix(""))
+        ]
+    summary["seconds"] = time.perf_counter() - t0
+    return summary

@@ -1,0 +1,49 @@
+"""Shared pieces of the screens: header/footer, a title line, number parsing."""
+
+from __future__ import annotations
+
+from textual.app import ComposeResult
+from textual.screen import Screen
+from textual.widgets import Footer, Header, Input
+
+from workcell.errors import UserError
+
+
+class WorkcellScreen(Screen):
+    """A screen with the app header and the key footer; subclasses yield their body."""
+
+    TITLE_TEXT = ""
+
+    def compose(self) -> ComposeResult:
+        yield Header(show_clock=False, icon="")
+        yield from self.body()
+        yield Footer()
+
+    def body(self) -> ComposeResult:  # pragma: no cover - overridden
+        yield from ()
+
+    def on_mount(self) -> None:
+        self.sub_title = self.TITLE_TEXT
+        self.render_view()
+
+    def render_view(self) -> None:
+        """Draw the stored attributes (screens are composed lazily, on first show)."""
+
+    def update_view(self) -> None:
+        if self.is_mounted:
+            self.render_view()
+
+    # values of Input widgets, validated with one clear line
+    def text(self, wid: str) -> str:
+        return self.query_one(f"#{wid}", Input).value.strip()
+
+    def number(self, wid: str, kind=float, what: str | None = None):
+        raw = self.text(wid)
+        try:
+            return kind(raw)
+        except ValueError:
+            raise UserError(f"{what or wid}: expected a number, got {raw!r}") from None
+
+
+def um(x) -> str:
+    return "-" if x is None else f"{float(x) * 1e6:.1f} um"

@@ -1,0 +1,137 @@
+"""Devices: robot and tracker addresses (sim or real), connect/disconnect, live status."""
+
+from __future__ import annotations
+
+from textual.app import ComposeResult
+from textual.binding import Binding
+from textual.containers import Horizontal, Vertical
+from textual.widgets import Button, Checkbox, Input, Label
+
+from workcell.errors import UserError
+from workcell.tui.backend import DeviceConfig
+from workcell.tui.messages import ConnectRequested, DisconnectRequested, StatusRequested
+from workcell.tui.screens.base import WorkcellScreen
+from workcell.tui.widgets import KeyValue
+
+
+class DevicesScreen(WorkcellScreen):
+    TITLE_TEXT = "Devices"
+    DEFAULT_CSS = """
+    DevicesScreen #form { height: auto; padding: 0 1; }
+    DevicesScreen .row { height: 3; }
+    DevicesScreen .row Label { width: 16; padding: 1 1 0 0; }
+    DevicesScreen .row Input { width: 1fr; }
+    DevicesScreen #buttons { height: 3; padding: 0 1; }
+    DevicesScreen #buttons Button { margin-right: 1; }
+    DevicesScreen #status { padding: 0 1; border: round $primary; height: auto; }
+    """
+    BINDINGS = [
+        Binding("ctrl+r", "connect", "Connect"),
+        Binding("ctrl+t", "disconnect", "Disconnect"),
+        Binding("ctrl+l", "refresh_status", "Status"),
+    ]
+
+    def __init__(self, config: DeviceConfig) -> None:
+        super().__init__()
+        self.config = config
+        self.status: dict | None = None
+        self.busy: str | None = None
+
+    def body(self) -> ComposeResult:
+        c = self.config
+        with Vertical(id="form"):
+            with Horizontal(classes="row"):
+                yield Label("Robot")
+                yield Input(c.robot, id="robot", placeholder="sim or ur://HOST")
+            with Horizontal(classes="row"):
+                yield Label("Tracker")
+                yield Input(c.tracker, id="tracker", placeholder="sim or serial:///dev/ttyX")
+            with Horizontal(classes="row"):
+                yield Label("Model / scale")
+                yield Input(c.model, id="model", placeholder="ur5e")
+                yield Input(f"{c.time_scale:g}", id="time-scale", placeholder="time scale")
+        with Horizontal(id="buttons"):
+            yield Button("Connect", id="connect", variant="primary")
+            yield Button("Disconnect", id="disconnect")
+            yield Checkbox("start simulators", c.start_sim, id="start-sim")
+        yield KeyValue(id="status")
+
+    def read_config(self) -> DeviceConfig:
+        scale = self.number("time-scale", float, "time scale")
+        if not scale > 0:
+            raise UserError(f"time scale must be > 0, got {scale}")
+        c = self.config
+        return DeviceConfig(
+            robot=self.text("robot") or "sim",
+            tracker=self.text("tracker") or "sim",
+            model=self.text("model") or "ur5e",
+            effects=c.effects,
+            seed=c.seed,
+            time_scale=scale,
+            start_sim=self.query_one("#start-sim", Checkbox).value,
+            sim_host=c.sim_host,
+            sim_faults=c.sim_faults,
+            sim_tracker_faults=c.sim_tracker_faults,
+        )
+
+    def action_connect(self) -> None:
+        try:
+            cfg = self.read_config()
+        except UserError as e:
+            self.notify(str(e), severity="error", title="Devices")
+            return
+        self.show_busy(f"connecting to {cfg.robot} / {cfg.tracker} ...")
+        self.post_message(ConnectRequested(cfg))
+
+    def action_disconnect(self) -> None:
+        self.post_message(DisconnectRequested())
+
+    def action_refresh_status(self) -> None:
+        self.post_message(StatusRequested())
+
+    def on_button_pressed(self, event: Button.Pressed) -> None:
+        if event.button.id == "connect":
+            self.action_connect()
+        elif event.button.id == "disconnect":
+            self.action_disconnect()
+
+    def on_input_submitted(self, event: Input.Submitted) -> None:
+        self.action_connect()
+
+    # ---------------------------------------------------------------- attributes down
+    def show_busy(self, text: str) -> None:
+        self.busy = text
+        self.update_view()
+
+    def show_status(self, status: dict | None) -> None:
+        self.status, self.busy = status, None
+        self.update_view()
+
+    def render_view(self) -> None:
+        kv = self.query_one("#status", KeyValue)
+        status = self.status
+        if self.busy:
+            kv.set_rows([("Status", self.busy)])
+            return
+        if not status:
+            kv.set_rows(
+                [
+                    ("Connection", "not connected"),
+                    ("Hint", "sim = in-process simulation; ur://HOST + serial://PORT = hardware "
+                     "or `workcell sim`; tick 'start simulators' to start them here"),
+                ]
+            )
+            return
+        q = status.get("q_rad")
+        joints = " ".join(f"{x:+.3f}" for x in q) if q else "-"
+        rows = [
+            ("Connection", f"connected ({status.get('kind', '?')})"),
+            ("Robot", f"{status.get('robot')}  mode {status.get('robot_mode')}"),
+            ("Safety", str(status.get("safety"))),
+            ("Joints (rad)", joints),
+            ("Tracker", f"{status.get('tracker')}  {status.get('tracker_status')}"),
+            ("Tracker model", str(status.get("tracker_model"))),
+        ]
+        if status.get("robot_error"):
+            rows.append(("Robot error", status["robot_error"]))
+        kv.set_rows(rows)

@@ -1,0 +1,155 @@
+"""Export: format, volume, path; the validation result of the written correction; refusals are
+shown clearly (one line, in red, and as a notification)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from textual.app import ComposeResult
+from textual.binding import Binding
+from textual.containers import Horizontal, Vertical, VerticalScroll
+from textual.widgets import Button, Input, Label, Select, Static
+
+from workcell.errors import UserError
+from workcell.tui.backend import ExportConfig
+from workcell.tui.messages import ExportRequested
+from workcell.tui.screens.base import WorkcellScreen, um
+from workcell.tui.widgets import KeyValue
+
+FORMATS = [
+    ("table (JSON + CSV correction grid)", "table"),
+    ("urscript (table + URScript functions)", "urscript"),
+    ("ros-yaml (UR ROS calibration)", "ros-yaml"),
+]
+
+
+class ExportScreen(WorkcellScreen):
+    TITLE_TEXT = "Export"
+    DEFAULT_CSS = """
+    ExportScreen #form { height: auto; padding: 0 1; }
+    ExportScreen .row { height: 3; }
+    ExportScreen .row Label { width: 10; padding: 1 1 0 0; }
+    ExportScreen .row Input { width: 1fr; }
+    ExportScreen .row Select { width: 1fr; }
+    ExportScreen #status { height: auto; padding: 0 1; }
+    ExportScreen #result-box { height: 1fr; border: round $primary; padding: 0 1; }
+    """
+    BINDINGS = [Binding("ctrl+r", "export", "Export")]
+
+    def __init__(self, model: str = "", out: str = "correction") -> None:
+        super().__init__()
+        self.model, self.out = model, out
+        self.summary: dict | None = None
+        self.running = False
+        self.status = "a correction for the robot controller; refused if it is too large"
+        self.result_rows: list[tuple[str, str]] = []
+
+    def body(self) -> ComposeResult:
+        with Vertical(id="form"):
+            with Horizontal(classes="row"):
+                yield Label("Model")
+                yield Input(self.model, id="model", placeholder="fitted model .json")
+            with Horizontal(classes="row"):
+                yield Label("Format")
+                yield Select(FORMATS, value="table", allow_blank=False, id="format")
+            with Horizontal(classes="row"):
+                yield Label("Volume")
+                yield Input("", id="volume", placeholder="x0,y0,z0,x1,y1,z1 m (empty: default box)")
+                yield Input("", id="spacing", placeholder="spacing m (auto)")
+            with Horizontal(classes="row"):
+                yield Label("Path")
+                yield Input(self.out, id="out")
+                yield Button("Export", id="run", variant="primary")
+        yield Static(self.status, id="status")
+        with VerticalScroll(id="result-box"):
+            yield KeyValue(id="result")
+
+    def set_model(self, path: str) -> None:
+        self.model = path
+        if self.is_mounted:
+            self.query_one("#model", Input).value = path
+
+    def read_config(self) -> ExportConfig:
+        sp = self.text("spacing")
+        spacing = None
+        if sp:
+            spacing = self.number("spacing", float, "spacing")
+            if not spacing > 0:
+                raise UserError(f"spacing must be > 0 m, got {spacing}")
+        return ExportConfig(
+            model=self.text("model"),
+            format=str(self.query_one("#format", Select).value),
+            out=self.text("out") or "correction",
+            volume=self.text("volume"),
+            spacing_m=spacing,
+        )
+
+    def action_export(self) -> None:
+        if self.running:
+            self.notify("an export is already running", severity="warning")
+            return
+        try:
+            cfg = self.read_config()
+            if not cfg.model:
+                raise UserError("choose a fitted model (Fit screen saves one)")
+        except UserError as e:
+            self.notify(str(e), severity="error", title="Export")
+            return
+        self.running = True
+        self.status = f"exporting {cfg.format} ..."
+        self.update_view()
+        self.post_message(ExportRequested(cfg))
+
+    def on_button_pressed(self, event: Button.Pressed) -> None:
+        self.action_export()
+
+    def on_input_submitted(self, event: Input.Submitted) -> None:
+        self.action_export()
+
+    # ---------------------------------------------------------------- attributes down
+    def show_progress(self, text: str) -> None:
+        self.status = text[:200]
+        self.update_view()
+
+    def refused(self, message: str) -> None:
+        self.running = False
+        self.status = f"[b red]REFUSED[/b red] {message}"
+        self.result_rows = [("Result", "nothing written")]
+        self.update_view()
+
+    def render_view(self) -> None:
+        self.query_one("#status", Static).update(self.status)
+        self.query_one("#run", Button).disabled = self.running
+        self.query_one("#result", KeyValue).set_rows(self.result_rows)
+
+    def show_summary(self, s: dict) -> None:
+        self.summary = s
+        self.running = False
+        v = s.get("validation") or {}
+        rows = [("Format", s.get("format", "?"))]
+        rows += [("File", Path(f).name) for f in s.get("files", [])]
+        if "grid" in s:
+            sp = max(s["grid"]["spacing_m"]) * 1e3
+            rows.append(("Grid", f"{' x '.join(map(str, s['grid']['shape']))} nodes, spacing {sp:.1f} mm"))
+        if v.get("max_interp_error_m") is not None:
+            met = v.get("interp_error_target_met")
+            verdict = "[green]PASS[/green]" if met else "[yellow]target not met[/yellow]"
+            rows.append(
+                (
+                    "Validation",
+                    f"{verdict} max interpolation error {um(v['max_interp_error_m'])} "
+                    f"(target {um(v.get('target_interp_error_m'))}, "
+                    f"{v.get('interp_error_points')} random points)",
+                )
+            )
+        if v.get("max_correction_m") is not None:
+            rows.append(
+                (
+                    "Correction",
+                    f"max {v['max_correction_m'] * 1e3:.3f} mm "
+                    f"(bound {float(v.get('correction_bound_m') or 0) * 1e3:g} mm)",
+                )
+            )
+        self.result_rows = rows
+        self.status = f"[green]exported[/green] {len(s.get('files', []))} file(s)"
+        self.update_view()

@@ -1,0 +1,157 @@
+"""Fit: choose a recording and a method; the fit runs in a worker with progress; a before/after
+table with held-out numbers and a residual plot."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from textual.app import ComposeResult
+from textual.binding import Binding
+from textual.containers import Horizontal, Vertical
+from textual.widgets import Button, DataTable, Input, Label, Select
+
+from workcell.errors import UserError
+from workcell.tui.messages import FitRequested
+from workcell.tui.screens.base import WorkcellScreen, um
+from workcell.tui.widgets import SeriesPlot
+
+METHODS = [
+    ("dh (geometric, Levenberg-Marquardt)", "dh"),
+    ("lddmm (diffeomorphic)", "lddmm"),
+    ("gp (residual GP on DH)", "gp"),
+    ("ekf-ann replay", "ekf-ann"),
+]
+
+
+class FitScreen(WorkcellScreen):
+    TITLE_TEXT = "Fit"
+    DEFAULT_CSS = """
+    FitScreen #form { height: auto; padding: 0 1; }
+    FitScreen .row { height: 3; }
+    FitScreen .row Label { width: 11; padding: 1 1 0 0; }
+    FitScreen .row Input { width: 1fr; }
+    FitScreen .row Select { width: 1fr; }
+    FitScreen #hold { width: 10; }
+    FitScreen #status { height: 1; padding: 0 1; }
+    FitScreen #lower { height: 1fr; }
+    FitScreen DataTable { width: 1fr; height: 1fr; min-height: 5; }
+    FitScreen SeriesPlot { width: 1fr; }
+    FitScreen.narrow #lower { layout: vertical; }
+    FitScreen.narrow DataTable { height: auto; }
+    """
+    BINDINGS = [Binding("ctrl+r", "fit", "Run fit")]
+
+    def __init__(self, recording: str = "") -> None:
+        super().__init__()
+        self.recording = recording
+        self.report: dict | None = None
+        self.running = False
+        self.status = "choose a recording and a method, then Fit (ctrl+r)"
+
+    def body(self) -> ComposeResult:
+        with Vertical(id="form"):
+            with Horizontal(classes="row"):
+                yield Label("Recording")
+                yield Input(self.recording, id="recording", placeholder="campaign.mcap")
+            with Horizontal(classes="row"):
+                yield Label("Method")
+                yield Select(METHODS, value="dh", allow_blank=False, id="method")
+                yield Label(" Held out")
+                yield Input("0.25", id="hold", type="number")
+                yield Button("Fit", id="fit", variant="primary")
+        yield Label(self.status, id="status")
+        with Horizontal(id="lower"):
+            yield DataTable(id="table", cursor_type="none", zebra_stripes=True)
+            yield SeriesPlot(
+                title="held-out error per pose (um)", xlabel="held-out pose", id="plot"
+            )
+
+    def on_mount(self) -> None:
+        self.sub_title = self.TITLE_TEXT
+        t = self.query_one("#table", DataTable)
+        t.add_columns("", "held-out RMS", "max")
+        self.render_view()
+
+    def on_resize(self) -> None:
+        self.set_class(self.size.width < 100, "narrow")
+
+    def set_recording(self, path: str) -> None:
+        self.recording = path
+        if self.is_mounted:
+            self.query_one("#recording", Input).value = path
+
+    def action_fit(self) -> None:
+        if self.running:
+            self.notify("a fit is already running", severity="warning")
+            return
+        try:
+            rec = self.text("recording")
+            if not rec:
+                raise UserError("choose a recording (.mcap)")
+            hold = self.number("hold", float, "held-out fraction")
+            if not 0.0 <= hold < 0.9:
+                raise UserError(f"held-out fraction must be in [0, 0.9), got {hold}")
+        except UserError as e:
+            self.notify(str(e), severity="error", title="Fit")
+            return
+        method = str(self.query_one("#method", Select).value)
+        self.set_running(True, f"fitting {method} on {Path(rec).name} ...")
+        self.post_message(FitRequested(rec, method, hold))
+
+    def on_button_pressed(self, event: Button.Pressed) -> None:
+        self.action_fit()
+
+    def on_input_submitted(self, event: Input.Submitted) -> None:
+        self.action_fit()
+
+    # ---------------------------------------------------------------- attributes down
+    def set_running(self, running: bool, text: str) -> None:
+        self.running = running
+        self.status = text
+        self.update_view()
+
+    def show_progress(self, text: str) -> None:
+        self.status = text[:200]
+        self.update_view()
+
+    def show_report(self, r: dict) -> None:
+        self.report = r
+        model = r.get("model")
+        self.running = False
+        self.status = (
+            f"{r.get('method', '?')}: held-out RMS {um(r.get('heldout_rms_m'))}"
+            + (f"; model saved as {Path(model).name}" if model else "")
+        )
+        self.update_view()
+
+    def render_view(self) -> None:
+        self.query_one("#status", Label).update(self.status)
+        self.query_one("#fit", Button).disabled = self.running
+        r = self.report
+        if not r:
+            return
+        t = self.query_one("#table", DataTable)
+        t.clear()
+        method = r.get("method", "?")
+        if "nominal_rms_m" in r:
+            t.add_row("nominal (base registered)", um(r["nominal_rms_m"]), um(r.get("nominal_max_m")))
+        t.add_row(f"{method} fitted", um(r.get("heldout_rms_m")), um(r.get("heldout_max_m")))
+        if r.get("train_rms_m") is not None:
+            t.add_row(f"{method} on training poses", um(r["train_rms_m"]), "")
+        if r.get("stated_noise_floor_m") is not None:
+            t.add_row("tracker noise floor", um(r["stated_noise_floor_m"]), "")
+        t.add_row("poses", f"{r.get('train_poses', '-')} train", f"{r.get('heldout_poses', '-')} held out")
+        unid = r.get("unidentifiable") or []
+        if unid:
+            groups = ["/".join(g) if isinstance(g, list | tuple) else str(g) for g in unid]
+            t.add_row("fixed (not identifiable)", f"{len(groups)} groups", ", ".join(groups[:2]))
+        res = r.get("residuals") or {}
+        if res:
+            before = [x * 1e6 for x in res.get("before_m", [])]
+            after = [x * 1e6 for x in res.get("after_m", [])]
+            self.query_one("#plot", SeriesPlot).set_series(
+                [
+                    ("nominal", list(range(1, len(before) + 1)), before, "scatter"),
+                    (method, list(range(1, len(after) + 1)), after, "line"),
+                ]
+            )

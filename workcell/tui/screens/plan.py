@@ -1,0 +1,156 @@
+"""Plan: plan type, poses, envelope, settle time, readings per pose, recording path; a dry-run
+check of every target against the envelope before anything moves."""
+
+from __future__ import annotations
+
+from textual.app import ComposeResult
+from textual.binding import Binding
+from textual.containers import Horizontal, Vertical, VerticalScroll
+from textual.widgets import Button, Input, Label, Select, Static
+
+from workcell.errors import UserError
+from workcell.tui.backend import PlanConfig
+from workcell.tui.messages import DryRunRequested
+from workcell.tui.screens.base import WorkcellScreen
+from workcell.tui.widgets import KeyValue
+
+PLAN_KINDS = [
+    ("random (uniform in the envelope)", "random"),
+    ("grid (joints 1-3, varied wrist)", "grid"),
+    ("bo (adaptive, GP-UCB)", "bo"),
+    ("dopt (adaptive, D-optimal)", "dopt"),
+]
+
+
+class PlanScreen(WorkcellScreen):
+    TITLE_TEXT = "Plan"
+    DEFAULT_CSS = """
+    PlanScreen #form { height: auto; padding: 0 1; }
+    PlanScreen .row { height: 3; }
+    PlanScreen .row Label { width: 12; padding: 1 1 0 0; }
+    PlanScreen .row Input { width: 1fr; }
+    PlanScreen .row Select { width: 1fr; }
+    PlanScreen #buttons { height: 3; padding: 0 1; }
+    PlanScreen #buttons Button { margin-right: 1; }
+    PlanScreen #result-box { border: round $primary; padding: 0 1; height: 1fr; min-height: 4; }
+    """
+    BINDINGS = [
+        Binding("ctrl+r", "dry_run", "Dry run"),
+        Binding("ctrl+g", "to_campaign", "Campaign"),
+    ]
+
+    def __init__(self, plan: PlanConfig) -> None:
+        super().__init__()
+        self.plan = plan
+        self.checked: PlanConfig | None = None  # the plan the last successful dry run was for
+        self.envelope_rows: list[str] = []
+        self.result_text = "No dry run yet: nothing has been checked."
+
+    def body(self) -> ComposeResult:
+        p = self.plan
+        with Vertical(id="form"):
+            with Horizontal(classes="row"):
+                yield Label("Plan")
+                yield Select(PLAN_KINDS, value=p.kind, allow_blank=False, id="kind")
+                yield Label("Poses")
+                yield Input(str(p.poses), id="poses", type="integer")
+            with Horizontal(classes="row"):
+                yield Label("Settle s")
+                yield Input(f"{p.settle_s:g}", id="settle", type="number")
+                yield Label("Readings")
+                yield Input(str(p.readings_per_pose), id="readings", type="integer")
+            with Horizontal(classes="row"):
+                yield Label("Envelope")
+                yield Input(p.envelope, id="envelope", placeholder="default or envelope.json")
+                yield Label("Seed")
+                yield Input(str(p.seed), id="seed", type="integer")
+            with Horizontal(classes="row"):
+                yield Label("Recording")
+                yield Input(p.out, id="out", placeholder="campaign.mcap")
+        with Horizontal(id="buttons"):
+            yield Button("Dry run", id="dry-run", variant="primary")
+            yield Button("To campaign", id="to-campaign")
+        with VerticalScroll(id="result-box"):
+            yield KeyValue(id="envelope-info")
+            yield Static(self.result_text, id="result")
+
+    def read_plan(self) -> PlanConfig:
+        kind = self.query_one("#kind", Select).value
+        p = PlanConfig(
+            kind=str(kind),
+            poses=self.number("poses", int, "poses"),
+            seed=self.number("seed", int, "seed"),
+            settle_s=self.number("settle", float, "settle time"),
+            readings_per_pose=self.number("readings", int, "readings per pose"),
+            envelope=self.text("envelope") or "default",
+            out=self.text("out"),
+            warmup_s=self.plan.warmup_s,
+        )
+        p.validate()
+        self.plan = p
+        return p
+
+    def action_dry_run(self) -> None:
+        try:
+            p = self.read_plan()
+        except UserError as e:
+            self.notify(str(e), severity="error", title="Plan")
+            return
+        self.show_result(f"checking {p.poses} {p.kind} poses ...")
+        self.post_message(DryRunRequested(p))
+
+    def action_to_campaign(self) -> None:
+        self.app.action_show("campaign")
+
+    def on_button_pressed(self, event: Button.Pressed) -> None:
+        if event.button.id == "dry-run":
+            self.action_dry_run()
+        else:
+            self.action_to_campaign()
+
+    def on_input_submitted(self, event: Input.Submitted) -> None:
+        self.action_dry_run()
+
+    # ---------------------------------------------------------------- attributes down
+    def render_view(self) -> None:
+        rows = self.envelope_rows
+        kv = self.query_one("#envelope-info", KeyValue)
+        if rows:
+            kv.set_rows([("Envelope", rows[0])] + [("", r) for r in rows[1:]])
+        else:
+            kv.set_rows([("Envelope", "default for the robot model (shown once connected)")])
+        self.query_one("#result", Static).update(self.result_text)
+
+    def set_out(self, path: str) -> None:
+        self.plan = PlanConfig(**{**self.plan.__dict__, "out": path})
+        if self.is_mounted:
+            self.query_one("#out", Input).value = path
+
+    def show_result(self, text: str) -> None:
+        self.result_text = text
+        self.update_view()
+
+    def show_envelope(self, rows: list[str]) -> None:
+        self.envelope_rows = rows
+        self.update_view()
+
+    def show_check(self, plan: PlanConfig, result: dict) -> None:
+        self.checked = plan if result.get("ok") else None
+        if result.get("adaptive"):
+            text = (
+                f"[b]{plan.kind}[/b]: adaptive; each of the {plan.poses} poses is chosen during the "
+                "campaign and checked against the envelope before it moves.  [green]OK[/green]"
+            )
+        elif result["problems"]:
+            shown = "\n".join("  " + x for x in result["problems"][:8])
+            more = len(result["problems"]) - 8
+            text = (
+                f"[red]{len(result['problems'])} problem(s)[/red] in {result['targets']} poses; "
+                f"the campaign will refuse them:\n{shown}" + (f"\n  ... {more} more" if more > 0 else "")
+            )
+        else:
+            text = (
+                f"[green]dry run OK[/green]: {result['targets']} poses and their approach "
+                f"pre-poses inside the envelope; nothing moved. Recording: {plan.out}"
+            )
+        self.show_result(text)
