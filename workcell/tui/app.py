@@ -14,6 +14,7 @@ import traceback
 from collections.abc import Callable
 from pathlib import Path
 
+from rich.markup import escape
 from textual.app import App
 from textual.binding import Binding
 
@@ -118,6 +119,7 @@ class WorkcellApp(App):
         self.last_export: dict | None = None
         self.campaign_log: list[dict] = []  # events of the current campaign (tests read it)
         self.finished: list[m.CampaignFinished] = []
+        self.notices: list[tuple[str, str, str]] = []
         self._t0 = None
         self._awaiting_recovery = False
         self._quit_after_campaign = False
@@ -152,8 +154,16 @@ class WorkcellApp(App):
         self.current_view = name
         self.switch_screen(name)
 
+    def notify(self, message: str, *, title: str = "", severity="information", timeout=None,
+               **kw) -> None:
+        """Toast, and keep a log of every notice (`notices`: (severity, title, message))."""
+        self.notices.append((severity, title, str(message)))
+        kw.setdefault("markup", False)
+        super().notify(message, title=title, severity=severity,
+                       timeout=self.notify_timeout_s if timeout is None else timeout, **kw)
+
     def notify_error(self, text: str, title: str = "") -> None:
-        self.notify(text, title=title, severity="error", timeout=max(self.notify_timeout_s, 8.0))
+        self.notify(text, title=title, severity="error", timeout=1.5 * self.notify_timeout_s)
 
     def _push_context(self) -> None:
         """Attributes down: what each screen shows about the shared state."""
@@ -204,11 +214,11 @@ class WorkcellApp(App):
         if msg.job == "connect":
             self.views["devices"].show_status(None)
         elif msg.job == "dry-run":
-            self.views["plan"].show_result(f"[red]dry run failed[/red]: {msg.error}")
+            self.views["plan"].show_result(f"[red]dry run failed[/red]: {escape(msg.error)}")
         elif msg.job == "fit":
-            self.views["fit"].set_running(False, f"fit failed: {msg.error}")
+            self.views["fit"].set_running(False, f"fit failed: {escape(msg.error)}")
         elif msg.job == "diagnose":
-            self.views["diagnose"].done(f"diagnosis failed: {msg.error}")
+            self.views["diagnose"].done(f"diagnosis failed: {escape(msg.error)}")
         elif msg.job == "export":
             self.views["export"].refused(msg.error)
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from rich.markup import escape
 from textual.app import ComposeResult
 from textual.binding import Binding
 from textual.containers import Horizontal, Vertical
@@ -209,7 +210,7 @@ class CampaignScreen(WorkcellScreen):
     def _write_event(self, ev: dict) -> None:
         colour = {"error": "red", "warning": "yellow"}.get(ev.get("level"), "cyan")
         self.query_one("#events", RichLog).write(
-            f"[{colour}]{ev.get('kind')}[/{colour}] {ev.get('message')}"
+            f"[{colour}]{escape(str(ev.get('kind')))}[/{colour}] {escape(str(ev.get('message')))}"
         )
 
     def finish(self, state: str, summary: str) -> None:

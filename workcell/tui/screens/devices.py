@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from rich.markup import escape
 from textual.app import ComposeResult
 from textual.binding import Binding
 from textual.containers import Horizontal, Vertical
@@ -133,5 +134,5 @@ class DevicesScreen(WorkcellScreen):
             ("Tracker model", str(status.get("tracker_model"))),
         ]
         if status.get("robot_error"):
-            rows.append(("Robot error", status["robot_error"]))
+            rows.append(("Robot error", escape(status["robot_error"])))
         kv.set_rows(rows)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from rich.markup import escape
 from textual.app import ComposeResult
 from textual.binding import Binding
 from textual.containers import Horizontal, Vertical, VerticalScroll
@@ -113,7 +114,7 @@ class ExportScreen(WorkcellScreen):
 
     def refused(self, message: str) -> None:
         self.running = False
-        self.status = f"[b red]REFUSED[/b red] {message}"
+        self.status = f"[b red]REFUSED[/b red] {escape(message)}"
         self.result_rows = [("Result", "nothing written")]
         self.update_view()
 

@@ -3,6 +3,7 @@ check of every target against the envelope before anything moves."""
 
 from __future__ import annotations
 
+from rich.markup import escape
 from textual.app import ComposeResult
 from textual.binding import Binding
 from textual.containers import Horizontal, Vertical, VerticalScroll
@@ -142,7 +143,7 @@ class PlanScreen(WorkcellScreen):
                 "campaign and checked against the envelope before it moves.  [green]OK[/green]"
             )
         elif result["problems"]:
-            shown = "\n".join("  " + x for x in result["problems"][:8])
+            shown = "\n".join("  " + escape(x) for x in result["problems"][:8])
             more = len(result["problems"]) - 8
             text = (
                 f"[red]{len(result['problems'])} problem(s)[/red] in {result['targets']} poses; "

@@ -1,0 +1,188 @@
+"""Pilot tests of the terminal UI against the in-process simulated cell (virtual time): the whole
+flow (connect, plan 10 poses, run to the end, fit dh, diagnose, export a table), abort mid-campaign
+leaving a valid recording, then resuming it."""
+
+import asyncio
+import time
+
+import pytest
+
+from workcell.recording.reader import read_recording
+from workcell.tui.app import make_app
+from workcell.tui.backend import PlanConfig
+
+SIZE = (100, 30)
+
+
+async def until(pilot, cond, timeout_s: float = 180.0, what: str = "") -> None:
+    t0 = time.monotonic()
+    while not cond():
+        await pilot.pause(0.05)
+        if time.monotonic() - t0 > timeout_s:
+            raise AssertionError(f"timed out waiting for {what or cond}")
+
+
+def app_for(poses: int):
+    return make_app(
+        plan=PlanConfig(poses=poses, readings_per_pose=3, settle_s=0.5, out="run.mcap"),
+        status_poll_s=0,
+        clock=lambda: 0.0,
+        online=False,
+    )
+
+
+async def connect(app, pilot) -> None:
+    await pilot.press("ctrl+r")
+    await until(pilot, lambda: app.devices is not None, 60, "connect")
+
+
+async def set_input(pilot, screen, wid: str, value: str) -> None:
+    screen.query_one(f"#{wid}").value = value
+    await pilot.pause()
+
+
+async def run_campaign(app, pilot, n_finished: int) -> None:
+    await pilot.press("f3")
+    await pilot.press("s")  # asks first
+    assert type(app.screen).__name__ == "ConfirmScreen"
+    await pilot.press("y")
+    await until(pilot, lambda: len(app.finished) >= n_finished, 120, "campaign end")
+
+
+def test_whole_flow(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    app = app_for(10)
+
+    async def flow():
+        async with app.run_test(size=SIZE) as pilot:
+            await connect(app, pilot)
+            assert app.devices.kind == "in-process simulation"
+            # plan 10 poses and dry-run them
+            await pilot.press("f2")
+            plan = app.views["plan"]
+            await set_input(pilot, plan, "poses", "10")
+            await pilot.press("ctrl+r")
+            await until(pilot, lambda: plan.checked is not None, 60, "dry run")
+            # refusing the confirmation moves nothing
+            await pilot.press("f3")
+            await pilot.press("s")
+            await pilot.press("n")
+            assert not app.campaign_running and not (tmp_path / "run.mcap").exists()
+            await run_campaign(app, pilot, 1)
+            fin = app.finished[-1]
+            assert fin.result.measured + fin.result.skipped == 10
+            assert fin.recording["closed_cleanly"] and not fin.result.aborted
+            assert app.views["campaign"].done == fin.result.measured
+            # 10 poses are too few to fit 30-odd parameters: refused with a notice, no crash
+            await pilot.press("f4")
+            fit = app.views["fit"]
+            assert fit.query_one("#recording").value == "run.mcap"
+            await pilot.press("ctrl+r")
+            await until(pilot, lambda: not fit.running, 120, "fit refusal")
+            assert app.last_fit is None
+            assert any(sev == "error" and "poses" in txt for sev, _, txt in app.notices)
+            # a campaign large enough to fit and diagnose (next free recording name)
+            await pilot.press("f2")
+            assert plan.query_one("#out").value == "run-2.mcap"
+            await set_input(pilot, plan, "poses", "44")
+            await pilot.press("ctrl+r")
+            await until(pilot, lambda: plan.checked and plan.checked.poses == 44, 60, "dry run")
+            await run_campaign(app, pilot, 2)
+            assert app.finished[-1].recording["samples"] >= 40
+            # fit dh
+            await pilot.press("f4")
+            assert fit.query_one("#recording").value == "run-2.mcap"
+            await pilot.press("ctrl+r")
+            await until(pilot, lambda: app.last_fit is not None, 240, "fit")
+            rep = app.last_fit
+            assert rep["method"] == "dh"
+            assert rep["heldout_rms_m"] < 0.5 * rep["nominal_rms_m"]
+            assert (tmp_path / rep["model"]).exists()
+            # diagnose (quick: no non-parametric check)
+            await pilot.press("f5")
+            diag = app.views["diagnose"]
+            await pilot.press("ctrl+r")
+            await until(pilot, lambda: not diag.running, 300, "diagnosis")
+            d = app.last_diagnosis
+            assert d is not None, app.notices[-3:]
+            assert d["summary"] and d["rms_after_m"] <= d["rms_before_m"]
+            # export a table (coarse fixed spacing keeps the test short)
+            await pilot.press("f6")
+            ex = app.views["export"]
+            assert ex.query_one("#model").value == rep["model"]
+            await set_input(pilot, ex, "spacing", "0.12")
+            await set_input(pilot, ex, "out", "out/correction")
+            await pilot.press("ctrl+r")
+            await until(pilot, lambda: not ex.running, 240, "export")
+            s = app.last_export
+            assert s is not None, app.notices[-3:]
+            assert {p.rsplit(".", 1)[1] for p in s["files"]} == {"json", "csv"}
+            for f in s["files"]:
+                assert (tmp_path / f).stat().st_size > 0
+            assert s["validation"]["max_interp_error_m"] > 0
+            assert not [n for n in app.notices if n[1] == "UI error"], app.notices
+
+    asyncio.run(flow())
+
+
+def test_abort_leaves_valid_recording_then_resume(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    app = app_for(24)
+
+    async def flow():
+        async with app.run_test(size=SIZE) as pilot:
+            await connect(app, pilot)
+            await pilot.press("f3")
+            scr = app.views["campaign"]
+            await pilot.press("s", "y")
+            await until(pilot, lambda: scr.done >= 3, 60, "3 poses")
+            await pilot.press("p")  # pause between poses, then abort with confirmation
+            await pilot.press("a")
+            assert type(app.screen).__name__ == "ConfirmScreen"
+            await pilot.press("y")
+            await until(pilot, lambda: app.finished, 60, "abort")
+            fin = app.finished[-1]
+            assert fin.result.aborted
+            rec = read_recording(tmp_path / "run.mcap")
+            assert rec.closed_cleanly and not rec.problems
+            done = {s["pose_id"] for s in rec.samples}
+            assert 3 <= len(done) < 24
+            assert any(e["kind"] == "abort" for e in rec.events)
+            assert scr.state == "aborted"
+            # resume the interrupted recording into a chained file
+            await pilot.press("r")
+            await pilot.press("ctrl+u")
+            for ch in "run.mcap":
+                await pilot.press(ch)
+            await pilot.press("enter")
+            await pilot.press("y")
+            await until(pilot, lambda: len(app.finished) >= 2, 60, "resume")
+            fin2 = app.finished[-1]
+            assert fin2.result is not None and not fin2.result.aborted, app.notices[-3:]
+            rec2 = read_recording(fin2.path)
+            assert rec2.session["chained_from"]["samples"] == len(rec.samples)
+            more = {s["pose_id"] for s in rec2.samples}
+            assert not done & more
+            skipped = fin.result.skipped + fin2.result.skipped
+            assert len(done | more) + skipped == 24
+
+    asyncio.run(flow())
+
+
+@pytest.mark.parametrize("bad", ["-3", "x"])
+def test_bad_plan_input_is_a_notice_not_a_crash(tmp_path, monkeypatch, bad):
+    monkeypatch.chdir(tmp_path)
+    app = app_for(10)
+
+    async def flow():
+        async with app.run_test(size=SIZE) as pilot:
+            await pilot.press("f2")
+            await set_input(pilot, app.views["plan"], "poses", bad)
+            await pilot.press("ctrl+r")
+            await pilot.pause()
+            assert app.notices and app.notices[-1][0] == "error"
+            # starting a campaign without devices is refused
+            await pilot.press("f3", "s")
+            assert app.notices[-1][0] == "error" and not app.campaign_running
+
+    asyncio.run(flow())
