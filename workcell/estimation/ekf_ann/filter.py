@@ -52,7 +52,7 @@ class FilterConfig:
     sigma_g0_rad: float = 2e-4  # adaptive: prior std of angle parameters
     ann_iter_every: int = 500  # extra ANN iteration every this many samples (0 = never)
     ann_iter_steps: int = 10
-    ann_iter_max_samples: int = 400
+    ann_iter_max_samples: int = 600
     n_train: int | None = None  # no extra ANN iterations after this many samples
     joseph: bool = False
 
