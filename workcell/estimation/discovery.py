@@ -86,7 +86,7 @@ class DiagnoseConfig:
     cv_folds: int = 5
     cv_alpha: float = 0.05  # one-sided paired test of per-pose CV errors
     rho_min: float = 0.05  # identifiability threshold
-    max_effects: int = 8
+    max_effects: int = 12
     orders: tuple[int, ...] = (1, 2, 3)
     tracker_mpe: tuple[float, float] = (15e-6, 6e-6)  # A [m] + B [m/m] * range; sigma=MPE/4
     np_alpha: float = 0.01
