@@ -16,6 +16,8 @@ class SimRobot:
     def __init__(self, world: SimWorld) -> None:
         self.world = world
         self.connected = False
+        self._tau_key: bytes | None = None
+        self._tau = np.zeros(6)
 
     def connect(self) -> None:
         self.connected = True
@@ -23,9 +25,15 @@ class SimRobot:
     def close(self) -> None:
         self.connected = False
 
+    def _torques(self, q: np.ndarray) -> np.ndarray:
+        key = np.round(q, 9).tobytes()  # the arm is static most of the time: cache
+        if key != self._tau_key:
+            self._tau_key, self._tau = key, self.world.truth.gravity_torques(q)
+        return self._tau
+
     def state(self) -> RobotState:
         q, qd = self.world.joint_state()
-        tau = self.world.truth.gravity_torques(q)
+        tau = self._torques(q)
         return RobotState(
             t_s=self.world.clock.now(),
             q_rad=q + self.world.rng.normal(0.0, 2e-6, 6),  # encoder noise

@@ -26,7 +26,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--seed", type=int, default=1, help="seed of the simulated truth and plan")
     p.add_argument("--model", default="ur5e", help="robot model (ur5e, ur10)")
-    p.add_argument("--methods", default="dh,lddmm,gp", help="fits to run (comma list)")
+    p.add_argument(
+        "--methods",
+        default="dh,lddmm,gp,augmented",
+        help="fits to run (comma list; augmented = geometry + the effects that "
+        "`workcell diagnose` names)",
+    )
     p.add_argument("--out", default="out/demo", help="directory for the recording and models")
     p.add_argument(
         "--warmup",
@@ -78,6 +83,8 @@ def run(args: argparse.Namespace) -> int:
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     results, models = {}, {}
     for m in methods:
+        if m == "augmented":
+            continue
         try:
             model, rep = fit_dataset(ds, method=m, holdout=0.25)
         except UserError as e:
@@ -92,6 +99,27 @@ def run(args: argparse.Namespace) -> int:
         )
     if "dh" not in results:
         raise UserError("the DH fit failed; nothing to report")
+    diagnosis = None
+    if "augmented" in methods:
+        from workcell.estimation.discovery import diagnose
+
+        t1 = time.perf_counter()
+        diagnosis = diagnose(ds)
+        r = diagnosis.report
+        models["augmented"] = diagnosis.model
+        save_model(diagnosis.model, out / f"{rec_path.stem}.augmented.json")
+        results["augmented"] = {
+            "heldout_rms_m": r["rms_after_m"],
+            "heldout_max_m": r["max_after_m"],
+            "fit_seconds": time.perf_counter() - t1,
+            "heldout_poses": r.get("heldout_poses"),
+        }
+        log(
+            f"  diagnose      : held-out RMS {r['rms_after_m'] * 1e6:8.1f} um  "
+            f"max {r['max_after_m'] * 1e6:8.1f} um  ({results['augmented']['fit_seconds']:.1f} s)"
+        )
+        for e in r["effects"]:
+            log(f"     named: {e['kind']} joint {e['joint']}")
     dh = results["dh"]
     floor = noise_floor(ds, models["dh"], world.truth.noise)
     train, test = ds.holdout_split(0.25)
@@ -111,6 +139,13 @@ def run(args: argparse.Namespace) -> int:
         "recording": str(rec_path),
         "models": {m: str(out / f"{rec_path.stem}.{m}.json") for m in results},
     }
+    if diagnosis is not None:
+        summary["diagnosis"] = {
+            "effects": [
+                {"kind": e["kind"], "joint": e["joint"]} for e in diagnosis.report["effects"]
+            ],
+            "summary": diagnosis.report["summary"],
+        }
     if not args.no_correction:
         try:
             from workcell.export.demo_step import correction_step  # export issue
@@ -134,6 +169,8 @@ def run(args: argparse.Namespace) -> int:
         f"calibrated/noise floor: {best['heldout_rms_m'] / floor:.2f}"
     )
     print(f"poses: {len(train)} train, {len(test)} held out; recording {rec_path}")
+    if diagnosis is not None:
+        print("\ndiagnosis: " + diagnosis.report["summary"].split("\n")[0])
     if "correction" in summary:
         c = summary["correction"]
         print(
