@@ -28,6 +28,7 @@ def app_for(poses: int):
         status_poll_s=0,
         clock=lambda: 0.0,
         online=False,
+        cursor_blink=False,
     )
 
 
@@ -127,7 +128,7 @@ def test_whole_flow(tmp_path, monkeypatch):
 
 def test_abort_leaves_valid_recording_then_resume(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    app = app_for(24)
+    app = app_for(60)  # long enough that the abort lands mid-campaign
 
     async def flow():
         async with app.run_test(size=SIZE) as pilot:
@@ -146,7 +147,7 @@ def test_abort_leaves_valid_recording_then_resume(tmp_path, monkeypatch):
             rec = read_recording(tmp_path / "run.mcap")
             assert rec.closed_cleanly and not rec.problems
             done = {s["pose_id"] for s in rec.samples}
-            assert 3 <= len(done) < 24
+            assert 3 <= len(done) < 60
             assert any(e["kind"] == "abort" for e in rec.events)
             assert scr.state == "aborted"
             # resume the interrupted recording into a chained file
@@ -164,7 +165,7 @@ def test_abort_leaves_valid_recording_then_resume(tmp_path, monkeypatch):
             more = {s["pose_id"] for s in rec2.samples}
             assert not done & more
             skipped = fin.result.skipped + fin2.result.skipped
-            assert len(done | more) + skipped == 24
+            assert len(done | more) + skipped == 60
 
     asyncio.run(flow())
 

@@ -54,8 +54,7 @@ def guarded(handler):
             return handler(self, *args, **kw)
         except Exception as e:  # noqa: BLE001
             tb = traceback.format_exception_only(type(e), e)[-1].strip()
-            self.notify(f"{handler.__name__}: {tb}", title="UI error", severity="error",
-                        timeout=10)
+            self.notify(f"{handler.__name__}: {tb}", title="UI error", severity="error", timeout=10)
             return None
 
     return wrapper
@@ -99,9 +98,11 @@ class WorkcellApp(App):
         start_screen: str = "devices",
         notify_timeout_s: float = 6.0,
         online: bool = True,
+        cursor_blink: bool = True,
     ) -> None:
         super().__init__()
         self.online = online
+        self.cursor_blink = cursor_blink
         self.device_config = devices
         self.plan = plan
         self.clock = clock
@@ -154,13 +155,19 @@ class WorkcellApp(App):
         self.current_view = name
         self.switch_screen(name)
 
-    def notify(self, message: str, *, title: str = "", severity="information", timeout=None,
-               **kw) -> None:
+    def notify(
+        self, message: str, *, title: str = "", severity="information", timeout=None, **kw
+    ) -> None:
         """Toast, and keep a log of every notice (`notices`: (severity, title, message))."""
         self.notices.append((severity, title, str(message)))
         kw.setdefault("markup", False)
-        super().notify(message, title=title, severity=severity,
-                       timeout=self.notify_timeout_s if timeout is None else timeout, **kw)
+        super().notify(
+            message,
+            title=title,
+            severity=severity,
+            timeout=self.notify_timeout_s if timeout is None else timeout,
+            **kw,
+        )
 
     def notify_error(self, text: str, title: str = "") -> None:
         self.notify(text, title=title, severity="error", timeout=1.5 * self.notify_timeout_s)
@@ -185,6 +192,11 @@ class WorkcellApp(App):
             return
         self._close_devices()
         self.exit()
+
+    def on_unmount(self) -> None:
+        if self.control is not None:
+            self.control.abort.set()
+        self._close_devices()  # never leave simulators started by --sim behind
 
     def _close_devices(self) -> None:
         if self.devices is not None:
@@ -469,8 +481,9 @@ class WorkcellApp(App):
         else:
             c.pause.set()
             scr.set_state("paused")
-            self.notify("pausing after the current pose", title="Campaign",
-                        timeout=self.notify_timeout_s)
+            self.notify(
+                "pausing after the current pose", title="Campaign", timeout=self.notify_timeout_s
+            )
 
     @guarded
     def on_abort_requested(self, msg: m.AbortRequested) -> None:
@@ -489,7 +502,9 @@ class WorkcellApp(App):
             state = "failed"
             summary = (
                 f"campaign failed; recording {rec.get('path', '-')} holds "
-                f"{rec.get('samples', 0)} samples" if rec else "campaign failed before recording"
+                f"{rec.get('samples', 0)} samples"
+                if rec
+                else "campaign failed before recording"
             )
         else:
             state = "aborted" if res.aborted else "finished"
@@ -504,8 +519,12 @@ class WorkcellApp(App):
             self.views["fit"].set_recording(rec["path"])
             self.views["diagnose"].set_recording(rec["path"])
         if state != "failed":
-            self.notify(summary, title=f"Campaign {state}", timeout=self.notify_timeout_s,
-                        severity="information" if state == "finished" else "warning")
+            self.notify(
+                summary,
+                title=f"Campaign {state}",
+                timeout=self.notify_timeout_s,
+                severity="information" if state == "finished" else "warning",
+            )
         # next campaign: a fresh recording path
         if self.plan and self.plan.out and Path(self.plan.out).exists():
             new = next_free(Path(self.plan.out))
@@ -610,11 +629,13 @@ def make_app(
     start_screen: str = "devices",
     notify_timeout_s: float = 6.0,
     online: bool = True,
+    cursor_blink: bool = True,
 ) -> WorkcellApp:
     """The app, configured. `sim=True` starts the protocol simulators on connect (and connects
     at start unless `autoconnect=False`); `robot="sim"` with `tracker="sim"` is the in-process
     simulation (virtual time). `clock` feeds the ETA (tests pass a fixed clock); `online` feeds
-    the samples to the EKF-ANN online estimate (in its own thread) during campaigns."""
+    the samples to the EKF-ANN online estimate (in its own thread) during campaigns;
+    `cursor_blink=False` makes screenshots deterministic."""
     cfg = DeviceConfig(
         robot=robot,
         tracker=tracker,
@@ -636,4 +657,5 @@ def make_app(
         start_screen=start_screen,
         notify_timeout_s=notify_timeout_s,
         online=online,
+        cursor_blink=cursor_blink,
     )

@@ -212,7 +212,12 @@ def dry_run(plan: PlanConfig, dev: Devices) -> dict:
     cfg = campaign_config(plan, dev)
     cell = dev.cell
     gen, q = make_plan(
-        plan.kind, cell.spec, env, plan.poses, seed=plan.seed, tool_m=cell.tool_m,
+        plan.kind,
+        cell.spec,
+        env,
+        plan.poses,
+        seed=plan.seed,
+        tool_m=cell.tool_m,
         approach_rad=cfg.approach_rad,
     )
     if q is None:
@@ -233,8 +238,7 @@ def dry_run(plan: PlanConfig, dev: Devices) -> dict:
 def envelope_summary(env) -> list[str]:
     lim = np.rad2deg(np.asarray(env.joint_limits_rad))
     rows = [
-        "joints (deg): "
-        + " ".join(f"J{j + 1}[{lim[j, 0]:.0f},{lim[j, 1]:.0f}]" for j in range(6)),
+        "joints (deg): " + " ".join(f"J{j + 1}[{lim[j, 0]:.0f},{lim[j, 1]:.0f}]" for j in range(6)),
         "box (m): "
         + f"{np.round(env.box_min_m, 2).tolist()} .. {np.round(env.box_max_m, 2).tolist()}",
         f"floor {env.floor_z_m:.2f} m, speed <= {env.max_speed_rad_s:g} rad/s",
@@ -382,7 +386,9 @@ def start_campaign(
         info = resume_plan(str(old))
         camp = info["campaign"]
         if camp["plan"] in ("bo", "dopt"):
-            raise UserError(f"{old}: resuming an adaptive ({camp['plan']}) campaign is not supported")
+            raise UserError(
+                f"{old}: resuming an adaptive ({camp['plan']}) campaign is not supported"
+            )
         if int(camp["poses"]) - len(info["done"]) <= 0:
             raise UserError(f"{old}: all {camp['poses']} poses already measured")
         out = default_out(old) if (not plan.out or out == old or out.exists()) else out

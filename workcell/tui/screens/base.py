@@ -24,6 +24,9 @@ class WorkcellScreen(Screen):
 
     def on_mount(self) -> None:
         self.sub_title = self.TITLE_TEXT
+        if not getattr(self.app, "cursor_blink", True):  # deterministic screenshots
+            for w in self.query(Input):
+                w.cursor_blink = False
         self.render_view()
 
     def render_view(self) -> None:

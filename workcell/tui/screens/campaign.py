@@ -218,8 +218,11 @@ class CampaignScreen(WorkcellScreen):
         if state == "finished":
             self.eta_s = 0.0
         self.add_event(
-            {"level": "info" if state == "finished" else "warning", "kind": state,
-             "message": summary}
+            {
+                "level": "info" if state == "finished" else "warning",
+                "kind": state,
+                "message": summary,
+            }
         )
         self.update_view()
 
@@ -238,7 +241,10 @@ class CampaignScreen(WorkcellScreen):
         rows: list[tuple[str, str]] = []
         rec = self.recording or (self.plan.out if self.plan else "-")
         rows.append(
-            ("State", f"{self.state.upper()}  {self.done}/{self.total} poses  -> {Path(str(rec)).name}")
+            (
+                "State",
+                f"{self.state.upper()}  {self.done}/{self.total} poses  -> {Path(str(rec)).name}",
+            )
         )
         s = self.last_sample
         if s:

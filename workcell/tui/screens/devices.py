@@ -118,8 +118,11 @@ class DevicesScreen(WorkcellScreen):
             kv.set_rows(
                 [
                     ("Connection", "not connected"),
-                    ("Hint", "sim = in-process simulation; ur://HOST + serial://PORT = hardware "
-                     "or `workcell sim`; tick 'start simulators' to start them here"),
+                    (
+                        "Hint",
+                        "sim = in-process simulation; ur://HOST + serial://PORT = hardware "
+                        "or `workcell sim`; tick 'start simulators' to start them here",
+                    ),
                 ]
             )
             return

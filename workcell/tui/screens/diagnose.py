@@ -50,11 +50,10 @@ class DiagnoseScreen(WorkcellScreen):
             yield SeriesPlot(title="held-out RMS per step (um)", id="plot")
 
     def on_mount(self) -> None:
-        self.sub_title = self.TITLE_TEXT
         self.query_one("#effects", DataTable).add_columns(
             "model / effect", "joint", "explains", "held-out RMS"
         )
-        self.render_view()
+        super().on_mount()
 
     def on_resize(self) -> None:
         self.set_class(self.size.width < 100, "narrow")

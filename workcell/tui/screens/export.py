@@ -131,7 +131,9 @@ class ExportScreen(WorkcellScreen):
         rows += [("File", Path(f).name) for f in s.get("files", [])]
         if "grid" in s:
             sp = max(s["grid"]["spacing_m"]) * 1e3
-            rows.append(("Grid", f"{' x '.join(map(str, s['grid']['shape']))} nodes, spacing {sp:.1f} mm"))
+            rows.append(
+                ("Grid", f"{' x '.join(map(str, s['grid']['shape']))} nodes, spacing {sp:.1f} mm")
+            )
         if v.get("max_interp_error_m") is not None:
             met = v.get("interp_error_target_met")
             verdict = "[green]PASS[/green]" if met else "[yellow]target not met[/yellow]"

@@ -67,10 +67,8 @@ class FitScreen(WorkcellScreen):
             )
 
     def on_mount(self) -> None:
-        self.sub_title = self.TITLE_TEXT
-        t = self.query_one("#table", DataTable)
-        t.add_columns("", "held-out RMS", "max")
-        self.render_view()
+        self.query_one("#table", DataTable).add_columns("", "held-out RMS", "max")
+        super().on_mount()
 
     def on_resize(self) -> None:
         self.set_class(self.size.width < 100, "narrow")
@@ -118,9 +116,8 @@ class FitScreen(WorkcellScreen):
         self.report = r
         model = r.get("model")
         self.running = False
-        self.status = (
-            f"{r.get('method', '?')}: held-out RMS {um(r.get('heldout_rms_m'))}"
-            + (f"; model saved as {Path(model).name}" if model else "")
+        self.status = f"{r.get('method', '?')}: held-out RMS {um(r.get('heldout_rms_m'))}" + (
+            f"; model saved as {Path(model).name}" if model else ""
         )
         self.update_view()
 
@@ -134,13 +131,17 @@ class FitScreen(WorkcellScreen):
         t.clear()
         method = r.get("method", "?")
         if "nominal_rms_m" in r:
-            t.add_row("nominal (base registered)", um(r["nominal_rms_m"]), um(r.get("nominal_max_m")))
+            t.add_row(
+                "nominal (base registered)", um(r["nominal_rms_m"]), um(r.get("nominal_max_m"))
+            )
         t.add_row(f"{method} fitted", um(r.get("heldout_rms_m")), um(r.get("heldout_max_m")))
         if r.get("train_rms_m") is not None:
             t.add_row(f"{method} on training poses", um(r["train_rms_m"]), "")
         if r.get("stated_noise_floor_m") is not None:
             t.add_row("tracker noise floor", um(r["stated_noise_floor_m"]), "")
-        t.add_row("poses", f"{r.get('train_poses', '-')} train", f"{r.get('heldout_poses', '-')} held out")
+        t.add_row(
+            "poses", f"{r.get('train_poses', '-')} train", f"{r.get('heldout_poses', '-')} held out"
+        )
         unid = r.get("unidentifiable") or []
         if unid:
             groups = ["/".join(g) if isinstance(g, list | tuple) else str(g) for g in unid]

@@ -31,8 +31,7 @@ class PlanScreen(WorkcellScreen):
     PlanScreen .row Label { width: 12; padding: 1 1 0 0; }
     PlanScreen .row Input { width: 1fr; }
     PlanScreen .row Select { width: 1fr; }
-    PlanScreen #buttons { height: 3; padding: 0 1; }
-    PlanScreen #buttons Button { margin-right: 1; }
+    PlanScreen .row Button { margin-left: 1; min-width: 12; }
     PlanScreen #result-box { border: round $primary; padding: 0 1; height: 1fr; min-height: 4; }
     """
     BINDINGS = [
@@ -68,9 +67,8 @@ class PlanScreen(WorkcellScreen):
             with Horizontal(classes="row"):
                 yield Label("Recording")
                 yield Input(p.out, id="out", placeholder="campaign.mcap")
-        with Horizontal(id="buttons"):
-            yield Button("Dry run", id="dry-run", variant="primary")
-            yield Button("To campaign", id="to-campaign")
+                yield Button("Dry run", id="dry-run", variant="primary")
+                yield Button("Campaign", id="to-campaign")
         with VerticalScroll(id="result-box"):
             yield KeyValue(id="envelope-info")
             yield Static(self.result_text, id="result")
@@ -147,7 +145,8 @@ class PlanScreen(WorkcellScreen):
             more = len(result["problems"]) - 8
             text = (
                 f"[red]{len(result['problems'])} problem(s)[/red] in {result['targets']} poses; "
-                f"the campaign will refuse them:\n{shown}" + (f"\n  ... {more} more" if more > 0 else "")
+                f"the campaign will refuse them:\n{shown}"
+                + (f"\n  ... {more} more" if more > 0 else "")
             )
         else:
             text = (

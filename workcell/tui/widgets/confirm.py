@@ -69,6 +69,10 @@ class PathPrompt(ModalScreen[str | None]):
             yield Label(self.question)
             yield Input(self.value, id="path")
 
+    def on_mount(self) -> None:
+        if not getattr(self.app, "cursor_blink", True):
+            self.query_one("#path", Input).cursor_blink = False
+
     def on_input_submitted(self, event: Input.Submitted) -> None:
         self.dismiss(event.value.strip() or None)
 

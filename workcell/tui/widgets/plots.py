@@ -42,7 +42,9 @@ class SeriesPlot(PlotextPlot):
             plt.ylabel(self.ylabel)
         drawn = False
         for label, xs, ys, kind in self.series:
-            pts = [(x, y) for x, y in zip(xs, ys, strict=False) if y is not None and math.isfinite(y)]
+            pts = [
+                (x, y) for x, y in zip(xs, ys, strict=False) if y is not None and math.isfinite(y)
+            ]
             if not pts:
                 continue
             x, y = [p[0] for p in pts], [p[1] for p in pts]
@@ -63,9 +65,7 @@ class ResidualPlot(SeriesPlot):
     RMS, and the EKF-ANN online estimate's RMS when available."""
 
     def __init__(self, **kw) -> None:
-        super().__init__(
-            title="residual vs nominal (um)", xlabel="pose", ylabel="um", **kw
-        )
+        super().__init__(title="residual vs nominal (um)", xlabel="pose", ylabel="um", **kw)
 
     def update_live(
         self,

@@ -1,0 +1,65 @@
+"""The terminal UI against the protocol-level simulators (`--sim`: UR controller over ur_rtde +
+GeoCOM tracker on a pty, time-scaled): the RTDE connection drops mid-campaign, the operator sees
+a notification, the campaign reconnects and finishes with a valid recording."""
+
+import asyncio
+import time
+
+from workcell.recording.reader import read_recording
+from workcell.tui.app import make_app
+from workcell.tui.backend import PlanConfig
+
+TIME_SCALE = 20.0
+
+
+async def until(pilot, cond, timeout_s: float, what: str) -> None:
+    t0 = time.monotonic()
+    while not cond():
+        await pilot.pause(0.05)
+        if time.monotonic() - t0 > timeout_s:
+            raise AssertionError(f"timed out waiting for {what}")
+
+
+def test_sim_start_device_drop_notifies_and_recovers(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    app = make_app(
+        sim=True,
+        sim_host="127.0.0.71",
+        seed=3,
+        time_scale=TIME_SCALE,
+        sim_faults={"rtde_drop_at_move": [6]},  # the robot's connection drops at pose 3
+        plan=PlanConfig(poses=6, readings_per_pose=2, settle_s=0.3, seed=3, out="drop.mcap"),
+        status_poll_s=0,
+        clock=lambda: 0.0,
+        online=False,
+        cursor_blink=False,
+    )
+
+    async def flow():
+        async with app.run_test(size=(100, 30)) as pilot:
+            try:
+                await until(pilot, lambda: app.devices is not None, 90, "--sim start + connect")
+                dev = app.devices
+                assert dev.kind == "protocol simulators"
+                assert dev.robot_url.startswith("ur://") and dev.tracker_url.startswith("serial://")
+                status = app.views["devices"].status
+                assert status["robot_mode"] == "RUNNING" and status["safety"] == "NORMAL"
+                await pilot.press("f3", "s", "y")
+                await until(pilot, lambda: app.finished, 180, "campaign end")
+            finally:
+                if app.devices is not None:
+                    app.devices.close()
+        return app
+
+    asyncio.run(flow())
+    fin = app.finished[-1]
+    assert fin.result is not None and not fin.result.aborted, app.notices
+    rec = read_recording(tmp_path / "drop.mcap")
+    assert rec.closed_cleanly
+    kinds = [e["kind"] for e in rec.events]
+    assert "reconnect" in kinds, kinds
+    measured = {s["pose_id"] for s in rec.samples}
+    assert len(measured) + fin.result.skipped == 6
+    texts = [t for _, _, t in app.notices]
+    assert any(t.startswith("reconnect:") for t in texts), texts
+    assert any("campaign recovered" in t for t in texts), texts

@@ -1,0 +1,181 @@
+"""Snapshot tests of every screen of the terminal UI at 80x24 and 120x40, grouped by screen.
+
+Deterministic: the in-process simulated cell with fixed seeds (virtual time), a fixed clock for
+the ETA, relative paths (tests run in a temporary directory), no toasts at capture time. The fit,
+diagnosis and export results are computed once per module by the same backend calls the screens
+use, then shown on the screen. Update after an intended change with
+`pytest tests/test_tui_snapshots.py --snapshot-update` and review the SVGs."""
+
+import time
+
+import pytest
+
+from workcell.tui import backend
+from workcell.tui.app import make_app
+from workcell.tui.backend import PlanConfig
+
+SIZES = [pytest.param((80, 24), id="80x24"), pytest.param((120, 40), id="120x40")]
+
+
+def new_app():
+    return make_app(
+        plan=PlanConfig(poses=10, readings_per_pose=3, settle_s=0.5, out="campaign.mcap"),
+        status_poll_s=0,
+        clock=lambda: 0.0,
+        online=False,
+        cursor_blink=False,
+    )
+
+
+async def until(pilot, cond, timeout_s: float = 120.0) -> None:
+    t0 = time.monotonic()
+    while not cond():
+        await pilot.pause(0.05)
+        if time.monotonic() - t0 > timeout_s:
+            raise AssertionError(f"timed out: {cond}")
+
+
+async def settle(pilot) -> None:
+    pilot.app.clear_notifications()
+    await pilot.pause(0.1)
+
+
+async def connect(pilot) -> None:
+    app = pilot.app
+    await pilot.press("ctrl+r")
+    await until(pilot, lambda: app.devices is not None)
+
+
+@pytest.fixture(scope="module")
+def results(tmp_path_factory):
+    """A 44-pose recording of the simulated cell, its dh fit, diagnosis and exported table."""
+    import os
+
+    d = tmp_path_factory.mktemp("tui_snap")
+    cwd = os.getcwd()
+    os.chdir(d)
+    try:
+        dev = backend.open_devices(backend.DeviceConfig(seed=1))
+        from workcell.campaign.executor import CampaignControl
+
+        plan = PlanConfig(poses=44, readings_per_pose=3, settle_s=0.5, seed=1, out="big.mcap")
+        backend.start_campaign(
+            dev,
+            plan,
+            control=CampaignControl(),
+            on_sample=lambda s: None,
+            on_event=lambda e: None,
+        )
+        fit = backend.fit("big.mcap", "dh")
+        diag = backend.diagnose("big.mcap", quick=True)
+        exp = backend.export(
+            backend.ExportConfig(model=fit["model"], out="correction", spacing_m=0.12)
+        )
+    finally:
+        os.chdir(cwd)
+    return {"fit": fit, "diagnose": diag, "export": exp}
+
+
+@pytest.fixture
+def in_tmp(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    return tmp_path
+
+
+class TestDevicesScreen:
+    @pytest.mark.parametrize("size", SIZES)
+    def test_disconnected(self, snap_compare, in_tmp, size):
+        assert snap_compare(new_app(), terminal_size=size, run_before=settle)
+
+    @pytest.mark.parametrize("size", SIZES)
+    def test_connected(self, snap_compare, in_tmp, size):
+        async def run_before(pilot):
+            await connect(pilot)
+            await settle(pilot)
+
+        assert snap_compare(new_app(), terminal_size=size, run_before=run_before)
+
+
+class TestPlanScreen:
+    @pytest.mark.parametrize("size", SIZES)
+    def test_dry_run_ok(self, snap_compare, in_tmp, size):
+        async def run_before(pilot):
+            await connect(pilot)
+            await pilot.press("f2", "ctrl+r")
+            await until(pilot, lambda: pilot.app.views["plan"].checked is not None)
+            await settle(pilot)
+
+        assert snap_compare(new_app(), terminal_size=size, run_before=run_before)
+
+
+class TestCampaignScreen:
+    @pytest.mark.parametrize("size", SIZES)
+    def test_confirmation(self, snap_compare, in_tmp, size):
+        async def run_before(pilot):
+            await connect(pilot)
+            await pilot.press("f3", "s")
+            await settle(pilot)
+
+        assert snap_compare(new_app(), terminal_size=size, run_before=run_before)
+
+    @pytest.mark.parametrize("size", SIZES)
+    def test_finished(self, snap_compare, in_tmp, size):
+        async def run_before(pilot):
+            await connect(pilot)
+            await pilot.press("f3", "s", "y")
+            await until(pilot, lambda: pilot.app.finished)
+            await settle(pilot)
+
+        assert snap_compare(new_app(), terminal_size=size, run_before=run_before)
+
+
+class TestFitScreen:
+    @pytest.mark.parametrize("size", SIZES)
+    def test_report(self, snap_compare, in_tmp, results, size):
+        async def run_before(pilot):
+            await pilot.press("f4")
+            view = pilot.app.views["fit"]
+            view.set_recording("big.mcap")
+            view.show_report(results["fit"])
+            await settle(pilot)
+
+        assert snap_compare(new_app(), terminal_size=size, run_before=run_before)
+
+
+class TestDiagnoseScreen:
+    @pytest.mark.parametrize("size", SIZES)
+    def test_report(self, snap_compare, in_tmp, results, size):
+        async def run_before(pilot):
+            await pilot.press("f5")
+            view = pilot.app.views["diagnose"]
+            view.set_recording("big.mcap")
+            view.show_report(results["diagnose"])
+            await settle(pilot)
+
+        assert snap_compare(new_app(), terminal_size=size, run_before=run_before)
+
+
+class TestExportScreen:
+    @pytest.mark.parametrize("size", SIZES)
+    def test_result(self, snap_compare, in_tmp, results, size):
+        async def run_before(pilot):
+            await pilot.press("f6")
+            view = pilot.app.views["export"]
+            view.set_model("big.dh.model.json")
+            view.show_summary(results["export"])
+            await settle(pilot)
+
+        assert snap_compare(new_app(), terminal_size=size, run_before=run_before)
+
+    @pytest.mark.parametrize("size", SIZES)
+    def test_refused(self, snap_compare, in_tmp, size):
+        async def run_before(pilot):
+            await pilot.press("f6")
+            pilot.app.views["export"].refused(
+                "refused: correction 7.200 mm at [0.1, -0.4, 0.3] m (base), orientation 0, "
+                "exceeds the bound 5 mm (12 node(s) over); check the model or raise "
+                "--max-correction"
+            )
+            await settle(pilot)
+
+        assert snap_compare(new_app(), terminal_size=size, run_before=run_before)
