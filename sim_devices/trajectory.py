@@ -193,8 +193,8 @@ def record_trajectory(path: str | Path, traj: TrajectoryData) -> Path:
     with RecordingWriter(path, session) as w:
         for i in range(len(traj)):
             t_ns = t0_ns + int(round(traj.t_s[i] * 1e9))
-            w._write(  # noqa: SLF001 - one sample per message; per-sample fsync is too slow here
-                "/campaign/sample",
+            w.sample(
+                t_ns,
                 {
                     "index": i,
                     "pose_id": i,
@@ -209,9 +209,8 @@ def record_trajectory(path: str | Path, traj: TrajectoryData) -> Path:
                     "elapsed_s": float(traj.t_s[i]),
                     "payload_kg": float(tr.payload_kg),
                 },
-                t_ns,
+                flush=False,
             )
-            w.n_samples += 1
     return Path(path)
 
 

@@ -105,13 +105,16 @@ class RecordingWriter:
             S.TRACKER, {"position_m": position_m, "sigma_m": sigma_m, "status": status}, t_ns
         )
 
-    def sample(self, t_ns: int, sample: dict) -> None:
+    def sample(self, t_ns: int, sample: dict, *, flush: bool = True) -> None:
+        """Record one pose sample. `flush=False` (bulk import of a trajectory) skips the
+        per-sample chunk close and fsync; the caller flushes or closes."""
         for k in ("q_measured_rad", "tracker_position_m"):
             if any(x is None or not math.isfinite(x) for x in _clean(sample[k]) or [None]):
                 raise ValueError(f"sample {sample.get('pose_id')}: non-finite {k}")
         self._write(S.SAMPLE, sample, t_ns)
         self.n_samples += 1
-        self.flush()
+        if flush:
+            self.flush()
 
     def event(self, t_ns: int, level: str, kind: str, message: str) -> None:
         self._write(S.EVENT, {"level": level, "kind": kind, "message": message}, t_ns)
