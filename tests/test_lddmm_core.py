@@ -99,7 +99,7 @@ def test_shooting_gradient_matches_finite_differences():
         assert fd == pytest.approx(float(np.sum(g * d)), rel=1e-6, abs=1e-9)
 
 
-def _toy_data(n_train=150, n_test=200, seed=0):
+def _toy_data(n_train=80, n_test=120, seed=0):
     rng = np.random.default_rng(seed)
     Xtr = rng.uniform(-1.0, 1.0, size=(n_train, 3))
     Xte = rng.uniform(-0.9, 0.9, size=(n_test, 3))
@@ -154,6 +154,9 @@ def test_cv_width_selection_and_validation():
     Xtr, Ytr, Xte, Yte = _toy_data()  # same shapes as the fixture: reuses the compilations
     m = fit_lddmm(k0_toy, Xtr, Ytr, sigma=0.02, n_steps=6, max_iter=20)
     assert m.info is not None and len(m.info.cv_scores) == 16
+    assert min(m.info.cv_scores.values()) == pytest.approx(
+        m.info.cv_scores[f"{m.kp.sigma_v:.6g},{m.kp.sigma_w:.6g},{m.sigma:.6g}"]
+    )
     assert np.median(np.linalg.norm(m.predict(Xte) - Yte, axis=1)) < 0.5 * np.median(
         np.linalg.norm(np.asarray(jax.vmap(k0_toy)(jnp.asarray(Xte))) - Yte, axis=1)
     )

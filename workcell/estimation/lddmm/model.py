@@ -27,7 +27,7 @@ from __future__ import annotations
 import functools
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -86,10 +86,22 @@ def _shoot_record(s0, x, n_steps, div_term, kp):
     return shoot(s0, x, kp, n_steps, div_term=div_term, record=True)
 
 
-@functools.partial(jax.jit, static_argnums=0)
-def _pred_jit(k0, xi, sd, x, kp):
+@functools.partial(jax.jit, static_argnums=(0, 5))
+def _pred_jit(k0, xi, sd, x, kp, f32=False):
     kx, dkx = _k0j_jit(k0, xi)
-    return evolve_kinematics(xi, kx, dkx, x, sd, kp)
+    return evolve_kinematics(xi, kx, dkx, x, sd, kp, f32=f32)
+
+
+MIN_BUCKET = 64
+
+
+def _bucket(nb: int, batch: int) -> int:
+    """Padded batch size: the next power of two >= nb (at least MIN_BUCKET, at most batch), so
+    calls with any batch size reuse a handful of compilations."""
+    b = MIN_BUCKET
+    while b < nb:
+        b *= 2
+    return min(b, max(batch, nb))
 
 
 @functools.partial(jax.jit, static_argnums=0)
@@ -155,8 +167,11 @@ class FitInfo:
 class LddmmModel:
     """Fitted calibration k = psi o k0 o phi^-1, encoded by (x_i, P0_i) and the kernels.
 
-    `predict(X)` integrates eq. (29) (same RK4 steps/stages as the fit, so at the training
-    configurations it returns exactly the fitted k_1(x_i)).
+    `predict(X)` integrates eq. (29) (by default with the same RK4 steps/stages as the fit, so at
+    the training configurations it returns exactly the fitted k_1(x_i)). `set_evaluation`
+    / `tune_evaluation` select a cheaper evaluation (fewer RK4 steps: the landmark system is
+    re-shot with that many steps; float32 kernels), `tune_evaluation` only within a stated
+    tolerance of the reference evaluation.
     """
 
     def __init__(
@@ -195,6 +210,56 @@ class LddmmModel:
         self.energy = float(hamiltonian(s0, self._xj, self._kpj))
         self._pred = functools.partial(_pred_jit, k0)
         self._dets = functools.partial(_dets_jit, k0)
+        self._s0 = s0
+        self.eval_steps = self.n_steps
+        self.eval_float32 = False
+        self._sd_eval = self._sd
+
+    def set_evaluation(self, n_steps: int | None = None, float32: bool = False) -> None:
+        """Evaluate `predict` with `n_steps` RK4 steps (None: the fit's) and float32 kernels."""
+        n = self.n_steps if n_steps is None else int(n_steps)
+        if n < 1:
+            raise ValueError(f"n_steps must be >= 1, got {n_steps}")
+        if n == self.n_steps:
+            self._sd_eval = self._sd
+        elif n != self.eval_steps:
+            _, self._sd_eval, _ = _shoot_record(self._s0, self._xj, n, self.div_term, self._kpj)
+        self.eval_steps = n
+        self.eval_float32 = bool(float32)
+
+    def tune_evaluation(
+        self,
+        X: Any,
+        tol_m: float = 1e-8,
+        steps: Sequence[int] = (1, 2, 3, 5),
+    ) -> dict[str, Any]:
+        """Pick the cheapest evaluation (fewest steps, then float32) whose predictions at X stay
+        within tol_m (max Euclidean deviation) of the reference (fit steps, float64).
+
+        Returns {"eval_steps", "eval_float32", "tol_m", "deviation_m": {candidate: max dev}}.
+        """
+        X, _ = _check_xy(X)
+        self.set_evaluation(None, False)
+        ref = self.predict(X)
+        devs: dict[str, float] = {}
+        choice = (self.n_steps, False)
+        for n in sorted({int(v) for v in steps if 0 < int(v) <= self.n_steps} | {self.n_steps}):
+            for f32 in (True, False):
+                self.set_evaluation(n, f32)
+                d = float(np.max(np.linalg.norm(self.predict(X) - ref, axis=1)))
+                devs[f"{n}{'_f32' if f32 else ''}"] = d
+                if d <= tol_m:
+                    choice = (n, f32)
+                    break
+            if choice != (self.n_steps, False) or n == self.n_steps:
+                break
+        self.set_evaluation(*choice)
+        return {
+            "eval_steps": choice[0],
+            "eval_float32": choice[1],
+            "tol_m": tol_m,
+            "deviation_m": devs,
+        }
 
     # ---------------------------------------------------------------------------------------
     @property
@@ -208,9 +273,10 @@ class LddmmModel:
         for s in range(0, M, batch):
             chunk = X[s : s + batch]
             nb = chunk.shape[0]
-            if nb < batch and M > batch:  # pad to keep one compiled shape
-                chunk = np.concatenate([chunk, np.repeat(chunk[-1:], batch - nb, 0)])
-            r = fn(jnp.asarray(chunk), self._sd, self._xj, self._kpj)
+            nbp = _bucket(nb, batch)
+            if nbp > nb:  # pad to a bucket size: a few compiled shapes for any M
+                chunk = np.concatenate([chunk, np.repeat(chunk[-1:], nbp - nb, 0)])
+            r = fn(jnp.asarray(chunk))
             outs.append(jax.tree_util.tree_map(lambda a, nb=nb: np.asarray(a)[:nb], r))
         return jax.tree_util.tree_map(lambda *a: np.concatenate(a), *outs)
 
@@ -219,14 +285,15 @@ class LddmmModel:
         X, _ = _check_xy(X)
         if X.shape[1] != self.dx:
             raise ValueError(f"X must have {self.dx} columns, got {X.shape[1]}")
-        return self._batched(self._pred, X, batch)
+        sd, f32 = self._sd_eval, self.eval_float32
+        return self._batched(lambda c: self._pred(c, sd, self._xj, self._kpj, f32), X, batch)
 
     def jacobian_dets(self, X: Any, batch: int = 4096) -> tuple[np.ndarray, np.ndarray]:
         """det D phi_1 at X and det D psi_1 at k0(X) (flows of v_t on X and w_t on Y)."""
         X, _ = _check_xy(X)
         if X.shape[1] != self.dx:
             raise ValueError(f"X must have {self.dx} columns, got {X.shape[1]}")
-        return self._batched(self._dets, X, batch)
+        return self._batched(lambda c: self._dets(c, self._sd, self._xj, self._kpj), X, batch)
 
     def min_jacobian_det(self, X: Any) -> tuple[float, float]:
         """(min det D phi_1 over X, min det D psi_1 over k0(X)); both > 0 for a diffeomorphism."""
@@ -249,6 +316,8 @@ class LddmmModel:
             "div_term": self.div_term,
             "dx": self.dx,
             "dy": self.dy,
+            "eval_steps": self.eval_steps,
+            "eval_float32": self.eval_float32,
         }
 
     @classmethod
@@ -269,6 +338,7 @@ class LddmmModel:
             raise ValueError(
                 f"k0 maps R^{m.dx} -> R^{m.dy}, model was fitted for R^{d['dx']} -> R^{d['dy']}"
             )
+        m.set_evaluation(d.get("eval_steps"), bool(d.get("eval_float32", False)))
         return m
 
 
@@ -282,23 +352,89 @@ def _rms_scale(A: np.ndarray) -> float:
     return s if s > 0 else 1.0
 
 
-def _linear_cv(x, q0, J0, y, grid, sigma, lam_v, lam_w, k_folds, seed):
-    N = x.shape[0]
+def _linear_cv(x, q0, J0, y, grid, sigmas, lam_v, lam_w, k_folds, seed):
+    """Linearised k-fold CV: {(sigma_v, sigma_w, sigma): held-out RMS of the kernel-ridge model}.
+
+    One Gram matrix per width pair on all N points; each fold uses its sub-blocks (the train
+    block and the cross block), and one Cholesky per fold and sigma.
+    """
+    N, m = q0.shape
     rng = np.random.default_rng(seed)
     folds = np.array_split(rng.permutation(N), k_folds)
+    idx = np.arange(N * m).reshape(N, m)
+    r_all = (y - q0).ravel()
+    splits = []
+    for f in folds:
+        tr = np.setdiff1d(np.arange(N), f)
+        splits.append((idx[tr].ravel(), idx[f].ravel()))
     scores = {}
     for sv, sw in grid:
-        kp = KernelParams(sv, sw, lam_v, lam_w)
-        se = 0.0
-        for f in folds:
-            tr = np.setdiff1d(np.arange(N), f)
-            G = _gram(x[tr], q0[tr], J0[tr], kp)
-            c = _cho(G, sigma)
-            P = scipy.linalg.cho_solve(c, (y[tr] - q0[tr]).ravel())
-            Gc = _gram_cross(x[f], q0[f], J0[f], x[tr], q0[tr], J0[tr], kp)
-            pred = q0[f] + (Gc @ P).reshape(len(f), -1)
-            se += float(np.sum((pred - y[f]) ** 2))
-        scores[(sv, sw)] = math.sqrt(se / N)
+        G = _gram(x, q0, J0, KernelParams(sv, sw, lam_v, lam_w))
+        se = dict.fromkeys(sigmas, 0.0)
+        for itr, ite in splits:
+            Gtr = G[np.ix_(itr, itr)]
+            Gc = G[np.ix_(ite, itr)]
+            for s in sigmas:
+                c = _cho(Gtr, s)
+                pred = Gc @ scipy.linalg.cho_solve(c, r_all[itr])
+                se[s] += float(np.sum((pred - r_all[ite]) ** 2))
+        for s in sigmas:
+            scores[(sv, sw, s)] = math.sqrt(se[s] / N)
+    return scores
+
+
+def linear_cv_scores(
+    k0: K0,
+    X_train: Any,
+    Y_train: Any,
+    *,
+    sigma: float | Sequence[float] = 0.1,
+    sigma_v: float | None = None,
+    sigma_w: float | None = None,
+    width_factors: tuple[Sequence[float], Sequence[float]] = (WIDTH_FACTORS, WIDTH_FACTORS),
+    lam_v: float = 1.0,
+    lam_w: float = 1.0,
+    k_folds: int = 5,
+    seed: int = 0,
+    search: str = "grid",
+) -> dict[tuple[float, float, float], float]:
+    """Linearised k-fold CV RMS {(sigma_v, sigma_w, sigma): rms} (see module doc).
+
+    Cheap (Cholesky factorisations only): used by fit_lddmm and to compare nominal models k0.
+    search="grid": every (widths, sigma) combination. search="coordinate": the width grid at
+    the middle sigma, then all sigmas at the best widths, then (if sigma moved) the width grid
+    again at the new sigma - about half the factorisations for a 3-value sigma list. The
+    returned dict holds the points evaluated; its minimum is the selection.
+    """
+    if search not in ("grid", "coordinate"):
+        raise ValueError(f"search must be 'grid' or 'coordinate', got {search!r}")
+    X, Y = _check_xy(X_train, Y_train)
+    sigmas = [float(v) for v in np.atleast_1d(np.asarray(sigma, dtype=float))]
+    if not sigmas or any(v <= 0 or not math.isfinite(v) for v in sigmas):
+        raise ValueError(f"sigma must be > 0 (a number or a non-empty sequence), got {sigma}")
+    N = X.shape[0]
+    if N < 2 * k_folds:
+        raise ValueError(f"need at least {2 * k_folds} points for {k_folds}-fold CV, got {N}")
+    q0, J0 = (np.asarray(a) for a in _k0_and_jac(k0)(jnp.asarray(X)))
+    if q0.shape != Y.shape:
+        raise ValueError(f"k0 maps to R^{q0.shape[1]} but Y_train has shape {Y.shape}")
+    fv, fw = width_factors
+    svs = [sigma_v] if sigma_v is not None else [_rms_scale(X) * f for f in fv]
+    sws = [sigma_w] if sigma_w is not None else [_rms_scale(q0) * f for f in fw]
+    grid = [(a, b) for a in svs for b in sws]
+
+    def cv(g, ss):
+        return _linear_cv(X, q0, J0, Y, g, ss, lam_v, lam_w, k_folds, seed)
+
+    if search == "grid" or len(sigmas) == 1:
+        return cv(grid, sigmas)
+    s_mid = sorted(sigmas)[len(sigmas) // 2]
+    scores = cv(grid, [s_mid])
+    sv, sw, _ = min(scores, key=scores.get)
+    scores.update(cv([(sv, sw)], [s for s in sigmas if s != s_mid]))
+    s_best = min(scores, key=scores.get)[2]
+    if s_best != s_mid:
+        scores.update(cv([g for g in grid if g != (sv, sw)], [s_best]))
     return scores
 
 
@@ -309,7 +445,7 @@ def fit_lddmm(
     *,
     sigma_v: float | None = None,
     sigma_w: float | None = None,
-    sigma: float = 0.1,
+    sigma: float | Sequence[float] = 0.1,
     n_steps: int = 10,
     max_iter: int = 200,
     tol: float = 1e-9,
@@ -319,20 +455,24 @@ def fit_lddmm(
     cv: str = "linear",
     k_folds: int = 5,
     seed: int = 0,
+    width_factors: tuple[Sequence[float], Sequence[float]] = (WIDTH_FACTORS, WIDTH_FACTORS),
     verbose: bool = False,
 ) -> LddmmModel:
     """Fit k = psi o k0 o phi^-1 to measurements (X_train (N,dx), Y_train (N,dy)).
 
     k0: JAX-differentiable nominal kinematics (dx,) -> (dy,).
     sigma_v / sigma_w: Gaussian widths on X / Y (None -> k-fold CV, see module docstring).
-    sigma: dimensionless data weight of (27) (ridge sigma^2). n_steps: RK4 steps on [0,1].
+    sigma: dimensionless data weight of (27) (ridge sigma^2); a sequence -> chosen by the same
+    linearised k-fold CV as the widths (jointly over the grid). n_steps: RK4 steps on [0,1].
+    width_factors: the CV grids of sigma_v / sigma_w as multiples of s_x / s_y.
     max_iter: L-BFGS iterations; tol: L-BFGS-B ftol on the cost normalised by its value at
     P0 = 0 (stop when an iteration lowers it by less than tol). lam_v / lam_w: weights of the phi / psi fields
     (lam_v=0: psi only; lam_w=0: phi only).
     """
     X, Y = _check_xy(X_train, Y_train)
-    if sigma <= 0 or not math.isfinite(sigma):
-        raise ValueError(f"sigma must be > 0, got {sigma}")
+    sigmas = [float(v) for v in np.atleast_1d(np.asarray(sigma, dtype=float))]
+    if not sigmas or any(v <= 0 or not math.isfinite(v) for v in sigmas):
+        raise ValueError(f"sigma must be > 0 (a number or a non-empty sequence), got {sigma}")
     if n_steps < 1:
         raise ValueError(f"n_steps must be >= 1, got {n_steps}")
     if lam_v < 0 or lam_w < 0 or lam_v + lam_w == 0:
@@ -350,20 +490,31 @@ def fit_lddmm(
     N, m = Y.shape
 
     cv_scores: dict[str, float] = {}
-    if sigma_v is None or sigma_w is None:
+    if sigma_v is None or sigma_w is None or len(sigmas) > 1:
         if N < 2 * k_folds:
             raise ValueError(f"need at least {2 * k_folds} points for {k_folds}-fold CV, got {N}")
-        svs = [sigma_v] if sigma_v is not None else [_rms_scale(X) * f for f in WIDTH_FACTORS]
-        sws = [sigma_w] if sigma_w is not None else [_rms_scale(q0) * f for f in WIDTH_FACTORS]
+        fv, fw = width_factors
+        svs = [sigma_v] if sigma_v is not None else [_rms_scale(X) * f for f in fv]
+        sws = [sigma_w] if sigma_w is not None else [_rms_scale(q0) * f for f in fw]
         grid = [(a, b) for a in svs for b in sws]
         if cv == "linear":
-            scores = _linear_cv(X, q0, J0, Y, grid, sigma, lam_v, lam_w, k_folds, seed)
+            scores = _linear_cv(X, q0, J0, Y, grid, sigmas, lam_v, lam_w, k_folds, seed)
         else:
-            scores = _full_cv(k0, X, Y, grid, sigma, n_steps, lam_v, lam_w, div_term, k_folds, seed)
-        sigma_v, sigma_w = min(scores, key=scores.get)
-        cv_scores = {f"{a:.6g},{b:.6g}": s for (a, b), s in scores.items()}
+            scores = {
+                (a, b, s): v
+                for s in sigmas
+                for (a, b), v in _full_cv(
+                    k0, X, Y, grid, s, n_steps, lam_v, lam_w, div_term, k_folds, seed
+                ).items()
+            }
+        sigma_v, sigma_w, sigma = min(scores, key=scores.get)
+        cv_scores = {f"{a:.6g},{b:.6g},{s:.6g}": v for (a, b, s), v in scores.items()}
         if verbose:
-            print(f"[lddmm] CV picked sigma_v={sigma_v:.4g} sigma_w={sigma_w:.4g}")
+            print(
+                f"[lddmm] CV picked sigma_v={sigma_v:.4g} sigma_w={sigma_w:.4g} sigma={sigma:.3g}"
+            )
+    else:
+        sigma = sigmas[0]
     if sigma_v <= 0 or sigma_w <= 0:
         raise ValueError(f"kernel widths must be > 0, got {sigma_v}, {sigma_w}")
     kp = KernelParams(float(sigma_v), float(sigma_w), float(lam_v), float(lam_w))

@@ -255,42 +255,64 @@ def evolve_kinematics(
     x: jnp.ndarray,
     sd: StageData,
     kp: KernelParams,
+    f32: bool = False,
 ) -> jnp.ndarray:
     """Eq. (29): k_1(xi) for a batch xi (B, n) given k0(xi) (B, m) and Dk0(xi) (B, m, n).
 
     The landmark fields at each RK4 stage come from `sd`, so for xi = x_i this reproduces the
-    fitted q_i(1) exactly (same integrator, same stages). K_V(xi, x_j) is computed once (the
-    x_j are fixed), all stages of v and Dv come from one matrix product.
+    fitted q_i(1) (same integrator, same stages). K_V(xi, x_j) is computed once (the x_j are
+    fixed), all stages of v and Dv come from one matrix product. The state integrated is the
+    displacement u = k - k0(xi) (small), so k0 keeps its float64 value.
+
+    f32=True: kernels, fields and the displacement in float32, on coordinates centred on the
+    landmarks (the Gaussian kernel and the field gradients are translation invariant), so the
+    rounding is relative to the landmark spread and to |u|, not to the absolute coordinates;
+    k0(xi) is added back in float64. `static`: pass as a static argument under jit.
     """
     n_steps = sd.q.shape[0]
     n = x.shape[1]
-    kvx = gauss_gemm(xi, x, kp.sigma_v)  # (B, N)
-    # v and sum_j K a_j x_j^T for all stages at once
-    a_all = jnp.moveaxis(sd.a, 2, 0)  # (N, S, 4, n)
-    ax_all = a_all[..., :, None] * x[:, None, None, None, :]  # (N, S, 4, n, n)
     N = x.shape[0]
+    dt = jnp.float32 if f32 else xi.dtype
+    cx = jnp.mean(x, axis=0)
+    cy = jnp.mean(sd.q[0, 0], axis=0)
+    xi_c = (xi - cx).astype(dt)
+    x_c = (x - cx).astype(dt)
+    k0c = (k0_xi - cy).astype(dt)
+    sq = (sd.q - cy).astype(dt)
+    sa = sd.a.astype(dt)
+    sb = sd.b.astype(dt)
+    sv = jnp.asarray(kp.sigma_v, dtype=dt)
+    sw = jnp.asarray(kp.sigma_w, dtype=dt)
+    inv_v = 1.0 / (sv * sv)
+    inv_w = 1.0 / (sw * sw)
+    kvx = gauss_gemm(xi_c, x_c, sv)  # (B, N)
+    # v and sum_j K a_j x_j^T for all stages at once
+    a_all = jnp.moveaxis(sa, 2, 0)  # (N, S, 4, n)
+    ax_all = a_all[..., :, None] * x_c[:, None, None, None, :]  # (N, S, 4, n, n)
     v_all = (kvx @ a_all.reshape(N, -1)).reshape(xi.shape[0], n_steps, 4, n)
     kax = (kvx @ ax_all.reshape(N, -1)).reshape(xi.shape[0], n_steps, 4, n, n)
-    dv_all = (kax - v_all[..., :, None] * xi[:, None, None, None, :]) / kp.sigma_v**2
+    dv_all = (kax - v_all[..., :, None] * xi_c[:, None, None, None, :]) * inv_v
     v_all = jnp.moveaxis(v_all, 0, 2)  # (S, 4, B, n)
     dv_all = jnp.moveaxis(dv_all, 0, 2)  # (S, 4, B, n, n)
 
     def rhs(stage, y):
-        k, dk = y
+        u, dk = y
+        k = k0c + u
         q, b, v, dv = stage
-        kw = gauss_gemm(k, q, kp.sigma_w)  # (B, N)
+        kw = gauss_gemm(k, q, sw)  # (B, N)
         w = kw @ b
         kbq = (kw @ (b[:, :, None] * q[:, None, :]).reshape(q.shape[0], -1)).reshape(
             k.shape[0], k.shape[1], k.shape[1]
         )
-        dw = (kbq - w[:, :, None] * k[:, None, :]) / kp.sigma_w**2
+        dw = (kbq - w[:, :, None] * k[:, None, :]) * inv_w
         dk_dot = jnp.einsum("bij,bjn->bin", dw, dk) - jnp.einsum("bmk,bkn->bmn", dk, dv)
         k_dot = w - jnp.einsum("bmn,bn->bm", dk, v)
         return (k_dot, dk_dot)
 
     step = _rk4_with_stages(None, rhs, n_steps)
-    (k1, _), _ = jax.lax.scan(step, (k0_xi, dk0_xi), (sd.q, sd.b, v_all, dv_all))
-    return k1
+    u0 = jnp.zeros_like(k0c)
+    (u1, _), _ = jax.lax.scan(step, (u0, dk0_xi.astype(dt)), (sq, sb, v_all, dv_all))
+    return k0_xi + u1.astype(k0_xi.dtype)
 
 
 def flow_psi(y0: jnp.ndarray, sd: StageData, kp: KernelParams):
