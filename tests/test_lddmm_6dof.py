@@ -67,9 +67,9 @@ def test_tuned_evaluation_within_tolerance_on_unseen_poses(small, tmp_path):
     q = ds.q[test]
     tuned = lm.predict(q)
     ev = rep["extra"]["evaluation"]
-    lm.lddmm.set_evaluation(None, False)  # reference: the fit's RK4 steps, float64
+    lm.lddmm.set_evaluation(None, False, False)  # reference: the fit's RK4 steps, float64
     ref = lm.predict(q)
-    lm.lddmm.set_evaluation(ev["eval_steps"], ev["eval_float32"])
+    lm.lddmm.set_evaluation(ev["eval_steps"], ev["eval_float32"], ev["eval_frozen_jacobian"])
     assert np.max(np.linalg.norm(tuned - ref, axis=1)) < 2 * EVAL_TOL_M
     # saved and reloaded: same predictions, same evaluation settings
     path = save_model(lm, tmp_path / "m.json")
@@ -77,6 +77,7 @@ def test_tuned_evaluation_within_tolerance_on_unseen_poses(small, tmp_path):
     lm2 = load_model(path)
     assert isinstance(lm2, LddmmCalibration)
     assert lm2.lddmm.eval_steps == ev["eval_steps"]
+    assert lm2.lddmm.eval_frozen_jacobian == ev["eval_frozen_jacobian"]
     np.testing.assert_allclose(lm2.predict(q), tuned, atol=1e-12)
 
 

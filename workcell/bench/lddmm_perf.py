@@ -8,7 +8,8 @@
    (target <= 60 s). The recording itself is simulated first and not timed.
 3. evaluation throughput of that fitted model: `predict` on random configurations in the
    training box (warm, after one call per bucket), with the reference evaluation (the fit's RK4
-   steps, float64) and with the tuned one (fewest steps / float32 within 10 nm of the reference
+   steps, float64) and with the tuned one (fewest steps / float32 / frozen Jacobian, within 10 nm
+   of the reference
    on the training poses and random configurations); the max deviation between the two on
    the throughput points is reported (target >= 100,000 points/s).
 Times are wall-clock on this machine; the 1-minute load average is reported with them.
@@ -88,10 +89,10 @@ def bench_6dof(poses: int = 500, n_eval: int = 100_000, seed: int = 5) -> dict:
         "min_jacobian_det": min(e["min_jacobian_det_phi"], e["min_jacobian_det_psi"]),
         "evaluation": e["evaluation"],
     }
-    tuned = (lm.eval_steps, lm.eval_float32)
+    tuned = (lm.eval_steps, lm.eval_float32, lm.eval_frozen_jacobian)
     preds = {}
-    for tag, (steps, f32) in (("reference", (None, False)), ("tuned", tuned)):
-        lm.set_evaluation(steps, f32)
+    for tag, cfg in (("reference", (None, False, False)), ("tuned", tuned)):
+        lm.set_evaluation(*cfg)
         lm.predict(q[:4096])  # compile the full bucket
         lm.predict(q[: n_eval % 4096 or 4096])  # and the tail bucket
         t0 = time.perf_counter()
@@ -100,6 +101,7 @@ def bench_6dof(poses: int = 500, n_eval: int = 100_000, seed: int = 5) -> dict:
         res[f"eval_{tag}_points_per_s"] = n_eval / dt
         res[f"eval_{tag}_steps"] = lm.eval_steps
         res[f"eval_{tag}_float32"] = lm.eval_float32
+        res[f"eval_{tag}_frozen_jacobian"] = lm.eval_frozen_jacobian
     res["eval_load_avg_1min"] = _load()
     res["eval_points"] = n_eval
     res["eval_tuned_max_dev_m"] = float(
@@ -145,7 +147,8 @@ def main(argv: list[str]) -> int:
     print(
         f"evaluation ({s['eval_points']} pts): reference ({s['eval_reference_steps']} RK4 steps,"
         f" float64) {s['eval_reference_points_per_s']:,.0f} pts/s; tuned"
-        f" ({s['eval_tuned_steps']} steps, float32={s['eval_tuned_float32']})"
+        f" ({s['eval_tuned_steps']} steps, float32={s['eval_tuned_float32']},"
+        f" frozen Jacobian={s['eval_tuned_frozen_jacobian']})"
         f" {s['eval_tuned_points_per_s']:,.0f} pts/s, max deviation"
         f" {s['eval_tuned_max_dev_m'] * 1e9:.2f} nm (target >= 100,000 pts/s;"
         f" load {s['eval_load_avg_1min']:.1f})"

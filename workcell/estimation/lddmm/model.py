@@ -39,6 +39,7 @@ from workcell._jax import jax, jnp
 from workcell.estimation.lddmm.shooting import (
     KernelParams,
     State,
+    evaluate_lagrangian,
     evolve_kinematics,
     flow_phi,
     flow_psi,
@@ -86,10 +87,12 @@ def _shoot_record(s0, x, n_steps, div_term, kp):
     return shoot(s0, x, kp, n_steps, div_term=div_term, record=True)
 
 
-@functools.partial(jax.jit, static_argnums=(0, 5))
-def _pred_jit(k0, xi, sd, x, kp, f32=False):
+@functools.partial(jax.jit, static_argnums=(0, 5, 6))
+def _pred_jit(k0, xi, sd, x, kp, f32=False, frozen=False):
+    if frozen == "lagrangian":
+        return evaluate_lagrangian(xi, jax.vmap(k0), x, sd, kp, f32=f32)
     kx, dkx = _k0j_jit(k0, xi)
-    return evolve_kinematics(xi, kx, dkx, x, sd, kp, f32=f32)
+    return evolve_kinematics(xi, kx, dkx, x, sd, kp, f32=f32, frozen_jacobian=frozen)
 
 
 MIN_BUCKET = 64
@@ -213,10 +216,16 @@ class LddmmModel:
         self._s0 = s0
         self.eval_steps = self.n_steps
         self.eval_float32 = False
+        self.eval_frozen_jacobian = False
         self._sd_eval = self._sd
 
-    def set_evaluation(self, n_steps: int | None = None, float32: bool = False) -> None:
-        """Evaluate `predict` with `n_steps` RK4 steps (None: the fit's) and float32 kernels."""
+    def set_evaluation(
+        self, n_steps: int | None = None, float32: bool = False, frozen_jacobian: bool = False
+    ) -> None:
+        """Evaluate `predict` with `n_steps` RK4 steps (None: the fit's), float32 kernels and the
+        scheme: frozen_jacobian=False eq. (29) (Eulerian, evolving Dk), True the frozen-Jacobian
+        approximation (shooting.evolve_kinematics), "lagrangian" psi_1 o k0 o phi_1^-1 by the two
+        flows (shooting.evaluate_lagrangian, no Dk0)."""
         n = self.n_steps if n_steps is None else int(n_steps)
         if n < 1:
             raise ValueError(f"n_steps must be >= 1, got {n_steps}")
@@ -226,6 +235,11 @@ class LddmmModel:
             _, self._sd_eval, _ = _shoot_record(self._s0, self._xj, n, self.div_term, self._kpj)
         self.eval_steps = n
         self.eval_float32 = bool(float32)
+        if frozen_jacobian not in (False, True, "lagrangian"):
+            raise ValueError(
+                f"frozen_jacobian must be a bool or 'lagrangian', got {frozen_jacobian!r}"
+            )
+        self.eval_frozen_jacobian = frozen_jacobian
 
     def tune_evaluation(
         self,
@@ -233,30 +247,40 @@ class LddmmModel:
         tol_m: float = 1e-8,
         steps: Sequence[int] = (1, 2, 3, 5),
     ) -> dict[str, Any]:
-        """Pick the cheapest evaluation (fewest steps, then float32) whose predictions at X stay
-        within tol_m (max Euclidean deviation) of the reference (fit steps, float64).
+        """Pick the cheapest evaluation (fewest steps; then Lagrangian float32 / float64, frozen
+        Jacobian float32, Eulerian float32, float64) whose predictions at X stay within tol_m (max Euclidean deviation) of the
+        reference (fit steps, float64, evolving Jacobian).
 
-        Returns {"eval_steps", "eval_float32", "tol_m", "deviation_m": {candidate: max dev}}.
+        Returns {"eval_steps", "eval_float32", "eval_frozen_jacobian", "tol_m",
+        "deviation_m": {candidate: max deviation}}.
         """
         X, _ = _check_xy(X)
-        self.set_evaluation(None, False)
+        self.set_evaluation(None, False, False)
         ref = self.predict(X)
         devs: dict[str, float] = {}
-        choice = (self.n_steps, False)
-        for n in sorted({int(v) for v in steps if 0 < int(v) <= self.n_steps} | {self.n_steps}):
-            for f32 in (True, False):
-                self.set_evaluation(n, f32)
-                d = float(np.max(np.linalg.norm(self.predict(X) - ref, axis=1)))
-                devs[f"{n}{'_f32' if f32 else ''}"] = d
-                if d <= tol_m:
-                    choice = (n, f32)
-                    break
-            if choice != (self.n_steps, False) or n == self.n_steps:
+        choice = (self.n_steps, False, False)
+        ns = sorted({int(v) for v in steps if 0 < int(v) <= self.n_steps} | {self.n_steps})
+        modes = (
+            (True, "lagrangian"),
+            (False, "lagrangian"),
+            (True, True),
+            (True, False),
+            (False, False),
+        )
+        cands = [(n, f, fr) for n in ns for (f, fr) in modes]
+        for cand in cands:
+            self.set_evaluation(*cand)
+            d = float(np.max(np.linalg.norm(self.predict(X) - ref, axis=1)))
+            tag = {"lagrangian": "_lagrangian", True: "_frozenJ", False: ""}[cand[2]]
+            devs[f"{cand[0]}{'_f32' if cand[1] else ''}{tag}"] = d
+            if d <= tol_m:
+                choice = cand
                 break
         self.set_evaluation(*choice)
         return {
             "eval_steps": choice[0],
             "eval_float32": choice[1],
+            "eval_frozen_jacobian": choice[2],
             "tol_m": tol_m,
             "deviation_m": devs,
         }
@@ -285,8 +309,8 @@ class LddmmModel:
         X, _ = _check_xy(X)
         if X.shape[1] != self.dx:
             raise ValueError(f"X must have {self.dx} columns, got {X.shape[1]}")
-        sd, f32 = self._sd_eval, self.eval_float32
-        return self._batched(lambda c: self._pred(c, sd, self._xj, self._kpj, f32), X, batch)
+        sd, f32, fr = self._sd_eval, self.eval_float32, self.eval_frozen_jacobian
+        return self._batched(lambda c: self._pred(c, sd, self._xj, self._kpj, f32, fr), X, batch)
 
     def jacobian_dets(self, X: Any, batch: int = 4096) -> tuple[np.ndarray, np.ndarray]:
         """det D phi_1 at X and det D psi_1 at k0(X) (flows of v_t on X and w_t on Y)."""
@@ -318,6 +342,7 @@ class LddmmModel:
             "dy": self.dy,
             "eval_steps": self.eval_steps,
             "eval_float32": self.eval_float32,
+            "eval_frozen_jacobian": self.eval_frozen_jacobian,
         }
 
     @classmethod
@@ -338,7 +363,11 @@ class LddmmModel:
             raise ValueError(
                 f"k0 maps R^{m.dx} -> R^{m.dy}, model was fitted for R^{d['dx']} -> R^{d['dy']}"
             )
-        m.set_evaluation(d.get("eval_steps"), bool(d.get("eval_float32", False)))
+        m.set_evaluation(
+            d.get("eval_steps"),
+            bool(d.get("eval_float32", False)),
+            d.get("eval_frozen_jacobian", False),
+        )
         return m
 
 

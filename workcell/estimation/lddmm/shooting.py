@@ -256,6 +256,7 @@ def evolve_kinematics(
     sd: StageData,
     kp: KernelParams,
     f32: bool = False,
+    frozen_jacobian: bool = False,
 ) -> jnp.ndarray:
     """Eq. (29): k_1(xi) for a batch xi (B, n) given k0(xi) (B, m) and Dk0(xi) (B, m, n).
 
@@ -267,7 +268,10 @@ def evolve_kinematics(
     f32=True: kernels, fields and the displacement in float32, on coordinates centred on the
     landmarks (the Gaussian kernel and the field gradients are translation invariant), so the
     rounding is relative to the landmark spread and to |u|, not to the absolute coordinates;
-    k0(xi) is added back in float64. `static`: pass as a static argument under jit.
+    k0(xi) is added back in float64. frozen_jacobian=True: approximation Dk_t(xi) = Dk0(xi)
+    in the term Dk_t v (drops the Dv and Dw evaluations, the bulk of the cost); its effect on
+    k is second order in the deformation and is measured, not assumed (`tune_evaluation`).
+    Both flags are static arguments under jit.
     """
     n_steps = sd.q.shape[0]
     n = x.shape[1]
@@ -286,6 +290,8 @@ def evolve_kinematics(
     inv_v = 1.0 / (sv * sv)
     inv_w = 1.0 / (sw * sw)
     kvx = gauss_gemm(xi_c, x_c, sv)  # (B, N)
+    if frozen_jacobian:
+        return _evolve_frozen(kvx, k0_xi, k0c, dk0_xi.astype(dt), sq, sa, sb, sw, n_steps)
     # v and sum_j K a_j x_j^T for all stages at once
     a_all = jnp.moveaxis(sa, 2, 0)  # (N, S, 4, n)
     ax_all = a_all[..., :, None] * x_c[:, None, None, None, :]  # (N, S, 4, n, n)
@@ -312,6 +318,21 @@ def evolve_kinematics(
     step = _rk4_with_stages(None, rhs, n_steps)
     u0 = jnp.zeros_like(k0c)
     (u1, _), _ = jax.lax.scan(step, (u0, dk0_xi.astype(dt)), (sq, sb, v_all, dv_all))
+    return k0_xi + u1.astype(k0_xi.dtype)
+
+
+def _evolve_frozen(kvx, k0_xi, k0c, dk0, sq, sa, sb, sw, n_steps):
+    B, n = kvx.shape[0], sa.shape[-1]
+    N = kvx.shape[1]
+    v_all = (kvx @ jnp.moveaxis(sa, 2, 0).reshape(N, -1)).reshape(B, n_steps, 4, n)
+    jv_all = jnp.moveaxis(jnp.einsum("bmn,bsrn->bsrm", dk0, v_all), 0, 2)  # (S, 4, B, m)
+
+    def rhs(stage, u):
+        q, b, jv = stage
+        return gauss_gemm(k0c + u, q, sw) @ b - jv
+
+    step = _rk4_with_stages(None, rhs, n_steps)
+    u1, _ = jax.lax.scan(step, jnp.zeros_like(k0c), (sq, sb, jv_all))
     return k0_xi + u1.astype(k0_xi.dtype)
 
 
@@ -361,3 +382,64 @@ def data_cost(P0, q0, J0, x, y, kp: KernelParams, sigma: float, n_steps: int, di
     final = shoot(s0, x, kp, n_steps, div_term=div_term)
     r = final.q - y
     return hamiltonian(s0, x, kp) + 0.5 * jnp.sum(r * r) / sigma**2
+
+
+def evaluate_lagrangian(
+    xi: jnp.ndarray,
+    k0_batch,
+    x: jnp.ndarray,
+    sd: StageData,
+    kp: KernelParams,
+    f32: bool = False,
+) -> jnp.ndarray:
+    """k_1(xi) = psi_1(k0(phi_1^-1(xi))) by the two Lagrangian flows (no Dk0, no field gradients).
+
+    phi_1^-1(xi): the flow of v_t integrated backwards from t = 1 to 0 (the recorded RK4 stages
+    in reverse order); psi_1: the flow of w_t forwards. Mathematically the same map as eq. (29)
+    (k_t = psi_t o k0 o phi_t^-1), numerically a different discretisation: its deviation from
+    `evolve_kinematics` is measured by LddmmModel.tune_evaluation, not assumed.
+    `k0_batch`: (B, n) -> (B, m). f32 as in evolve_kinematics (displacements in float32 on
+    coordinates centred on the landmarks).
+    """
+    n_steps = sd.q.shape[0]
+    dt = jnp.float32 if f32 else xi.dtype
+    cx = jnp.mean(x, axis=0)
+    cy = jnp.mean(sd.q[0, 0], axis=0)
+    sv = jnp.asarray(kp.sigma_v, dtype=dt)
+    sw = jnp.asarray(kp.sigma_w, dtype=dt)
+    x_c = (x - cx).astype(dt)
+    xi_c = (xi - cx).astype(dt)
+    h = 1.0 / n_steps
+
+    def v_at(z_c, a):
+        return gauss_gemm(z_c, x_c, sv) @ a
+
+    def back_step(u, a4):  # a4 (4, N, n): stages (t, t+h/2, t+h/2, t+h) of one forward step
+        z = xi_c + u
+        k1 = v_at(z, a4[3])  # RK4 for dz/dt = v_t(z), stepping from t + h back to t
+        k2 = v_at(z - 0.5 * h * k1, a4[2])
+        k3 = v_at(z - 0.5 * h * k2, a4[1])
+        k4 = v_at(z - h * k3, a4[0])
+        return u - (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4), None
+
+    u_x, _ = jax.lax.scan(back_step, jnp.zeros_like(xi_c), sd.a.astype(dt)[::-1])
+    z = xi + u_x.astype(xi.dtype)
+    y0 = k0_batch(z)
+    y0_c = (y0 - cy).astype(dt)
+    sq = (sd.q - cy).astype(dt)
+    sb = sd.b.astype(dt)
+
+    def fwd_step(u, st):
+        q4, b4 = st
+
+        def w_at(uu, r):
+            return gauss_gemm(y0_c + uu, q4[r], sw) @ b4[r]
+
+        k1 = w_at(u, 0)
+        k2 = w_at(u + 0.5 * h * k1, 1)
+        k3 = w_at(u + 0.5 * h * k2, 2)
+        k4 = w_at(u + h * k3, 3)
+        return u + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4), None
+
+    u_y, _ = jax.lax.scan(fwd_step, jnp.zeros_like(y0_c), (sq, sb))
+    return y0 + u_y.astype(y0.dtype)
