@@ -154,6 +154,7 @@ def run(args: argparse.Namespace) -> int:
         else:
             best = min(results, key=lambda m: results[m]["heldout_rms_m"])
             summary["correction"] = correction_step(world, cell, models[best], best, out, log)
+            summary["correction"]["model_heldout_rms_m"] = results[best]["heldout_rms_m"]
     if args.json:
         print(json.dumps(summary))
         return 0

@@ -132,7 +132,13 @@ def fit_gp_residual(
     gpr = GaussianProcessRegressor(
         kern, normalize_y=False, n_restarts_optimizer=restarts, random_state=seed
     )
-    gpr.fit(X, r - y_mean)
+    import warnings
+
+    from sklearn.exceptions import ConvergenceWarning
+
+    with warnings.catch_warnings():  # a length scale at its bound means "irrelevant joint"
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        gpr.fit(X, r - y_mean)
     k = gpr.kernel_
     signal_var = float(k.k1.k1.constant_value)
     ls = np.asarray(k.k1.k2.length_scale, float)
