@@ -408,3 +408,29 @@ def _reject_outliers(P: np.ndarray, S: np.ndarray, k: float) -> np.ndarray:
     thr = k * max(mad, float(np.linalg.norm(S.mean(0))))
     keep = d <= thr
     return keep if keep.sum() >= 2 else np.ones(len(P), bool)
+
+
+def dry_run_plan(
+    kind: str,
+    spec: RobotSpec,
+    env: Envelope,
+    n: int,
+    *,
+    seed: int,
+    tool_m: np.ndarray,
+    config: CampaignConfig | None = None,
+) -> tuple[list[PoseTarget] | None, list[str]]:
+    """Build a plan and check every target and pre-pose against the envelope; nothing moves.
+
+    Returns (targets, problems); targets is None for adaptive plans (chosen during the campaign).
+    """
+    from workcell.campaign.plans import make_plan
+
+    cfg = config or CampaignConfig()
+    gen, q = make_plan(kind, spec, env, n, seed=seed, tool_m=tool_m, approach_rad=cfg.approach_rad)
+    if q is None:
+        gen.close()
+        return None, []
+    targets = list(gen)
+    ex = Executor(None, None, spec, env, None, tool_m=tool_m, config=cfg)
+    return targets, ex.check_plan(targets)

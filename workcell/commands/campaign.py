@@ -139,27 +139,16 @@ def _ask_on_protective_stop(control: CampaignControl) -> None:
 
 
 def dry_run(args, cell, env, cfg) -> int:
-    from workcell.campaign.executor import Executor
-    from workcell.campaign.plans import make_plan
+    from workcell.campaign.executor import dry_run_plan
 
-    gen, q = make_plan(
-        args.plan,
-        cell.spec,
-        env,
-        args.poses,
-        seed=args.seed,
-        tool_m=cell.tool_m,
-        approach_rad=cfg.approach_rad,
-    )
-    if q is None:
+    targets, problems = dry_run_plan(args.plan, cell.spec, env, args.poses, seed=args.seed,
+                                     tool_m=cell.tool_m, config=cfg)
+    if targets is None:
         print(
             f"plan {args.plan}: adaptive; each pose is chosen during the campaign inside the "
             f"envelope; {args.poses} poses"
         )
         return 0
-    targets = list(gen)
-    ex = Executor(None, None, cell.spec, env, None, tool_m=cell.tool_m, config=cfg)
-    problems = ex.check_plan(targets)
     for t in targets:
         print(f"pose {t.pose_id:4d}  q = [" + ", ".join(f"{x:+.4f}" for x in t.q_rad) + "] rad")
     print(f"dry run: {len(targets)} poses, {len(problems)} problems; nothing moved")

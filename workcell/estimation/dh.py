@@ -217,7 +217,7 @@ def fit_dh(
         base_ref=base_ref,
         cov=cov,
         free=free,
-        unidentifiable=ident.groups_named if hasattr(ident, "groups_named") else ident.groups,
+        unidentifiable=ident.groups,
         info=info,
     )
 

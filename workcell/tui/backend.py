@@ -204,28 +204,16 @@ def campaign_config(plan: PlanConfig, dev: Devices):
 
 def dry_run(plan: PlanConfig, dev: Devices) -> dict:
     """Check every planned target and pre-pose against the envelope; nothing moves."""
-    from workcell.campaign.executor import Executor
-    from workcell.campaign.plans import make_plan
+    from workcell.campaign.executor import dry_run_plan
 
     plan.validate()
     env = envelope_for(plan, dev)
     cfg = campaign_config(plan, dev)
     cell = dev.cell
-    gen, q = make_plan(
-        plan.kind,
-        cell.spec,
-        env,
-        plan.poses,
-        seed=plan.seed,
-        tool_m=cell.tool_m,
-        approach_rad=cfg.approach_rad,
-    )
-    if q is None:
-        gen.close()
+    targets, problems = dry_run_plan(plan.kind, cell.spec, env, plan.poses, seed=plan.seed,
+                                     tool_m=cell.tool_m, config=cfg)
+    if targets is None:
         return {"adaptive": True, "targets": plan.poses, "problems": [], "ok": True}
-    targets = list(gen)
-    ex = Executor(None, None, cell.spec, env, None, tool_m=cell.tool_m, config=cfg)
-    problems = ex.check_plan(targets)
     return {
         "adaptive": False,
         "targets": len(targets),
