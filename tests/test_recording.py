@@ -183,3 +183,20 @@ def test_info_reports_closed_state(tmp_path):
     d = json.loads(r.stdout)
     assert d["poses"] == 5 and d["closed_cleanly"] and d["robot"] == "ur5e"
     assert d["events"] == {"beam_broken": 1}
+
+
+def test_unreachable_devices_give_one_clear_line(tmp_path):
+    out = tmp_path / "u.mcap"
+    r = run_cli(
+        "campaign",
+        "--robot",
+        "ur://127.0.0.250",
+        "--tracker",
+        "serial:///dev/nonexistent",
+        "--poses",
+        "3",
+        "--out",
+        str(out),
+    )
+    assert_one_line_error(r, "unreachable")
+    assert not out.exists(), "no recording is started before the devices answer"

@@ -14,6 +14,7 @@ import importlib
 import os
 import sys
 
+from workcell.drivers.protocols import DeviceError
 from workcell.errors import UserError
 
 # name -> (module, one-line help). Modules are imported lazily (JAX start-up is slow).
@@ -74,6 +75,9 @@ def main(argv: list[str] | None = None) -> int:
     except UserError as e:
         print(f"workcell {args.command}: error: {e}", file=sys.stderr)
         return e.exit_code
+    except DeviceError as e:
+        print(f"workcell {args.command}: error: {e}", file=sys.stderr)
+        return 3
     except KeyboardInterrupt:
         print(f"workcell {args.command}: interrupted", file=sys.stderr)
         return 130
