@@ -45,7 +45,14 @@ import numpy as np
 from scipy.optimize import lsq_linear
 
 from workcell.errors import UserError
-from workcell.estimation.dh import DHModel, nominal_theta, pose_sigma
+from workcell.estimation.dh import (
+    DHModel,
+    nominal_theta,
+    pose_sigma,
+    register_base,
+    robust_keep,
+    weighted_covariance,
+)
 from workcell.estimation.identifiability import Identifiability, analyse
 from workcell.estimation.models import error_stats
 from workcell.kinematics.chain import (
@@ -56,7 +63,6 @@ from workcell.kinematics.chain import (
     p_tracker,
     parallel_beta_names,
 )
-from workcell.kinematics.frames import kabsch
 from workcell.recording.dataset import Dataset
 
 LENGTH_BOUND_M = 2e-3
@@ -73,33 +79,26 @@ def _bucket(n: int) -> int:
     return max(16, 1 << int(np.ceil(np.log2(max(n, 1)))))
 
 
-def _pad(q: np.ndarray) -> np.ndarray:
-    q = np.atleast_2d(np.asarray(q, float))
-    m = _bucket(len(q))
-    if m == len(q):
-        return q
-    return np.vstack([q, np.repeat(q[:1], m - len(q), axis=0)])
-
-
 def predict_padded(theta: np.ndarray, base_ref: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """`p_tracker` (N, 3) evaluated on a padded pose array (one compilation per size class)."""
-    q = np.atleast_2d(np.asarray(q, float))
-    return np.asarray(p_tracker(np.asarray(theta, float), np.asarray(base_ref, float), _pad(q)))[
-        : len(q)
-    ]
+    """`p_tracker` as numpy (the foundation pads batch sizes to buckets itself)."""
+    return np.asarray(
+        p_tracker(
+            np.asarray(theta, float),
+            np.asarray(base_ref, float),
+            np.atleast_2d(np.asarray(q, float)),
+        )
+    )
 
 
 def jacobian_padded(theta: np.ndarray, base_ref: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """`jac_params` (N, 3, 39) evaluated on a padded pose array."""
-    q = np.atleast_2d(np.asarray(q, float))
-    return np.asarray(jac_params(np.asarray(theta, float), np.asarray(base_ref, float), _pad(q)))[
-        : len(q)
-    ]
-
-
-def register_base_padded(ds: Dataset, theta: np.ndarray) -> np.ndarray:
-    """Same as `workcell.estimation.dh.register_base` (Kabsch of model SMR to measurements)."""
-    return kabsch(predict_padded(theta, np.eye(4), ds.q), ds.p_tracker)
+    """`jac_params` (N, 3, 39) as numpy."""
+    return np.asarray(
+        jac_params(
+            np.asarray(theta, float),
+            np.asarray(base_ref, float),
+            np.atleast_2d(np.asarray(q, float)),
+        )
+    )
 
 
 # ----------------------------------------------------------------------------------- bounds
@@ -210,7 +209,7 @@ def fit_dh_bounded(
     theta = th_nom.copy() if theta0 is None else np.asarray(theta0, float).copy()
     if theta.shape != (N_PARAMS,):
         raise ValueError(f"theta0: expected shape ({N_PARAMS},), got {theta.shape}")
-    base_ref = register_base_padded(ds, theta) if base_ref is None else np.asarray(base_ref, float)
+    base_ref = register_base(ds, theta) if base_ref is None else np.asarray(base_ref, float)
     w = 1.0 / pose_sigma(ds)
     ident: Identifiability | None = None
     if free is None:
@@ -248,12 +247,8 @@ def fit_dh_bounded(
         iters += it
         if not robust:
             break
-        e = np.linalg.norm(predict_padded(theta, base_ref, ds.q) - ds.p_tracker, axis=1)
-        sc = e * w
-        med = np.median(sc[keep])
-        mad = 1.4826 * np.median(np.abs(sc[keep] - med)) + 1e-12
-        new_keep = sc < med + outlier_k * mad * 3.0  # the same band as fit_dh
-        if np.array_equal(new_keep, keep) or new_keep.sum() < 0.8 * len(ds):
+        new_keep = robust_keep(ds, theta, base_ref, w, keep, outlier_k)
+        if new_keep is None:
             break
         keep = new_keep
         n_rejected = int((~keep).sum())
@@ -263,15 +258,7 @@ def fit_dh_bounded(
     active = at_lo | at_hi
     # uncertainty of the parameters not held by a bound (as in fit_dh)
     qk = ds.q[keep]
-    Jw = (jacobian_padded(theta, base_ref, qk) * w[keep][:, None, None]).reshape(-1, N_PARAMS)
-    r = ((predict_padded(theta, base_ref, qk) - ds.p_tracker[keep]) * w[keep][:, None]).ravel()
-    est = free & ~active
-    dof = max(len(r) - free.sum(), 1)
-    s0_2 = float(r @ r / dof)
-    cov = np.zeros((N_PARAMS, N_PARAMS))
-    if est.any():
-        A = Jw[:, est]
-        cov[np.ix_(est, est)] = s0_2 * np.linalg.pinv(A.T @ A)
+    cov, s0_2 = weighted_covariance(ds, theta, base_ref, w, keep, free & ~active, int(free.sum()))
     stats = error_stats(predict_padded(theta, base_ref, qk), ds.p_tracker[keep])
     finite = lambda x: float(x) if np.isfinite(x) else None  # noqa: E731
     info = {
@@ -352,6 +339,5 @@ __all__ = [
     "fit_dh_bounded",
     "jacobian_padded",
     "predict_padded",
-    "register_base_padded",
     "resolve_bounds",
 ]

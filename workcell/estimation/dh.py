@@ -176,27 +176,12 @@ def fit_dh(
     n_rejected = 0
     for _ in range(2):
         theta, res = _solve(ds, keep, w, theta, base_ref, free, max_nfev)
-        e = np.linalg.norm(np.asarray(p_tracker(theta, base_ref, ds.q)) - ds.p_tracker, axis=1)
-        sc = e * w
-        med = np.median(sc[keep])
-        mad = 1.4826 * np.median(np.abs(sc[keep] - med)) + 1e-12
-        new_keep = sc < med + outlier_k * mad * 3.0  # 3-D norm: generous band
-        if np.array_equal(new_keep, keep) or new_keep.sum() < 0.8 * len(ds):
+        new_keep = robust_keep(ds, theta, base_ref, w, keep, outlier_k)
+        if new_keep is None:
             break
         keep = new_keep
         n_rejected = int((~keep).sum())
-    # uncertainty
-    Jw = (np.asarray(jac_params(theta, base_ref, ds.q[keep])) * w[keep][:, None, None]).reshape(
-        -1, N_PARAMS
-    )[:, free]
-    r = (
-        (np.asarray(p_tracker(theta, base_ref, ds.q[keep])) - ds.p_tracker[keep]) * w[keep][:, None]
-    ).ravel()
-    dof = max(len(r) - free.sum(), 1)
-    s0_2 = float(r @ r / dof)
-    cov_free = s0_2 * np.linalg.pinv(Jw.T @ Jw)
-    cov = np.zeros((N_PARAMS, N_PARAMS))
-    cov[np.ix_(free, free)] = cov_free
+    cov, s0_2 = weighted_covariance(ds, theta, base_ref, w, keep, free, int(free.sum()))
     stats = error_stats(p_tracker(theta, base_ref, ds.q[keep]), ds.p_tracker[keep])
     info = {
         "nominal_tool_m": ds.tool_offset_m.tolist(),
@@ -220,6 +205,37 @@ def fit_dh(
         unidentifiable=ident.groups,
         info=info,
     )
+
+
+def robust_keep(ds, theta, base_ref, w, keep, outlier_k: float) -> np.ndarray | None:
+    """The robust pass shared by the fits: poses whose weighted residual lies beyond
+    `3 * outlier_k` robust sigmas (MAD) of the kept ones are set aside. Returns the new mask, or
+    None when nothing changes or more than 20 % of the poses would go."""
+    e = np.linalg.norm(np.asarray(p_tracker(theta, base_ref, ds.q)) - ds.p_tracker, axis=1)
+    sc = e * w
+    med = np.median(sc[keep])
+    mad = 1.4826 * np.median(np.abs(sc[keep] - med)) + 1e-12
+    new_keep = sc < med + outlier_k * mad * 3.0  # 3-D norm: generous band
+    if np.array_equal(new_keep, keep) or new_keep.sum() < 0.8 * len(ds):
+        return None
+    return new_keep
+
+
+def weighted_covariance(ds, theta, base_ref, w, keep, est, n_free: int):
+    """Cov = s0^2 (J^T W J)^-1 over the parameters `est` (mask), s0^2 = chi2 / (3N - n_free).
+    Returns (cov (39, 39) with zeros elsewhere, s0^2)."""
+    qk = ds.q[keep]
+    r = (
+        (np.asarray(p_tracker(theta, base_ref, qk)) - ds.p_tracker[keep]) * w[keep][:, None]
+    ).ravel()
+    s0_2 = float(r @ r / max(len(r) - n_free, 1))
+    cov = np.zeros((N_PARAMS, N_PARAMS))
+    if np.any(est):
+        Jw = (np.asarray(jac_params(theta, base_ref, qk)) * w[keep][:, None, None]).reshape(
+            -1, N_PARAMS
+        )[:, est]
+        cov[np.ix_(est, est)] = s0_2 * np.linalg.pinv(Jw.T @ Jw)
+    return cov, s0_2
 
 
 def _solve(ds, keep, w, theta, base_ref, free, max_nfev):
