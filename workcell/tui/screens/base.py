@@ -32,6 +32,16 @@ class WorkcellScreen(Screen):
     def render_view(self) -> None:
         """Draw the stored attributes (screens are composed lazily, on first show)."""
 
+    def on_resize(self) -> None:
+        # screens whose CSS has `.narrow` rules re-flow below 100 columns; others ignore it
+        self.set_class(self.size.width < 100, "narrow")
+
+    def set_recording(self, path: str) -> None:
+        """For screens with a `#recording` input: remember the path and show it."""
+        self.recording = path
+        if self.is_mounted:
+            self.query_one("#recording", Input).value = path
+
     def update_view(self) -> None:
         if self.is_mounted:
             self.render_view()

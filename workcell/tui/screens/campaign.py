@@ -77,9 +77,6 @@ class CampaignScreen(WorkcellScreen):
             yield ResidualPlot(id="plot")
             yield RichLog(id="events", max_lines=500, wrap=True, markup=True)
 
-    def on_resize(self) -> None:
-        self.set_class(self.size.width < 100, "narrow")
-
     # ---------------------------------------------------------------- actions (requests up)
     def action_start(self) -> None:
         if self.state in ("running", "paused", "starting"):

@@ -55,14 +55,6 @@ class DiagnoseScreen(WorkcellScreen):
         )
         super().on_mount()
 
-    def on_resize(self) -> None:
-        self.set_class(self.size.width < 100, "narrow")
-
-    def set_recording(self, path: str) -> None:
-        self.recording = path
-        if self.is_mounted:
-            self.query_one("#recording", Input).value = path
-
     def action_diagnose(self) -> None:
         if self.running:
             self.notify("a diagnosis is already running", severity="warning")

@@ -70,14 +70,6 @@ class FitScreen(WorkcellScreen):
         self.query_one("#table", DataTable).add_columns("", "held-out RMS", "max")
         super().on_mount()
 
-    def on_resize(self) -> None:
-        self.set_class(self.size.width < 100, "narrow")
-
-    def set_recording(self, path: str) -> None:
-        self.recording = path
-        if self.is_mounted:
-            self.query_one("#recording", Input).value = path
-
     def action_fit(self) -> None:
         if self.running:
             self.notify("a fit is already running", severity="warning")
