@@ -60,10 +60,8 @@ ADAPTIVE_KINDS = ("bo", "dopt")
 
 def candidate_poses(spec: RobotSpec, q: np.ndarray, tool_m: np.ndarray) -> np.ndarray:
     """(M, 7) = [qw qx qy qz px py pz]: nominal flange orientation and SMR position in base."""
-    from workcell.estimation.bounded import _pad
-
     q = np.atleast_2d(np.asarray(q, float))
-    T = np.asarray(base_T_flange(pack(spec.dh), _pad(q)))[: len(q)]
+    T = np.asarray(base_T_flange(pack(spec.dh), q))
     xyzw = Rotation.from_matrix(T[:, :3, :3]).as_quat()
     wxyz = np.column_stack([xyzw[:, 3], xyzw[:, :3]])
     p = np.einsum("nab,b->na", T[:, :3, :3], np.asarray(tool_m, float)) + T[:, :3, 3]
@@ -147,14 +145,15 @@ class _Measurements:
 
     def refit(self) -> None:
         """Current model: bounded QP fit once identifiable, else nominal + Kabsch registration."""
-        from workcell.estimation.bounded import fit_dh_bounded, register_base_padded
+        from workcell.estimation.bounded import fit_dh_bounded
+        from workcell.estimation.dh import register_base
 
         if len(self) < 3:
             return
         ds = self.dataset()
         if len(self) < self.n_fit:
             self.theta = pack(self.spec.dh, tool=self.tool_m)
-            self.base_ref = register_base_padded(ds, self.theta)
+            self.base_ref = register_base(ds, self.theta)
             return
         try:
             m = fit_dh_bounded(
