@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 
@@ -47,6 +48,7 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--mode", default="adaptive", choices=["adaptive", "paper"])
     ap.add_argument("--filterpy-samples", type=int, default=60)
+    ap.add_argument("--repeats", type=int, default=3, help="timed runs of each filter (best kept)")
     a = ap.parse_args(argv)
 
     from sim_devices.trajectory import make_trajectory
@@ -185,16 +187,21 @@ def main(argv: list[str]) -> int:
             f"{g['learnt_fraction']:.3f}"
         )
     # throughput
+    # Both filters: the best of `repeats` timed runs (the least disturbed one: this machine is
+    # shared and its clock is noisy), filterpy on the first `filterpy_samples` samples.
     ct = FilterConfig(mode=a.mode, ann_iter_every=0)
     EkfAnnFilter.create(ct, spec, theta_true, base, w_nom).process(q[:ntr], y[:ntr], s[:ntr])
-    f = EkfAnnFilter.create(ct, spec, theta_true, base, w_nom)
-    t0, c0 = time.perf_counter(), time.process_time()
-    f.process(q[:ntr], y[:ntr], s[:ntr])
-    jax_rate = ntr / (time.perf_counter() - t0)
-    jax_cpu = ntr / max(time.process_time() - c0, 1e-9)
-    fp_rate, fp_cpu, agree = _filterpy_rate(
-        spec, theta_true, base, w_nom, q, y, s, a.filterpy_samples, a.mode
-    )
+    jax_rate = jax_cpu = fp_rate = fp_cpu = 0.0
+    for _ in range(a.repeats):
+        f = EkfAnnFilter.create(ct, spec, theta_true, base, w_nom)
+        t0, c0 = time.perf_counter(), time.process_time()
+        f.process(q[:ntr], y[:ntr], s[:ntr])
+        jax_rate = max(jax_rate, ntr / (time.perf_counter() - t0))
+        jax_cpu = max(jax_cpu, ntr / max(time.process_time() - c0, 1e-9))
+        r, c, agree = _filterpy_rate(
+            spec, theta_true, base, w_nom, q, y, s, a.filterpy_samples, a.mode
+        )
+        fp_rate, fp_cpu = max(fp_rate, r), max(fp_cpu, c)
     out["throughput_samples_per_s"] = jax_rate
     out["filterpy_samples_per_s"] = fp_rate
     out["throughput_cpu_samples_per_s"] = jax_cpu
@@ -202,6 +209,11 @@ def main(argv: list[str]) -> int:
     out["speedup"] = jax_rate / fp_rate
     out["filterpy_max_state_difference"] = agree
     out["state_size"] = int(len(f.x))
+    out["timing"] = {
+        "repeats": a.repeats,
+        "block": ct.block,
+        "openblas_threads": os.environ.get("OPENBLAS_NUM_THREADS", "unset"),
+    }
     out["bench_seconds"] = time.time() - t_start
     say(
         f"throughput: JAX {jax_rate:.0f} samples/s ({jax_cpu:.0f} per CPU second), filterpy "

@@ -5,7 +5,11 @@ position corrections in the robot *base* frame, in units of `out_scale_m` (so th
 O(1) for corrections of a few tenths of a millimetre); the output layer is linear.
 
 Weight vector layout (K = 10 H + 3 for 6 inputs and 3 outputs):
-    [W1 (H x 6, row-major), b1 (H), W2 (3 x H, row-major), b2 (3)]
+    [W1^T (6 x H, row-major: input-major), b1 (H), W2 (3 x H, row-major), b2 (3)]
+
+The input-major first layer makes [W1^T; b1^T] a (7, H) block for the augmented input [u, 1],
+which the filter's structured covariance products use (`jac_context`). Saved networks carry
+`LAYOUT`; a network saved with another layout is refused.
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ import numpy as np
 from workcell._jax import jax, jnp
 
 N_IN, N_OUT = 6, 3
+LAYOUT = "w1-input-major"
 OUT_SCALE_M = 1e-4
 
 
@@ -37,10 +42,16 @@ class AnnSpec:
             "u_centre": list(map(float, self.u_centre)),
             "u_scale": list(map(float, self.u_scale)),
             "out_scale_m": float(self.out_scale_m),
+            "layout": LAYOUT,
         }
 
     @classmethod
     def from_dict(cls, d: dict) -> AnnSpec:
+        if d.get("layout") != LAYOUT:
+            raise ValueError(
+                f"network weights saved with layout {d.get('layout', 'h-major (before 2026-11-22)')!r}, "
+                f"this version reads {LAYOUT!r}: refit the ekf-ann model"
+            )
         return cls(
             hidden=int(d["hidden"]),
             u_centre=tuple(float(x) for x in d["u_centre"]),
@@ -67,7 +78,7 @@ def n_weights(hidden: int) -> int:
 def unpack(w: jnp.ndarray, hidden: int):
     H = hidden
     i = 0
-    W1 = w[i : i + H * N_IN].reshape(H, N_IN)
+    W1 = w[i : i + H * N_IN].reshape(N_IN, H).T
     i += H * N_IN
     b1 = w[i : i + H]
     i += H
@@ -81,6 +92,56 @@ def apply_raw(w: jnp.ndarray, u: jnp.ndarray, hidden: int) -> jnp.ndarray:
     """Network output (3,) in output units for one standardised input u (6,)."""
     W1, b1, W2, b2 = unpack(w, hidden)
     return W2 @ jnp.tanh(W1 @ u + b1) + b2
+
+
+def apply_raw_and_jac(w: jnp.ndarray, u: jnp.ndarray, hidden: int):
+    """Output (3,) and its Jacobian (3, K) with respect to the weights, written out by hand
+    (what jax.jacrev computes, without the reverse pass: the filter calls it every sample).
+
+    With a = tanh(W1 u + b1) and C = W2 diag(1 - a^2):
+    d out / d W1[h, j] = C[:, h] u_j,  d out / d b1 = C,  d out_o / d W2[o, :] = a,  d out / d b2 = I.
+    """
+    W1, b1, W2, b2 = unpack(w, hidden)
+    a = jnp.tanh(W1 @ u + b1)
+    C = W2 * (1.0 - a * a)[None, :]  # (3, H)
+    J = jnp.concatenate(
+        [
+            (u[None, :, None] * C[:, None, :]).reshape(N_OUT, N_IN * hidden),
+            C,
+            jnp.kron(jnp.eye(N_OUT), a[None, :]),
+            jnp.eye(N_OUT),
+        ],
+        axis=1,
+    )
+    return W2 @ a + b2, J
+
+
+def jac_context(M: jnp.ndarray, U: jnp.ndarray, hidden: int):
+    """Precomputation for products J(w, u) @ M with many inputs u and one matrix M (K, k) whose
+    rows follow the weight layout (the filter's covariance): the W1 and b1 blocks of J are
+    C (x) [u, 1] and its W2 block is I (x) a (see `apply_raw_and_jac`), so with
+
+        V_i = [U[i], 1] @ M[W1 and b1 rows].reshape(7, H k)   -> (H, k) for every input U[i],
+
+    J(w, U[i]) @ M = C @ V_i + [a @ M[W2(o, .)]]_o + M[b2] costs 6 H k multiply-adds (instead of
+    3 K k = 30 H k), and the V_i of a whole block come from one matrix product (no transposes:
+    the layout is input-major). Returns (V (b, H, k), (M_W2 (H, 3 k), M_b2 (3, k)))."""
+    H = hidden
+    k = M.shape[1]
+    i2, i3 = H * N_IN + H, H * N_IN + H + N_OUT * H
+    Ua = jnp.concatenate([U, jnp.ones((len(U), 1), U.dtype)], axis=1)
+    V = (Ua @ M[:i2].reshape(N_IN + 1, H * k)).reshape(len(U), H, k)
+    M_W2 = M[i2:i3].reshape(N_OUT, H, k).transpose(1, 0, 2).reshape(H, N_OUT * k)
+    return V, (M_W2, M[i3 : i3 + N_OUT])
+
+
+def jac_times(w: jnp.ndarray, u: jnp.ndarray, hidden: int, V_i, shared) -> jnp.ndarray:
+    """J(w, u) @ M (3, k) from the context of `jac_context` (V_i: the row of V for this u)."""
+    W1, b1, W2, _ = unpack(w, hidden)
+    a = jnp.tanh(W1 @ u + b1)
+    C = W2 * (1.0 - a * a)[None, :]
+    M_W2, M_b2 = shared
+    return C @ V_i + (a @ M_W2).reshape(N_OUT, -1) + M_b2
 
 
 def standardise(q: jnp.ndarray, spec: AnnSpec) -> jnp.ndarray:
@@ -112,7 +173,7 @@ def random_weights(hidden: int, seed: int | np.random.Generator = 0) -> np.ndarr
     b1 = rng.normal(0.0, 0.1, hidden)
     W2 = rng.normal(0.0, np.sqrt(2.0 / (hidden + N_OUT)), (N_OUT, hidden))
     b2 = np.zeros(N_OUT)
-    return np.concatenate([W1.ravel(), b1, W2.ravel(), b2])
+    return np.concatenate([W1.T.ravel(), b1, W2.ravel(), b2])
 
 
 # ------------------------------------------------------------------ Levenberg-Marquardt
