@@ -163,7 +163,7 @@ class LiveFilter:
         return (
             f"ekf-ann {self.n:5d}  innov {self.last_innovation_m * 1e6:7.1f} um  "
             f"s0^2 {s0:6.2f} {'ok' if ok else 'REJECT'}{ng}"
-            f"  ann-iter {0 if f is None else f.ann_iterations}"
+            f"  ann-iter {0 if f is None else f'{f.ann_accepted}/{f.ann_iterations}'}"
         )
 
     def estimate(self) -> dict:
@@ -184,6 +184,7 @@ class LiveFilter:
                     "theta": f.theta.tolist(),
                     "geometric_std": f.geometric_std(),
                     "ann_iterations": f.ann_iterations,
+                    "ann_iterations_accepted": f.ann_accepted,
                     "state_norm": float(np.linalg.norm(f.x)),
                 }
             )
