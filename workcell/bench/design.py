@@ -192,6 +192,14 @@ def summarise(runs: dict[str, list[dict]]) -> dict:
             "runs": [int(x) for x in v],
             "censored": int(sum(r["censored"] for r in rs)),
         }
+        # the held-out RMS / floor with the fewest poses any plan can use (the rank bound):
+        # how good each plan's first identifiable set is, beyond the count
+        first = [r["curve"][0][1] / r["noise_floor_m"] for r in rs if r["curve"]]
+        if first:
+            res[plan]["rms_over_floor_at_rank_bound"] = {
+                "median": float(np.median(first)),
+                "max": float(np.max(first)),
+            }
     return res
 
 
@@ -282,7 +290,13 @@ def main(argv: list[str]) -> int:
     print(f"{'plan':8}{'mean':>8}{'std':>8}{'median':>8}  runs (poses to target)")
     for p, r in summary.items():
         cens = f"  [{r['censored']} not reached]" if r["censored"] else ""
-        print(f"{p:8}{r['mean']:8.1f}{r['std']:8.1f}{r['median']:8.1f}  {r['runs']}{cens}")
+        rb = r.get("rms_over_floor_at_rank_bound")
+        at = (
+            f"  at the rank bound RMS/floor median {rb['median']:.2f}, max {rb['max']:.2f}"
+            if rb
+            else ""
+        )
+        print(f"{p:8}{r['mean']:8.1f}{r['std']:8.1f}{r['median']:8.1f}  {r['runs']}{cens}{at}")
     fl = out["noise_floor_m"]
     print(
         f"noise floor {fl['mean'] * 1e6:.1f} um (mean over cells); target {a.target_factor:g}x "
