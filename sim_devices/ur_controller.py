@@ -78,19 +78,41 @@ SERIAL_NUMBER = "20235500001"
 
 # robot_mode
 ROBOT_MODES = {
-    -1: "NO_CONTROLLER", 0: "DISCONNECTED", 1: "CONFIRM_SAFETY", 2: "BOOTING", 3: "POWER_OFF",
-    4: "POWER_ON", 5: "IDLE", 6: "BACKDRIVE", 7: "RUNNING", 8: "UPDATING_FIRMWARE",
+    -1: "NO_CONTROLLER",
+    0: "DISCONNECTED",
+    1: "CONFIRM_SAFETY",
+    2: "BOOTING",
+    3: "POWER_OFF",
+    4: "POWER_ON",
+    5: "IDLE",
+    6: "BACKDRIVE",
+    7: "RUNNING",
+    8: "UPDATING_FIRMWARE",
 }
 MODE_POWER_OFF, MODE_IDLE, MODE_RUNNING = 3, 5, 7
 # safety_mode
 SAFETY_MODES = {
-    1: "NORMAL", 2: "REDUCED", 3: "PROTECTIVE_STOP", 4: "RECOVERY", 5: "SAFEGUARD_STOP",
-    6: "SYSTEM_EMERGENCY_STOP", 7: "ROBOT_EMERGENCY_STOP", 8: "VIOLATION", 9: "FAULT",
+    1: "NORMAL",
+    2: "REDUCED",
+    3: "PROTECTIVE_STOP",
+    4: "RECOVERY",
+    5: "SAFEGUARD_STOP",
+    6: "SYSTEM_EMERGENCY_STOP",
+    7: "ROBOT_EMERGENCY_STOP",
+    8: "VIOLATION",
+    9: "FAULT",
 }
 SAFETY_NORMAL, SAFETY_PROTECTIVE_STOP = 1, 3
 # runtime_state
 RT_STOPPED, RT_PLAYING, RT_PAUSED = 1, 2, 4
-RUNTIME_NAMES = {0: "STOPPING", 1: "STOPPED", 2: "PLAYING", 3: "PAUSING", 4: "PAUSED", 5: "RESUMING"}
+RUNTIME_NAMES = {
+    0: "STOPPING",
+    1: "STOPPED",
+    2: "PLAYING",
+    3: "PAUSING",
+    4: "PAUSED",
+    5: "RESUMING",
+}
 JOINT_RUNNING, JOINT_POWER_OFF, JOINT_IDLE = 253, 239, 255
 
 # control-script command ids (ur_rtde RobotCommand::Type)
@@ -101,40 +123,95 @@ RT_CMDS = frozenset({24, 11, 9, 10, 6, 25, 26, 27, 38, 58, 66, 67, 68, 69, 70, 7
 K_T_NM_PER_A = np.array([13.3, 13.3, 13.3, 9.3, 9.3, 9.3])
 ENCODER_NOISE_RAD = 2e-6
 
-FAULT_KEYS = frozenset({
-    "rtde_drop_after_s", "rtde_drop_at_move", "protective_stop_at_s", "protective_stop_at_move",
-    "restart_at_s", "restart_at_move", "restart_down_s", "restart_power_off",
-})
+FAULT_KEYS = frozenset(
+    {
+        "rtde_drop_after_s",
+        "rtde_drop_at_move",
+        "protective_stop_at_s",
+        "protective_stop_at_move",
+        "restart_at_s",
+        "restart_at_move",
+        "restart_down_s",
+        "restart_power_off",
+    }
+)
 
 # ------------------------------------------------------------------ RTDE variable types
 _FMT = {
-    "DOUBLE": "d", "VECTOR6D": "6d", "VECTOR3D": "3d", "INT32": "i", "UINT32": "I",
-    "UINT64": "Q", "VECTOR6INT32": "6i", "VECTOR6UINT32": "6I", "UINT8": "B", "BOOL": "?",
+    "DOUBLE": "d",
+    "VECTOR6D": "6d",
+    "VECTOR3D": "3d",
+    "INT32": "i",
+    "UINT32": "I",
+    "UINT64": "Q",
+    "VECTOR6INT32": "6i",
+    "VECTOR6UINT32": "6I",
+    "UINT8": "B",
+    "BOOL": "?",
 }
 
 
 def _output_types() -> dict[str, str]:
     t = {}
-    for n in ("timestamp", "actual_execution_time", "speed_scaling", "target_speed_fraction",
-              "actual_momentum", "actual_main_voltage", "actual_robot_voltage",
-              "actual_robot_current", "standard_analog_input0", "standard_analog_input1",
-              "standard_analog_output0", "standard_analog_output1", "payload",
-              "tool_analog_input0", "tool_analog_input1", "tool_output_voltage",
-              "tool_output_current", "tool_temperature", "tcp_force_scalar"):
+    for n in (
+        "timestamp",
+        "actual_execution_time",
+        "speed_scaling",
+        "target_speed_fraction",
+        "actual_momentum",
+        "actual_main_voltage",
+        "actual_robot_voltage",
+        "actual_robot_current",
+        "standard_analog_input0",
+        "standard_analog_input1",
+        "standard_analog_output0",
+        "standard_analog_output1",
+        "payload",
+        "tool_analog_input0",
+        "tool_analog_input1",
+        "tool_output_voltage",
+        "tool_output_current",
+        "tool_temperature",
+        "tcp_force_scalar",
+    ):
         t[n] = "DOUBLE"
-    for n in ("target_q", "target_qd", "target_qdd", "target_current", "target_moment",
-              "actual_q", "actual_qd", "actual_qdd", "actual_current", "actual_current_as_torque",
-              "actual_moment", "joint_control_output", "actual_TCP_pose", "actual_TCP_speed",
-              "actual_TCP_force", "target_TCP_pose", "target_TCP_speed", "joint_temperatures",
-              "actual_joint_voltage", "ft_raw_wrench", "payload_inertia"):
+    for n in (
+        "target_q",
+        "target_qd",
+        "target_qdd",
+        "target_current",
+        "target_moment",
+        "actual_q",
+        "actual_qd",
+        "actual_qdd",
+        "actual_current",
+        "actual_current_as_torque",
+        "actual_moment",
+        "joint_control_output",
+        "actual_TCP_pose",
+        "actual_TCP_speed",
+        "actual_TCP_force",
+        "target_TCP_pose",
+        "target_TCP_speed",
+        "joint_temperatures",
+        "actual_joint_voltage",
+        "ft_raw_wrench",
+        "payload_inertia",
+    ):
         t[n] = "VECTOR6D"
     for n in ("actual_tool_accelerometer", "payload_cog", "elbow_position", "elbow_velocity"):
         t[n] = "VECTOR3D"
     for n in ("robot_mode", "safety_mode", "tool_mode"):
         t[n] = "INT32"
-    for n in ("runtime_state", "robot_status_bits", "safety_status_bits",
-              "output_bit_registers0_to_31", "output_bit_registers32_to_63",
-              "input_bit_registers0_to_31", "input_bit_registers32_to_63"):
+    for n in (
+        "runtime_state",
+        "robot_status_bits",
+        "safety_status_bits",
+        "output_bit_registers0_to_31",
+        "output_bit_registers32_to_63",
+        "input_bit_registers0_to_31",
+        "input_bit_registers32_to_63",
+    ):
         t[n] = "UINT32"
     t["actual_digital_input_bits"] = "UINT64"
     t["actual_digital_output_bits"] = "UINT64"
@@ -148,14 +225,23 @@ def _output_types() -> dict[str, str]:
 
 
 def _input_types() -> dict[str, str]:
-    t = {"external_force_torque": "VECTOR6D", "speed_slider_mask": "UINT32",
-         "speed_slider_fraction": "DOUBLE", "standard_digital_output_mask": "UINT8",
-         "standard_digital_output": "UINT8", "configurable_digital_output_mask": "UINT8",
-         "configurable_digital_output": "UINT8", "tool_digital_output_mask": "UINT8",
-         "tool_digital_output": "UINT8", "standard_analog_output_mask": "UINT8",
-         "standard_analog_output_type": "UINT8", "standard_analog_output_0": "DOUBLE",
-         "standard_analog_output_1": "DOUBLE", "input_bit_registers0_to_31": "UINT32",
-         "input_bit_registers32_to_63": "UINT32"}
+    t = {
+        "external_force_torque": "VECTOR6D",
+        "speed_slider_mask": "UINT32",
+        "speed_slider_fraction": "DOUBLE",
+        "standard_digital_output_mask": "UINT8",
+        "standard_digital_output": "UINT8",
+        "configurable_digital_output_mask": "UINT8",
+        "configurable_digital_output": "UINT8",
+        "tool_digital_output_mask": "UINT8",
+        "tool_digital_output": "UINT8",
+        "standard_analog_output_mask": "UINT8",
+        "standard_analog_output_type": "UINT8",
+        "standard_analog_output_0": "DOUBLE",
+        "standard_analog_output_1": "DOUBLE",
+        "input_bit_registers0_to_31": "UINT32",
+        "input_bit_registers32_to_63": "UINT32",
+    }
     for i in range(48):
         t[f"input_int_register_{i}"] = "INT32"
         t[f"input_double_register_{i}"] = "DOUBLE"
@@ -205,10 +291,14 @@ class NominalChain:
             th = q[i] + self.off[i]
             ct, st = np.cos(th), np.sin(th)
             ca, sa = np.cos(self.alpha[i]), np.sin(self.alpha[i])
-            A = np.array([[ct, -st * ca, st * sa, self.a[i] * ct],
-                          [st, ct * ca, -ct * sa, self.a[i] * st],
-                          [0.0, sa, ca, self.d[i]],
-                          [0.0, 0.0, 0.0, 1.0]])
+            A = np.array(
+                [
+                    [ct, -st * ca, st * sa, self.a[i] * ct],
+                    [st, ct * ca, -ct * sa, self.a[i] * st],
+                    [0.0, sa, ca, self.d[i]],
+                    [0.0, 0.0, 0.0, 1.0],
+                ]
+            )
             T = T @ A
         return T
 
@@ -273,8 +363,9 @@ def validate_faults(faults: dict | None) -> dict:
     f = dict(faults or {})
     unknown = set(f) - FAULT_KEYS
     if unknown:
-        raise ValueError(f"unknown UR controller fault(s) {sorted(unknown)}; known: "
-                         f"{sorted(FAULT_KEYS)}")
+        raise ValueError(
+            f"unknown UR controller fault(s) {sorted(unknown)}; known: {sorted(FAULT_KEYS)}"
+        )
     out: dict = {}
     for k in ("rtde_drop_after_s", "protective_stop_at_s", "restart_at_s"):
         vals = sorted(_as_list(f.get(k)))
@@ -357,8 +448,10 @@ class UrControllerSim:
             if not isinstance(world.clock, ScaledClock):
                 world.clock = ScaledClock(1.0 if time_scale is None else time_scale)
             elif time_scale is not None and abs(world.clock.time_scale - time_scale) > 1e-12:
-                raise ValueError(f"time_scale {time_scale} differs from the world clock's "
-                                 f"{world.clock.time_scale}")
+                raise ValueError(
+                    f"time_scale {time_scale} differs from the world clock's "
+                    f"{world.clock.time_scale}"
+                )
         self.clock = world.clock
         self.time_scale = float(self.clock.time_scale)
         self.host = host
@@ -399,8 +492,15 @@ class UrControllerSim:
             + [(t, "restart") for t in self.faults["restart_at_s"]]
         )
         self.events: list[tuple[float, str]] = []  # (sim time, what) for tests/diagnosis
-        self.stats = {"rtde_conns": 0, "dashboard_conns": 0, "script_uploads": 0, "moves": 0,
-                      "rtde_drops": 0, "protective_stops": 0, "restarts": 0}
+        self.stats = {
+            "rtde_conns": 0,
+            "dashboard_conns": 0,
+            "script_uploads": 0,
+            "moves": 0,
+            "rtde_drops": 0,
+            "protective_stops": 0,
+            "restarts": 0,
+        }
 
         self._prev_qd = np.zeros(6)
         self._prev_t = 0.0
@@ -456,8 +556,11 @@ class UrControllerSim:
 
     # ================================================================== listeners
     def _open_listeners(self) -> None:
-        for port, kind in ((self.rtde_port, "rtde"), (self.dashboard_port, "dashboard"),
-                           (self.script_port, "script")):
+        for port, kind in (
+            (self.rtde_port, "rtde"),
+            (self.dashboard_port, "dashboard"),
+            (self.script_port, "script"),
+        ):
             s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
             s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             try:
@@ -469,8 +572,9 @@ class UrControllerSim:
             s.listen(8)
             s.settimeout(0.1)
             self._listeners[port] = s
-            t = threading.Thread(target=self._accept_loop, args=(s, kind),
-                                 name=f"ur-sim-accept-{kind}", daemon=True)
+            t = threading.Thread(
+                target=self._accept_loop, args=(s, kind), name=f"ur-sim-accept-{kind}", daemon=True
+            )
             t.start()
             self._threads.append(t)
 
@@ -501,10 +605,14 @@ class UrControllerSim:
             conn = _Conn(sock, kind)
             with self.lock:
                 self._conns.add(conn)
-            target = {"rtde": self._serve_rtde, "dashboard": self._serve_dashboard,
-                      "script": self._serve_script}[kind]
-            t = threading.Thread(target=self._run_conn, args=(target, conn),
-                                 name=f"ur-sim-{kind}", daemon=True)
+            target = {
+                "rtde": self._serve_rtde,
+                "dashboard": self._serve_dashboard,
+                "script": self._serve_script,
+            }[kind]
+            t = threading.Thread(
+                target=self._run_conn, args=(target, conn), name=f"ur-sim-{kind}", daemon=True
+            )
             t.start()
 
     def _run_conn(self, target, conn: _Conn) -> None:
@@ -531,8 +639,9 @@ class UrControllerSim:
         elif kind == "restart":
             self._restart(float(kw.get("down_s", self.faults["restart_down_s"])))
         else:
-            raise ValueError(f"unknown fault kind {kind!r}; known: rtde_drop, protective_stop, "
-                             "restart")
+            raise ValueError(
+                f"unknown fault kind {kind!r}; known: rtde_drop, protective_stop, restart"
+            )
 
     def _rtde_drop(self) -> None:
         self.stats["rtde_drops"] += 1
@@ -655,7 +764,7 @@ class UrControllerSim:
     def _process_cmd(self, cmd: int) -> None:
         o = self.reg_offset
         if cmd in (CMD_MOVEJ, CMD_MOVEJ_IK, CMD_MOVEL, CMD_MOVEL_FK):
-            target = self.in_dbl[o: o + 6].copy()
+            target = self.in_dbl[o : o + 6].copy()
             speed, accel = float(self.in_dbl[o + 6]), float(self.in_dbl[o + 7])
             is_async = int(self.in_int[o + 1]) == 1
             if cmd in (CMD_MOVEJ_IK, CMD_MOVEL):
@@ -695,9 +804,11 @@ class UrControllerSim:
         dur = self.world.command_move(q_target, speed, accel)
         self._event(f"move {k}: {dur:.3f} s {'async' if is_async else 'sync'}")
         t_half = self.clock.now() + 0.5 * dur
-        for key, kind in (("rtde_drop_at_move", "rtde_drop"),
-                          ("protective_stop_at_move", "protective_stop"),
-                          ("restart_at_move", "restart")):
+        for key, kind in (
+            ("rtde_drop_at_move", "rtde_drop"),
+            ("protective_stop_at_move", "protective_stop"),
+            ("restart_at_move", "restart"),
+        ):
             if k in self.faults[key]:
                 self._scheduled.append((t_half, kind))
         self._scheduled.sort()
@@ -774,33 +885,60 @@ class UrControllerSim:
             powered = self.robot_mode in (4, 5, 6, 7)
             status_bits = (1 if powered else 0) | (2 if playing else 0)
             jm = {MODE_RUNNING: JOINT_RUNNING, MODE_IDLE: JOINT_IDLE}.get(
-                self.robot_mode, JOINT_POWER_OFF)
+                self.robot_mode, JOINT_POWER_OFF
+            )
             truth = self.world.truth
             snap = {
-                "timestamp": t, "target_q": q, "target_qd": qd, "target_qdd": qdd,
-                "target_current": current, "target_moment": moment, "actual_q": q_act,
-                "actual_qd": qd, "actual_qdd": qdd, "actual_current": current,
-                "actual_current_as_torque": moment, "actual_moment": moment,
-                "joint_control_output": current, "actual_TCP_pose": pose,
-                "actual_TCP_speed": tcp_speed, "actual_TCP_force": np.zeros(6),
-                "target_TCP_pose": pose, "target_TCP_speed": tcp_speed,
-                "actual_digital_input_bits": 0, "joint_temperatures": temps,
-                "actual_execution_time": 0.35, "robot_mode": self.robot_mode,
-                "joint_mode": [jm] * 6, "safety_mode": self.safety_mode,
-                "actual_tool_accelerometer": accel, "speed_scaling": 1.0,
-                "target_speed_fraction": 1.0, "actual_momentum": 0.0,
-                "actual_main_voltage": 48.0, "actual_robot_voltage": 48.0 if powered else 0.0,
+                "timestamp": t,
+                "target_q": q,
+                "target_qd": qd,
+                "target_qdd": qdd,
+                "target_current": current,
+                "target_moment": moment,
+                "actual_q": q_act,
+                "actual_qd": qd,
+                "actual_qdd": qdd,
+                "actual_current": current,
+                "actual_current_as_torque": moment,
+                "actual_moment": moment,
+                "joint_control_output": current,
+                "actual_TCP_pose": pose,
+                "actual_TCP_speed": tcp_speed,
+                "actual_TCP_force": np.zeros(6),
+                "target_TCP_pose": pose,
+                "target_TCP_speed": tcp_speed,
+                "actual_digital_input_bits": 0,
+                "joint_temperatures": temps,
+                "actual_execution_time": 0.35,
+                "robot_mode": self.robot_mode,
+                "joint_mode": [jm] * 6,
+                "safety_mode": self.safety_mode,
+                "actual_tool_accelerometer": accel,
+                "speed_scaling": 1.0,
+                "target_speed_fraction": 1.0,
+                "actual_momentum": 0.0,
+                "actual_main_voltage": 48.0,
+                "actual_robot_voltage": 48.0 if powered else 0.0,
                 "actual_robot_current": float(0.4 + 0.05 * np.abs(current).sum()),
                 "actual_joint_voltage": np.full(6, 48.0 if powered else 0.0),
-                "actual_digital_output_bits": 0, "runtime_state": self.runtime_state,
-                "robot_status_bits": status_bits, "safety_status_bits": safety_bits,
-                "standard_analog_input0": 0.0, "standard_analog_input1": 0.0,
-                "standard_analog_output0": 0.0, "standard_analog_output1": 0.0,
-                "ft_raw_wrench": np.zeros(6), "payload": float(truth.payload_kg),
-                "payload_cog": np.asarray(truth.payload_com_m, float), "payload_inertia": np.zeros(6),
-                "elbow_position": np.zeros(3), "elbow_velocity": np.zeros(3),
-                "out_int": self.out_int.copy(), "out_dbl": self.out_dbl.copy(),
-                "in_int": self.in_int.copy(), "in_dbl": self.in_dbl.copy(),
+                "actual_digital_output_bits": 0,
+                "runtime_state": self.runtime_state,
+                "robot_status_bits": status_bits,
+                "safety_status_bits": safety_bits,
+                "standard_analog_input0": 0.0,
+                "standard_analog_input1": 0.0,
+                "standard_analog_output0": 0.0,
+                "standard_analog_output1": 0.0,
+                "ft_raw_wrench": np.zeros(6),
+                "payload": float(truth.payload_kg),
+                "payload_cog": np.asarray(truth.payload_com_m, float),
+                "payload_inertia": np.zeros(6),
+                "elbow_position": np.zeros(3),
+                "elbow_velocity": np.zeros(3),
+                "out_int": self.out_int.copy(),
+                "out_dbl": self.out_dbl.copy(),
+                "in_int": self.in_int.copy(),
+                "in_dbl": self.in_dbl.copy(),
             }
         self._snap, self._snap_wall = snap, wall
         return snap
@@ -887,8 +1025,11 @@ class UrControllerSim:
                 if ok and not streaming.is_set():
                     streaming.set()
                     streamer = threading.Thread(
-                        target=self._stream, args=(conn, out_names, out_fmt, out_freq, streaming),
-                        name="ur-sim-rtde-stream", daemon=True)
+                        target=self._stream,
+                        args=(conn, out_names, out_fmt, out_freq, streaming),
+                        name="ur-sim-rtde-stream",
+                        daemon=True,
+                    )
                     streamer.start()
             elif ptype == ord("P"):
                 streaming.clear()
@@ -917,7 +1058,7 @@ class UrControllerSim:
             for n in names:
                 t = INPUT_TYPES[n]
                 width = 6 if t.startswith("VECTOR6") else 1
-                v = vals[i: i + width]
+                v = vals[i : i + width]
                 i += width
                 if n.startswith("input_int_register_"):
                     self.in_int[int(n.rsplit("_", 1)[1])] = int(v[0])
@@ -927,8 +1068,9 @@ class UrControllerSim:
             if self.runtime_state == RT_PLAYING:
                 self._script_step()
 
-    def _stream(self, conn: _Conn, names: list[str], fmt: str, freq: float,
-                streaming: threading.Event) -> None:
+    def _stream(
+        self, conn: _Conn, names: list[str], fmt: str, freq: float, streaming: threading.Event
+    ) -> None:
         wall_period = 1.0 / min(freq * self.time_scale, self.max_stream_hz)
         next_t = time.monotonic()
         while streaming.is_set() and not conn.closed.is_set() and not self._stop.is_set():
@@ -937,8 +1079,9 @@ class UrControllerSim:
             for n in names:
                 v = self._value(snap, n)
                 if isinstance(v, (list, tuple, np.ndarray)):
-                    vals.extend(float(x) if isinstance(x, (float, np.floating)) else int(x)
-                                for x in v)
+                    vals.extend(
+                        float(x) if isinstance(x, (float, np.floating)) else int(x) for x in v
+                    )
                 else:
                     vals.append(v)
             payload = struct.pack(fmt, *vals)
@@ -1036,8 +1179,10 @@ class UrControllerSim:
                 if self.safety_mode == SAFETY_PROTECTIVE_STOP:
                     since = self.clock.now() - (self.pstop_time or 0.0)
                     if since < self.pstop_unlock_delay_s:
-                        return ("Cannot unlock protective stop until 5s after occurrence. "
-                                "Always inspect cause of protective stop before unlocking"), False
+                        return (
+                            "Cannot unlock protective stop until 5s after occurrence. "
+                            "Always inspect cause of protective stop before unlocking"
+                        ), False
                     self.safety_mode = SAFETY_NORMAL
                     self.world.protective_stop = False
                     self.pstop_time = None
@@ -1103,7 +1248,7 @@ class UrControllerSim:
                 if m_end is None:
                     break
                 name = bytes(m_def.group(1)).decode()
-                program = bytes(buf[m_def.start(): m_end.end()])
+                program = bytes(buf[m_def.start() : m_end.end()])
                 del buf[: m_end.end()]
                 self._program_uploaded(name, program)
 
@@ -1116,6 +1261,8 @@ class UrControllerSim:
                 self._event(f"script: ran custom program {name!r} ({len(program)} bytes)")
                 return
             self.reg_offset = int(m.group(1)) if m else 0
-            self._event(f"script: {name!r} uploaded ({len(program)} bytes, "
-                        f"register offset {self.reg_offset})")
+            self._event(
+                f"script: {name!r} uploaded ({len(program)} bytes, "
+                f"register offset {self.reg_offset})"
+            )
             self._start_program(name)

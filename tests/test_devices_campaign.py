@@ -112,10 +112,19 @@ def test_kill9_over_real_protocols_then_resume(tmp_path):
 
 def test_protective_stop_pauses_and_resumes(tmp_path):
     out = tmp_path / "ps.mcap"
-    with SimProcess("127.0.0.43", seed=2, time_scale=TIME_SCALE, with_tracker=True,
-                    faults={"protective_stop_at_move": [3]}) as sim:
-        r = subprocess.run(campaign_cmd(sim.info, out, 4, "--on-protective-stop", "resume"),
-                           capture_output=True, text=True, timeout=600)
+    with SimProcess(
+        "127.0.0.43",
+        seed=2,
+        time_scale=TIME_SCALE,
+        with_tracker=True,
+        faults={"protective_stop_at_move": [3]},
+    ) as sim:
+        r = subprocess.run(
+            campaign_cmd(sim.info, out, 4, "--on-protective-stop", "resume"),
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
     assert r.returncode == 0, r.stderr[-3000:]
     rec = read_recording(out)
     kinds = [e["kind"] for e in rec.events]

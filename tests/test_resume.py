@@ -70,8 +70,24 @@ def test_kill9_then_resume(tmp_path):
 
 def test_ctrl_c_finishes_the_recording_cleanly(tmp_path):
     rec = tmp_path / "c.mcap"
-    cmd = [sys.executable, "-m", "workcell.cli", "campaign", "--robot", "sim", "--tracker", "sim",
-           "--poses", "60", "--seed", "6", "--readings", "3", "--out", str(rec)]
+    cmd = [
+        sys.executable,
+        "-m",
+        "workcell.cli",
+        "campaign",
+        "--robot",
+        "sim",
+        "--tracker",
+        "sim",
+        "--poses",
+        "60",
+        "--seed",
+        "6",
+        "--readings",
+        "3",
+        "--out",
+        str(rec),
+    ]
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.time() + 120
     while time.time() < deadline and p.poll() is None:

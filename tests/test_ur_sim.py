@@ -87,8 +87,9 @@ def test_receive_interface_default_recipe_reads_joints(sim):
 
 
 def test_control_interface_movej_arrives_and_dashboard_answers(sim):
-    rr = rtde_receive.RTDEReceiveInterface("127.0.0.21", -1.0, ["timestamp", "actual_q",
-                                                                "runtime_state"])
+    rr = rtde_receive.RTDEReceiveInterface(
+        "127.0.0.21", -1.0, ["timestamp", "actual_q", "runtime_state"]
+    )
     rc = rtde_control.RTDEControlInterface("127.0.0.21")
     db = dashboard_client.DashboardClient("127.0.0.21")
     try:
@@ -161,8 +162,9 @@ def test_speed_limit_enforced_on_ur10():
 
 
 def test_protective_stop_surfaces_and_unlock_recovers(robot_factory):
-    with SimProcess("127.0.0.22", seed=5, time_scale=TS,
-                    faults={"protective_stop_at_move": [2]}) as sp:
+    with SimProcess(
+        "127.0.0.22", seed=5, time_scale=TS, faults={"protective_stop_at_move": [2]}
+    ) as sp:
         r = robot_factory("127.0.0.22")
         r.connect()
         r.move_joints(QA, 1.0, 2.0)
@@ -181,8 +183,7 @@ def test_protective_stop_surfaces_and_unlock_recovers(robot_factory):
 
 
 def test_rtde_drop_and_restart_surface_as_device_errors_and_reconnect(robot_factory):
-    with SimProcess("127.0.0.23", seed=7, time_scale=TS,
-                    faults={"rtde_drop_at_move": [2]}) as sp:
+    with SimProcess("127.0.0.23", seed=7, time_scale=TS, faults={"rtde_drop_at_move": [2]}) as sp:
         r = robot_factory("127.0.0.23")
         r.connect()
         r.move_joints(QA, 1.0, 2.0)
@@ -234,8 +235,7 @@ def test_tracker_measures_the_arm_the_controller_moved():
     pytest.importorskip("sim_devices.geocom_tracker")
     from workcell.drivers.serial_tracker import SerialTracker
 
-    with SimProcess("127.0.0.26", seed=11, time_scale=TS, effects="none",
-                    with_tracker=True) as sp:
+    with SimProcess("127.0.0.26", seed=11, time_scale=TS, effects="none", with_tracker=True) as sp:
         port = sp.info["tracker_port"]
         assert port and port.startswith("/dev/")
         r = UrRobot("127.0.0.26", time_scale=TS)

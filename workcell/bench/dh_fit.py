@@ -31,8 +31,15 @@ def main(argv: list[str]) -> int:
         p = Path(d) / "b.mcap"
         _, robot, tracker, cell = sim_cell("ur5e", "none", 3)
         t0 = time.perf_counter()
-        run_campaign(robot, tracker, cell, p, poses=a.poses, seed=3,
-                     config=CampaignConfig(readings_per_pose=3, payload_kg=cell.payload_kg))
+        run_campaign(
+            robot,
+            tracker,
+            cell,
+            p,
+            poses=a.poses,
+            seed=3,
+            config=CampaignConfig(readings_per_pose=3, payload_kg=cell.payload_kg),
+        )
         camp_s = time.perf_counter() - t0
         ds = Dataset.from_recording(p)
     t0 = time.perf_counter()
@@ -63,8 +70,10 @@ def main(argv: list[str]) -> int:
     if a.json:
         print(json.dumps(out))
     else:
-        print(f"DH fit, {out['poses']} poses: {first:.2f} s (first, incl. JIT), "
-              f"{second:.2f} s (compiled)")
+        print(
+            f"DH fit, {out['poses']} poses: {first:.2f} s (first, incl. JIT), "
+            f"{second:.2f} s (compiled)"
+        )
         print(f"simulated campaign of {out['poses']} poses: {camp_s:.1f} s wall (virtual time)")
         print(f"forward kinematics: {fk:,.0f} poses/s; parameter Jacobian: {jac:,.0f} poses/s")
     return 0

@@ -38,9 +38,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dry-run", action="store_true", help="print and check the plan; do not move")
     p.add_argument("--resume", help="continue this interrupted recording in a new chained file")
     p.add_argument("--online", choices=["ekf-ann"], help="feed samples to an online estimator")
-    p.add_argument("--on-protective-stop", choices=["ask", "resume"], default=None,
-                   help="after a protective stop: ask on the terminal before resuming (default "
-                        "when interactive) or resume at once")
+    p.add_argument(
+        "--on-protective-stop",
+        choices=["ask", "resume"],
+        default=None,
+        help="after a protective stop: ask on the terminal before resuming (default "
+        "when interactive) or resume at once",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -125,8 +129,11 @@ def _ask_on_protective_stop(control: CampaignControl) -> None:
     def loop() -> None:
         while not control.abort.is_set():
             if control.waiting_for_resume.wait(0.2):
-                print("protective stop: check the cell, then press Enter to resume "
-                      "(Ctrl-C aborts)", file=sys.stderr, flush=True)
+                print(
+                    "protective stop: check the cell, then press Enter to resume (Ctrl-C aborts)",
+                    file=sys.stderr,
+                    flush=True,
+                )
                 try:
                     sys.stdin.readline()
                 except (OSError, ValueError):
@@ -141,8 +148,9 @@ def _ask_on_protective_stop(control: CampaignControl) -> None:
 def dry_run(args, cell, env, cfg) -> int:
     from workcell.campaign.executor import dry_run_plan
 
-    targets, problems = dry_run_plan(args.plan, cell.spec, env, args.poses, seed=args.seed,
-                                     tool_m=cell.tool_m, config=cfg)
+    targets, problems = dry_run_plan(
+        args.plan, cell.spec, env, args.poses, seed=args.seed, tool_m=cell.tool_m, config=cfg
+    )
     if targets is None:
         print(
             f"plan {args.plan}: adaptive; each pose is chosen during the campaign inside the "

@@ -50,19 +50,44 @@ RTDE_PORT = 30004
 DASHBOARD_PORT = 29999
 
 RECEIVE_VARIABLES = [
-    "timestamp", "actual_q", "actual_qd", "target_q", "actual_current", "target_moment",
-    "joint_temperatures", "robot_mode", "safety_mode", "safety_status_bits", "runtime_state",
+    "timestamp",
+    "actual_q",
+    "actual_qd",
+    "target_q",
+    "actual_current",
+    "target_moment",
+    "joint_temperatures",
+    "robot_mode",
+    "safety_mode",
+    "safety_status_bits",
+    "runtime_state",
     "robot_status_bits",
 ]
 
 ROBOT_MODES = {
-    -1: "NO_CONTROLLER", 0: "DISCONNECTED", 1: "CONFIRM_SAFETY", 2: "BOOTING", 3: "POWER_OFF",
-    4: "POWER_ON", 5: "IDLE", 6: "BACKDRIVE", 7: "RUNNING", 8: "UPDATING_FIRMWARE",
+    -1: "NO_CONTROLLER",
+    0: "DISCONNECTED",
+    1: "CONFIRM_SAFETY",
+    2: "BOOTING",
+    3: "POWER_OFF",
+    4: "POWER_ON",
+    5: "IDLE",
+    6: "BACKDRIVE",
+    7: "RUNNING",
+    8: "UPDATING_FIRMWARE",
 }
 SAFETY_MODES = {
-    1: "NORMAL", 2: "REDUCED", 3: "PROTECTIVE_STOP", 4: "RECOVERY", 5: "SAFEGUARD_STOP",
-    6: "SYSTEM_EMERGENCY_STOP", 7: "ROBOT_EMERGENCY_STOP", 8: "VIOLATION", 9: "FAULT",
-    10: "VALIDATE_JOINT_ID", 11: "UNDEFINED_SAFETY_MODE",
+    1: "NORMAL",
+    2: "REDUCED",
+    3: "PROTECTIVE_STOP",
+    4: "RECOVERY",
+    5: "SAFEGUARD_STOP",
+    6: "SYSTEM_EMERGENCY_STOP",
+    7: "ROBOT_EMERGENCY_STOP",
+    8: "VIOLATION",
+    9: "FAULT",
+    10: "VALIDATE_JOINT_ID",
+    11: "UNDEFINED_SAFETY_MODE",
 }
 BIT_PROTECTIVE_STOP = 1 << 2
 BIT_EMERGENCY_STOP = 1 << 7
@@ -92,9 +117,16 @@ class _ControlWorker:
         self.host = host
         debug = bool(os.environ.get("WORKCELL_UR_DEBUG"))
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "workcell.drivers.ur_robot", "--control-worker", host,
-             repr(float(frequency))],
-            stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+            [
+                sys.executable,
+                "-m",
+                "workcell.drivers.ur_robot",
+                "--control-worker",
+                host,
+                repr(float(frequency)),
+            ],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
             stderr=None if debug else subprocess.DEVNULL,
         )
         self._buf = b""
@@ -129,8 +161,9 @@ class _ControlWorker:
             if not chunk:
                 code = self.proc.poll()
                 self.kill()
-                raise DeviceError(f"UR {self.host}: RTDE control interface died during {what}"
-                                  f" (exit code {code})")
+                raise DeviceError(
+                    f"UR {self.host}: RTDE control interface died during {what} (exit code {code})"
+                )
             self._buf += chunk
         line, self._buf = self._buf.split(b"\n", 1)
         status, value = json.loads(line)
@@ -169,8 +202,17 @@ def _control_worker_main(host: str, frequency: float) -> int:
     """Child side: own the RTDEControlInterface, answer one JSON line per request."""
     proto = os.fdopen(os.dup(1), "w", buffering=1)
     os.dup2(2, 1)  # the C++ library prints on stdout: keep it off the protocol pipe
-    allowed = {"moveJ", "stopJ", "stopScript", "reuploadScript", "isConnected",
-               "isProgramRunning", "disconnect", "triggerProtectiveStop", "moveL"}
+    allowed = {
+        "moveJ",
+        "stopJ",
+        "stopScript",
+        "reuploadScript",
+        "isConnected",
+        "isProgramRunning",
+        "disconnect",
+        "triggerProtectiveStop",
+        "moveL",
+    }
 
     def answer(status: str, value) -> None:
         proto.write(json.dumps([status, value]) + "\n")
@@ -220,7 +262,9 @@ class UrRobot:
         if not time_scale > 0:
             raise ValueError(f"time_scale must be > 0, got {time_scale!r}")
         if not (frequency == -1.0 or frequency > 0):
-            raise ValueError(f"frequency must be > 0 Hz or -1 (controller default), got {frequency}")
+            raise ValueError(
+                f"frequency must be > 0 Hz or -1 (controller default), got {frequency}"
+            )
         self.host = host
         self.frequency = float(frequency)
         self.time_scale = float(time_scale)
@@ -249,7 +293,8 @@ class UrRobot:
                 self._bury("_rr")
                 try:
                     self._rr = rtde_receive.RTDEReceiveInterface(
-                        self.host, self.frequency, RECEIVE_VARIABLES)
+                        self.host, self.frequency, RECEIVE_VARIABLES
+                    )
                 except RuntimeError as e:
                     raise self._conn_error("RTDE receive", e) from None
                 if not self._rr.isConnected():
@@ -330,16 +375,23 @@ class UrRobot:
                 safety = int(rr.getSafetyMode())
                 bits = int(rr.getSafetyStatusBits())
             except RuntimeError as e:
-                raise DeviceError(f"UR {self.host}: reading the RTDE state failed: "
-                                  f"{_one_line(e)}") from None
+                raise DeviceError(
+                    f"UR {self.host}: reading the RTDE state failed: {_one_line(e)}"
+                ) from None
             if not rr.isConnected():
                 raise DeviceError(f"UR {self.host}: RTDE connection lost")
             safety_name = SAFETY_MODES.get(safety, f"SAFETY_{safety}")
             if bits & BIT_PROTECTIVE_STOP:
                 safety_name = "PROTECTIVE_STOP"
             return RobotState(
-                t_s=float(t), q_rad=q, qd_rad_s=qd, temperature_c=temps, torque_nm=torque,
-                current_a=current, mode=ROBOT_MODES.get(mode, f"MODE_{mode}"), safety=safety_name,
+                t_s=float(t),
+                q_rad=q,
+                qd_rad_s=qd,
+                temperature_c=temps,
+                torque_nm=torque,
+                current_a=current,
+                mode=ROBOT_MODES.get(mode, f"MODE_{mode}"),
+                safety=safety_name,
             )
 
     def move_joints(self, q_rad: np.ndarray, speed_rad_s: float, accel_rad_s2: float) -> None:
@@ -420,7 +472,8 @@ class UrRobot:
                     reason = f"no answer within {self.connect_timeout_s:g} s"
                 raise DeviceUnreachable(
                     f"UR controller {self.host} unreachable: port {port}: {reason} "
-                    "(check the address, the network and that the controller is on)") from None
+                    "(check the address, the network and that the controller is on)"
+                ) from None
 
     def _conn_error(self, what: str, e: BaseException) -> DeviceError:
         msg = _one_line(e)
@@ -451,8 +504,10 @@ class UrRobot:
         if mode.endswith("RUNNING"):
             return
         if not self.auto_power_on:
-            raise DeviceError(f"UR {self.host}: {mode}; power the arm on and release the brakes "
-                              "(or use auto_power_on=True)")
+            raise DeviceError(
+                f"UR {self.host}: {mode}; power the arm on and release the brakes "
+                "(or use auto_power_on=True)"
+            )
         try:
             db.powerOn()
             deadline = time.monotonic() + 30.0 / self.time_scale + 2.0
@@ -533,8 +588,9 @@ class UrRobot:
             rc.call("reuploadScript")
         except RuntimeError as e:
             self._kill_control()
-            raise DeviceError(f"UR {self.host}: re-uploading the control script: "
-                              f"{_one_line(e)}") from None
+            raise DeviceError(
+                f"UR {self.host}: re-uploading the control script: {_one_line(e)}"
+            ) from None
         if self._wait_playing(rr, rc, 5.0):
             return rc
         self._kill_control()
@@ -582,14 +638,18 @@ class UrRobot:
                     self._rc.call("stopJ", 2.0, False)
                 except Exception:
                     pass
-                raise DeviceError(f"UR {self.host}: move did not arrive within {timeout:.1f} s "
-                                  f"(still {err:.2e} rad away)")
+                raise DeviceError(
+                    f"UR {self.host}: move did not arrive within {timeout:.1f} s "
+                    f"(still {err:.2e} rad away)"
+                )
             time.sleep(self.poll_s)
 
 
 if __name__ == "__main__":
     if len(sys.argv) == 4 and sys.argv[1] == "--control-worker":
         sys.exit(_control_worker_main(sys.argv[2], float(sys.argv[3])))
-    print("usage: python -m workcell.drivers.ur_robot --control-worker HOST FREQUENCY",
-          file=sys.stderr)
+    print(
+        "usage: python -m workcell.drivers.ur_robot --control-worker HOST FREQUENCY",
+        file=sys.stderr,
+    )
     sys.exit(2)

@@ -210,8 +210,9 @@ def dry_run(plan: PlanConfig, dev: Devices) -> dict:
     env = envelope_for(plan, dev)
     cfg = campaign_config(plan, dev)
     cell = dev.cell
-    targets, problems = dry_run_plan(plan.kind, cell.spec, env, plan.poses, seed=plan.seed,
-                                     tool_m=cell.tool_m, config=cfg)
+    targets, problems = dry_run_plan(
+        plan.kind, cell.spec, env, plan.poses, seed=plan.seed, tool_m=cell.tool_m, config=cfg
+    )
     if targets is None:
         return {"adaptive": True, "targets": plan.poses, "problems": [], "ok": True}
     return {
