@@ -9,6 +9,11 @@ form (I - K H) P (I - K H)^T + K R K^T (what filterpy's ExtendedKalmanFilter doe
 P stays exactly symmetric: the rank-m downdate is written as a sum of symmetric outer products
 and the prediction symmetrises F P F^T + Q. The normalised innovation squared e^T S^-1 e is returned for the
 innovation-based variance-factor test (it is chi^2(m) distributed when the model is adequate).
+
+`predict`/`update` are the sample-by-sample reference form (general F, checked against filterpy
+with and without the Joseph form). The EKF-ANN filter runs `blocked_scan`: the same rank-m
+updates with an additive prediction, the covariance written once per block (checked against
+filterpy run sample by sample).
 """
 
 from __future__ import annotations

@@ -116,7 +116,7 @@ def _q_diag(cfg, K, n):
 
 
 @partial(jax.jit, static_argnames=("spec", "cfg", "block"))
-def _scan_paper(x, P, dpg, BQB, Q, Y, SIG, R_tb, *, spec, cfg, block):
+def _scan_paper(x, P, dpg, BQB, Q, Y, SIG, *, R_tb, spec, cfg, block):
     """Paper mode over a chunk; dpg (N,3) = f(q_i+1) - f(q_i) and BQB (N,3,3) precomputed
     (the geometry is fixed in this mode, so this is exact)."""
     K = spec.n_weights
@@ -141,7 +141,7 @@ def _scan_paper(x, P, dpg, BQB, Q, Y, SIG, R_tb, *, spec, cfg, block):
 
 
 @partial(jax.jit, static_argnames=("spec", "cfg", "block"))
-def _scan_adaptive(x, P, g_lin, pg, Jq, Jg, Q, Y, SIG, R_tb, *, spec, cfg, block):
+def _scan_adaptive(x, P, pg, Jq, Jg, Q, Y, SIG, *, g_lin, R_tb, spec, cfg, block):
     """Adaptive mode over a chunk. The geometric model and its Jacobians are evaluated
     (vectorised) at the chunk's starting geometric state g_lin and used to first order in
     g - g_lin inside the chunk (g moves by micro-units within a chunk: the neglected second-order
@@ -165,15 +165,16 @@ def _scan_adaptive(x, P, g_lin, pg, Jq, Jg, Q, Y, SIG, R_tb, *, spec, cfg, block
     return x, P, (e, nis, hx)
 
 
-def _blocks(scan, n, block, x, P):
-    """Run `scan(slice, block, x, P)` over the whole blocks of a chunk of n samples, then over
+def _blocks(scan, per_sample, block, x, P):
+    """Run `scan(x, P, *per_sample_slices, block=b)` over the whole blocks of a chunk, then over
     the remainder as one block of its own size (live, one sample at a time: block 1)."""
+    n = len(per_sample[0])
     nb = (n // block) * block
     outs = []
     for sl, b in ((slice(0, nb), block), (slice(nb, n), n - nb)):
-        if b == 0 or sl.stop == sl.start:
+        if b == 0:
             continue
-        x, P, out = scan(sl, b, x, P)
+        x, P, out = scan(x, P, *(a[sl] for a in per_sample), block=b)
         outs.append([np.asarray(o) for o in out])
     return x, P, [np.concatenate(o) for o in zip(*outs, strict=True)]
 
@@ -339,52 +340,15 @@ class EkfAnnFilter:
                 np.einsum("nij,nkj->nik", jq_prev, jq_prev) + np.einsum("nij,nkj->nik", Jq, Jq)
             )
             BQB = 0.5 * (BQB + BQB.transpose(0, 2, 1)) + cfg.q_p_m2 * np.eye(3)
-            x, P, out = _blocks(
-                lambda sl, b, x, P: _scan_paper(
-                    x,
-                    P,
-                    (pg - pg_prev)[sl],
-                    BQB[sl],
-                    q[sl],
-                    y[sl],
-                    sig[sl],
-                    R_tb,
-                    spec=spec,
-                    cfg=cfg,
-                    block=b,
-                ),
-                len(q),
-                cfg.block,
-                self.x,
-                self.P,
-            )
+            scan = partial(_scan_paper, R_tb=R_tb, spec=spec, cfg=cfg)
+            x, P, out = _blocks(scan, (pg - pg_prev, BQB, q, y, sig), cfg.block, self.x, self.P)
             e, s2, _, d = out
             self.q_prev = q[-1].copy()
             self._pg_prev, self._jq_prev = pg[-1], Jq[-1]
             self._d.append(d)
         else:
-            g_lin = self.x[K:].copy()
-            x, P, out = _blocks(
-                lambda sl, b, x, P: _scan_adaptive(
-                    x,
-                    P,
-                    g_lin,
-                    pg[sl],
-                    Jq[sl],
-                    Jg[sl],
-                    q[sl],
-                    y[sl],
-                    sig[sl],
-                    R_tb,
-                    spec=spec,
-                    cfg=cfg,
-                    block=b,
-                ),
-                len(q),
-                cfg.block,
-                self.x,
-                self.P,
-            )
+            scan = partial(_scan_adaptive, g_lin=self.x[K:].copy(), R_tb=R_tb, spec=spec, cfg=cfg)
+            x, P, out = _blocks(scan, (pg, Jq, Jg, q, y, sig), cfg.block, self.x, self.P)
             e, s2, _ = out
         self.x, self.P = np.array(x), np.array(P)
         self._q.append(q)
