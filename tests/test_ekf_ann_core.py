@@ -223,3 +223,13 @@ def test_structured_jacobian_products_equal_dense():
             np.testing.assert_allclose(
                 got, J @ M, rtol=1e-12, atol=1e-12 * float(jnp.abs(J @ M).max())
             )
+
+
+def test_saved_network_of_another_layout_is_refused():
+    from workcell.estimation.ekf_ann import ann as A
+
+    d = A.AnnSpec(hidden=3).to_dict()
+    assert A.AnnSpec.from_dict(d) == A.AnnSpec(hidden=3)
+    del d["layout"]  # what networks saved before the input-major layout look like
+    with pytest.raises(ValueError, match="refit the ekf-ann model"):
+        A.AnnSpec.from_dict(d)
