@@ -183,3 +183,53 @@ def test_campaign_cli_plan_dopt(tmp_path):
     assert r.returncode == 0, r.stderr
     ds = Dataset.from_recording(out)
     assert len(ds) == 10 and ds.session["campaign"]["plan"] == "dopt"
+
+
+def _run_old(plan, truth, rng, n, skip):
+    """Drive a plan for n poses, feeding None for the pose ids in `skip` (skipped poses);
+    returns the recorded samples and the plan's next target."""
+    from workcell.bench.design import measure
+
+    recorded = []
+    t = next(plan)
+    for _ in range(n):
+        p, sig = measure(truth, t.q_rad, t.approach_sign, rng)
+        s = {
+            "pose_id": int(t.pose_id),
+            "q_commanded_rad": np.asarray(t.q_rad).tolist(),
+            "q_measured_rad": np.asarray(t.q_rad).tolist(),
+            "tracker_position_m": p.tolist(),
+            "tracker_sigma_m": sig.tolist(),
+        }
+        if t.pose_id in skip:
+            s = None
+        else:
+            recorded.append(s)
+        t = plan.send(s)
+    return recorded, t
+
+
+@pytest.mark.parametrize("kind", ["dopt", "bo"])
+def test_adaptive_plan_resumes_where_it_stopped(kind):
+    """Resume: the re-created plan, fed the recorded samples (a skipped pose included), chooses
+    exactly the pose the uninterrupted plan chose next; a recording from another plan is refused."""
+    truth, env, tool = _cell(6)
+    spec = truth.nominal
+    kw = dict(seed=6, tool_m=tool, n_candidates=200)
+    # the old run: 9 poses, pose 4 skipped, then the process died before pose 9
+    recorded, nxt = _run_old(
+        make_adaptive_plan(kind, spec, env, 14, **kw), truth, np.random.default_rng(1), 9, {4}
+    )
+    history = {s["pose_id"]: s for s in recorded}
+    assert sorted(history) == [0, 1, 2, 3, 5, 6, 7, 8]
+    resumed = make_adaptive_plan(kind, spec, env, 14, history=history, **kw)
+    t = next(resumed)
+    assert t.pose_id == nxt.pose_id == 9
+    np.testing.assert_array_equal(t.q_rad, nxt.q_rad)
+    again = make_adaptive_plan(kind, spec, env, 14, history=history, **kw)
+    rest = drive_plan(again, truth, np.random.default_rng(2))
+    assert [s["pose_id"] for s in rest] == list(range(9, 14))
+    # a history that does not come from this plan (another seed) is refused with a reason
+    other = make_adaptive_plan(kind, spec, env, 14, history=history, **{**kw, "seed": 7})
+    with pytest.raises(ValueError, match="cannot resume"):
+        next(other)

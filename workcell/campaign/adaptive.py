@@ -26,9 +26,14 @@ singular value instead once A has full rank. The Jacobian is re-linearised at th
 calibrated model every ``relinearise_every`` poses once a fit is possible, and skipped poses
 (sample None) add no information.
 
-`skip_ids`: pose ids that are not yielded (already measured in a recording being resumed); the
-plan then chooses the remaining ``n - |skip_ids & range(n)|`` poses without knowing those
-measurements.
+`skip_ids`: pose ids that are not yielded; the plan then chooses the remaining
+``n - |skip_ids & range(n)|`` poses without knowing those measurements.
+`history` (resume): the samples of a recording being resumed, by pose id. The plan is re-created
+with the same seed and the recorded samples are fed back in the order they were taken (a pose id
+below the last recorded one without a sample was skipped by the old run: None is fed back, as
+the executor did), so the plan's state is what it was when the old process died and the
+following poses are the ones it would have chosen. Each recorded commanded pose must equal the
+plan's choice (else the plan cannot be re-created: ValueError).
 """
 
 from __future__ import annotations
@@ -192,6 +197,7 @@ def make_adaptive_plan(
     seed: int,
     tool_m: np.ndarray,
     skip_ids: set[int] | None = None,
+    history: dict[int, dict] | None = None,
     approach_rad: float = 0.02,
     n_candidates: int = 1000,
     n_seed: int | None = None,
@@ -226,16 +232,43 @@ def make_adaptive_plan(
     J_c = jacobian_padded(th_nom, np.eye(4), q_c)  # (M, 3, 39)
     free = identifiable_mask(spec, J_c)
     n_seed = (5 if kind == "bo" else 1) if n_seed is None else int(n_seed)
+    if history and skip_ids:
+        raise ValueError("give either history (resume) or skip_ids, not both")
     ids = [i for i in range(n) if not (skip_ids and i in skip_ids)]
     if kind == "bo":
-        return _bo_plan(
+        plan = _bo_plan(
             spec, q_c, s_c, poses, free, tool_m, ids, n_seed, seed, beta_schedule,
             negate_objective, on_choice,
         )  # fmt: skip
-    return _dopt_plan(
-        spec, q_c, s_c, poses, J_c, free, tool_m, ids, n_seed, seed, index, relinearise_every,
-        on_choice,
-    )  # fmt: skip
+    else:
+        plan = _dopt_plan(
+            spec, q_c, s_c, poses, J_c, free, tool_m, ids, n_seed, seed, index,
+            relinearise_every, on_choice,
+        )  # fmt: skip
+    return _replayed(plan, history) if history else plan
+
+
+def _replayed(plan: Plan, history: dict[int, dict]) -> Plan:
+    """Feed the recorded samples back into a re-created plan, then hand it to the executor."""
+    last = max(history)
+    try:
+        target = next(plan)
+        while target.pose_id <= last:
+            rec = history.get(target.pose_id)
+            if rec is not None:
+                q_rec = np.asarray(rec.get("q_commanded_rad", []), float)
+                if q_rec.shape != (6,) or not np.allclose(q_rec, target.q_rad, atol=1e-9):
+                    raise ValueError(
+                        f"recorded pose {target.pose_id} is not the one the re-created plan "
+                        "chooses (different envelope, seed or version); cannot resume this "
+                        "adaptive campaign"
+                    )
+            target = plan.send(rec)
+        while True:
+            sample = yield target
+            target = plan.send(sample)
+    except StopIteration:
+        return
 
 
 def _seed_order(poses: np.ndarray, n_seed: int, seed: int) -> list[int]:

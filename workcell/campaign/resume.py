@@ -33,15 +33,25 @@ def resume_plan(old: str) -> dict:
                 f"{old}: session campaign block has no {key!r}; cannot re-create the plan"
             )
     done = {int(s["pose_id"]) for s in rec.samples}
+    history = {int(s["pose_id"]): s for s in rec.samples}
     skipped_events = [e for e in rec.events if e.get("kind") in ("skip", "refused")]
     return {
         "recording": rec,
         "campaign": camp,
         "done": done,
+        "history": history,
         "n_samples": len(rec.samples),
         "last_elapsed": max((float(s.get("elapsed_s", 0.0)) for s in rec.samples), default=0.0),
         "skipped_events": len(skipped_events),
     }
+
+
+def plan_continuation(kind: str, info: dict) -> dict:
+    """run_campaign arguments that continue the old plan: static plans skip the measured pose
+    ids; adaptive plans (bo, dopt) are fed the recorded samples to rebuild their state."""
+    if kind in ("bo", "dopt"):
+        return {"plan_kwargs": {"history": info["history"]}}
+    return {"skip_ids": info["done"]}
 
 
 def default_out(old: Path) -> Path:
@@ -57,11 +67,6 @@ def resume_campaign(args: argparse.Namespace) -> int:
     old = Path(args.resume)
     info = resume_plan(str(old))
     camp = info["campaign"]
-    if camp["plan"] in ("bo", "dopt"):
-        raise UserError(
-            f"{old}: resuming an adaptive ({camp['plan']}) campaign is not supported; "
-            "start a new campaign"
-        )
     remaining = int(camp["poses"]) - len(info["done"])
     out = Path(args.out) if args.out else default_out(old)
     if out.exists():
@@ -116,7 +121,7 @@ def resume_campaign(args: argparse.Namespace) -> int:
         config=cfg,
         control=control,
         extra_campaign=extra,
-        skip_ids=info["done"],
+        **plan_continuation(camp["plan"], info),
         index0=info["n_samples"],
         chained_from=chained,
         elapsed0_s=info["last_elapsed"],

@@ -368,16 +368,12 @@ def start_campaign(
     out = Path(plan.out)
     kw: dict = {}
     if resume_from:
-        from workcell.campaign.resume import default_out, resume_plan
+        from workcell.campaign.resume import default_out, plan_continuation, resume_plan
         from workcell.recording.dataset import file_sha256
 
         old = Path(resume_from)
         info = resume_plan(str(old))
         camp = info["campaign"]
-        if camp["plan"] in ("bo", "dopt"):
-            raise UserError(
-                f"{old}: resuming an adaptive ({camp['plan']}) campaign is not supported"
-            )
         if int(camp["poses"]) - len(info["done"]) <= 0:
             raise UserError(f"{old}: all {camp['poses']} poses already measured")
         out = default_out(old) if (not plan.out or out == old or out.exists()) else out
@@ -391,7 +387,7 @@ def start_campaign(
             out=str(out),
         )
         kw = dict(
-            skip_ids=info["done"],
+            **plan_continuation(camp["plan"], info),
             index0=info["n_samples"],
             chained_from={
                 "path": str(old),
