@@ -10,38 +10,29 @@ import time
 from workcell.recording.reader import read_recording
 
 
-def test_kill9_then_resume(tmp_path):
-    rec = tmp_path / "c.mcap"
-    cmd = [
-        sys.executable,
-        "-m",
-        "workcell.cli",
-        "campaign",
-        "--robot",
-        "sim",
-        "--tracker",
-        "sim",
-        "--poses",
-        "40",
-        "--seed",
-        "5",
-        "--readings",
-        "3",
-        "--out",
-        str(rec),
-    ]
-    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    deadline = time.time() + 120
-    n = 0
+def _start_campaign(rec, poses: int, seed: int) -> subprocess.Popen:
+    """`workcell campaign` against the simulated cell, in a child process."""
+    cmd = [sys.executable, "-m", "workcell.cli", "campaign", "--robot", "sim", "--tracker", "sim"]
+    cmd += ["--poses", str(poses), "--seed", str(seed), "--readings", "3", "--out", str(rec)]
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _wait_for_samples(p: subprocess.Popen, rec, n: int, timeout_s: float = 120) -> None:
+    """Until the recording holds n samples, the process ends or the time is up."""
+    deadline = time.time() + timeout_s
     while time.time() < deadline and p.poll() is None:
         time.sleep(0.2)
-        if rec.exists():
-            try:
-                n = len(read_recording(rec).samples)
-            except Exception:  # the file may not even have its session yet
-                n = 0
-            if n >= 8:
-                break
+        try:
+            if rec.exists() and len(read_recording(rec).samples) >= n:
+                return
+        except Exception:  # noqa: BLE001 - the file may not hold its session yet
+            pass
+
+
+def test_kill9_then_resume(tmp_path):
+    rec = tmp_path / "c.mcap"
+    p = _start_campaign(rec, poses=40, seed=5)
+    _wait_for_samples(p, rec, 8)
     assert p.poll() is None, "campaign finished before it could be killed; make it longer"
     os.kill(p.pid, signal.SIGKILL)
     p.wait()
@@ -70,33 +61,8 @@ def test_kill9_then_resume(tmp_path):
 
 def test_ctrl_c_finishes_the_recording_cleanly(tmp_path):
     rec = tmp_path / "c.mcap"
-    cmd = [
-        sys.executable,
-        "-m",
-        "workcell.cli",
-        "campaign",
-        "--robot",
-        "sim",
-        "--tracker",
-        "sim",
-        "--poses",
-        "60",
-        "--seed",
-        "6",
-        "--readings",
-        "3",
-        "--out",
-        str(rec),
-    ]
-    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    deadline = time.time() + 120
-    while time.time() < deadline and p.poll() is None:
-        time.sleep(0.2)
-        try:
-            if rec.exists() and len(read_recording(rec).samples) >= 5:
-                break
-        except Exception:  # noqa: BLE001 - the file may not hold its session yet
-            pass
+    p = _start_campaign(rec, poses=60, seed=6)
+    _wait_for_samples(p, rec, 5)
     assert p.poll() is None
     p.send_signal(signal.SIGINT)
     _, err = p.communicate(timeout=60)

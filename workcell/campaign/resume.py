@@ -32,8 +32,8 @@ def resume_plan(old: str) -> dict:
             raise UserError(
                 f"{old}: session campaign block has no {key!r}; cannot re-create the plan"
             )
-    done = {int(s["pose_id"]) for s in rec.samples}
     history = {int(s["pose_id"]): s for s in rec.samples}
+    done = set(history)
     skipped_events = [e for e in rec.events if e.get("kind") in ("skip", "refused")]
     return {
         "recording": rec,

@@ -94,6 +94,13 @@ def apply_raw(w: jnp.ndarray, u: jnp.ndarray, hidden: int) -> jnp.ndarray:
     return W2 @ jnp.tanh(W1 @ u + b1) + b2
 
 
+def _layer(w: jnp.ndarray, u: jnp.ndarray, hidden: int):
+    """W2, b2, the hidden activations a = tanh(W1 u + b1) and C = W2 diag(1 - a^2) (3, H)."""
+    W1, b1, W2, b2 = unpack(w, hidden)
+    a = jnp.tanh(W1 @ u + b1)
+    return W2, b2, a, W2 * (1.0 - a * a)[None, :]
+
+
 def apply_raw_and_jac(w: jnp.ndarray, u: jnp.ndarray, hidden: int):
     """Output (3,) and its Jacobian (3, K) with respect to the weights, written out by hand
     (what jax.jacrev computes, without the reverse pass: the filter calls it every sample).
@@ -101,9 +108,7 @@ def apply_raw_and_jac(w: jnp.ndarray, u: jnp.ndarray, hidden: int):
     With a = tanh(W1 u + b1) and C = W2 diag(1 - a^2):
     d out / d W1[h, j] = C[:, h] u_j,  d out / d b1 = C,  d out_o / d W2[o, :] = a,  d out / d b2 = I.
     """
-    W1, b1, W2, b2 = unpack(w, hidden)
-    a = jnp.tanh(W1 @ u + b1)
-    C = W2 * (1.0 - a * a)[None, :]  # (3, H)
+    W2, b2, a, C = _layer(w, u, hidden)
     J = jnp.concatenate(
         [
             (u[None, :, None] * C[:, None, :]).reshape(N_OUT, N_IN * hidden),
@@ -137,9 +142,7 @@ def jac_context(M: jnp.ndarray, U: jnp.ndarray, hidden: int):
 
 def jac_times(w: jnp.ndarray, u: jnp.ndarray, hidden: int, V_i, shared) -> jnp.ndarray:
     """J(w, u) @ M (3, k) from the context of `jac_context` (V_i: the row of V for this u)."""
-    W1, b1, W2, _ = unpack(w, hidden)
-    a = jnp.tanh(W1 @ u + b1)
-    C = W2 * (1.0 - a * a)[None, :]
+    _, _, a, C = _layer(w, u, hidden)
     M_W2, M_b2 = shared
     return C @ V_i + (a @ M_W2).reshape(N_OUT, -1) + M_b2
 
