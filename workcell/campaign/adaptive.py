@@ -249,7 +249,8 @@ def make_adaptive_plan(
 
 
 def _replayed(plan: Plan, history: dict[int, dict]) -> Plan:
-    """Feed the recorded samples back into a re-created plan, then hand it to the executor."""
+    """Feed the recorded samples back into a re-created plan now (so a foreign history is
+    refused before anything is opened or moved), then return the plan's continuation."""
     last = max(history)
     try:
         target = next(plan)
@@ -264,6 +265,13 @@ def _replayed(plan: Plan, history: dict[int, dict]) -> Plan:
                         "adaptive campaign"
                     )
             target = plan.send(rec)
+    except StopIteration:
+        return iter(())  # type: ignore[return-value]  # every pose was already measured
+    return _continued(plan, target)
+
+
+def _continued(plan: Plan, target: PoseTarget) -> Plan:
+    try:
         while True:
             sample = yield target
             target = plan.send(sample)
