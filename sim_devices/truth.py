@@ -128,7 +128,12 @@ class TrueWorkcell:
         th = self.effects.get("thermal_drift")
         if th is None:
             # joints still warm up; the effect on geometry is what is switched off
-            dT, tau = np.array([6.0, 8.0, 7.0, 4.0, 4.0, 3.0]), 1200.0
+            dT = (
+                np.array([6.0, 8.0, 7.0, 4.0, 4.0, 3.0])
+                if len(self.a) == 6
+                else np.full(len(self.a), 5.0)
+            )
+            tau = 1200.0
         else:
             dT, tau = np.asarray(th["warmup_k"], float), float(th["tau_s"])
         return self.ambient_c + dT * (1.0 - np.exp(-max(t_s, 0.0) / tau))
@@ -136,7 +141,7 @@ class TrueWorkcell:
     # ------------------------------------------------------------ gravity (own model)
     def _frames(self, q_link: np.ndarray, a: np.ndarray, d: np.ndarray) -> list[np.ndarray]:
         Ts = [np.eye(4)]
-        for i in range(6):
+        for i in range(len(a)):
             A = (
                 _rot_z(q_link[i] + self.theta_offset[i])
                 @ _trans(0.0, 0.0, d[i])
@@ -149,17 +154,18 @@ class TrueWorkcell:
 
     def gravity_torques(self, q: np.ndarray) -> np.ndarray:
         """Torque gravity applies about each joint axis (N m), positive towards increasing q."""
+        n = len(self.a)
         Ts = self._frames(q, self.a, self.d)
         g = np.array([0.0, 0.0, -G])
-        pts = [Ts[j + 1][:3, :3] @ self.link_coms_m[j] + Ts[j + 1][:3, 3] for j in range(6)]
+        pts = [Ts[j + 1][:3, :3] @ self.link_coms_m[j] + Ts[j + 1][:3, 3] for j in range(n)]
         ms = list(self.link_masses_kg)
-        pts.append(Ts[6][:3, :3] @ self.payload_com_m + Ts[6][:3, 3])
+        pts.append(Ts[n][:3, :3] @ self.payload_com_m + Ts[n][:3, 3])
         ms.append(self.payload_kg)
-        tau = np.zeros(6)
-        for i in range(6):
+        tau = np.zeros(n)
+        for i in range(n):
             z, o = Ts[i][:3, 2], Ts[i][:3, 3]
             tot = np.zeros(3)
-            for j in range(i, 7):
+            for j in range(i, n + 1):
                 tot += np.cross(pts[j] - o, ms[j] * g)
             tau[i] = tot @ z
         return tau
@@ -169,7 +175,7 @@ class TrueWorkcell:
         """Link-side joint angles from encoder angles and the approach direction."""
         q = np.array(q_enc, dtype=float)
         e = self.effects
-        dq = np.zeros(6)
+        dq = np.zeros(len(q))
         if "joint_compliance" in e:
             dq += np.asarray(e["joint_compliance"]["c_rad_per_nm"], float) * self.gravity_torques(q)
         if "transmission_error" in e:
@@ -193,7 +199,7 @@ class TrueWorkcell:
         Ts = [np.eye(4)]
         defl = self.effects.get("link_deflection")
         g_base = np.array([0.0, 0.0, -G])
-        for i in range(6):
+        for i in range(len(a)):
             A = (
                 _rot_z(q[i] + self.theta_offset[i])
                 @ _trans(0.0, 0.0, d[i])
@@ -213,8 +219,8 @@ class TrueWorkcell:
                 slope_z = 1.5 * shift[1] / L
                 A = A @ _trans(*shift) @ _rot_y(slope_y) @ _rot_z(slope_z)
             Ts.append(Ts[-1] @ A @ _rot_x(self.alpha[i]) @ _rot_y(self.beta[i]))
-        T6 = Ts[-1]
-        return T6[:3, :3] @ self.smr_flange_m + T6[:3, 3]
+        T_flange = Ts[-1]
+        return T_flange[:3, :3] @ self.smr_flange_m + T_flange[:3, 3]
 
     def smr_in_tracker(
         self, q_enc: np.ndarray, approach_sign: np.ndarray, t_s: float
@@ -313,3 +319,59 @@ def make_truth(
 
 
 NOMINAL_SMR_M = np.array([0.0, 0.0, 0.06])
+
+# Seed 002 (Das, Touma & Burdick), section V-A: the DH errors set in their WAM simulation.
+# delta theta = [0 ... 0 1.3] rad, delta alpha = [0 0.4 0 ...] rad, delta a = [0 0 0.01 0 ...] m,
+# delta d = [0 0 0.15 0 ...] m.
+WAM_SMR_M = np.array([0.05, 0.0, 0.06])  # nominal SMR in the WAM's flange frame
+PAPER_WAM_ERRORS = {
+    "theta_offset": {6: 1.3},
+    "alpha": {1: 0.4},
+    "a": {2: 0.01},
+    "d": {2: 0.15},
+}
+
+
+def make_paper_wam_truth(
+    seed: int = 0, *, small_errors: bool = False, noise: TrackerNoise | None = None
+) -> TrueWorkcell:
+    """The paper's simulated setting on our tracker: a 7-joint WAM-like arm whose DH parameters
+    carry seed 002's four errors (`PAPER_WAM_ERRORS`), everything else nominal unless
+    `small_errors` (then also the UR cell's small random DH errors: sigma 0.3 mm, 0.5 mrad,
+    1 mrad). The base stands 1.8-2.6 m from the tracker at a random yaw (as in `make_truth`);
+    the SMR sits on a bracket off the flange axis (`WAM_SMR_M`, like the paper's scoop), so the
+    joint-7 offset error moves it, with a small random offset error. No physical effects; the
+    tracker measures position only (the paper's camera measured full pose)."""
+    from workcell.kinematics.robots import WAM7
+
+    spec = WAM7
+    n = spec.n_joints
+    rng = np.random.default_rng(seed)
+    yaw = rng.uniform(-np.pi, np.pi)
+    T = _trans(*rng.uniform([1.8, -1.0, -0.6], [2.6, 1.0, 0.0])) @ _euler_zyx(yaw, 0.0, 0.0)
+    T = T @ _euler_zyx(*rng.normal(0, 0.003, 3))
+    s = 1.0 if small_errors else 0.0
+    dh = {
+        "a": spec.dh.a + s * rng.normal(0, 3e-4, n),
+        "d": spec.dh.d + s * rng.normal(0, 3e-4, n),
+        "alpha": spec.dh.alpha + s * rng.normal(0, 5e-4, n),
+        "theta_offset": spec.dh.theta_offset + s * rng.normal(0, 1e-3, n),
+    }
+    for name, errs in PAPER_WAM_ERRORS.items():
+        for j, v in errs.items():
+            dh[name][j] += v
+    return TrueWorkcell(
+        nominal=spec,
+        a=dh["a"],
+        d=dh["d"],
+        alpha=dh["alpha"],
+        theta_offset=dh["theta_offset"],
+        tracker_T_base=T,
+        smr_flange_m=WAM_SMR_M + rng.normal(0, 3e-4, 3),
+        link_masses_kg=spec.link_masses_kg.copy(),
+        link_coms_m=spec.link_coms_m.copy(),
+        payload_kg=0.0,
+        effects={},
+        beta=np.zeros(n),
+        noise=noise or TrackerNoise(beam_break_prob=0.0, outlier_prob=0.0),
+    )

@@ -48,11 +48,10 @@ from workcell.campaign.envelope import Envelope
 from workcell.campaign.plans import Plan, PoseTarget, approach_signs, random_configurations
 from workcell.estimation.identifiability import analyse
 from workcell.kinematics.chain import (
-    N_PARAMS,
-    PARAM_NAMES,
     base_T_flange,
     pack,
     parallel_beta_names,
+    param_names,
 )
 from workcell.kinematics.robots import RobotSpec
 from workcell.recording.dataset import Dataset
@@ -104,12 +103,14 @@ def _candidates(spec, env, n_candidates, seed, tool_m, approach_rad):
 
 
 def identifiable_mask(spec: RobotSpec, J: np.ndarray) -> np.ndarray:
-    """Bool (39,): identifiable parameters for the Jacobian J (N, 3, 39) (Theorem 1 analysis)."""
+    """Bool (P,): identifiable parameters for the Jacobian J (N, 3, P), P = 5 n + 9 (Theorem 1
+    analysis)."""
+    names = param_names(spec.n_joints)
     betas = set(parallel_beta_names(spec.dh))
-    cand = [n for n in PARAM_NAMES if not n.startswith("beta") or n in betas]
-    ident = analyse(J.reshape(-1, N_PARAMS), candidates=cand)
-    free = np.zeros(N_PARAMS, bool)
-    free[[PARAM_NAMES.index(n) for n in ident.identifiable]] = True
+    cand = [n for n in names if not n.startswith("beta") or n in betas]
+    ident = analyse(J.reshape(-1, len(names)), candidates=cand)
+    free = np.zeros(len(names), bool)
+    free[[names.index(n) for n in ident.identifiable]] = True
     return free
 
 
@@ -229,7 +230,7 @@ def make_adaptive_plan(
         raise ValueError(f"only {len(q_c)} candidate poses fit the envelope; need {n}")
     poses = candidate_poses(spec, q_c, tool_m)
     th_nom = pack(spec.dh, tool=tool_m)
-    J_c = jacobian_padded(th_nom, np.eye(4), q_c)  # (M, 3, 39)
+    J_c = jacobian_padded(th_nom, np.eye(4), q_c)  # (M, 3, 5 n + 9)
     free = identifiable_mask(spec, J_c)
     n_seed = (5 if kind == "bo" else 1) if n_seed is None else int(n_seed)
     if history and skip_ids:
@@ -258,7 +259,9 @@ def _replayed(plan: Plan, history: dict[int, dict]) -> Plan:
             rec = history.get(target.pose_id)
             if rec is not None:
                 q_rec = np.asarray(rec.get("q_commanded_rad", []), float)
-                if q_rec.shape != (6,) or not np.allclose(q_rec, target.q_rad, atol=1e-9):
+                if q_rec.shape != target.q_rad.shape or not np.allclose(
+                    q_rec, target.q_rad, atol=1e-9
+                ):
                     raise ValueError(
                         f"recorded pose {target.pose_id} is not the one the re-created plan "
                         "chooses (different envelope, seed or version); cannot resume this "

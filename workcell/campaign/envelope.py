@@ -19,10 +19,10 @@ class EnvelopeViolation(ValueError):
 
 @dataclass
 class Envelope:
-    joint_limits_rad: np.ndarray  # (6, 2)
+    joint_limits_rad: np.ndarray  # (n, 2)
     box_min_m: np.ndarray = field(default_factory=lambda: np.array([-1.0, -1.0, 0.05]))
     box_max_m: np.ndarray = field(default_factory=lambda: np.array([1.0, 1.0, 1.2]))
-    floor_z_m: float = 0.02  # every DH frame origin (2..6) must stay above this (base frame)
+    floor_z_m: float = 0.02  # every DH frame origin (2..n) must stay above this (base frame)
     max_speed_rad_s: float = 1.0
     max_accel_rad_s2: float = 2.0
 
@@ -48,13 +48,13 @@ class Envelope:
         )
 
     def violations(self, spec: RobotSpec, q: np.ndarray, tool_m: np.ndarray) -> list[str | None]:
-        """For each row of q (N, 6): None if inside, else the reason."""
+        """For each row of q (N, n): None if inside, else the reason."""
         q = np.atleast_2d(np.asarray(q, float))
         out: list[str | None] = [None] * len(q)
         finite = np.all(np.isfinite(q), axis=1)
         lim = self.joint_limits_rad
         T = np.asarray(base_T_frames(pack(spec.dh), np.where(finite[:, None], q, 0.0)))
-        smr = np.einsum("nab,b->na", T[:, 6, :3, :3], np.asarray(tool_m, float)) + T[:, 6, :3, 3]
+        smr = np.einsum("nab,b->na", T[:, -1, :3, :3], np.asarray(tool_m, float)) + T[:, -1, :3, 3]
         for i in range(len(q)):
             if not finite[i]:
                 out[i] = "target has non-finite joint values"

@@ -23,8 +23,8 @@ from workcell.kinematics.robots import RobotSpec
 @dataclass(frozen=True)
 class PoseTarget:
     pose_id: int
-    q_rad: np.ndarray  # (6,)
-    approach_sign: np.ndarray  # (6,) desired direction of the final motion of each joint
+    q_rad: np.ndarray  # (n,)
+    approach_sign: np.ndarray  # (n,) desired direction of the final motion of each joint
 
 
 Plan = Generator[PoseTarget, "dict | None", None]
@@ -44,7 +44,7 @@ def random_configurations(
     tries = 0
     while len(out) < n:
         m = max(4 * (n - len(out)), 64)
-        q = rng.uniform(lim[:, 0], lim[:, 1], size=(m, 6))
+        q = rng.uniform(lim[:, 0], lim[:, 1], size=(m, len(lim)))
         ok = [v is None for v in env.violations(spec, q, tool_m)]
         out.extend(q[np.array(ok)][: n - len(out)])
         tries += m
@@ -102,7 +102,9 @@ def approach_signs(
         if not bad:
             break
         if attempt < 2:
-            signs[bad] = -signs[bad] if attempt == 0 else rng.choice([-1.0, 1.0], (len(bad), 6))
+            signs[bad] = (
+                -signs[bad] if attempt == 0 else rng.choice([-1.0, 1.0], (len(bad), q.shape[1]))
+            )
         else:
             ok[bad] = False
     return q[ok], signs[ok]

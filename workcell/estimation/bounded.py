@@ -56,12 +56,12 @@ from workcell.estimation.dh import (
 from workcell.estimation.identifiability import Identifiability, analyse
 from workcell.estimation.models import error_stats
 from workcell.kinematics.chain import (
-    IDX,
-    N_PARAMS,
-    PARAM_NAMES,
     jac_params,
+    joints_of,
     p_tracker,
     parallel_beta_names,
+    param_index,
+    param_names,
 )
 from workcell.recording.dataset import Dataset
 
@@ -91,7 +91,7 @@ def predict_padded(theta: np.ndarray, base_ref: np.ndarray, q: np.ndarray) -> np
 
 
 def jacobian_padded(theta: np.ndarray, base_ref: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """`jac_params` (N, 3, 39) as numpy."""
+    """`jac_params` (N, 3, 5 n + 9) as numpy (39 columns for 6 joints)."""
     return np.asarray(
         jac_params(
             np.asarray(theta, float),
@@ -105,12 +105,12 @@ def jacobian_padded(theta: np.ndarray, base_ref: np.ndarray, q: np.ndarray) -> n
 
 
 def default_bounds(theta_nominal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(lo, hi) arrays (39,) of the documented default bounds around `theta_nominal`."""
+    """(lo, hi) arrays (5 n + 9,) of the documented default bounds around `theta_nominal`."""
     th = np.asarray(theta_nominal, float)
-    if th.shape != (N_PARAMS,):
-        raise ValueError(f"theta_nominal: expected shape ({N_PARAMS},), got {th.shape}")
-    half = np.empty(N_PARAMS)
-    for n, i in IDX.items():
+    if th.ndim != 1:
+        raise ValueError(f"theta_nominal: expected a vector (5 n + 9,), got shape {th.shape}")
+    half = np.empty(len(th))
+    for n, i in param_index(joints_of(th)).items():
         if n[0] in "ad" and n[1:].isdigit():
             half[i] = LENGTH_BOUND_M
         elif n.startswith(("alpha", "theta", "beta")):
@@ -127,10 +127,11 @@ def default_bounds(theta_nominal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def resolve_bounds(
     bounds: str | Path | dict | None, theta_nominal: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(lo, hi) absolute bounds (39,) from "default", None/"none", a JSON path or a dict."""
+    """(lo, hi) absolute bounds (5 n + 9,) from "default", None/"none", a JSON path or a dict."""
     th = np.asarray(theta_nominal, float)
+    index = param_index(joints_of(th))
     if bounds is None or (isinstance(bounds, str) and bounds.strip().lower() == "none"):
-        return np.full(N_PARAMS, -np.inf), np.full(N_PARAMS, np.inf)
+        return np.full(len(th), -np.inf), np.full(len(th), np.inf)
     lo, hi = default_bounds(th)
     if isinstance(bounds, str) and bounds.strip().lower() == "default":
         return lo, hi
@@ -157,7 +158,7 @@ def resolve_bounds(
     if mode not in ("absolute", "delta"):
         raise UserError(f"{where}: mode must be 'absolute' or 'delta', got {mode!r}")
     for name, v in spec.items():
-        if name not in IDX:
+        if name not in index:
             raise UserError(f"{where}: unknown parameter {name!r} (names as in `workcell fit`)")
         if (
             not isinstance(v, (list, tuple))
@@ -168,7 +169,7 @@ def resolve_bounds(
         a, b = float(v[0]), float(v[1])
         if np.isnan(a) or np.isnan(b) or a > b:
             raise UserError(f"{where}: {name} bound [{a}, {b}] is empty (need lo <= hi)")
-        i = IDX[name]
+        i = index[name]
         off = th[i] if mode == "delta" else 0.0
         lo[i], hi[i] = a + off, b + off
     return lo, hi
@@ -194,7 +195,7 @@ def fit_dh_bounded(
     """Fit the geometric model to all poses of `ds` by the iterated bounded QP (eq. 11).
 
     `theta0`/`base_ref` warm-start the iteration (default: nominal, rigid registration);
-    `free` (bool (39,)) skips the identifiability analysis and estimates exactly those
+    `free` (bool (5 n + 9,)) skips the identifiability analysis and estimates exactly those
     parameters (used by adaptive plans that refit after every pose). Returns a `DHModel`
     (method "dh") whose `info` adds `bounds` (for the estimated parameters), `active_bounds`,
     `qp_iterations` and `converged`.
@@ -205,10 +206,13 @@ def fit_dh_bounded(
             f"too few poses to fit the geometry: {len(ds)} (need at least {min_poses})"
         )
     th_nom = nominal_theta(ds)
+    n_par = len(th_nom)
+    names = param_names(joints_of(th_nom))
+    index = param_index(joints_of(th_nom))
     lo, hi = resolve_bounds(bounds, th_nom)
     theta = th_nom.copy() if theta0 is None else np.asarray(theta0, float).copy()
-    if theta.shape != (N_PARAMS,):
-        raise ValueError(f"theta0: expected shape ({N_PARAMS},), got {theta.shape}")
+    if theta.shape != (n_par,):
+        raise ValueError(f"theta0: expected shape ({n_par},), got {theta.shape}")
     base_ref = register_base(ds, theta) if base_ref is None else np.asarray(base_ref, float)
     w = 1.0 / pose_sigma(ds)
     ident: Identifiability | None = None
@@ -217,16 +221,16 @@ def fit_dh_bounded(
         betas = set(parallel_beta_names(ds.robot.dh))
         cand = [
             n
-            for n in PARAM_NAMES
+            for n in names
             if n not in set(fixed or []) and (not n.startswith("beta") or n in betas)
         ]
-        ident = analyse(J0.reshape(-1, N_PARAMS), candidates=cand)
-        free = np.zeros(N_PARAMS, bool)
-        free[[IDX[n] for n in ident.identifiable]] = True
+        ident = analyse(J0.reshape(-1, n_par), candidates=cand)
+        free = np.zeros(n_par, bool)
+        free[[index[n] for n in ident.identifiable]] = True
     else:
         free = np.asarray(free, bool).copy()
-        if free.shape != (N_PARAMS,):
-            raise ValueError(f"free: expected shape ({N_PARAMS},), got {free.shape}")
+        if free.shape != (n_par,):
+            raise ValueError(f"free: expected shape ({n_par},), got {free.shape}")
     # a parameter pinned by lo == hi is not estimated; fixed parameters stay where they are
     pinned = free & (hi - lo <= 0)
     theta[pinned] = lo[pinned]
@@ -234,9 +238,9 @@ def fit_dh_bounded(
     bad = (theta < lo) | (theta > hi)
     theta[free] = np.clip(theta[free], lo[free], hi[free])  # feasible start
     if np.any(bad & ~free):
-        names = [PARAM_NAMES[i] for i in np.where(bad & ~free)[0]]
+        out = [names[i] for i in np.where(bad & ~free)[0]]
         raise UserError(
-            f"bounds exclude the nominal value of parameters that are not estimated: {names}"
+            f"bounds exclude the nominal value of parameters that are not estimated: {out}"
         )
     keep = np.ones(len(ds), bool)
     n_rejected, iters, converged = 0, 0, False
@@ -272,8 +276,8 @@ def fit_dh_bounded(
         "solver": "iterated bounded linear least squares (QP, eq. 11 of seed 002)",
         "qp_iterations": iters,
         "converged": bool(converged),
-        "bounds": {PARAM_NAMES[i]: [finite(lo[i]), finite(hi[i])] for i in np.where(free)[0]},
-        "active_bounds": [PARAM_NAMES[i] for i in np.where(active)[0]],
+        "bounds": {names[i]: [finite(lo[i]), finite(hi[i])] for i in np.where(free)[0]},
+        "active_bounds": [names[i] for i in np.where(active)[0]],
         "recording": ds.source,
         "recording_sha256": ds.source_sha256,
     }
@@ -303,7 +307,8 @@ def _iterate_qp(ds, keep, w, theta, base_ref, free, lo, hi, max_iter, xtol):
     r = residual(theta)
     cost = float(r @ r)
     for it in range(1, max_iter + 1):
-        J = (jacobian_padded(theta, base_ref, q) * wk[:, None, None]).reshape(-1, N_PARAMS)[:, idx]
+        J = (jacobian_padded(theta, base_ref, q) * wk[:, None, None]).reshape(-1, len(theta))
+        J = J[:, idx]
         s = np.linalg.norm(J, axis=0)
         s = np.where(s > 0, s, 1.0)
         lb = (lo[idx] - theta[idx]) * s

@@ -25,7 +25,6 @@ from scipy.optimize import least_squares
 from workcell.estimation.identifiability import Identifiability, analyse
 from workcell.estimation.models import error_stats
 from workcell.kinematics.chain import (
-    I_TOOL,
     IDX,
     N_PARAMS,
     PARAM_NAMES,
@@ -62,7 +61,7 @@ class DHModel:
 
     def predict_nominal(self, q: np.ndarray) -> np.ndarray:
         """What the controller's nominal kinematics predicts, in the same registered base."""
-        th = pack(self.nominal_dh, tool=self.info.get("nominal_tool_m", self.theta[I_TOOL]))
+        th = pack(self.nominal_dh, tool=self.info.get("nominal_tool_m", self.theta[-3:]))
         q = np.atleast_2d(np.asarray(q, dtype=float))
         return np.asarray(p_tracker(th, self.base_ref, q))
 
@@ -223,16 +222,17 @@ def robust_keep(ds, theta, base_ref, w, keep, outlier_k: float) -> np.ndarray | 
 
 def weighted_covariance(ds, theta, base_ref, w, keep, est, n_free: int):
     """Cov = s0^2 (J^T W J)^-1 over the parameters `est` (mask), s0^2 = chi2 / (3N - n_free).
-    Returns (cov (39, 39) with zeros elsewhere, s0^2)."""
+    Returns (cov (P, P) with zeros elsewhere, P = len(theta), s0^2)."""
     qk = ds.q[keep]
     r = (
         (np.asarray(p_tracker(theta, base_ref, qk)) - ds.p_tracker[keep]) * w[keep][:, None]
     ).ravel()
     s0_2 = float(r @ r / max(len(r) - n_free, 1))
-    cov = np.zeros((N_PARAMS, N_PARAMS))
+    n_par = len(theta)
+    cov = np.zeros((n_par, n_par))
     if np.any(est):
         Jw = (np.asarray(jac_params(theta, base_ref, qk)) * w[keep][:, None, None]).reshape(
-            -1, N_PARAMS
+            -1, n_par
         )[:, est]
         cov[np.ix_(est, est)] = s0_2 * np.linalg.pinv(Jw.T @ Jw)
     return cov, s0_2

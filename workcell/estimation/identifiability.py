@@ -15,31 +15,30 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from workcell.kinematics.chain import PARAM_NAMES
+from workcell.kinematics.chain import PARAM_NAMES, param_names
 
-# Keep base and tool parameters first (they are what a user sets), then DH lengths/twists, so
-# that dependent DH parameters are the ones fixed at nominal. theta1 goes with base_rz, d1 with
-# base_tz, d2/d3 with d4, a6/d6/alpha6/theta6 with the tool.
-PRIORITY = (
-    ["base_tx", "base_ty", "base_tz", "base_rx", "base_ry", "base_rz", "tool_x", "tool_y", "tool_z"]
-    + [f"a{i}" for i in range(1, 6)]
-    + [f"alpha{i}" for i in range(1, 6)]
-    + [f"theta{i}_offset" for i in range(2, 6)]
-    + [f"beta{i}" for i in range(1, 6)]
-    + [
-        "d4",
-        "d5",
-        "d1",
-        "d2",
-        "d3",
-        "d6",
-        "a6",
-        "alpha6",
-        "theta1_offset",
-        "theta6_offset",
-        "beta6",
-    ]
-)
+
+def priority_for(n: int) -> list[str]:
+    """The column order of the greedy selection for an n-joint chain.
+
+    Base and tool parameters first (they are what a user sets), then DH lengths/twists, so that
+    dependent DH parameters are the ones fixed at nominal. For the 6-joint UR arms: theta1 goes
+    with base_rz, d1 with base_tz, d2/d3 with d4, a6/d6/alpha6/theta6 with the tool."""
+    r = range(1, n)
+    return (
+        ["base_tx", "base_ty", "base_tz", "base_rx", "base_ry", "base_rz"]
+        + ["tool_x", "tool_y", "tool_z"]
+        + [f"a{i}" for i in r]
+        + [f"alpha{i}" for i in r]
+        + [f"theta{i}_offset" for i in range(2, n)]
+        + [f"beta{i}" for i in r]
+        + [f"d{n - 2}", f"d{n - 1}", "d1"]
+        + [f"d{i}" for i in range(2, n - 2)]
+        + [f"d{n}", f"a{n}", f"alpha{n}", "theta1_offset", f"theta{n}_offset", f"beta{n}"]
+    )
+
+
+PRIORITY = priority_for(6)
 
 
 @dataclass
@@ -89,14 +88,21 @@ def analyse(
     candidates: list[str] | None = None,
     rtol: float = 1e-6,
 ) -> Identifiability:
-    """Analyse a Jacobian J (rows, P) whose columns are `names` (default: all 39 parameters).
+    """Analyse a Jacobian J (rows, P) whose columns are `names` (default: all 5 n + 9 parameters
+    of an n-joint chain, n from P; 39 for the 6-joint arms).
 
     `candidates` restricts the analysis to a subset of the columns (others are fixed anyway).
     A column is dependent when its distance from the span of the columns kept before it, relative
     to its norm, is below `rtol` (exact dependencies give ~1e-12; weak ones are reported through
     the condition number instead).
     """
-    names = list(PARAM_NAMES if names is None else names)
+    if names is None:
+        m = J.shape[1] if J.ndim == 2 else len(PARAM_NAMES)
+        n_j = (m - 9) // 5 if m > 9 and (m - 9) % 5 == 0 else 6
+        names = param_names(n_j)
+        if priority is None:
+            priority = priority_for(n_j)
+    names = list(names)
     if J.ndim != 2 or J.shape[1] != len(names):
         raise ValueError(f"Jacobian: expected shape (rows, {len(names)}), got {J.shape}")
     cand = [n for n in (candidates or names)]

@@ -1,8 +1,9 @@
-"""Geometric model of a 6-joint arm measured by a tracker: DH chain + base pose + SMR offset.
+"""Geometric model of an n-joint arm measured by a tracker: DH chain + base pose + SMR offset.
 
-Parameter vector `theta` (39,) with names `PARAM_NAMES`:
-  a1..a6, d1..d6 [m], alpha1..alpha6 [rad], theta1_offset..theta6_offset [rad]   (standard DH)
-  beta1..beta6 [rad]   Hayati rotation about y_i, appended to link i (0 nominally). Standard DH
+Parameter vector `theta` (5 n + 9,) with names `param_names(n)` (`PARAM_NAMES` for the 6-joint
+arms of the catalogue, 39 values):
+  a1..an, d1..dn [m], alpha1..alphan [rad], theta1_offset..thetan_offset [rad]   (standard DH)
+  beta1..betan [rad]   Hayati rotation about y_i, appended to link i (0 nominally). Standard DH
                        cannot represent a small tilt between nominally parallel axes (UR joints
                        2-3-4); beta can. It is estimated only where the next axis is parallel.
   base_tx, base_ty, base_tz [m], base_rx, base_ry, base_rz [rad]                  (base pose)
@@ -12,7 +13,8 @@ The base pose is `tracker_T_base = base_ref @ Trans(t) @ Rot(r)` where `base_ref
 reference transform (e.g. the rigid registration) and (t, r) are offsets expressed along the
 *base* axes, so that `base_rz` is a rotation about joint 1's axis and `base_tz` a shift along it.
 
-All functions are pure JAX, vectorised over N poses, float64.
+All functions are pure JAX, vectorised over N poses, float64. The joint count n is taken from
+the shape of the joint vectors (static under jit), so one code path serves 6- and 7-joint arms.
 """
 
 from __future__ import annotations
@@ -23,30 +25,68 @@ from workcell._jax import jax, jnp
 from workcell.kinematics.robots import DH
 
 N_JOINTS = 6
-DH_NAMES = (
-    [f"a{i}" for i in range(1, 7)]
-    + [f"d{i}" for i in range(1, 7)]
-    + [f"alpha{i}" for i in range(1, 7)]
-    + [f"theta{i}_offset" for i in range(1, 7)]
-    + [f"beta{i}" for i in range(1, 7)]
-)
 BASE_NAMES = ["base_tx", "base_ty", "base_tz", "base_rx", "base_ry", "base_rz"]
 TOOL_NAMES = ["tool_x", "tool_y", "tool_z"]
-PARAM_NAMES: list[str] = DH_NAMES + BASE_NAMES + TOOL_NAMES
+
+
+def dh_names(n: int = N_JOINTS) -> list[str]:
+    r = range(1, n + 1)
+    return (
+        [f"a{i}" for i in r]
+        + [f"d{i}" for i in r]
+        + [f"alpha{i}" for i in r]
+        + [f"theta{i}_offset" for i in r]
+        + [f"beta{i}" for i in r]
+    )
+
+
+def param_names(n: int = N_JOINTS) -> list[str]:
+    """Names of the 5 n + 9 parameters of an n-joint chain, in `theta` order."""
+    return dh_names(n) + BASE_NAMES + TOOL_NAMES
+
+
+def n_params(n: int = N_JOINTS) -> int:
+    return 5 * n + 9
+
+
+def joints_of(theta) -> int:
+    """Joint count n of a parameter vector (5 n + 9,); ValueError for any other length."""
+    m = int(np.shape(theta)[0])
+    n, rem = divmod(m - 9, 5)
+    if rem or n < 1:
+        raise ValueError(f"theta: expected 5 n + 9 values (39 for 6 joints), got {m}")
+    return n
+
+
+def base_slice(n: int = N_JOINTS) -> slice:
+    return slice(5 * n, 5 * n + 6)
+
+
+def tool_slice(n: int = N_JOINTS) -> slice:
+    return slice(5 * n + 6, 5 * n + 9)
+
+
+def param_index(n: int = N_JOINTS) -> dict[str, int]:
+    return {p: i for i, p in enumerate(param_names(n))}
+
+
+DH_NAMES = dh_names(N_JOINTS)
+PARAM_NAMES: list[str] = param_names(N_JOINTS)
 N_PARAMS = len(PARAM_NAMES)
 PARAM_UNITS = {
-    n: ("rad" if n.startswith(("alpha", "theta", "beta", "base_r")) else "m") for n in PARAM_NAMES
+    n: ("rad" if n.startswith(("alpha", "theta", "beta", "base_r")) else "m")
+    for n in param_names(7)
 }
-I_BASE = slice(30, 36)
-I_TOOL = slice(36, 39)
-IDX = {n: i for i, n in enumerate(PARAM_NAMES)}
+I_BASE = base_slice(N_JOINTS)
+I_TOOL = tool_slice(N_JOINTS)
+IDX = param_index(N_JOINTS)
 
 
 def pack(
     dh: DH, base_t=(0.0, 0.0, 0.0), base_r=(0.0, 0.0, 0.0), tool=(0.0, 0.0, 0.0), beta=None
 ) -> np.ndarray:
     """Parameter vector from a DH chain, base offsets and tool (SMR) offset."""
-    beta = np.zeros(6) if beta is None else np.asarray(beta, float)
+    beta = np.zeros(len(dh.a)) if beta is None else np.asarray(beta, float)
     return np.concatenate(
         [
             dh.a,
@@ -63,16 +103,18 @@ def pack(
 
 def parallel_beta_names(dh: DH, tol: float = 1e-6) -> list[str]:
     """beta_i worth estimating: link i whose next joint axis is nominally parallel (alpha_i = 0)."""
-    return [f"beta{i + 1}" for i in range(5) if abs(np.sin(dh.alpha[i])) < tol]
+    return [f"beta{i + 1}" for i in range(len(dh.a) - 1) if abs(np.sin(dh.alpha[i])) < tol]
 
 
 def unpack_beta(theta: np.ndarray) -> np.ndarray:
-    return np.asarray(theta, dtype=float)[24:30]
+    n = joints_of(theta)
+    return np.asarray(theta, dtype=float)[4 * n : 5 * n]
 
 
 def unpack_dh(theta: np.ndarray) -> DH:
     t = np.asarray(theta, dtype=float)
-    return DH(a=t[0:6], d=t[6:12], alpha=t[12:18], theta_offset=t[18:24])
+    n = joints_of(t)
+    return DH(a=t[0:n], d=t[n : 2 * n], alpha=t[2 * n : 3 * n], theta_offset=t[3 * n : 4 * n])
 
 
 def _rotvec_to_matrix(r):
@@ -105,38 +147,41 @@ def _dh_matrix(a, d, alpha, th, beta=0.0):
     return A @ Ry
 
 
-def _link(theta, i, qi):
-    beta = theta[24 + i] if theta.shape[0] > 24 else 0.0
-    return _dh_matrix(theta[i], theta[6 + i], theta[12 + i], qi + theta[18 + i], beta)
+def _link(theta, i, qi, n):
+    beta = theta[4 * n + i] if theta.shape[0] >= 5 * n else 0.0
+    return _dh_matrix(theta[i], theta[n + i], theta[2 * n + i], qi + theta[3 * n + i], beta)
 
 
 def base_T_flange_single(theta, q):
-    """Flange pose in base for one joint vector q (6,). theta (>=30,) holds the DH part."""
+    """Flange pose in base for one joint vector q (n,). theta (>= 4 n,) holds the DH part."""
+    n = q.shape[0]
     T = jnp.eye(4)
-    for i in range(N_JOINTS):
-        T = T @ _link(theta, i, q[i])
+    for i in range(n):
+        T = T @ _link(theta, i, q[i], n)
     return T
 
 
 def base_T_frames_single(theta, q):
-    """All DH frames 0..6 in base for one q: (7, 4, 4)."""
+    """All DH frames 0..n in base for one q (n,): (n + 1, 4, 4)."""
+    n = q.shape[0]
     Ts = [jnp.eye(4)]
-    for i in range(N_JOINTS):
-        Ts.append(Ts[-1] @ _link(theta, i, q[i]))
+    for i in range(n):
+        Ts.append(Ts[-1] @ _link(theta, i, q[i], n))
     return jnp.stack(Ts)
 
 
 def tracker_T_base(theta, base_ref):
-    t = theta[30:33]
-    R = _rotvec_to_matrix(theta[33:36])
+    b = base_slice(joints_of(theta)).start
+    t = theta[b : b + 3]
+    R = _rotvec_to_matrix(theta[b + 3 : b + 6])
     off = jnp.eye(4).at[:3, :3].set(R).at[:3, 3].set(t)
     return base_ref @ off
 
 
 def p_tracker_single(theta, base_ref, q):
-    """SMR position in the tracker frame for one q (6,)."""
+    """SMR position in the tracker frame for one q (n,); theta (5 n + 9,)."""
     T = tracker_T_base(theta, base_ref) @ base_T_flange_single(theta, q)
-    tool = theta[36:39]
+    tool = theta[tool_slice(q.shape[0])]
     return T[:3, :3] @ tool + T[:3, 3]
 
 
@@ -194,24 +239,24 @@ def _base_T_frames(theta, q):
 
 
 p_tracker = _batched(_p_tracker)
-p_tracker.__doc__ = "SMR positions (N, 3) in the tracker frame for joints q (N, 6)."
+p_tracker.__doc__ = "SMR positions (N, 3) in the tracker frame for joints q (N, n)."
 base_T_flange = _batched(_base_T_flange)
 base_T_flange.__doc__ = "Flange poses (N, 4, 4) in base."
 jac_params = _batched(_jac_params)
-jac_params.__doc__ = "d p_tracker / d theta: (N, 3, 39)."
+jac_params.__doc__ = "d p_tracker / d theta: (N, 3, 5 n + 9) (39 for 6 joints)."
 jac_joints = _batched(_jac_joints)
-jac_joints.__doc__ = "d p_tracker / d q: (N, 3, 6)."
+jac_joints.__doc__ = "d p_tracker / d q: (N, 3, n)."
 base_T_frames = _batched(_base_T_frames)
-base_T_frames.__doc__ = "DH frames 0..6 in base for each pose: (N, 7, 4, 4)."
+base_T_frames.__doc__ = "DH frames 0..n in base for each pose: (N, n + 1, 4, 4)."
 
 
-def check_joints(q: np.ndarray, name: str = "q_rad") -> np.ndarray:
-    """Validate joint vectors (N, 6) or (6,) -> (N, 6) float64."""
+def check_joints(q: np.ndarray, name: str = "q_rad", n: int = N_JOINTS) -> np.ndarray:
+    """Validate joint vectors (N, n) or (n,) -> (N, n) float64."""
     q = np.asarray(q, dtype=float)
     if q.ndim == 1:
         q = q[None, :]
-    if q.ndim != 2 or q.shape[1] != N_JOINTS:
-        raise ValueError(f"{name}: expected shape (N, 6), got {q.shape}")
+    if q.ndim != 2 or q.shape[1] != n:
+        raise ValueError(f"{name}: expected shape (N, {n}), got {q.shape}")
     if not np.all(np.isfinite(q)):
         raise ValueError(f"{name}: contains non-finite values")
     return q

@@ -7,7 +7,7 @@ as Universal Robots publish them. All values SI.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -16,7 +16,9 @@ PI = np.pi
 
 @dataclass(frozen=True)
 class DH:
-    """Standard DH parameters of a 6-joint serial chain, each an array of shape (6,)."""
+    """Standard DH parameters of an n-joint serial chain, each an array of shape (n,).
+
+    The catalogue's arms have 6 joints; the design bench also builds a 7-joint WAM-like arm."""
 
     a: np.ndarray
     d: np.ndarray
@@ -24,10 +26,13 @@ class DH:
     theta_offset: np.ndarray
 
     def __post_init__(self) -> None:
+        n = np.asarray(self.a, dtype=float).shape
+        if len(n) != 1 or n[0] < 1:
+            raise ValueError(f"DH.a: expected one value per joint, got shape {n}")
         for name in ("a", "d", "alpha", "theta_offset"):
             v = np.asarray(getattr(self, name), dtype=float)
-            if v.shape != (6,):
-                raise ValueError(f"DH.{name}: expected 6 values, got shape {v.shape}")
+            if v.shape != n:
+                raise ValueError(f"DH.{name}: expected {n[0]} values, got shape {v.shape}")
             if not np.all(np.isfinite(v)):
                 raise ValueError(f"DH.{name}: non-finite value in {v.tolist()}")
             object.__setattr__(self, name, v)
@@ -35,11 +40,18 @@ class DH:
     def to_dict(self) -> dict:
         return {k: getattr(self, k).tolist() for k in ("a", "d", "alpha", "theta_offset")}
 
+    @property
+    def n_joints(self) -> int:
+        return len(self.a)
+
     @classmethod
     def from_dict(cls, d: dict) -> DH:
         try:
             return cls(
-                a=d["a"], d=d["d"], alpha=d["alpha"], theta_offset=d.get("theta_offset", [0.0] * 6)
+                a=d["a"],
+                d=d["d"],
+                alpha=d["alpha"],
+                theta_offset=d.get("theta_offset", [0.0] * len(d["a"])),
             )
         except KeyError as e:
             raise ValueError(f"DH parameters: missing field {e.args[0]!r}") from None
@@ -47,23 +59,29 @@ class DH:
 
 @dataclass(frozen=True)
 class RobotSpec:
-    """A 6-joint arm: nominal geometry, limits and inertial data used for gravity torques."""
+    """An n-joint arm (n = 6 for the catalogue): nominal geometry, limits and inertial data used
+    for gravity torques."""
 
     model: str
     dh: DH
-    joint_limits_rad: np.ndarray  # (6, 2)
-    link_masses_kg: np.ndarray  # (6,)
-    link_coms_m: np.ndarray  # (6, 3), in DH frame i
-    max_joint_speed_rad_s: np.ndarray = field(default_factory=lambda: np.full(6, PI))
-    max_torque_nm: np.ndarray = field(default_factory=lambda: np.full(6, 150.0))
+    joint_limits_rad: np.ndarray  # (n, 2)
+    link_masses_kg: np.ndarray  # (n,)
+    link_coms_m: np.ndarray  # (n, 3), in DH frame i
+    max_joint_speed_rad_s: np.ndarray | None = None  # (n,), default pi rad/s
+    max_torque_nm: np.ndarray | None = None  # (n,), default 150 N m
     max_payload_kg: float = 5.0
 
     def __post_init__(self) -> None:
+        n = self.dh.n_joints
         lim = np.asarray(self.joint_limits_rad, dtype=float)
-        if lim.shape != (6, 2) or np.any(lim[:, 0] >= lim[:, 1]):
-            raise ValueError(f"joint_limits_rad: expected 6 [lo, hi] pairs, got {lim.tolist()}")
+        if lim.shape != (n, 2) or np.any(lim[:, 0] >= lim[:, 1]):
+            raise ValueError(f"joint_limits_rad: expected {n} [lo, hi] pairs, got {lim.tolist()}")
         object.__setattr__(self, "joint_limits_rad", lim)
-        for name, shape in (("link_masses_kg", (6,)), ("link_coms_m", (6, 3))):
+        if self.max_joint_speed_rad_s is None:
+            object.__setattr__(self, "max_joint_speed_rad_s", np.full(n, PI))
+        if self.max_torque_nm is None:
+            object.__setattr__(self, "max_torque_nm", np.full(n, 150.0))
+        for name, shape in (("link_masses_kg", (n,)), ("link_coms_m", (n, 3))):
             v = np.asarray(getattr(self, name), dtype=float)
             if v.shape != shape:
                 raise ValueError(f"{name}: expected shape {shape}, got {v.shape}")
@@ -72,6 +90,10 @@ class RobotSpec:
             self, "max_joint_speed_rad_s", np.asarray(self.max_joint_speed_rad_s, dtype=float)
         )
         object.__setattr__(self, "max_torque_nm", np.asarray(self.max_torque_nm, dtype=float))
+
+    @property
+    def n_joints(self) -> int:
+        return self.dh.n_joints
 
     def with_dh(self, dh: DH) -> RobotSpec:
         return replace(self, dh=dh)
@@ -127,6 +149,35 @@ UR10 = RobotSpec(
 
 CATALOGUE: dict[str, RobotSpec] = {"ur5e": UR5E, "ur10": UR10}
 
+# A 7-joint Barrett-WAM-like arm, the setting of seed 002's simulation (Das, Touma & Burdick,
+# section V-A). Standard DH as Barrett publishes it (shoulder centre at the base origin); joint
+# limits from Barrett's WAM data sheet. Not in the catalogue: no simulated controller or driver
+# speaks for it. Used by `workcell bench design --robot wam7` only. No inertial data (the bench's
+# cell has no gravity effects).
+WAM7 = RobotSpec(
+    model="wam7",
+    dh=DH(
+        a=[0.0, 0.0, 0.045, -0.045, 0.0, 0.0, 0.0],
+        d=[0.0, 0.0, 0.55, 0.0, 0.3, 0.0, 0.06],
+        alpha=[-PI / 2, PI / 2, -PI / 2, PI / 2, -PI / 2, PI / 2, 0.0],
+        theta_offset=[0.0] * 7,
+    ),
+    joint_limits_rad=np.array(
+        [
+            [-2.6, 2.6],
+            [-2.0, 2.0],
+            [-2.8, 2.8],
+            [-0.9, 3.1],
+            [-4.76, 1.24],
+            [-1.6, 1.6],
+            [-3.0, 3.0],
+        ]
+    ),
+    link_masses_kg=np.zeros(7),
+    link_coms_m=np.zeros((7, 3)),
+    max_payload_kg=3.0,
+)
+
 
 def robot_by_name(name: str) -> RobotSpec:
     key = name.strip().lower()
@@ -145,7 +196,15 @@ def robot_from_session(robot: dict) -> RobotSpec:
     model = str(robot.get("model", "unknown"))
     if "dh" not in robot:
         return robot_by_name(model)
-    dh = DH.from_dict(robot["dh"])
+    raw = robot["dh"]
+    for name in ("a", "d", "alpha", "theta_offset"):
+        v = raw.get(name, [0.0] * 6) if isinstance(raw, dict) else None
+        if np.shape(v) != (6,):
+            raise ValueError(
+                f"DH.{name}: expected 6 values (recordings describe 6-joint arms), "
+                f"got shape {np.shape(v)}"
+            )
+    dh = DH.from_dict(raw)
     base = CATALOGUE.get(model.strip().lower())
     lim = robot.get("joint_limits_rad")
     lim = np.asarray(lim, dtype=float) if lim is not None else _LIM_UR

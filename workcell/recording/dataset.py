@@ -24,12 +24,12 @@ class Dataset:
     robot: RobotSpec
     tool_offset_m: np.ndarray  # (3,) nominal SMR in flange
     tracker_T_base_nominal: np.ndarray  # (4, 4) (may be rough)
-    q: np.ndarray  # (N, 6) measured joints
+    q: np.ndarray  # (N, n) measured joints (n = robot.n_joints; 6 in recordings)
     p_tracker: np.ndarray  # (N, 3)
     sigma_m: np.ndarray  # (N, 3)
     q_commanded: np.ndarray | None = None
-    approach_sign: np.ndarray | None = None  # (N, 6)
-    joint_temperature_c: np.ndarray | None = None  # (N, 6), nan where unknown
+    approach_sign: np.ndarray | None = None  # (N, n)
+    joint_temperature_c: np.ndarray | None = None  # (N, n), nan where unknown
     ambient_temperature_c: np.ndarray | None = None  # (N,)
     elapsed_s: np.ndarray | None = None
     payload_kg: np.ndarray | None = None
@@ -41,14 +41,16 @@ class Dataset:
 
     def __post_init__(self) -> None:
         n = len(self.q)
-        if self.q.shape != (n, 6) or self.p_tracker.shape != (n, 3):
+        nj = self.robot.n_joints
+        if self.q.shape != (n, nj) or self.p_tracker.shape != (n, 3):
             raise ValueError(
-                f"dataset: q {self.q.shape} and p_tracker {self.p_tracker.shape} differ"
+                f"dataset: q {self.q.shape} and p_tracker {self.p_tracker.shape} differ "
+                f"(expected ({n}, {nj}) and ({n}, 3))"
             )
         if self.approach_sign is None:
-            self.approach_sign = np.zeros((n, 6))
+            self.approach_sign = np.zeros((n, nj))
         if self.joint_temperature_c is None:
-            self.joint_temperature_c = np.full((n, 6), np.nan)
+            self.joint_temperature_c = np.full((n, nj), np.nan)
         if self.ambient_temperature_c is None:
             self.ambient_temperature_c = np.full(n, np.nan)
         if self.elapsed_s is None:
