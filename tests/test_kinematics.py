@@ -155,3 +155,5 @@ def test_robot_from_session_accepts_any_dh_and_rejects_bad():
         robot_from_session({"model": "nonexistent"})
     with pytest.raises(ValueError, match="6 values"):
         robot_from_session({"model": "x", "dh": {**dh, "a": [0.1] * 5}})
+    with pytest.raises(ValueError, match="6-joint"):  # recordings describe 6-joint arms only
+        robot_from_session({"model": "x", "dh": {k: v + [0.0] for k, v in dh.items()}})
