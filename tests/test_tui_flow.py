@@ -5,6 +5,7 @@ leaving a valid recording, then resuming it."""
 import asyncio
 import time
 
+import numpy as np
 import pytest
 
 from workcell.recording.reader import read_recording
@@ -185,5 +186,41 @@ def test_bad_plan_input_is_a_notice_not_a_crash(tmp_path, monkeypatch, bad):
             # starting a campaign without devices is refused
             await pilot.press("f3", "s")
             assert app.notices[-1][0] == "error" and not app.campaign_running
+
+    asyncio.run(flow())
+
+
+def test_online_ekf_ann_estimate_reaches_the_campaign_view(tmp_path, monkeypatch):
+    """With the online estimate on (the production default), the EKF-ANN filter runs in its own
+    thread during a campaign: once it has initialised (30 samples) its innovation RMS reaches
+    the campaign screen's plot series (beside the nominal residual) and its info line (the
+    plumbing; the estimate's quality is tested in tests/test_ekf_ann_live.py)."""
+    monkeypatch.chdir(tmp_path)
+    app = make_app(
+        plan=PlanConfig(poses=40, readings_per_pose=3, settle_s=0.5, out="run.mcap"),
+        status_poll_s=0,
+        clock=lambda: 0.0,
+        online=True,
+        cursor_blink=False,
+    )
+
+    async def flow():
+        async with app.run_test(size=SIZE) as pilot:
+            await connect(app, pilot)
+            await run_campaign(app, pilot, 1)
+            view = app.views["campaign"]
+            assert view.ekf_note == ""  # available, not "EKF-ANN unavailable"/"off"
+            n = len(view.rms_um)
+            assert n == app.finished[-1].result.measured
+            # the estimator's thread finishes after the campaign: wait for its last result
+            await until(pilot, lambda: view.ekf_um[-1] is not None, 240, "EKF-ANN")
+            idx = [k for k, x in enumerate(view.ekf_um) if x is not None]
+            assert idx[0] >= 30  # none before the first prediction after the 30 used to initialise
+            assert idx == list(range(idx[0], n))  # then one estimate per pose
+            ekf = [view.ekf_um[k] for k in idx]
+            assert all(np.isfinite(x) and x >= 0.0 for x in ekf) and max(ekf) > 0.0
+            view.render_view()
+            info = str(view.query_one("#info").rows)
+            assert f"EKF-ANN innovation RMS {ekf[-1]:.1f} um" in info, info
 
     asyncio.run(flow())
