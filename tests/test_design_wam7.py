@@ -136,6 +136,11 @@ def test_paper_errors_are_recovered_from_nominal():
     # noise-free truth vs the fit: the model error alone is well below the noise floor
     assert np.sqrt(np.mean(err**2)) < np.sqrt(np.mean(3 * sig**2))
     assert len(names) == len(m.theta) == 44
+    pars = m.parameters()  # the report table of `workcell fit`, 44 rows for 7 joints
+    assert list(pars) == names
+    assert pars["d3"]["unit"] == "m" and pars["d3"]["nominal"] == 0.55
+    assert pars["alpha2"]["unit"] == "rad" and pars["base_rz"]["nominal"] == 0.0
+    assert m.to_dict()["parameter_names"] == names
 
 
 def test_seven_joint_identifiability_groups():

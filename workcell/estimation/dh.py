@@ -28,11 +28,14 @@ from workcell.kinematics.chain import (
     IDX,
     N_PARAMS,
     PARAM_NAMES,
-    PARAM_UNITS,
+    base_slice,
     jac_params,
+    joints_of,
     p_tracker,
     pack,
     parallel_beta_names,
+    param_names,
+    param_unit,
     tracker_T_base,
     unpack_dh,
 )
@@ -79,13 +82,15 @@ class DHModel:
 
     def parameters(self) -> dict[str, dict]:
         nom = pack(self.nominal_dh, tool=self.info.get("nominal_tool_m", (0.0, 0.0, 0.0)))
+        n_j = joints_of(self.theta)
+        base = base_slice(n_j)
         out = {}
-        for i, n in enumerate(PARAM_NAMES):
+        for i, n in enumerate(param_names(n_j)):
             out[n] = {
                 "value": float(self.theta[i]),
                 "std": float(self.std[i]) if self.free[i] else 0.0,
-                "unit": PARAM_UNITS[n],
-                "nominal": float(nom[i]) if i < 30 or i >= 36 else 0.0,
+                "unit": param_unit(n),
+                "nominal": 0.0 if base.start <= i < base.stop else float(nom[i]),
                 "estimated": bool(self.free[i]),
             }
         return out
@@ -96,7 +101,7 @@ class DHModel:
             "method": self.method,
             "robot": self.robot_model,
             "nominal_dh": self.nominal_dh.to_dict(),
-            "parameter_names": PARAM_NAMES,
+            "parameter_names": param_names(joints_of(self.theta)),
             "theta": self.theta.tolist(),
             "base_ref": self.base_ref.tolist(),
             "cov": self.cov.tolist(),

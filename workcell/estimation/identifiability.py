@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from workcell.kinematics.chain import PARAM_NAMES, param_names
+from workcell.kinematics.chain import N_JOINTS, joints_of, param_names
 
 
 def priority_for(n: int) -> list[str]:
@@ -97,8 +97,10 @@ def analyse(
     the condition number instead).
     """
     if names is None:
-        m = J.shape[1] if J.ndim == 2 else len(PARAM_NAMES)
-        n_j = (m - 9) // 5 if m > 9 and (m - 9) % 5 == 0 else 6
+        try:
+            n_j = joints_of(np.empty(J.shape[1])) if J.ndim == 2 else N_JOINTS
+        except ValueError:
+            n_j = N_JOINTS  # the shape check below reports the mismatch
         names = param_names(n_j)
         if priority is None:
             priority = priority_for(n_j)

@@ -45,10 +45,6 @@ def param_names(n: int = N_JOINTS) -> list[str]:
     return dh_names(n) + BASE_NAMES + TOOL_NAMES
 
 
-def n_params(n: int = N_JOINTS) -> int:
-    return 5 * n + 9
-
-
 def joints_of(theta) -> int:
     """Joint count n of a parameter vector (5 n + 9,); ValueError for any other length."""
     m = int(np.shape(theta)[0])
@@ -73,10 +69,13 @@ def param_index(n: int = N_JOINTS) -> dict[str, int]:
 DH_NAMES = dh_names(N_JOINTS)
 PARAM_NAMES: list[str] = param_names(N_JOINTS)
 N_PARAMS = len(PARAM_NAMES)
-PARAM_UNITS = {
-    n: ("rad" if n.startswith(("alpha", "theta", "beta", "base_r")) else "m")
-    for n in param_names(7)
-}
+
+
+def param_unit(name: str) -> str:
+    return "rad" if name.startswith(("alpha", "theta", "beta", "base_r")) else "m"
+
+
+PARAM_UNITS = {n: param_unit(n) for n in PARAM_NAMES}
 I_BASE = base_slice(N_JOINTS)
 I_TOOL = tool_slice(N_JOINTS)
 IDX = param_index(N_JOINTS)
