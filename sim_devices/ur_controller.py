@@ -664,12 +664,12 @@ class UrControllerSim:
         self._close_listeners()
         self._close_conns(None)
 
-    def _protective_stop(self, reason: str) -> None:
-        """Caller holds self.lock."""
+    def _protective_stop(self, reason: str, at: float | None = None) -> None:
+        """Caller holds self.lock. `at`: the sim time the stop was due (default now)."""
         if self.safety_mode == SAFETY_PROTECTIVE_STOP:
             return
         self.stats["protective_stops"] += 1
-        self.world.stop()
+        self.world.stop(at=at)
         self.world.protective_stop = True
         self.safety_mode = SAFETY_PROTECTIVE_STOP
         self.pstop_time = self.clock.now()
@@ -711,16 +711,17 @@ class UrControllerSim:
             return
         todo = []
         while self._time_faults and self._time_faults[0][0] <= now:
-            todo.append(self._time_faults.pop(0)[1])
+            todo.append(self._time_faults.pop(0))
         with self.lock:
             while self._scheduled and self._scheduled[0][0] <= now:
-                todo.append(self._scheduled.pop(0)[1])
-        for kind in todo:
+                todo.append(self._scheduled.pop(0))
+        for t_fault, kind in todo:
             if kind == "rtde_drop":
                 self._rtde_drop()
             elif kind == "protective_stop":
                 with self.lock:
-                    self._protective_stop("fault injection")
+                    # the arm stops where it was when the fault was due, however late this tick
+                    self._protective_stop("fault injection", at=t_fault)
             elif kind == "restart":
                 self._restart(self.faults["restart_down_s"])
                 return

@@ -126,11 +126,13 @@ class SimWorld:
             self._traj = Trajectory(t, q_now, q_target, speed, accel, self.vmax)
             return self._traj.duration
 
-    def stop(self, decel: float = 4.0) -> None:
+    def stop(self, decel: float = 4.0, at: float | None = None) -> None:
+        """Stop where the arm is, or where it was at sim time `at` (<= now): a fault scheduled
+        for `at` that a late simulator tick handles afterwards still stops the arm there."""
         with self.lock:
-            t = self.clock.now()
-            q, _ = self._traj.state(t)
-            self._traj = Trajectory(t, q, q, 1.0, decel, self.vmax)
+            now = self.clock.now()
+            q, _ = self._traj.state(now if at is None else min(at, now))
+            self._traj = Trajectory(now, q, q, 1.0, decel, self.vmax)
 
     def joint_state(self) -> tuple[np.ndarray, np.ndarray]:
         with self.lock:

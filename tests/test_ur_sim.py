@@ -256,3 +256,27 @@ def test_tracker_measures_the_arm_the_controller_moved():
         finally:
             tr.close()
             r.close()
+
+
+def test_fault_due_half_way_stops_there_even_when_the_tick_is_late():
+    """A protective stop scheduled half-way through a move stops the arm half-way even if the
+    simulator's tick comes only after the move would have ended (a loaded machine): the old
+    behaviour stopped it at the target, which made the protective-stop test flaky under load."""
+    from sim_devices.truth import make_truth
+    from sim_devices.ur_controller import UrControllerSim
+    from sim_devices.world import SimWorld, VirtualClock
+
+    world = SimWorld(make_truth("ur5e", "none", 0), q0=QA)
+    ctrl = UrControllerSim(world, "127.0.0.29", faults={"protective_stop_at_move": [1]})
+    clock = VirtualClock()
+    world.clock = ctrl.clock = clock  # white-box: step time by hand, no sockets opened
+    with ctrl.lock:
+        ctrl._start_move(np.asarray(QB, float), 1.0, 2.0, False)
+    dur = world._traj.duration
+    q_half, _ = world._traj.state(0.5 * dur)
+    clock.advance(3.0 * dur)  # the next tick comes long after the move's end
+    ctrl._tick()
+    assert ctrl.stats["protective_stops"] == 1
+    q, qd = world.joint_state()
+    np.testing.assert_allclose(q, q_half, atol=1e-12)
+    assert np.max(np.abs(q - np.asarray(QB))) > 0.05 and np.allclose(qd, 0.0)
