@@ -283,6 +283,13 @@ def parse_effects(spec: str | None) -> dict:
     return out
 
 
+def _random_base_pose(rng: np.random.Generator) -> np.ndarray:
+    """tracker_T_base: the base 1.8-2.6 m from the tracker at a random yaw, not quite level."""
+    yaw = rng.uniform(-np.pi, np.pi)
+    T = _trans(*rng.uniform([1.8, -1.0, -0.6], [2.6, 1.0, 0.0])) @ _euler_zyx(yaw, 0.0, 0.0)
+    return T @ _euler_zyx(*rng.normal(0, 0.003, 3))  # base not perfectly level
+
+
 def make_truth(
     robot: str | RobotSpec = "ur5e",
     effects: dict | str | None = "realistic",
@@ -297,9 +304,7 @@ def make_truth(
     rng = np.random.default_rng(seed)
     s = dh_error_scale
     eff = parse_effects(effects) if (effects is None or isinstance(effects, str)) else effects
-    yaw = rng.uniform(-np.pi, np.pi)
-    T = _trans(*rng.uniform([1.8, -1.0, -0.6], [2.6, 1.0, 0.0])) @ _euler_zyx(yaw, 0.0, 0.0)
-    T = T @ _euler_zyx(*rng.normal(0, 0.003, 3))  # base not perfectly level
+    T = _random_base_pose(rng)
     return TrueWorkcell(
         nominal=spec,
         a=spec.dh.a + s * rng.normal(0, 3e-4, 6),
@@ -347,9 +352,7 @@ def make_paper_wam_truth(
     spec = WAM7
     n = spec.n_joints
     rng = np.random.default_rng(seed)
-    yaw = rng.uniform(-np.pi, np.pi)
-    T = _trans(*rng.uniform([1.8, -1.0, -0.6], [2.6, 1.0, 0.0])) @ _euler_zyx(yaw, 0.0, 0.0)
-    T = T @ _euler_zyx(*rng.normal(0, 0.003, 3))
+    T = _random_base_pose(rng)
     s = 1.0 if small_errors else 0.0
     dh = {
         "a": spec.dh.a + s * rng.normal(0, 3e-4, n),
