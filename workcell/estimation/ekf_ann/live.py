@@ -14,8 +14,8 @@ Initialisation (documented scheme for a random network, issue item 2b):
    position corrections R^T (y - f(q)) of half the buffered samples and the pre-fit is kept
    only if it predicts the other half better than the random network and than no correction.
 4. The filter then processes the buffered samples and every later one, one at a time. The
-   buffered samples' innovations are not predictions (the pre-fit saw them): the innovation shown
-   and the variance test start with the first sample after them.
+   buffered samples' innovations are not predictions (the initialisation saw them): the
+   innovation shown and the variance test start with the first sample after them.
 
 Model adequacy (2c): the innovation-based variance factor s0^2 = mean(e^T S^-1 e) / 3 over the
 last `window` samples is reported on every line with the chi^2 test (95 %): "ok" if
@@ -130,8 +130,8 @@ class LiveFilter:
             self._initialise(Q, Y, S)
             self.filter.process(Q, Y, S)
             self._buf = []
-            # The network was pre-fitted on these very samples: their innovations are not
-            # predictions (a 293-weight network interpolates 30 samples to ~0), so they enter
+            # The initialisation used these samples (base registration, choice of the geometric
+            # states, the pre-fit if any): their innovations are not predictions, so they enter
             # neither the variance test nor the innovation shown.
             pre = "pre-fitted network" if self.prefit_accepted else "random network"
             return (
