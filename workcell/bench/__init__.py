@@ -6,5 +6,6 @@ BENCHES: dict[str, str] = {
     "lddmm": "workcell.bench.lddmm_perf",
     "ekf-ann": "workcell.bench.ekf_ann",
     "design": "workcell.bench.design",
+    "design-real": "workcell.bench.design_real",
     "discovery": "workcell.bench.discovery",
 }

@@ -222,31 +222,62 @@ def make_adaptive_plan(
         raise ValueError(f"index must be 'o1' or 'min_sv', got {index!r}")
     if n_candidates < n:
         raise ValueError(f"n_candidates ({n_candidates}) must be at least the pose count ({n})")
-    from workcell.estimation.bounded import jacobian_padded
-
     tool_m = np.asarray(tool_m, float)
     q_c, s_c = _candidates(spec, env, n_candidates, seed, tool_m, approach_rad)
     if len(q_c) < n:
         raise ValueError(f"only {len(q_c)} candidate poses fit the envelope; need {n}")
+    if history and skip_ids:
+        raise ValueError("give either history (resume) or skip_ids, not both")
+    ids = [i for i in range(n) if not (skip_ids and i in skip_ids)]
+    plan = plan_over_candidates(
+        kind, spec, q_c, s_c, tool_m, ids, seed=seed, n_seed=n_seed, index=index,
+        beta_schedule=beta_schedule, negate_objective=negate_objective,
+        relinearise_every=relinearise_every, on_choice=on_choice,
+    )  # fmt: skip
+    return _replayed(plan, history) if history else plan
+
+
+def plan_over_candidates(
+    kind: str,
+    spec: RobotSpec,
+    q_c: np.ndarray,
+    s_c: np.ndarray,
+    tool_m: np.ndarray,
+    ids: list[int],
+    *,
+    seed: int,
+    n_seed: int | None = None,
+    index: str = "o1",
+    beta_schedule="srinivas",
+    negate_objective: bool = True,
+    relinearise_every: int = 5,
+    on_choice: Callable[[dict], None] | None = None,
+) -> Plan:
+    """The adaptive plan `kind` choosing, for each pose id in `ids`, one of the given candidate
+    configurations q_c (M, n) with approach signs s_c (M, n) (each at most once). Used by
+    `make_adaptive_plan` (candidates drawn in the envelope) and to replay a design over the
+    poses of an existing recording (`workcell bench design-real`)."""
+    from workcell.estimation.bounded import jacobian_padded
+
+    if kind not in ADAPTIVE_KINDS:
+        raise ValueError(f"unknown adaptive plan {kind!r}; choose bo or dopt")
+    q_c, s_c = np.asarray(q_c, float), np.asarray(s_c, float)
+    if len(q_c) < len(ids):
+        raise ValueError(f"only {len(q_c)} candidates for {len(ids)} poses")
     poses = candidate_poses(spec, q_c, tool_m)
     th_nom = pack(spec.dh, tool=tool_m)
     J_c = jacobian_padded(th_nom, np.eye(4), q_c)  # (M, 3, 5 n + 9)
     free = identifiable_mask(spec, J_c)
     n_seed = (5 if kind == "bo" else 1) if n_seed is None else int(n_seed)
-    if history and skip_ids:
-        raise ValueError("give either history (resume) or skip_ids, not both")
-    ids = [i for i in range(n) if not (skip_ids and i in skip_ids)]
     if kind == "bo":
-        plan = _bo_plan(
+        return _bo_plan(
             spec, q_c, s_c, poses, free, tool_m, ids, n_seed, seed, beta_schedule,
             negate_objective, on_choice,
         )  # fmt: skip
-    else:
-        plan = _dopt_plan(
-            spec, q_c, s_c, poses, J_c, free, tool_m, ids, n_seed, seed, index,
-            relinearise_every, on_choice,
-        )  # fmt: skip
-    return _replayed(plan, history) if history else plan
+    return _dopt_plan(
+        spec, q_c, s_c, poses, J_c, free, tool_m, ids, n_seed, seed, index,
+        relinearise_every, on_choice,
+    )  # fmt: skip
 
 
 def _replayed(plan: Plan, history: dict[int, dict]) -> Plan:
@@ -399,5 +430,6 @@ __all__ = [
     "identifiable_mask",
     "make_adaptive_plan",
     "maximin_indices",
+    "plan_over_candidates",
     "pose_distance2",
 ]
