@@ -82,3 +82,18 @@ def test_design_real_missing_recording_is_one_line(tmp_path, capsys):
     assert main(["--recording", str(bad)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "bad.mcap" in err[0]
+
+
+def test_design_real_json_keys(sim_recording, capsys):
+    import json
+
+    rc = main(["--recording", str(sim_recording), "--seeds", "1", "--plans", "random,dopt",
+               "--max-poses", "30", "--json"])  # fmt: skip
+    assert rc == 0
+    out = json.loads(capsys.readouterr().out)
+    assert set(out["poses_to_target"]) == {"random", "dopt"}
+    for r in out["poses_to_target"].values():
+        assert r["runs"] and r["mean"] >= out["rank_bound_poses"]
+    assert out["best_plan"] == "dopt" and out["ratio_best_to_random"] == pytest.approx(
+        out["poses_to_target"]["dopt"]["mean"] / out["poses_to_target"]["random"]["mean"]
+    )

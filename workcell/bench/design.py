@@ -229,17 +229,30 @@ def one_run(
     return out
 
 
+def poses_summary(rs: list[dict]) -> dict:
+    """Mean, spread, median and runs of `poses_to_target` over one plan's runs."""
+    v = np.array([r["poses_to_target"] for r in rs], float)
+    return {
+        "mean": float(v.mean()),
+        "std": float(v.std(ddof=1)) if len(v) > 1 else 0.0,
+        "median": float(np.median(v)),
+        "runs": [int(x) for x in v],
+        "censored": int(sum(r["censored"] for r in rs)),
+    }
+
+
+def best_vs_random(summary: dict) -> tuple[str | None, float | None]:
+    """(the non-random plan needing the fewest poses on average, its mean over random's)."""
+    if "random" not in summary or len(summary) < 2:
+        return None, None
+    best = min((p for p in summary if p != "random"), key=lambda p: summary[p]["mean"])
+    return best, summary[best]["mean"] / summary["random"]["mean"]
+
+
 def summarise(runs: dict[str, list[dict]]) -> dict:
     res = {}
     for plan, rs in runs.items():
-        v = np.array([r["poses_to_target"] for r in rs], float)
-        res[plan] = {
-            "mean": float(v.mean()),
-            "std": float(v.std(ddof=1)) if len(v) > 1 else 0.0,
-            "median": float(np.median(v)),
-            "runs": [int(x) for x in v],
-            "censored": int(sum(r["censored"] for r in rs)),
-        }
+        res[plan] = poses_summary(rs)
         # the held-out RMS / floor with the fewest poses any plan can use (the rank bound):
         # how good each plan's first identifiable set is, beyond the count
         first = [r["curve"][0][1] / r["noise_floor_m"] for r in rs if r["curve"]]
@@ -309,13 +322,8 @@ def main(argv: list[str]) -> int:
                 )  # fmt: skip
             )
     summary = summarise(runs)
-    ratio = None
-    if "random" in summary and len(summary) > 1:
-        best = min((p for p in summary if p != "random"), key=lambda p: summary[p]["mean"])
-        ratio = {
-            "plan": best,
-            "ratio": summary[best]["mean"] / summary["random"]["mean"],
-        }
+    best, r = best_vs_random(summary)
+    ratio = {"plan": best, "ratio": r} if best else None
     floors = [r["noise_floor_m"] for rs in runs.values() for r in rs]
     # No plan can reach the target with fewer poses than Theorem 1's rank bound ceil(L / 3):
     # the best ratio any design could show against this random baseline.

@@ -136,6 +136,7 @@ def main(argv: list[str]) -> int:
             file=sys.stderr,
         )
         return 2
+    from workcell.bench.design import best_vs_random, poses_summary
     from workcell.campaign.adaptive import identifiable_mask
     from workcell.estimation.bounded import fit_dh_bounded, jacobian_padded
     from workcell.kinematics.chain import pack
@@ -173,20 +174,8 @@ def main(argv: list[str]) -> int:
                 f"{' (not reached)' if r['censored'] else ''}; last held-out RMS {last:.1f} um "
                 f"({r['seconds']:.1f} s)"
             )
-    summary = {}
-    for p, rs in runs.items():
-        v = np.array([r["poses_to_target"] for r in rs], float)
-        summary[p] = {
-            "mean": float(v.mean()),
-            "std": float(v.std(ddof=1)) if len(v) > 1 else 0.0,
-            "median": float(np.median(v)),
-            "runs": [int(x) for x in v],
-            "censored": int(sum(r["censored"] for r in rs)),
-        }
-    ratio, best = None, None
-    if "random" in summary and len(summary) > 1:
-        best = min((p for p in summary if p != "random"), key=lambda p: summary[p]["mean"])
-        ratio = summary[best]["mean"] / summary["random"]["mean"]
+    summary = {p: poses_summary(rs) for p, rs in runs.items()}
+    best, ratio = best_vs_random(summary)
     out = {
         "recording": str(path),
         "candidate_poses": len(pool),
