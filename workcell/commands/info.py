@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 import json
 
-from workcell.recording.reader import read_recording
+from workcell.recording import checks
+from workcell.recording.reader import Recording, read_recording
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -13,17 +14,33 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object")
 
 
+def _get(d, key):
+    return d.get(key) if isinstance(d, dict) else None
+
+
+def value_problems(rec: Recording) -> list[str]:
+    """What `Dataset.from_recording` would refuse in this file (wrong units, bad types...)."""
+    from workcell.kinematics.robots import robot_from_session
+
+    try:
+        robot = robot_from_session(rec.session["robot"])
+    except (ValueError, TypeError, AttributeError) as e:
+        return [f"session robot unusable ({e})"]
+    return checks.recording_problems(rec.session, rec.samples, robot)
+
+
 def summary(path: str) -> dict:
     rec = read_recording(path)
     s = rec.session
     kinds: dict[str, int] = {}
     for e in rec.events:
-        kinds[e.get("kind", "?")] = kinds.get(e.get("kind", "?"), 0) + 1
-    ids = [x.get("pose_id") for x in rec.samples]
+        kind = str(e.get("kind", "?"))
+        kinds[kind] = kinds.get(kind, 0) + 1
+    ids = [json.dumps(x.get("pose_id")) for x in rec.samples]
     return {
         "path": str(rec.path),
-        "robot": s.get("robot", {}).get("model"),
-        "tracker": s.get("tracker", {}).get("model"),
+        "robot": _get(s.get("robot"), "model"),
+        "tracker": _get(s.get("tracker"), "model"),
         "created_utc": s.get("created_utc"),
         "poses": len(rec.samples),
         "distinct_pose_ids": len(set(ids)),
@@ -32,7 +49,8 @@ def summary(path: str) -> dict:
         "events": kinds,
         "closed_cleanly": rec.closed_cleanly,
         "problems": rec.problems,
-        "plan": (s.get("campaign") or {}).get("plan"),
+        "value_problems": value_problems(rec),
+        "plan": _get(s.get("campaign"), "plan"),
         "chained_from": s.get("chained_from"),
         "size_bytes": rec.size_bytes,
     }
@@ -54,7 +72,14 @@ def run(args: argparse.Namespace) -> int:
         f"closed      {'cleanly' if d['closed_cleanly'] else 'NOT cleanly (crash or still open)'}"
     )
     if d["chained_from"]:
-        print(f"continues   {d['chained_from'].get('path')}")
+        print(f"continues   {_get(d['chained_from'], 'path')}")
     for p in d["problems"]:
         print(f"problem     {p}")
+    vp = d["value_problems"]
+    for p in vp[:20]:
+        print(f"bad value   {p}")
+    if len(vp) > 20:
+        print(f"bad value   ... and {len(vp) - 20} more ({len(vp)} in all; --json lists every one)")
+    if vp:
+        print("            fits refuse this file until these values are repaired")
     return 0

@@ -27,6 +27,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from workcell.estimation.ekf_ann.live import LiveFilter
+    from workcell.kinematics.robots import robot_from_session
+    from workcell.recording import checks
     from workcell.recording.reader import read_recording
 
     if args.rate < 0:
@@ -37,9 +39,13 @@ def run(args: argparse.Namespace) -> int:
     if not rec.samples:
         raise UserError(f"{args.recording}: no /campaign/sample messages; nothing to replay")
     try:
-        lf = LiveFilter.from_session(rec.session)
+        robot = robot_from_session(rec.session["robot"])
     except (KeyError, ValueError) as e:
         raise UserError(f"{args.recording}: session unusable for the online filter ({e})") from None
+    problems = checks.recording_problems(rec.session, rec.samples, robot)
+    if problems:
+        raise UserError(f"{args.recording}: {checks.first_problem(problems)}")
+    lf = LiveFilter.from_session(rec.session)
     out = sys.stderr if args.json else sys.stdout
     t_wall0 = time.perf_counter()
     e0 = None

@@ -26,11 +26,16 @@ class DH:
     theta_offset: np.ndarray
 
     def __post_init__(self) -> None:
-        n = np.asarray(self.a, dtype=float).shape
+        n = np.shape(self.a)
         if len(n) != 1 or n[0] < 1:
             raise ValueError(f"DH.a: expected one value per joint, got shape {n}")
         for name in ("a", "d", "alpha", "theta_offset"):
-            v = np.asarray(getattr(self, name), dtype=float)
+            try:
+                v = np.asarray(getattr(self, name), dtype=float)
+            except (TypeError, ValueError):
+                raise ValueError(
+                    f"DH.{name}: expected numbers, got {getattr(self, name)!r}"
+                ) from None
             if v.shape != n:
                 raise ValueError(f"DH.{name}: expected {n[0]} values, got shape {v.shape}")
             if not np.all(np.isfinite(v)):
@@ -207,7 +212,10 @@ def robot_from_session(robot: dict) -> RobotSpec:
     dh = DH.from_dict(raw)
     base = CATALOGUE.get(model.strip().lower())
     lim = robot.get("joint_limits_rad")
-    lim = np.asarray(lim, dtype=float) if lim is not None else _LIM_UR
+    try:
+        lim = np.asarray(lim, dtype=float) if lim is not None else _LIM_UR
+    except (TypeError, ValueError):
+        raise ValueError("joint_limits_rad: expected 6 [lo, hi] pairs in radians") from None
     if base is not None:
         return replace(base, dh=dh, joint_limits_rad=lim)
     return RobotSpec(

@@ -14,6 +14,7 @@ import numpy as np
 
 from workcell.kinematics.frames import matrix_from_quat_wxyz, transform_from
 from workcell.kinematics.robots import RobotSpec, robot_from_session
+from workcell.recording import checks
 from workcell.recording.reader import Recording, RecordingError, is_finite_list, read_recording
 
 HOLDOUT_SEED = 20240601
@@ -101,28 +102,16 @@ class Dataset:
             robot = robot_from_session(s["robot"])
         except ValueError as e:
             raise RecordingError(f"{rec.path}: {e}") from None
-        tool = s["tool"].get("smr_offset_m")
-        if not is_finite_list(tool, 3):
-            raise RecordingError(f"{rec.path}: session tool.smr_offset_m must be 3 finite numbers")
-        bit = s["tracker"].get("base_in_tracker") or {}
-        t, qw = bit.get("translation_m"), bit.get("quaternion_wxyz")
-        if not (is_finite_list(t, 3) and is_finite_list(qw, 4)):
-            raise RecordingError(
-                f"{rec.path}: session tracker.base_in_tracker needs translation_m (3) and "
-                "quaternion_wxyz (4)"
-            )
-        T = transform_from(matrix_from_quat_wxyz(np.array(qw, float)), np.array(t, float))
-        rows = []
-        for k, smp in enumerate(rec.samples):
-            for key, n in (("q_measured_rad", 6), ("tracker_position_m", 3)):
-                if not is_finite_list(smp.get(key), n):
-                    raise RecordingError(
-                        f"{rec.path}: sample {smp.get('index', k)} (pose_id {smp.get('pose_id')}) "
-                        f"has a missing or non-finite {key}; repair or drop that sample"
-                    )
-            rows.append(smp)
+        rows = list(rec.samples)
         if not rows:
             raise RecordingError(f"{rec.path}: no /campaign/sample messages; nothing to fit")
+        problems = checks.recording_problems(s, rows, robot)
+        if problems:
+            raise RecordingError(f"{rec.path}: {checks.first_problem(problems)}")
+        tool = s["tool"]["smr_offset_m"]
+        bit = s["tracker"]["base_in_tracker"]
+        t, qw = bit["translation_m"], bit["quaternion_wxyz"]
+        T = transform_from(matrix_from_quat_wxyz(np.array(qw, float)), np.array(t, float))
         n = len(rows)
 
         def arr(key, width, default):
@@ -146,7 +135,7 @@ class Dataset:
             good = sig[~bad]
             sig[bad] = np.median(good) if good.size else 1e-5
         payload = s.get("payload") or {}
-        pkg = arr("payload_kg", 0, float(payload.get("mass_kg", 0.0) or 0.0))
+        pkg = arr("payload_kg", 0, float(payload.get("mass_kg") or 0.0))
         com = payload.get("com_m")
         return cls(
             robot=robot,

@@ -1,0 +1,260 @@
+"""Wrong units and malformed values in a recording: one line, non-zero exit, never a traceback.
+
+The malformed files are written with the mcap library directly (as a third-party tool would),
+not with workcell's writer, which refuses some of these values itself.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+import shutil
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from mcap.writer import CompressionType, Writer
+
+from workcell.cli import main
+from workcell.commands.info import summary
+from workcell.recording import checks
+from workcell.recording import schema as S
+from workcell.recording.dataset import Dataset
+from workcell.recording.reader import RecordingError, read_recording
+
+
+@pytest.fixture(scope="module")
+def base(tmp_path_factory):
+    """A clean 16-pose simulated campaign (no effects): session and samples as dicts."""
+    d = tmp_path_factory.mktemp("checks")
+    p = d / "base.mcap"
+    rc = main(
+        [
+            "campaign",
+            "--robot",
+            "sim",
+            "--tracker",
+            "sim",
+            "--poses",
+            "16",
+            "--effects",
+            "none",
+            "--out",
+            str(p),
+        ]
+    )
+    assert rc == 0
+    rec = read_recording(p)
+    strip = lambda m: {k: v for k, v in m.items() if not k.startswith("_")}  # noqa: E731
+    times = [s["_log_time_ns"] for s in rec.samples]
+    return strip(rec.session), [strip(s) for s in rec.samples], times, p
+
+
+def write_raw(path, session, samples, times):
+    """Write a recording with arbitrary JSON values (no validation)."""
+    with open(path, "wb") as f:
+        w = Writer(f, compression=CompressionType.ZSTD)
+        w.start(profile="", library="test")
+        ids = {}
+        for topic in (S.SESSION, S.SAMPLE):
+            sid = w.register_schema(name=topic, encoding="jsonschema", data=b"{}")
+            ids[topic] = w.register_channel(topic=topic, message_encoding="json", schema_id=sid)
+        w.add_message(
+            ids[S.SESSION],
+            log_time=times[0],
+            publish_time=times[0],
+            data=json.dumps(session).encode(),
+        )
+        for s, t in zip(samples, times, strict=True):
+            w.add_message(ids[S.SAMPLE], log_time=t, publish_time=t, data=json.dumps(s).encode())
+        w.finish()
+    return path
+
+
+def run_cli(argv, capsys):
+    rc = main(argv)
+    err = capsys.readouterr().err.strip().splitlines()
+    return rc, err
+
+
+def test_clean_campaign_and_real_data_pass(base):
+    session, samples, _, p = base
+    assert (
+        checks.recording_problems(
+            read_recording(p).session, read_recording(p).samples, Dataset.from_recording(p).robot
+        )
+        == []
+    )
+    assert summary(str(p))["value_problems"] == []
+
+
+def _scale_samples(samples, key, f):
+    out = copy.deepcopy(samples)
+    for s in out:
+        s[key] = [f(x) for x in s[key]] if isinstance(s[key], list) else f(s[key])
+    return out
+
+
+UNIT_CASES = {
+    "joints in degrees": (
+        lambda se, sa: (se, _scale_samples(sa, "q_measured_rad", math.degrees)),
+        "looks like degrees",
+    ),
+    "positions in millimetres": (
+        lambda se, sa: (se, _scale_samples(sa, "tracker_position_m", lambda x: 1000 * x)),
+        "looks like millimetres",
+    ),
+    "sigma in millimetres": (
+        lambda se, sa: (se, _scale_samples(sa, "tracker_sigma_m", lambda x: 1000 * x)),
+        "looks like millimetres",
+    ),
+    "temperatures in kelvin": (
+        lambda se, sa: (se, _scale_samples(sa, "joint_temperature_c", lambda x: x + 273.15)),
+        "looks like kelvin",
+    ),
+    "SMR offset in millimetres": (
+        lambda se, sa: (
+            {
+                **se,
+                "tool": {
+                    **se["tool"],
+                    "smr_offset_m": [1000 * x for x in se["tool"]["smr_offset_m"]],
+                },
+            },
+            sa,
+        ),
+        "looks like millimetres",
+    ),
+    "payload in grams": (
+        lambda se, sa: ({**se, "payload": {**(se.get("payload") or {}), "mass_kg": 2500.0}}, sa),
+        "looks like grams",
+    ),
+    "quaternion not unit": (
+        lambda se, sa: (
+            {
+                **se,
+                "tracker": {
+                    **se["tracker"],
+                    "base_in_tracker": {
+                        **se["tracker"]["base_in_tracker"],
+                        "quaternion_wxyz": [2.0, 0.0, 0.0, 0.0],
+                    },
+                },
+            },
+            sa,
+        ),
+        "unit quaternion",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", sorted(UNIT_CASES))
+def test_wrong_units_refused_in_one_line(base, tmp_path, capsys, case):
+    session, samples, times, _ = base
+    make, hint = UNIT_CASES[case]
+    se, sa = make(copy.deepcopy(session), copy.deepcopy(samples))
+    p = write_raw(tmp_path / "bad.mcap", se, sa, times)
+    before = p.read_bytes()
+    for argv in (["fit", str(p), "--method", "dh"], ["replay", str(p), "--online", "ekf-ann"]):
+        rc, err = run_cli(argv, capsys)
+        assert rc == 2, (case, argv, err)
+        assert len(err) == 1 and err[0].startswith(f"workcell {argv[0]}: error: "), err
+        assert hint in err[0], err
+    assert p.read_bytes() == before  # nothing written to the user's file
+    # info does not refuse the file: it lists every bad value
+    rc = main(["info", str(p)])
+    out = capsys.readouterr().out
+    assert rc == 0 and "bad value" in out and hint in out
+
+
+def test_positions_in_millimetres_caught_by_scale_when_close_to_tracker(base, tmp_path):
+    """A tracker 0.1 m from the base: millimetre positions stay within its range, but the
+    points spread far more than the arm reaches."""
+    session, samples, times, _ = base
+    c = np.mean([s["tracker_position_m"] for s in samples], axis=0)
+    sa = _scale_samples(samples, "tracker_position_m", lambda x: x)
+    for s in sa:
+        s["tracker_position_m"] = (1000 * (np.array(s["tracker_position_m"]) - c) / 20).tolist()
+    p = write_raw(tmp_path / "mm.mcap", session, sa, times)
+    with pytest.raises(RecordingError, match="reaches only"):
+        Dataset.from_recording(p)
+
+
+def test_elapsed_in_milliseconds(base, tmp_path):
+    session, samples, times, _ = base
+    assert (times[-1] - times[0]) * 1e-9 > 10  # the simulated campaign spans minutes
+    sa = _scale_samples(samples, "elapsed_s", lambda x: 1000 * x)
+    p = write_raw(tmp_path / "ms.mcap", session, sa, times)
+    with pytest.raises(RecordingError, match="looks like milliseconds"):
+        Dataset.from_recording(p)
+
+
+def test_real_ur10_files_pass_the_checks():
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2] / "shared" / "data" / "ur10-leica"
+    files = sorted(root.glob("*.mcap"))
+    if not files:
+        pytest.skip("../shared/data/ur10-leica not beside the repository")
+    for f in files:
+        assert len(Dataset.from_recording(f)) > 100
+
+
+JSON = st.recursive(
+    st.none()
+    | st.booleans()
+    | st.integers(-(10**6), 10**6)
+    | st.floats(allow_nan=False, allow_infinity=False)
+    | st.text(max_size=5),
+    lambda inner: (
+        st.lists(inner, max_size=7) | st.dictionaries(st.text(max_size=4), inner, max_size=3)
+    ),
+    max_leaves=8,
+)
+
+
+def _paths(obj, prefix=()):
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            yield (*prefix, k)
+            yield from _paths(v, (*prefix, k))
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=list(HealthCheck))
+@given(data=st.data())
+def test_any_malformed_value_is_a_clean_refusal_or_a_valid_dataset(base, tmp_path_factory, data):
+    """Put any JSON value in any field of the session or of one sample: the dataset either
+    loads with finite, in-range arrays or is refused with a RecordingError; `workcell info`
+    summarises the file unless the session itself is unusable (then a RecordingError too)."""
+    session, samples, times, _ = base
+    se, sa = copy.deepcopy(session), copy.deepcopy(samples)
+    if data.draw(st.booleans(), label="in session"):
+        target = se
+    else:
+        target = sa[data.draw(st.integers(0, len(sa) - 1), label="sample")]
+    path = data.draw(st.sampled_from(sorted(_paths(target), key=str)), label="field")
+    value = data.draw(JSON, label="value")
+    obj = target
+    for k in path[:-1]:
+        obj = obj[k]
+    obj[path[-1]] = value
+    d = tmp_path_factory.mktemp("fuzz")
+    p = write_raw(d / "f.mcap", se, sa, times)
+    try:
+        ds = Dataset.from_recording(p)
+    except RecordingError as e:
+        assert "\n" not in str(e)
+    else:
+        assert np.all(np.isfinite(ds.q)) and np.all(np.isfinite(ds.p_tracker))
+        lim = ds.robot.joint_limits_rad
+        assert np.all(ds.q >= lim[:, 0] - 0.11) and np.all(ds.q <= lim[:, 1] + 0.11)
+        assert np.all(ds.sigma_m > 0) and np.all(ds.sigma_m <= checks.SIGMA_MAX_M)
+    try:
+        s = summary(str(p))
+    except RecordingError as e:
+        assert "\n" not in str(e) and "session" in str(e)
+    else:
+        assert s["poses"] == len(sa)
+    shutil.rmtree(d, ignore_errors=True)
