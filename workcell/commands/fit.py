@@ -101,7 +101,14 @@ def print_report(r: dict) -> None:
                 if v["unit"] == "rad"
                 else (1, v["unit"])
             )
-            print(f"{k:>16} {v['value']:14.6f} {d * scale:12.4f} {v['std'] * scale:10.4f}  {unit}")
+            std = v.get("std")
+            std_s = (
+                f"{std * scale:10.4f}"
+                if std is not None
+                else f"{'at bound' if v.get('at_bound') else '-':>10}"
+            )
+            d_s = f"{d * scale:12.4f}" if "nominal" in v else " " * 12
+            print(f"{k:>16} {v['value']:14.6f} {d_s} {std_s}  {unit}")
     for k, v in (r.get("extra") or {}).items():
         print(f"{k:>16} {v}")
     print(f"model           {r['model']}")

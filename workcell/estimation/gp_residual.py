@@ -5,8 +5,11 @@ p_tracker(q) = k_dh(q) + r(q), r ~ GP(0, s^2 ARD-RBF(q) + noise). Inputs are the
 kernel, independent outputs). Hyperparameters by marginal likelihood (scikit-learn, restarts).
 Prediction uses the stored training inputs and dual coefficients, so a model file is plain JSON.
 The predictive standard deviation is available (`predict_std`) as the uncertainty of the
-correction; the hyperparameters are reported without a standard deviation (they are not
-physical parameters).
+correction. The hyperparameters carry a Laplace standard deviation: the inverse Hessian of the
+negative log marginal likelihood in log-hyperparameter space at the optimum (central differences of
+its analytic gradient), mapped to each value by the delta method. A hyperparameter at a bound of
+its search range (a length scale at the upper bound: that joint does not matter) has no Gaussian
+uncertainty and is reported as `at_bound` without a std.
 """
 
 from __future__ import annotations
@@ -30,6 +33,8 @@ class GPResidualModel:
     noise_var: float
     y_mean: np.ndarray  # (3,)
     L: np.ndarray | None = None  # Cholesky of K + noise (for predict_std)
+    # Laplace std of log(signal_var), log(lengthscales) (6), log(noise_var); nan at a bound
+    log_hyper_std: np.ndarray | None = None
     info: dict = field(default_factory=dict)
     method: str = "gp"
 
@@ -68,14 +73,24 @@ class GPResidualModel:
 
     def parameters(self) -> dict[str, dict]:
         out = dict(self.base.parameters())
-        for j in range(6):
-            out[f"gp_lengthscale_q{j + 1}"] = {
-                "value": float(self.lengthscales[j] * self.scale[j]),
-                "std": None,
-                "unit": "rad",
+        ls = np.full(8, np.nan) if self.log_hyper_std is None else self.log_hyper_std
+
+        def entry(value: float, s_log: float, power: float, unit: str) -> dict:
+            # value = exp(power * log_hyper): std(value) ~ value * power * std(log_hyper)
+            ok = bool(np.isfinite(s_log))
+            return {
+                "value": value,
+                "std": float(value * power * s_log) if ok else None,
+                "unit": unit,
+                "at_bound": self.log_hyper_std is not None and not ok,
             }
-        out["gp_signal_std"] = {"value": float(np.sqrt(self.signal_var)), "std": None, "unit": "m"}
-        out["gp_noise_std"] = {"value": float(np.sqrt(self.noise_var)), "std": None, "unit": "m"}
+
+        for j in range(6):
+            out[f"gp_lengthscale_q{j + 1}"] = entry(
+                float(self.lengthscales[j] * self.scale[j]), ls[1 + j], 1.0, "rad"
+            )
+        out["gp_signal_std"] = entry(float(np.sqrt(self.signal_var)), ls[0], 0.5, "m")
+        out["gp_noise_std"] = entry(float(np.sqrt(self.noise_var)), ls[7], 0.5, "m")
         return out
 
     def to_dict(self) -> dict:
@@ -89,6 +104,9 @@ class GPResidualModel:
             "signal_var": self.signal_var,
             "noise_var": self.noise_var,
             "y_mean": self.y_mean.tolist(),
+            "log_hyper_std": None
+            if self.log_hyper_std is None
+            else [None if not np.isfinite(x) else float(x) for x in self.log_hyper_std],
             "info": self.info,
         }
 
@@ -103,6 +121,9 @@ class GPResidualModel:
             signal_var=float(d["signal_var"]),
             noise_var=float(d["noise_var"]),
             y_mean=np.asarray(d["y_mean"], float),
+            log_hyper_std=None
+            if d.get("log_hyper_std") is None
+            else np.array([np.nan if x is None else x for x in d["log_hyper_std"]], float),
             info=d.get("info", {}),
         )
 
@@ -151,6 +172,7 @@ def fit_gp_residual(
 
     alpha = cho_solve((L, True), r - y_mean)
     return GPResidualModel(
+        log_hyper_std=laplace_log_std(gpr),
         base=base,
         X=np.asarray(q, float),
         alpha=alpha,
@@ -167,6 +189,37 @@ def fit_gp_residual(
             "outliers_rejected": base.info.get("outliers_rejected", 0),
         },
     )
+
+
+def laplace_log_std(gpr, rel_bound: float = 1e-2) -> np.ndarray:
+    """Laplace standard deviations of a fitted scikit-learn GP's log-hyperparameters.
+
+    The Hessian of the negative log marginal likelihood comes from central differences of its
+    analytic gradient. Hyperparameters within `rel_bound` (in log units) of a bound of their
+    search range are held fixed (nan); so is everything when the Hessian of the free ones is not
+    positive definite (the optimum is not a proper maximum: no Gaussian approximation)."""
+    theta = np.asarray(gpr.kernel_.theta, float)
+    bounds = np.asarray(gpr.kernel_.bounds, float)
+    free = (theta - bounds[:, 0] > rel_bound) & (bounds[:, 1] - theta > rel_bound)
+    out = np.full(len(theta), np.nan)
+    idx = np.where(free)[0]
+    if idx.size == 0:
+        return out
+    h = 1e-4
+    H = np.empty((idx.size, idx.size))
+    for a, i in enumerate(idx):
+        tp, tm = theta.copy(), theta.copy()
+        tp[i] += h
+        tm[i] -= h
+        gp = gpr.log_marginal_likelihood(tp, eval_gradient=True, clone_kernel=False)[1]
+        gm = gpr.log_marginal_likelihood(tm, eval_gradient=True, clone_kernel=False)[1]
+        H[a] = -(gp[idx] - gm[idx]) / (2 * h)
+    H = 0.5 * (H + H.T)
+    w = np.linalg.eigvalsh(H)
+    if not np.all(np.isfinite(w)) or w.min() <= 0:
+        return out
+    out[idx] = np.sqrt(np.diag(np.linalg.inv(H)))
+    return out
 
 
 def fit_method(ds, *, on: str = "auto", progress=None, **_) -> tuple[GPResidualModel, dict]:
