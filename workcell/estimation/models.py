@@ -79,16 +79,49 @@ def load_model(path: str | os.PathLike) -> FittedModel:
     return model_from_dict(d, source=str(p))
 
 
+# joints inside every catalogue arm's range: a loaded model must predict finite positions there
+_PROBE_Q = np.array([[0.0, -1.2, 1.0, -0.5, 0.4, 0.3], [0.5, -0.6, -0.8, 0.7, -1.1, -0.9]])
+
+
 def model_from_dict(d: dict, source: str = "model") -> FittedModel:
-    method = d.get("method")
-    if method not in REGISTRY:
+    """Build a model from its file's dict; a malformed file is one UserError line.
+
+    Besides the class's own parsing, the model must report its parameters and predict finite
+    positions (N, 3) for two probe configurations: a file edited by hand or cut short fails here,
+    not halfway through an export."""
+    method = d.get("method") if isinstance(d, dict) else None
+    if not isinstance(method, str) or method not in REGISTRY:
         raise UserError(f"{source}: unknown model method {method!r}")
     mod, cls = REGISTRY[method].split(":")
     try:
         klass = getattr(importlib.import_module(mod), cls)
     except ModuleNotFoundError:
         raise UserError(f"{source}: method {method!r} is not available in this build") from None
-    return klass.from_dict(d)
+    info = d.get("info", {})
+    if not isinstance(info, dict):
+        raise UserError(f"{source}: malformed {method} model file (info is not an object)")
+    for key, where in (("robot", d), ("recording", info)):
+        if where.get(key) is not None and not isinstance(where.get(key), str):
+            raise UserError(f"{source}: malformed {method} model file ({key} is not a string)")
+    try:
+        model = klass.from_dict(d)
+        model.parameters()
+        p = np.asarray(model.predict(_PROBE_Q), dtype=float)
+    except UserError:
+        raise
+    except Exception as e:  # noqa: BLE001 - a hand-edited file may break any step (JAX too)
+        if os.environ.get("WORKCELL_DEBUG"):
+            raise
+        raise UserError(
+            f"{source}: malformed {method} model file ({type(e).__name__}: {str(e)[:100]}); "
+            "fit it again with `workcell fit`"
+        ) from None
+    if p.shape != (len(_PROBE_Q), 3) or not np.all(np.isfinite(p)):
+        raise UserError(
+            f"{source}: the {method} model does not predict finite positions (shape {p.shape}); "
+            "fit it again with `workcell fit`"
+        )
+    return model
 
 
 def rms(e: np.ndarray) -> float:
