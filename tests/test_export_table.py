@@ -5,6 +5,7 @@ import json
 import numpy as np
 import pytest
 
+from workcell.errors import UserError
 from workcell.estimation.dh import DHModel
 from workcell.estimation.models import save_model
 from workcell.export.correction import (
@@ -139,3 +140,21 @@ def test_cli_export_refuses_and_writes(tmp_path):
     d = json.loads((tmp_path / "t.json").read_text())
     assert d["meta"]["robot"] == "ur5e" and d["meta"]["max_interp_error_m"] > 0
     assert (tmp_path / "t.csv").read_text().count("\n") > 20
+
+
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        ({"spacing_m": 0.0}, "spacing must be a positive"),
+        ({"spacing_m": -0.1}, "spacing must be a positive"),
+        ({"spacing_m": float("nan")}, "spacing must be a positive"),
+        ({"spacing_m": 1e-5}, r"nodes per orientation \(limit 100000\); use a spacing of at least"),
+        ({"target_error_m": 0.0}, "interpolation error target must be a positive"),
+        ({"max_correction_m": -1.0}, "max correction must be a positive"),
+    ],
+)
+def test_table_options_out_of_range_are_refused_before_any_work(kw, match):
+    m = make_model(7)
+    corr = Corrector(m, nominal_for(m))
+    with pytest.raises(UserError, match=match):
+        build_table(corr, LO, HI, [DOWN], **kw)

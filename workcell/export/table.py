@@ -28,6 +28,7 @@ from workcell.export.correction import (
 
 TABLE_FORMAT = "workcell-correction-table/1"
 DEFAULT_MAX_CORRECTION_M = 5e-3
+MAX_FIXED_NODES = 100_000  # per orientation, for a fixed --spacing (each node is an IK solve)
 DEFAULT_INTERP_ERROR_M = 5e-6
 DEFAULT_ORIENTATION_TOL_RAD = 0.05
 OUTSIDE_TOL_M = 1e-6  # targets this far outside the box are still accepted (clamped cell)
@@ -288,12 +289,28 @@ def build_table(
     lo_m, hi_m = np.asarray(lo_m, float), np.asarray(hi_m, float)
     if lo_m.shape != (3,) or hi_m.shape != (3,) or np.any(hi_m <= lo_m):
         raise UserError(f"volume: need lo < hi per axis, got {lo_m.tolist()}..{hi_m.tolist()}")
+    for name, v in (
+        ("interpolation error target", target_error_m),
+        ("max correction", max_correction_m),
+    ):
+        if not (np.isfinite(v) and v > 0):
+            raise UserError(f"{name} must be a positive number of metres, got {v}")
+    if spacing_m is not None:
+        if not (np.isfinite(spacing_m) and spacing_m > 0):
+            raise UserError(f"spacing must be a positive number of metres, got {spacing_m}")
+        n = float(np.prod(np.floor((hi_m - lo_m) / spacing_m) + 2))
+        if n > MAX_FIXED_NODES:
+            h_min = float((np.prod(hi_m - lo_m) / MAX_FIXED_NODES) ** (1 / 3))
+            raise UserError(
+                f"spacing {spacing_m:g} m gives ~{n:.2g} nodes per orientation (limit "
+                f"{MAX_FIXED_NODES}); use a spacing of at least {h_min * 1.05:.3g} m"
+            )
     rv = np.asarray(orientations_rotvec, float).reshape(-1, 3)
     Rs = rotvec_to_matrix(rv)
     rng = np.random.default_rng(seed)
     P = rng.uniform(lo_m, hi_m, (n_check, 3))
     K = len(rv)
-    h = float(spacing_m) if spacing_m else float(min(0.1, (hi_m - lo_m).max() / 2))
+    h = float(spacing_m) if spacing_m is not None else float(min(0.1, (hi_m - lo_m).max() / 2))
     log = log or (lambda m: None)
     exact = [None] * K
     while True:
@@ -319,7 +336,7 @@ def build_table(
             f"max interpolation error {err.max() * 1e6:.3f} um on {len(err)} random points"
         )
         finer = _grid_shape(lo_m, hi_m, h / 1.5)
-        if spacing_m or err.max() <= target_error_m or np.prod(finer) > max_nodes:
+        if spacing_m is not None or err.max() <= target_error_m or np.prod(finer) > max_nodes:
             break
         h /= 1.5
     mags = np.linalg.norm(tab.delta_m.reshape(-1, 3), axis=1)
