@@ -137,3 +137,25 @@ def test_campaign_cli_dry_run_and_required_out(tmp_path):
     assert "nothing moved" in r.stdout and r.stdout.count("pose ") >= 5
     r = subprocess.run(cmd[:-1], capture_output=True, text=True, timeout=120)
     assert r.returncode != 0 and "--out" in r.stderr and "Traceback" not in r.stderr
+
+
+@pytest.mark.parametrize(
+    "extra, match",
+    [
+        (["--settle", "-1"], "--settle (settle_s) must be a finite number >= 0"),
+        (["--settle", "nan"], "--settle (settle_s) must be a finite number >= 0"),
+        (["--warmup", "-5"], "--warmup (warmup_s) must be a finite number >= 0"),
+        (["--time-scale", "0"], "--time-scale must be a positive number"),
+        (["--seed", "-1"], "--seed must be >= 0"),
+        (["--poses", "100000000"], "limit 100000"),
+    ],
+)
+def test_campaign_settings_out_of_range_refused_before_moving(tmp_path, capsys, extra, match):
+    from workcell.cli import main
+
+    out = tmp_path / "c.mcap"
+    argv = ["campaign", "--robot", "sim", "--tracker", "sim", "--poses", "3", "--out", str(out)]
+    rc = main(argv + extra)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and match in err[0], err
+    assert not out.exists()

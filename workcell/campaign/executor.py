@@ -30,6 +30,7 @@ from workcell.drivers.protocols import (
     Robot,
     Tracker,
 )
+from workcell.errors import UserError
 from workcell.kinematics.robots import RobotSpec
 
 
@@ -49,6 +50,37 @@ class CampaignConfig:
     payload_kg: float = 0.0
     joint_state_every_s: float = 0.25
     warmup_s: float = 0.0  # exercise the arm this long before the first measurement
+
+    def __post_init__(self) -> None:
+        """Refuse settings that make no physical sense (UserError, one line)."""
+        for name in ("readings_per_pose", "max_beam_retries", "max_reconnects"):
+            v, lo = getattr(self, name), (1 if name == "readings_per_pose" else 0)
+            if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < lo:
+                raise UserError(
+                    f"campaign setting {name} must be a whole number >= {lo}, got {v!r}"
+                )
+        positive = ("settle_speed_rad_s", "speed_rad_s", "accel_rad_s2", "outlier_k")
+        non_negative = (
+            "settle_s",
+            "approach_rad",
+            "beam_retry_wait_s",
+            "reconnect_backoff_s",
+            "payload_kg",
+            "joint_state_every_s",
+            "warmup_s",
+        )
+        for name in positive + non_negative:
+            v = getattr(self, name)
+            ok = isinstance(v, (int, float, np.floating)) and np.isfinite(v)
+            ok = ok and (v > 0 if name in positive else v >= 0)
+            if not ok:
+                what = "> 0" if name in positive else ">= 0"
+                raise UserError(f"{_setting(name)} must be a finite number {what}, got {v}")
+
+
+def _setting(name: str) -> str:
+    opt = {"settle_s": "--settle", "warmup_s": "--warmup", "readings_per_pose": "--readings"}
+    return f"{opt[name]} ({name})" if name in opt else f"campaign setting {name}"
 
 
 @dataclass

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import signal
 import sys
 from pathlib import Path
@@ -11,6 +12,8 @@ from workcell.campaign.devices import open_cell
 from workcell.campaign.executor import CampaignConfig, CampaignControl
 from workcell.campaign.run import run_campaign
 from workcell.errors import UserError
+
+MAX_POSES = 100_000  # ~10 s a pose: eleven days at the tracker
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -54,8 +57,17 @@ def run(args: argparse.Namespace) -> int:
         return resume_campaign(args)
     if args.poses <= 0:
         raise UserError(f"--poses must be positive, got {args.poses}")
+    if args.poses > MAX_POSES:
+        raise UserError(
+            f"--poses {args.poses} is more than a campaign can measure (limit {MAX_POSES}); "
+            "split it into several recordings"
+        )
     if args.readings <= 0:
         raise UserError(f"--readings must be positive, got {args.readings}")
+    if args.seed < 0:
+        raise UserError(f"--seed must be >= 0, got {args.seed}")
+    if not (math.isfinite(args.time_scale) and args.time_scale > 0):
+        raise UserError(f"--time-scale must be a positive number, got {args.time_scale}")
     cell, robot, tracker, env = open_cell(args)
     cfg = CampaignConfig(
         readings_per_pose=args.readings,
