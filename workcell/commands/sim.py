@@ -58,6 +58,18 @@ def parse_faults(text: str) -> tuple[dict, dict]:
             ) from None
         if not isinstance(d, dict) or set(d) - {"robot", "tracker"}:
             raise UserError('--faults JSON must look like {"robot": {...}, "tracker": {...}}')
+        for dev in ("robot", "tracker"):
+            block = d.get(dev)
+            if block is not None and not isinstance(block, dict):
+                raise UserError(
+                    f'--faults "{dev}" must be an object of fault settings, got {block!r}'
+                )
+            for k, v in (block or {}).items():
+                items = v if isinstance(v, list) else [v]
+                if not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in items):
+                    raise UserError(
+                        f"--faults {dev}.{k} must be a number or a list of numbers, got {v!r}"
+                    )
     return dict(d.get("robot") or {}), dict(d.get("tracker") or {})
 
 
