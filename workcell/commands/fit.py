@@ -70,10 +70,9 @@ def print_report(r: dict) -> None:
     print(f"method          {r['method']}")
     print(f"recording       {r['recording']}")
     print(f"poses           {r['train_poses']} train, {r['heldout_poses']} held out ({r['split']})")
-    print(
-        f"nominal         held-out RMS {um(r['nominal_rms_m'])}   (nominal chain, base registered)"
-    )
-    print(f"calibrated      held-out RMS {um(r['heldout_rms_m'])}   max {um(r['heldout_max_m'])}")
+    on = "held-out RMS" if r["heldout_poses"] else "train RMS   "  # --holdout 0: no held-out
+    print(f"nominal         {on} {um(r['nominal_rms_m'])}   (nominal chain, base registered)")
+    print(f"calibrated      {on} {um(r['heldout_rms_m'])}   max {um(r['heldout_max_m'])}")
     if r.get("stated_noise_floor_m"):
         print(
             f"noise floor     {um(r['stated_noise_floor_m'])}   (from the recording's stated sigmas)"

@@ -31,8 +31,8 @@ def run(args: argparse.Namespace) -> int:
     from workcell.recording import checks
     from workcell.recording.reader import read_recording
 
-    if args.rate < 0:
-        raise UserError(f"--rate must be >= 0, got {args.rate}")
+    if not (args.rate >= 0 and args.rate != float("inf")):
+        raise UserError(f"--rate must be a finite number >= 0, got {args.rate}")
     if args.every < 1:
         raise UserError(f"--every must be >= 1, got {args.every}")
     rec = read_recording(args.recording, streams=False)
