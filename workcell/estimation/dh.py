@@ -116,6 +116,8 @@ class DHModel:
 
     @classmethod
     def from_dict(cls, d: dict) -> DHModel:
+        if not isinstance(d.get("robot"), str):
+            raise ValueError(f"robot must be a model name, got {d.get('robot')!r}")
         return cls(
             robot_model=d["robot"],
             nominal_dh=DH.from_dict(d["nominal_dh"]),

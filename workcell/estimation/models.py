@@ -100,9 +100,8 @@ def model_from_dict(d: dict, source: str = "model") -> FittedModel:
     info = d.get("info", {})
     if not isinstance(info, dict):
         raise UserError(f"{source}: malformed {method} model file (info is not an object)")
-    for key, where in (("robot", d), ("recording", info)):
-        if where.get(key) is not None and not isinstance(where.get(key), str):
-            raise UserError(f"{source}: malformed {method} model file ({key} is not a string)")
+    if info.get("recording") is not None and not isinstance(info.get("recording"), str):
+        raise UserError(f"{source}: malformed {method} model file (recording is not a path)")
     try:
         model = klass.from_dict(d)
         model.parameters()
