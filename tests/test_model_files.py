@@ -8,6 +8,7 @@ import json
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from jsonfuzz import replace_any_field
 
 from workcell.cli import main
 from workcell.errors import UserError
@@ -24,36 +25,11 @@ def dh_model(tmp_path_factory):
     return json.loads(model.read_text())
 
 
-JSON = st.recursive(
-    st.none()
-    | st.booleans()
-    | st.integers(-(10**6), 10**6)
-    | st.floats(allow_nan=False, allow_infinity=False)
-    | st.text(max_size=5),
-    lambda inner: (
-        st.lists(inner, max_size=5) | st.dictionaries(st.text(max_size=4), inner, max_size=3)
-    ),
-    max_leaves=6,
-)
-
-
-def _paths(obj, prefix=()):
-    if isinstance(obj, dict):
-        for k, v in obj.items():
-            yield (*prefix, k)
-            yield from _paths(v, (*prefix, k))
-
-
 @settings(max_examples=50, deadline=None, suppress_health_check=list(HealthCheck))
 @given(data=st.data())
 def test_any_field_replaced_loads_or_is_refused_in_one_line(dh_model, tmp_path_factory, data):
     m = copy.deepcopy(dh_model)
-    path = data.draw(st.sampled_from(sorted(_paths(m), key=str)), label="field")
-    value = data.draw(JSON, label="value")
-    obj = m
-    for k in path[:-1]:
-        obj = obj[k]
-    obj[path[-1]] = value
+    replace_any_field(data, m)
     f = tmp_path_factory.mktemp("mf") / "m.json"
     f.write_text(json.dumps(m))
     try:

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from jsonfuzz import replace_any_field
 from mcap.writer import CompressionType, Writer
 
 from workcell.cli import main
@@ -202,26 +203,6 @@ def test_real_ur10_files_pass_the_checks():
         assert len(Dataset.from_recording(f)) > 100
 
 
-JSON = st.recursive(
-    st.none()
-    | st.booleans()
-    | st.integers(-(10**6), 10**6)
-    | st.floats(allow_nan=False, allow_infinity=False)
-    | st.text(max_size=5),
-    lambda inner: (
-        st.lists(inner, max_size=7) | st.dictionaries(st.text(max_size=4), inner, max_size=3)
-    ),
-    max_leaves=8,
-)
-
-
-def _paths(obj, prefix=()):
-    if isinstance(obj, dict):
-        for k, v in obj.items():
-            yield (*prefix, k)
-            yield from _paths(v, (*prefix, k))
-
-
 @settings(max_examples=60, deadline=None, suppress_health_check=list(HealthCheck))
 @given(data=st.data())
 def test_any_malformed_value_is_a_clean_refusal_or_a_valid_dataset(base, tmp_path_factory, data):
@@ -234,12 +215,7 @@ def test_any_malformed_value_is_a_clean_refusal_or_a_valid_dataset(base, tmp_pat
         target = se
     else:
         target = sa[data.draw(st.integers(0, len(sa) - 1), label="sample")]
-    path = data.draw(st.sampled_from(sorted(_paths(target), key=str)), label="field")
-    value = data.draw(JSON, label="value")
-    obj = target
-    for k in path[:-1]:
-        obj = obj[k]
-    obj[path[-1]] = value
+    replace_any_field(data, target)
     d = tmp_path_factory.mktemp("fuzz")
     p = write_raw(d / "f.mcap", se, sa, times)
     try:
