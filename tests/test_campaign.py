@@ -1,10 +1,13 @@
 """In-process simulated campaign: plans inside the envelope, refusal before motion, recording."""
 
+import json
 import subprocess
 import sys
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from workcell.campaign.envelope import EnvelopeViolation, default_envelope
 from workcell.campaign.executor import CampaignConfig, Executor
@@ -159,3 +162,38 @@ def test_campaign_settings_out_of_range_refused_before_moving(tmp_path, capsys, 
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and match in err[0], err
     assert not out.exists()
+
+
+@settings(max_examples=80, deadline=None, suppress_health_check=list(HealthCheck))
+@given(data=st.data())
+def test_an_envelope_file_is_either_refused_or_really_confines(data):
+    """Any JSON in any field of an envelope file: `Envelope.from_dict` refuses it (ValueError,
+    one line) or the envelope it builds refuses every target outside its joint limits and
+    caps speed. NaN limits used to pass every check (all comparisons with NaN are false)."""
+    from jsonfuzz import replace_any_field
+
+    from workcell.campaign.envelope import Envelope
+
+    d = default_envelope(UR5E).to_dict()
+    if data.draw(st.booleans(), label="nan"):
+        d["joint_limits_rad"][data.draw(st.integers(0, 5))][0] = float("nan")
+    else:
+        replace_any_field(data, d)
+    try:
+        env = Envelope.from_dict(json.loads(json.dumps(d)))
+    except ValueError as e:
+        assert "\n" not in str(e)
+        return
+    lim = env.joint_limits_rad
+    assert np.all(np.isfinite(lim)) and np.all(lim[:, 0] < lim[:, 1])
+    if lim.shape != (6, 2):  # an envelope for another arm: refused at the first check
+        with pytest.raises(ValueError, match="joints"):
+            env.check(UR5E, np.zeros(6), np.array([0, 0, 0.06]))
+        return
+    j = data.draw(st.integers(0, 5), label="joint")
+    q = np.clip(np.zeros(6), lim[:, 0], lim[:, 1])
+    q[j] = lim[j, 1] + data.draw(st.floats(1e-6, 10.0), label="beyond")
+    with pytest.raises(EnvelopeViolation):
+        env.check(UR5E, q, np.array([0, 0, 0.06]))
+    speed, accel = env.cap(1e9, 1e9)
+    assert 0 < speed < 1e9 and 0 < accel < 1e9

@@ -26,6 +26,48 @@ class Envelope:
     max_speed_rad_s: float = 1.0
     max_accel_rad_s2: float = 2.0
 
+    def __post_init__(self) -> None:
+        """An envelope with NaN, an empty range or a non-positive cap would let motions through
+        (every comparison with NaN is false): refuse it with the offending field."""
+        try:
+            lim = np.asarray(self.joint_limits_rad, dtype=float)
+            lo_box = np.asarray(self.box_min_m, dtype=float)
+            hi_box = np.asarray(self.box_max_m, dtype=float)
+            caps = [
+                float(self.floor_z_m),
+                float(self.max_speed_rad_s),
+                float(self.max_accel_rad_s2),
+            ]
+        except (TypeError, ValueError):
+            raise ValueError("envelope: every limit must be a number") from None
+        if lim.ndim != 2 or lim.shape[1] != 2 or lim.shape[0] < 1:
+            raise ValueError(
+                f"envelope joint_limits_rad: expected (n, 2) [lo, hi] pairs, got {lim.shape}"
+            )
+        if not np.all(np.isfinite(lim)) or np.any(lim[:, 0] >= lim[:, 1]):
+            raise ValueError(
+                f"envelope joint_limits_rad: need finite lo < hi per joint, got {lim.tolist()}"
+            )
+        if lo_box.shape != (3,) or hi_box.shape != (3,):
+            raise ValueError(
+                f"envelope box_min_m/box_max_m: expected 3 values each, got {lo_box.shape} "
+                f"and {hi_box.shape}"
+            )
+        if not (np.all(np.isfinite(lo_box)) and np.all(np.isfinite(hi_box))) or np.any(
+            lo_box >= hi_box
+        ):
+            raise ValueError(
+                f"envelope box: need finite min < max per axis, got {lo_box.tolist()}.."
+                f"{hi_box.tolist()}"
+            )
+        if not all(np.isfinite(caps)) or caps[1] <= 0 or caps[2] <= 0:
+            raise ValueError(
+                "envelope floor_z_m, max_speed_rad_s and max_accel_rad_s2 must be finite and the "
+                f"caps > 0, got {caps}"
+            )
+        self.joint_limits_rad, self.box_min_m, self.box_max_m = lim, lo_box, hi_box
+        self.floor_z_m, self.max_speed_rad_s, self.max_accel_rad_s2 = caps
+
     def to_dict(self) -> dict:
         return {
             "joint_limits_rad": np.asarray(self.joint_limits_rad).tolist(),
@@ -38,18 +80,27 @@ class Envelope:
 
     @classmethod
     def from_dict(cls, d: dict) -> Envelope:
-        return cls(
-            joint_limits_rad=np.asarray(d["joint_limits_rad"], float),
-            box_min_m=np.asarray(d["box_min_m"], float),
-            box_max_m=np.asarray(d["box_max_m"], float),
-            floor_z_m=float(d.get("floor_z_m", 0.02)),
-            max_speed_rad_s=float(d.get("max_speed_rad_s", 1.0)),
-            max_accel_rad_s2=float(d.get("max_accel_rad_s2", 2.0)),
-        )
+        if not isinstance(d, dict):
+            raise ValueError("envelope: expected a JSON object")
+        try:
+            return cls(
+                joint_limits_rad=d["joint_limits_rad"],
+                box_min_m=d["box_min_m"],
+                box_max_m=d["box_max_m"],
+                floor_z_m=d.get("floor_z_m", 0.02),
+                max_speed_rad_s=d.get("max_speed_rad_s", 1.0),
+                max_accel_rad_s2=d.get("max_accel_rad_s2", 2.0),
+            )
+        except KeyError as e:
+            raise ValueError(f"envelope: missing {e.args[0]!r}") from None
 
     def violations(self, spec: RobotSpec, q: np.ndarray, tool_m: np.ndarray) -> list[str | None]:
         """For each row of q (N, n): None if inside, else the reason."""
         q = np.atleast_2d(np.asarray(q, float))
+        if q.shape[1] != len(self.joint_limits_rad):
+            raise ValueError(
+                f"envelope has {len(self.joint_limits_rad)} joints, the targets {q.shape[1]}"
+            )
         out: list[str | None] = [None] * len(q)
         finite = np.all(np.isfinite(q), axis=1)
         lim = self.joint_limits_rad

@@ -183,12 +183,18 @@ def envelope_for(plan: PlanConfig, dev: Devices):
     from workcell.campaign.envelope import Envelope
 
     p = Path(plan.envelope)
-    if not p.exists():
-        raise UserError(f"envelope file {p} does not exist")
+    if not p.is_file():
+        raise UserError(f"envelope file {p} does not exist (or is not a file)")
     try:
-        return Envelope.from_dict(json.loads(p.read_text()))
-    except (ValueError, KeyError) as e:
+        env = Envelope.from_dict(json.loads(p.read_text()))
+    except (ValueError, UnicodeDecodeError) as e:
         raise UserError(f"envelope file {p}: {e}") from None
+    if len(env.joint_limits_rad) != dev.cell.spec.n_joints:
+        raise UserError(
+            f"envelope file {p}: {len(env.joint_limits_rad)} joint limits for a "
+            f"{dev.cell.spec.n_joints}-joint arm"
+        )
+    return env
 
 
 def campaign_config(plan: PlanConfig, dev: Devices):
