@@ -1,6 +1,7 @@
 """Correction of targets and the correction table: exactness, interpolation error, refusals, CLI."""
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -158,3 +159,44 @@ def test_table_options_out_of_range_are_refused_before_any_work(kw, match):
     corr = Corrector(m, nominal_for(m))
     with pytest.raises(UserError, match=match):
         build_table(corr, LO, HI, [DOWN], **kw)
+
+
+def test_cli_targets_land_on_target_and_refuse_bad_rows(tmp_path, capsys):
+    """`--format targets`: each corrected target brings the model's robot onto the desired
+    position; a NaN, a millimetre position or a joint in degrees is refused with its row."""
+    import csv
+
+    from workcell.cli import main
+
+    m = make_model(8)
+    path = save_model(m, tmp_path / "m.json")
+    P = np.random.default_rng(3).uniform(LO, HI, (6, 3))
+    good = tmp_path / "good.csv"
+    good.write_text("x,y,z\n" + "".join(f"{x},{y},{z}\n" for x, y, z in P))
+    out = tmp_path / "out.csv"
+    assert (
+        main(["export", str(path), "--format", "targets", "--in", str(good), "--out", str(out)])
+        == 0
+    )
+    rows = list(csv.DictReader(open(out)))
+    q_cmd = np.array([[float(r[f"q{i}_cmd"]) for i in range(1, 7)] for r in rows])
+    corr = Corrector(m, nominal_for(m))
+    assert np.abs(corr.real_base(q_cmd) - P).max() < 1e-8
+    capsys.readouterr()
+    bad = {
+        "nan": ("x,y,z\n0.1,-0.4,0.3\nnan,0,0\n", "row 3, column x: not a finite number"),
+        "mm": ("x,y,z\n100,-400,300\n", "row 2: target 509.9 m .* looks like millimetres"),
+        "deg": (
+            "q1,q2,q3,q4,q5,q6\n0,-1,1,0,0,0\n0,-100,1,0,0,0\n",
+            "row 3: column q2 is -100, .* looks like degrees",
+        ),
+    }
+    for name, (text, match) in bad.items():
+        f = tmp_path / f"{name}.csv"
+        f.write_text(text)
+        o = tmp_path / f"{name}-out.csv"
+        rc = main(["export", str(path), "--format", "targets", "--in", str(f), "--out", str(o)])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert rc == 2 and len(err) == 1, (name, err)
+        assert re.search(match, err[0]), (name, err)
+        assert not o.exists()

@@ -115,6 +115,43 @@ def _report(args, summary: dict) -> int:
     return 0
 
 
+def _check_reach(src: Path, P: np.ndarray, nom) -> None:
+    """Targets (SMR/TCP in base) must be within the arm's reach; refuse with the row."""
+    from workcell.kinematics.chain import unpack_dh
+    from workcell.recording.checks import reach_m
+
+    r = reach_m(unpack_dh(nom.theta), nom.tool_m)
+    dist = np.linalg.norm(P, axis=1)
+    i = int(np.argmax(dist))
+    if dist[i] > r:
+        hint = (
+            "it looks like millimetres; the format wants metres"
+            if 300 * r < dist[i] < 3000 * r
+            else "out of reach"
+        )
+        raise UserError(
+            f"{src}: row {i + 2}: target {dist[i]:.4g} m from the base, beyond the "
+            f"{nom.robot}'s reach of {r:.3g} m: {hint}"
+        )
+
+
+def _check_joints(src: Path, q: np.ndarray, nom) -> None:
+    """Joint targets must be inside the arm's joint ranges; refuse with the row."""
+    from workcell.kinematics.robots import robot_by_name
+    from workcell.recording.checks import joint_range_problem
+
+    try:
+        spec = robot_by_name(nom.robot)
+    except ValueError:
+        return  # unknown arm: its controller checks its own limits
+    for i in range(len(q)):
+        p = joint_range_problem(
+            f"{src}: row {i + 2}", "q", q[i], spec, label=lambda j: f"column q{j + 1}"
+        )
+        if p:
+            raise UserError(p[0])
+
+
 def _targets(args, model, cond, summary) -> int:
     from workcell.export.build import nominal_for_model
     from workcell.export.correction import Q_REF, Corrector, matrix_to_rotvec, rotvec_to_matrix
@@ -125,20 +162,28 @@ def _targets(args, model, cond, summary) -> int:
     src = Path(args.targets_in)
     if not src.exists():
         raise UserError(f"{src}: no such file")
-    with open(src, newline="") as f:
-        rows = [r for r in csv.DictReader(f)]
+    try:
+        with open(src, newline="") as f:
+            rows = [r for r in csv.DictReader(f)]
+    except (UnicodeDecodeError, csv.Error) as e:
+        raise UserError(f"{src}: not a text CSV file ({e})") from None
     if not rows:
         raise UserError(f"{src}: no targets")
     cols = set(rows[0])
     qcols = [f"q{i}" for i in range(1, 7)]
     try:
         num = {c: np.array([float(r[c]) for r in rows]) for c in cols if c}
-    except ValueError as e:
-        raise UserError(f"{src}: non-numeric value ({e})") from None
+    except (TypeError, ValueError) as e:
+        raise UserError(f"{src}: non-numeric or missing value ({e})") from None
+    for c in sorted(num):
+        bad = np.where(~np.isfinite(num[c]))[0]
+        if bad.size:
+            raise UserError(f"{src}: row {bad[0] + 2}, column {c}: not a finite number")
     corr = Corrector(model, nominal_for_model(model, args.recording), cond)
     nom = corr.nominal
     if {"x", "y", "z"} <= cols:
         P = np.stack([num["x"], num["y"], num["z"]], 1)
+        _check_reach(src, P, nom)
         if {"rx", "ry", "rz"} <= cols:
             R = rotvec_to_matrix(np.stack([num["rx"], num["ry"], num["rz"]], 1))
         else:
@@ -147,6 +192,7 @@ def _targets(args, model, cond, summary) -> int:
         seeds = np.broadcast_to(seeds, (len(P), 6))
     elif set(qcols) <= cols:
         seeds = np.stack([num[c] for c in qcols], 1)
+        _check_joints(src, seeds, nom)
         P, R = nom.fk(seeds)
     else:
         raise UserError(f"{src}: need columns x,y,z (and optional rx,ry,rz, q1..q6) or q1..q6")

@@ -19,7 +19,7 @@ from collections.abc import Iterable, Sequence
 
 import numpy as np
 
-from workcell.kinematics.robots import RobotSpec
+from workcell.kinematics.robots import DH, RobotSpec
 
 JOINT_LIMIT_MARGIN_RAD = 0.1  # measured joints may pass a limit by noise and overshoot only
 TRACKER_RANGE_M = 200.0  # longest-range laser trackers measure to ~160 m
@@ -109,7 +109,11 @@ def _payload_problem(what: str, m: float, robot: RobotSpec | None) -> list[str]:
     return []
 
 
-def _joint_problem(where: str, key: str, v: Sequence[float], robot: RobotSpec) -> list[str]:
+def joint_range_problem(
+    where: str, key: str, v: Sequence[float], robot: RobotSpec, label=None
+) -> list[str]:
+    """A joint vector outside the arm's ranges (plus a small margin), with a unit hint.
+    `label(j)` names element j (default `key[j]`, 0-based as in the JSON array)."""
     q = np.asarray(v, dtype=float)
     lim = robot.joint_limits_rad
     lo, hi = lim[:, 0] - JOINT_LIMIT_MARGIN_RAD, lim[:, 1] + JOINT_LIMIT_MARGIN_RAD
@@ -122,8 +126,9 @@ def _joint_problem(where: str, key: str, v: Sequence[float], robot: RobotSpec) -
         if np.max(np.abs(q)) <= 370.0 and np.max(np.abs(q)) > 2 * math.pi + JOINT_LIMIT_MARGIN_RAD
         else "wrong robot model in the session, or not radians"
     )
+    name = label(j) if label else f"{key}[{j}]"
     return [
-        f"{where}: {key}[{j}] is {_fmt(float(q[j]))}, outside joint {j + 1}'s range "
+        f"{where}: {name} is {_fmt(float(q[j]))}, outside joint {j + 1}'s range "
         f"[{lim[j, 0]:.3g}, {lim[j, 1]:.3g}] rad of the {robot.model}: {hint}"
     ]
 
@@ -154,7 +159,7 @@ def sample_problems(smp: dict, k: int, robot: RobotSpec) -> list[str]:
             )
             continue
         if key in ("q_measured_rad", "q_commanded_rad"):
-            out.extend(_joint_problem(where, key, v, robot))
+            out.extend(joint_range_problem(where, key, v, robot))
         elif key == "tracker_position_m" and np.linalg.norm(v) > TRACKER_RANGE_M:
             out.append(
                 f"{where}: tracker_position_m puts the SMR {_fmt(float(np.linalg.norm(v)))} m "
@@ -223,9 +228,8 @@ def _temperature_problem(
     return [f"{where}: {key} {_fmt(worst)} is outside {rng[0]:g}..{rng[1]:g} degC: {hint}"]
 
 
-def reach_m(robot: RobotSpec, smr_offset_m: Sequence[float]) -> float:
+def reach_m(dh: DH, smr_offset_m: Sequence[float]) -> float:
     """Upper bound of the distance from the base origin to the SMR over all joint angles."""
-    dh = robot.dh
     return float(np.sum(np.hypot(dh.a, dh.d)) + np.linalg.norm(smr_offset_m))
 
 
@@ -235,7 +239,7 @@ def scale_problems(p_tracker: np.ndarray, robot: RobotSpec, smr_offset_m) -> lis
     if len(p) < 2:
         return []
     spread = float(np.max(np.linalg.norm(p - p.mean(axis=0), axis=1)))
-    r = reach_m(robot, smr_offset_m)
+    r = reach_m(robot.dh, smr_offset_m)
     if spread <= 1.5 * (2 * r):
         return []
     return [
