@@ -5,6 +5,8 @@ import re
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from workcell.errors import UserError
 from workcell.estimation.dh import DHModel
@@ -200,3 +202,32 @@ def test_cli_targets_land_on_target_and_refuse_bad_rows(tmp_path, capsys):
         assert rc == 2 and len(err) == 1, (name, err)
         assert re.search(match, err[0]), (name, err)
         assert not o.exists()
+
+
+@pytest.fixture(scope="module")
+def saved_table() -> dict:
+    m = make_model(9)
+    return build_table(Corrector(m, nominal_for(m)), LO, HI, [DOWN], spacing_m=0.1).to_dict()
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=list(HealthCheck))
+@given(data=st.data())
+def test_a_malformed_table_file_is_refused_in_one_line(saved_table, tmp_path_factory, data):
+    """Any JSON in any field of a saved table: `load_table` returns a consistent table (shapes
+    match, every correction finite) or refuses it with one UserError line."""
+    from jsonfuzz import replace_any_field
+
+    from workcell.export.table import load_table
+
+    d = json.loads(json.dumps(saved_table))
+    replace_any_field(data, d)
+    f = tmp_path_factory.mktemp("tab") / "t.json"
+    f.write_text(json.dumps(d))
+    try:
+        tab = load_table(f)
+    except UserError as e:
+        assert "\n" not in str(e)
+    else:
+        tab.check()
+        P = np.random.default_rng(0).uniform(tab.lo_m, tab.hi_m, (5, 3))
+        assert np.all(np.isfinite(tab.interpolate(P, 0)))

@@ -153,7 +153,9 @@ class CorrectionTable:
         if d.get("format") != TABLE_FORMAT:
             raise UserError(f"not a correction table (format is not {TABLE_FORMAT})")
         g = d["grid"]
-        return cls(
+        if not isinstance(d.get("meta", {}), dict):
+            raise ValueError("meta must be an object")
+        tab = cls(
             lo_m=np.asarray(g["lo_m"], float),
             hi_m=np.asarray(g["hi_m"], float),
             shape=tuple(int(x) for x in g["shape"]),
@@ -162,6 +164,28 @@ class CorrectionTable:
             meta=d.get("meta", {}),
             orientation_tol_rad=float(d.get("orientation_tol_rad", DEFAULT_ORIENTATION_TOL_RAD)),
         )
+        tab.check()
+        return tab
+
+    def check(self) -> None:
+        """Raise ValueError naming the first inconsistency (a controller must not use it)."""
+        lo, hi, K = self.lo_m, self.hi_m, len(self.orientations_rotvec)
+        if lo.shape != (3,) or hi.shape != (3,) or not np.all(np.isfinite([lo, hi])):
+            raise ValueError("grid lo_m/hi_m must be 3 finite numbers each")
+        if np.any(hi <= lo):
+            raise ValueError(f"grid needs lo < hi per axis, got {lo.tolist()}..{hi.tolist()}")
+        if len(self.shape) != 3 or min(self.shape) < 2:
+            raise ValueError(f"grid shape must be 3 sizes >= 2, got {list(self.shape)}")
+        if K < 1 or not np.all(np.isfinite(self.orientations_rotvec)):
+            raise ValueError("orientations_rotvec must be finite rotation vectors")
+        if self.delta_m.shape != (K, *self.shape, 3):
+            raise ValueError(
+                f"delta_m has shape {self.delta_m.shape}, the grid needs {(K, *self.shape, 3)}"
+            )
+        if not np.all(np.isfinite(self.delta_m)):
+            raise ValueError("delta_m has non-finite corrections")
+        if not (np.isfinite(self.orientation_tol_rad) and self.orientation_tol_rad > 0):
+            raise ValueError("orientation_tol_rad must be a positive number")
 
     def save(self, path: str | os.PathLike) -> tuple[Path, Path]:
         """Write PATH.json (everything) and PATH.csv (one row per node). Returns both paths."""
@@ -201,9 +225,12 @@ def load_table(path: str | os.PathLike) -> CorrectionTable:
     if not p.exists():
         raise UserError(f"{p}: no such correction table; write one with `workcell export`")
     try:
-        return CorrectionTable.from_dict(json.loads(p.read_text()))
-    except (ValueError, KeyError) as e:
-        raise UserError(f"{p}: unreadable correction table ({e})") from None
+        d = json.loads(p.read_text())
+        if not isinstance(d, dict):
+            raise ValueError("not a JSON object")
+        return CorrectionTable.from_dict(d)
+    except (ValueError, KeyError, TypeError, AttributeError, IndexError) as e:
+        raise UserError(f"{p}: unreadable correction table ({type(e).__name__}: {e})") from None
 
 
 # ---------------------------------------------------------------------- building
