@@ -101,11 +101,11 @@ def print_report(r: dict) -> None:
                 else (1, v["unit"])
             )
             std = v.get("std")
-            std_s = (
-                f"{std * scale:10.4f}"
-                if std is not None
-                else f"{'at bound' if v.get('at_bound') else '-':>10}"
-            )
+            if std is not None:
+                std_s = f"{std * scale:10.4f}"
+            else:  # a bound was hit, or a discrete (cross-validated) choice: no Gaussian std
+                why = "at bound" if v.get("at_bound") else "CV grid" if v.get("chosen_by") else "-"
+                std_s = f"{why:>10}"
             d_s = f"{d * scale:12.4f}" if "nominal" in v else " " * 12
             print(f"{k:>16} {v['value']:14.6f} {d_s} {std_s}  {unit}")
     for k, v in (r.get("extra") or {}).items():
