@@ -72,3 +72,31 @@ def test_fit_gp_reports_every_hyperparameter_with_std_or_at_bound(tmp_path, caps
     for j in range(6):
         p = params[f"gp_lengthscale_q{j + 1}"]
         assert (p["std"] is None) == p["at_bound"]
+
+
+def test_fit_report_prints_every_kind_of_parameter(capsys):
+    """A std, a bound hit, a cross-validated choice, and no std at all: one row each."""
+    from workcell.commands.fit import print_report
+
+    r = {
+        "method": "x",
+        "recording": "r.mcap",
+        "train_poses": 3,
+        "heldout_poses": 1,
+        "split": "s",
+        "nominal_rms_m": 1e-3,
+        "heldout_rms_m": 1e-5,
+        "heldout_max_m": 2e-5,
+        "model": "m.json",
+        "fit_seconds": 1.0,
+        "parameters": {
+            "a2": {"value": -0.425, "nominal": -0.4251, "std": 1e-6, "unit": "m"},
+            "ls": {"value": 9.0, "std": None, "unit": "rad", "at_bound": True},
+            "sig": {"value": 0.3, "std": None, "unit": "1", "chosen_by": "cv"},
+            "other": {"value": 1.0, "std": None, "unit": "1"},
+        },
+    }
+    print_report(r)
+    rows = {ln.split()[0]: ln for ln in capsys.readouterr().out.splitlines() if ln.strip()}
+    assert "0.0010" in rows["a2"] and "at bound" in rows["ls"]
+    assert "CV grid" in rows["sig"] and rows["other"].split()[-2] == "-"
