@@ -84,7 +84,10 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, OSError) as e:
         if os.environ.get("WORKCELL_DEBUG"):
             raise
-        print(f"workcell {args.command}: error: {e}", file=sys.stderr)
+        msg = str(e)
+        if isinstance(e, OSError) and e.filename and e.strerror:
+            msg = f"cannot use {e.filename}: {e.strerror}"
+        print(f"workcell {args.command}: error: {msg}", file=sys.stderr)
         return 2
 
 

@@ -11,7 +11,7 @@ from pathlib import Path
 from workcell.campaign.devices import open_cell
 from workcell.campaign.executor import CampaignConfig, CampaignControl
 from workcell.campaign.run import run_campaign
-from workcell.errors import UserError
+from workcell.errors import UserError, check_output_path
 
 MAX_POSES = 100_000  # ~10 s a pose: eleven days at the tracker
 
@@ -81,6 +81,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("--out REC.mcap is required (the recording to write)")
     if Path(args.out).exists():
         raise UserError(f"{args.out} already exists; choose a new file or use --resume")
+    check_output_path(args.out, "recording")
     control = CampaignControl()
     signal.signal(signal.SIGINT, lambda *_: control.abort.set())
     mode = args.on_protective_stop or ("ask" if sys.stdin.isatty() else "resume")

@@ -10,11 +10,10 @@ import argparse
 import json
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-from workcell.errors import UserError
+from workcell.errors import UserError, check_output_path
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -52,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
     if args.poses < 20:
         raise UserError(f"--poses must be at least 20 for a meaningful fit, got {args.poses}")
     log = (lambda m: print(m, file=sys.stderr, flush=True)) if args.json else print
-    out = Path(args.out)
+    out = check_output_path(args.out, "output folder", folder=True)
     out.mkdir(parents=True, exist_ok=True)
     stamp = time.strftime("%Y%m%d-%H%M%S")
     rec_path = out / f"demo-{args.model}-{args.effects.replace(',', '+')}-s{args.seed}-{stamp}.mcap"

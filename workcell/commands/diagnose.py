@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from workcell.errors import UserError
+from workcell.errors import UserError, check_output_path
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -80,6 +80,10 @@ def run(args: argparse.Namespace) -> int:
     cfg = DiagnoseConfig(
         holdout=args.holdout, alpha=args.alpha, tracker_mpe=mpe, nonparametric=not args.no_np
     )
+    if args.report:
+        check_output_path(args.report, "report folder", folder=True)
+    if args.out:
+        check_output_path(args.out, "model file")
     diag = diagnose(ds, cfg, progress=log)
     rep = diag.report
     outdir = Path(args.report) if args.report else None

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from workcell.errors import UserError
+from workcell.errors import UserError, check_output_path
 
 FORMATS = ("table", "urscript", "ros-yaml", "targets")
 
@@ -52,8 +52,8 @@ def run(args: argparse.Namespace) -> int:
     from workcell.export.build import make_table, parse_vec
     from workcell.export.correction import Conditions
 
+    out = check_output_path(args.out, "output")
     model = load_model(args.model)
-    out = Path(args.out)
     summary: dict = {"format": args.format, "model": args.model}
     if args.format == "ros-yaml":
         from workcell.export.build import model_recording

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from workcell.errors import UserError
+from workcell.errors import UserError, check_output_path
 from workcell.estimation.fitting import FIT_METHODS, fit_recording
 
 
@@ -38,6 +38,7 @@ def run(args: argparse.Namespace) -> int:
     if not 0.0 <= args.holdout < 0.9:
         raise UserError(f"--holdout must be in [0, 0.9), got {args.holdout}")
     out = Path(args.out) if args.out else Path(args.recording).with_suffix(f".{args.method}.json")
+    check_output_path(out, "model file")
     report = fit_recording(
         args.recording,
         method=args.method,

@@ -13,7 +13,7 @@ import json
 import sys
 import time
 
-from workcell.errors import UserError
+from workcell.errors import UserError, check_output_path
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -35,6 +35,8 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--rate must be a finite number >= 0, got {args.rate}")
     if args.every < 1:
         raise UserError(f"--every must be >= 1, got {args.every}")
+    if args.save:
+        check_output_path(args.save, "model file")
     rec = read_recording(args.recording, streams=False)
     if not rec.samples:
         raise UserError(f"{args.recording}: no /campaign/sample messages; nothing to replay")
