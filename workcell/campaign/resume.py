@@ -19,7 +19,6 @@ from workcell.campaign.devices import open_cell
 from workcell.campaign.executor import CampaignConfig, CampaignControl
 from workcell.campaign.run import run_campaign
 from workcell.errors import UserError
-from workcell.kinematics.robots import robot_from_session
 from workcell.recording import checks
 from workcell.recording.dataset import file_sha256
 from workcell.recording.reader import read_recording
@@ -34,11 +33,7 @@ def resume_plan(old: str) -> dict:
             raise UserError(
                 f"{old}: session campaign block has no {key!r}; cannot re-create the plan"
             )
-    try:
-        robot = robot_from_session(rec.session["robot"])
-    except ValueError as e:
-        raise UserError(f"{old}: {e}") from None
-    problems = checks.recording_problems(rec.session, rec.samples, robot)
+    problems = checks.problems_of(rec.session, rec.samples)
     if problems:
         raise UserError(f"{old}: {checks.first_problem(problems)}; cannot resume it")
     history = {int(s["pose_id"]): s for s in rec.samples}

@@ -118,20 +118,15 @@ def _report(args, summary: dict) -> int:
 def _check_reach(src: Path, P: np.ndarray, nom) -> None:
     """Targets (SMR/TCP in base) must be within the arm's reach; refuse with the row."""
     from workcell.kinematics.chain import unpack_dh
-    from workcell.recording.checks import reach_m
+    from workcell.recording.checks import millimetre_hint, reach_m
 
     r = reach_m(unpack_dh(nom.theta), nom.tool_m)
     dist = np.linalg.norm(P, axis=1)
     i = int(np.argmax(dist))
     if dist[i] > r:
-        hint = (
-            "it looks like millimetres; the format wants metres"
-            if 300 * r < dist[i] < 3000 * r
-            else "out of reach"
-        )
         raise UserError(
             f"{src}: row {i + 2}: target {dist[i]:.4g} m from the base, beyond the "
-            f"{nom.robot}'s reach of {r:.3g} m: {hint}"
+            f"{nom.robot}'s reach of {r:.3g} m: {millimetre_hint(dist[i], r, 'out of reach')}"
         )
 
 

@@ -20,13 +20,7 @@ def _get(d, key):
 
 def value_problems(rec: Recording) -> list[str]:
     """What `Dataset.from_recording` would refuse in this file (wrong units, bad types...)."""
-    from workcell.kinematics.robots import robot_from_session
-
-    try:
-        robot = robot_from_session(rec.session["robot"])
-    except (ValueError, TypeError, AttributeError) as e:
-        return [f"session robot unusable ({e})"]
-    return checks.recording_problems(rec.session, rec.samples, robot)
+    return checks.problems_of(rec.session, rec.samples)
 
 
 def summary(path: str) -> dict:

@@ -27,7 +27,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from workcell.estimation.ekf_ann.live import LiveFilter
-    from workcell.kinematics.robots import robot_from_session
     from workcell.recording import checks
     from workcell.recording.reader import read_recording
 
@@ -40,11 +39,7 @@ def run(args: argparse.Namespace) -> int:
     rec = read_recording(args.recording, streams=False)
     if not rec.samples:
         raise UserError(f"{args.recording}: no /campaign/sample messages; nothing to replay")
-    try:
-        robot = robot_from_session(rec.session["robot"])
-    except (KeyError, ValueError) as e:
-        raise UserError(f"{args.recording}: session unusable for the online filter ({e})") from None
-    problems = checks.recording_problems(rec.session, rec.samples, robot)
+    problems = checks.problems_of(rec.session, rec.samples)
     if problems:
         raise UserError(f"{args.recording}: {checks.first_problem(problems)}")
     lf = LiveFilter.from_session(rec.session)

@@ -19,7 +19,7 @@ from collections.abc import Iterable, Sequence
 
 import numpy as np
 
-from workcell.kinematics.robots import DH, RobotSpec
+from workcell.kinematics.robots import DH, RobotSpec, robot_from_session
 
 JOINT_LIMIT_MARGIN_RAD = 0.1  # measured joints may pass a limit by noise and overshoot only
 TRACKER_RANGE_M = 200.0  # longest-range laser trackers measure to ~160 m
@@ -245,12 +245,15 @@ def scale_problems(p_tracker: np.ndarray, robot: RobotSpec, smr_offset_m) -> lis
     return [
         f"tracker positions lie up to {_fmt(spread)} from their centroid, but the "
         f"{robot.model} with this SMR reaches only {r:.3g} m from its base: "
-        + (
-            "they look like millimetres; the format wants metres"
-            if 300 * r < spread < 3000 * r
-            else "wrong robot model in the session, or not metres"
-        )
+        + millimetre_hint(spread, r, "wrong robot model in the session, or not metres")
     ]
+
+
+def millimetre_hint(length: float, expected_m: float, otherwise: str) -> str:
+    """'looks like millimetres' when `length` is ~1000x what metres would give."""
+    if 300 * expected_m < length < 3000 * expected_m:
+        return "it looks like millimetres; the format wants metres"
+    return otherwise
 
 
 def timing_problems(elapsed_s: Sequence[float], log_time_ns: Sequence[int]) -> list[str]:
@@ -292,6 +295,23 @@ def recording_problems(session: dict, samples: Sequence[dict], robot: RobotSpec)
             [x.get("_log_time_ns", float("nan")) for x in samples],
         )
     return out
+
+
+def session_robot(session: dict) -> RobotSpec:
+    """The nominal arm a session declares; ValueError (one line) if it cannot be built."""
+    try:
+        return robot_from_session(session["robot"])
+    except (KeyError, TypeError, AttributeError) as e:
+        raise ValueError(f"session robot unusable ({type(e).__name__}: {e})") from None
+
+
+def problems_of(session: dict, samples: Sequence[dict]) -> list[str]:
+    """`recording_problems` with the session's own arm (an unusable arm is the problem)."""
+    try:
+        robot = session_robot(session)
+    except ValueError as e:
+        return [str(e)]
+    return recording_problems(session, samples, robot)
 
 
 def first_problem(problems: list[str]) -> str:

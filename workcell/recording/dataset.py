@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from workcell.kinematics.frames import matrix_from_quat_wxyz, transform_from
-from workcell.kinematics.robots import RobotSpec, robot_from_session
+from workcell.kinematics.robots import RobotSpec
 from workcell.recording import checks
 from workcell.recording.reader import Recording, RecordingError, is_finite_list, read_recording
 
@@ -99,7 +99,7 @@ class Dataset:
             rec = read_recording(rec, streams=False)
         s = rec.session
         try:
-            robot = robot_from_session(s["robot"])
+            robot = checks.session_robot(s)
         except ValueError as e:
             raise RecordingError(f"{rec.path}: {e}") from None
         rows = list(rec.samples)
