@@ -229,6 +229,8 @@ def load_table(path: str | os.PathLike) -> CorrectionTable:
         if not isinstance(d, dict):
             raise ValueError("not a JSON object")
         return CorrectionTable.from_dict(d)
+    except UserError as e:
+        raise UserError(f"{p}: {e}") from None
     except (ValueError, KeyError, TypeError, AttributeError, IndexError) as e:
         raise UserError(f"{p}: unreadable correction table ({type(e).__name__}: {e})") from None
 
