@@ -114,18 +114,11 @@ class Dataset:
         T = transform_from(matrix_from_quat_wxyz(np.array(qw, float)), np.array(t, float))
         n = len(rows)
 
-        def arr(key, width, default):
+        def arr(key, width, default):  # every field read here passed `checks.sample_problems`
             out = np.full((n, width) if width else n, default, dtype=float)
             for i, r in enumerate(rows):
-                v = r.get(key)
-                if v is None:
-                    continue
-                try:
-                    out[i] = np.asarray(v, dtype=float)
-                except (TypeError, ValueError):
-                    raise RecordingError(
-                        f"{rec.path}: sample {r.get('index', i)} field {key} is malformed"
-                    ) from None
+                if r.get(key) is not None:
+                    out[i] = np.asarray(r[key], dtype=float)
             return out
 
         q = arr("q_measured_rad", 6, np.nan)
