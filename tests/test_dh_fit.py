@@ -78,6 +78,42 @@ def test_heldout_close_to_noise_and_far_below_nominal(dh_only):
     assert rep["heldout_poses"] == round(0.25 * len(ds))
 
 
+def test_reported_floors_bracket_what_a_right_model_reaches(dh_only):
+    """Only DH errors in the simulated truth: the DH fit is the right model, so its held-out RMS
+    is what the noise allows. The tracker-accuracy floor (MPE model, what `diagnose` compares
+    to) must predict it; the repeatability floor (recorded sigmas of the means, blind to the
+    tracker's per-pose systematic error) must be below it and is labelled so."""
+    _, ds = dh_only
+    _, rep = fit_dataset(ds, method="dh", holdout=0.25)
+    held, rep_floor, acc = (
+        rep["heldout_rms_m"],
+        rep["stated_noise_floor_m"],
+        rep["tracker_noise_floor_m"],
+    )
+    assert rep_floor < acc, (rep_floor, acc)
+    assert 0.8 * acc <= held <= 1.3 * acc, (held, acc)
+    assert held > 2.0 * rep_floor, (held, rep_floor)
+    assert "15 um + 6 um/m" in rep["tracker_noise_floor_basis"]
+    # a tracker declared twice as accurate lowers the floor; the fit itself does not change
+    _, rep2 = fit_dataset(ds, method="dh", holdout=0.25, tracker_mpe=(7.5e-6, 3e-6))
+    assert rep2["heldout_rms_m"] == held
+    assert rep2["tracker_noise_floor_m"] < acc
+
+
+@pytest.mark.parametrize("bad", ["nan,6e-6", "15e-6", "15e-6,inf", "-1e-6,0", "15,6", "a,b"])
+def test_fit_refuses_bad_tracker_mpe(dh_only, bad):
+    _, ds = dh_only
+    r = subprocess.run(
+        [sys.executable, "-m", "workcell.cli", "fit", ds.source, f"--tracker-mpe={bad}"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode != 0
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "--tracker-mpe" in lines[0], r.stderr
+
+
 def test_fit_cli_json_keys_and_model_file(dh_only, tmp_path):
     _, ds = dh_only
     out = tmp_path / "m.json"

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from workcell.commands.options import add_tracker_mpe, parse_tracker_mpe
 from workcell.errors import UserError, check_output_path
 
 
@@ -36,11 +37,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=0.01,
         help="level of the likelihood-ratio test per selection step (Bonferroni over candidates)",
     )
-    p.add_argument(
-        "--tracker-mpe",
-        default="15e-6,6e-6",
-        help="tracker MPE A,B in m and m/m (sigma per axis >= (A + B*range)/4); default 15 um + 6 um/m",
-    )
+    add_tracker_mpe(p)
     p.add_argument("--no-np", action="store_true", help="skip the non-parametric residual check")
 
 
@@ -63,14 +60,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--holdout must be in [0.1, 0.5], got {args.holdout}")
     if not 0.0 < args.alpha < 0.5:
         raise UserError(f"--alpha must be in (0, 0.5), got {args.alpha}")
-    try:
-        mpe = tuple(float(x) for x in args.tracker_mpe.split(","))
-        if len(mpe) != 2 or min(mpe) < 0:
-            raise ValueError
-    except ValueError:
-        raise UserError(
-            f"--tracker-mpe must be two non-negative numbers A,B; got {args.tracker_mpe!r}"
-        ) from None
+    mpe = parse_tracker_mpe(args.tracker_mpe)
     ds = Dataset.from_recording(args.recording)
     log = (
         (lambda m: print(m, file=sys.stderr, flush=True))

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from workcell.commands.options import add_tracker_mpe, parse_tracker_mpe
 from workcell.errors import UserError, check_output_path
 from workcell.estimation.fitting import FIT_METHODS, fit_recording
 
@@ -30,6 +31,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--on", default="auto", help="lddmm/gp: base model (dh, nominal or auto)")
     p.add_argument("--bounds", help="dh: parameter bounds file (JSON) or 'default' (bounded QP)")
+    add_tracker_mpe(p)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -37,6 +39,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"unknown method {args.method!r}; choose from {', '.join(FIT_METHODS)}")
     if not 0.0 <= args.holdout < 0.9:
         raise UserError(f"--holdout must be in [0, 0.9), got {args.holdout}")
+    mpe = parse_tracker_mpe(args.tracker_mpe)
     out = Path(args.out) if args.out else Path(args.recording).with_suffix(f".{args.method}.json")
     check_output_path(out, "model file")
     report = fit_recording(
@@ -46,6 +49,7 @@ def run(args: argparse.Namespace) -> int:
         out=out,
         on=args.on,
         bounds=args.bounds,
+        tracker_mpe=mpe,
         progress=None if args.json else lambda m: print(m, file=sys.stderr),
     )
     if args.json:
@@ -76,7 +80,14 @@ def print_report(r: dict) -> None:
     print(f"calibrated      {on} {um(r['heldout_rms_m'])}   max {um(r['heldout_max_m'])}")
     if r.get("stated_noise_floor_m"):
         print(
-            f"noise floor     {um(r['stated_noise_floor_m'])}   (from the recording's stated sigmas)"
+            f"noise floor     {um(r['stated_noise_floor_m'])}   repeatability: the recorded "
+            "sigmas of the means"
+        )
+    if r.get("tracker_noise_floor_m"):
+        print(
+            f"                {um(r['tracker_noise_floor_m'])}   with the tracker's accuracy "
+            f"(MPE {r['tracker_mpe_m'][0] * 1e6:g} um + {r['tracker_mpe_m'][1] * 1e6:g} um/m, "
+            "sigma = MPE/4)"
         )
     print(f"fit time        {r['fit_seconds']:.2f} s")
     if r.get("unidentifiable"):
@@ -91,7 +102,7 @@ def print_report(r: dict) -> None:
     params = r.get("parameters") or {}
     shown = [(k, v) for k, v in params.items() if v.get("estimated", True)]
     if shown:
-        print(f"{'parameter':>16} {'value':>14} {'- nominal':>12} {'std':>10}  unit")
+        print(f"{'parameter':>16} {'value m|rad':>14} {'- nominal':>12} {'std':>10}  unit")
         for k, v in shown:
             d = v["value"] - v.get("nominal", v["value"]) if "nominal" in v else float("nan")
             scale, unit = (

@@ -141,6 +141,18 @@ def pose_sigma(ds: Dataset) -> np.ndarray:
     return np.sqrt(np.mean(ds.sigma_m**2, axis=1))
 
 
+# A laser tracker's maximum permissible error, A [m] + B [m/m] * range (a Leica AT960's stated
+# MPE); 1 sigma per axis is taken as MPE / 4. The recorded sigma of a mean comes from the scatter
+# of the readings at one pose, which leaves out the tracker's per-pose systematic error.
+TRACKER_MPE_M: tuple[float, float] = (15e-6, 6e-6)
+
+
+def pose_sigma_model(ds: Dataset, mpe: tuple[float, float] = TRACKER_MPE_M) -> np.ndarray:
+    """Per-pose isotropic 1-sigma per axis (N,): max(recorded, tracker MPE model / 4)."""
+    spec = (mpe[0] + mpe[1] * np.linalg.norm(ds.p_tracker, axis=1)) / 4.0
+    return np.maximum(pose_sigma(ds), spec)
+
+
 def register_base(ds: Dataset, theta: np.ndarray) -> np.ndarray:
     """Rigid registration of the model's SMR positions (in base) to the measurements."""
     p_base = np.asarray(p_tracker(theta, np.eye(4), ds.q))

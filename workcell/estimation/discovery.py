@@ -59,7 +59,7 @@ from scipy import stats
 from scipy.optimize import least_squares
 
 from workcell.errors import UserError
-from workcell.estimation.dh import DHModel, fit_dh, pose_sigma
+from workcell.estimation.dh import TRACKER_MPE_M, DHModel, fit_dh, pose_sigma_model
 from workcell.estimation.effects import (
     EFF_NAMES,
     N_EFF,
@@ -88,7 +88,7 @@ class DiagnoseConfig:
     rho_min: float = 0.05  # identifiability threshold
     max_effects: int = 12
     orders: tuple[int, ...] = (1, 2, 3)
-    tracker_mpe: tuple[float, float] = (15e-6, 6e-6)  # A [m] + B [m/m] * range; sigma=MPE/4
+    tracker_mpe: tuple[float, float] = TRACKER_MPE_M  # A [m] + B [m/m] * range; sigma=MPE/4
     np_alpha: float = 0.01
     np_min_gain: float = 0.05
     nonparametric: bool = True
@@ -105,13 +105,6 @@ class Diagnosis:
 
 
 # ----------------------------------------------------------------------------- helpers
-def pose_sigma_model(ds: Dataset, mpe: tuple[float, float]) -> np.ndarray:
-    """Per-pose isotropic 1-sigma per axis: max(recorded, tracker MPE model / 4)."""
-    rec = pose_sigma(ds)
-    spec = (mpe[0] + mpe[1] * np.linalg.norm(ds.p_tracker, axis=1)) / 4.0
-    return np.maximum(rec, spec)
-
-
 def _with_sigma(ds: Dataset, sig: np.ndarray) -> Dataset:
     return replace(ds, sigma_m=np.repeat(sig[:, None], 3, 1))
 

@@ -13,7 +13,14 @@ from collections.abc import Callable
 import numpy as np
 
 from workcell.errors import UserError
-from workcell.estimation.dh import DHModel, fit_dh, nominal_registered, pose_sigma
+from workcell.estimation.dh import (
+    TRACKER_MPE_M,
+    DHModel,
+    fit_dh,
+    nominal_registered,
+    pose_sigma,
+    pose_sigma_model,
+)
 from workcell.estimation.models import aux_from_dataset, error_stats, save_model
 from workcell.kinematics.chain import p_tracker
 from workcell.recording.dataset import HOLDOUT_SEED, Dataset
@@ -39,6 +46,14 @@ def stated_noise_floor(ds: Dataset) -> float:
     return float(np.sqrt(np.mean(np.sum(ds.sigma_m**2, axis=1))))
 
 
+def tracker_noise_floor(ds: Dataset, mpe: tuple[float, float] = TRACKER_MPE_M) -> float:
+    """Held-out RMS that the tracker's errors alone would give: per-axis sigma
+    max(recorded, (A + B * range) / 4) (`pose_sigma_model`), so the per-pose systematic error
+    that averaging readings cannot remove is counted. The model's own estimation uncertainty is
+    not included (`workcell diagnose` adds it for its geometry)."""
+    return float(np.sqrt(np.mean(3.0 * pose_sigma_model(ds, mpe) ** 2)))
+
+
 def fit_dataset(
     ds: Dataset,
     *,
@@ -46,6 +61,7 @@ def fit_dataset(
     holdout: float = 0.25,
     on: str = "auto",
     bounds: str | None = None,
+    tracker_mpe: tuple[float, float] = TRACKER_MPE_M,
     progress: Callable[[str], None] | None = None,
 ) -> tuple[object, dict]:
     if method not in FIT_METHODS:
@@ -86,6 +102,12 @@ def fit_dataset(
         "heldout_median_m": held["median_m"],
         "train_rms_m": train_stats["rms_m"],
         "stated_noise_floor_m": stated_noise_floor(ev),
+        "tracker_noise_floor_m": tracker_noise_floor(ev, tracker_mpe),
+        "tracker_mpe_m": [float(tracker_mpe[0]), float(tracker_mpe[1])],
+        "tracker_noise_floor_basis": (
+            f"per-pose sigma = max(recorded, tracker MPE ({tracker_mpe[0] * 1e6:g} um + "
+            f"{tracker_mpe[1] * 1e6:g} um/m) / 4)"
+        ),
         "fit_seconds": fit_s,
         "parameters": params,
         "unidentifiable": getattr(model, "unidentifiable", []),
@@ -97,11 +119,25 @@ def fit_dataset(
 
 
 def fit_recording(
-    path, *, method="dh", holdout=0.25, out=None, on="auto", bounds=None, progress=None
+    path,
+    *,
+    method="dh",
+    holdout=0.25,
+    out=None,
+    on="auto",
+    bounds=None,
+    tracker_mpe=TRACKER_MPE_M,
+    progress=None,
 ) -> dict:
     ds = Dataset.from_recording(path)
     model, report = fit_dataset(
-        ds, method=method, holdout=holdout, on=on, bounds=bounds, progress=progress
+        ds,
+        method=method,
+        holdout=holdout,
+        on=on,
+        bounds=bounds,
+        tracker_mpe=tracker_mpe,
+        progress=progress,
     )
     if out is not None:
         info = getattr(model, "info", None)
@@ -115,4 +151,11 @@ def fit_recording(
     return report
 
 
-__all__ = ["fit_dataset", "fit_recording", "stated_noise_floor", "pose_sigma", "FIT_METHODS"]
+__all__ = [
+    "fit_dataset",
+    "fit_recording",
+    "stated_noise_floor",
+    "tracker_noise_floor",
+    "pose_sigma",
+    "FIT_METHODS",
+]

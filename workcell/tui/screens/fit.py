@@ -130,7 +130,9 @@ class FitScreen(WorkcellScreen):
         if r.get("train_rms_m") is not None:
             t.add_row(f"{method} on training poses", um(r["train_rms_m"]), "")
         if r.get("stated_noise_floor_m") is not None:
-            t.add_row("tracker noise floor", um(r["stated_noise_floor_m"]), "")
+            t.add_row("floor: repeatability", um(r["stated_noise_floor_m"]), "")
+        if r.get("tracker_noise_floor_m") is not None:
+            t.add_row("floor: tracker accuracy", um(r["tracker_noise_floor_m"]), "")
         t.add_row(
             "poses", f"{r.get('train_poses', '-')} train", f"{r.get('heldout_poses', '-')} held out"
         )
