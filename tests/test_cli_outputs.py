@@ -41,3 +41,38 @@ def test_unwritable_output_refused_first(tmp_path, capsys, argv, match):
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and match in err[0], err
     assert f.read_text() == "keep me" and list(d.iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    "extra, match",
+    [
+        (["--targets", "0"], "--targets must be 1..10000"),
+        (["--targets", "20000"], "--targets must be 1..10000"),
+        (["--seed", "-1"], "--seed must be a non-negative integer"),
+        (["--sim-seed", "-2"], "--sim-seed must be a non-negative integer"),
+        (
+            ["--readings", "0", "--robot", "ur://127.0.0.1", "--tracker", "serial:///x"],
+            "--readings",
+        ),
+        (["--readings", "3"], "--readings is for a real cell"),
+        (["--model-name", "ur10"], "--model-name is for a real cell"),
+    ],
+)
+def test_validate_options_refused_before_connecting(tmp_path, capsys, extra, match):
+    """Out-of-range or meaningless options of `validate` are one line, before the model is read
+    (the model path does not even exist here) or any device is contacted."""
+    rc = main(["validate", str(tmp_path / "missing.json"), *extra])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and match in err[0], err
+
+
+def test_table_path_that_is_not_a_table(tmp_path):
+    from workcell.errors import UserError
+    from workcell.export.table import load_table
+
+    rec = tmp_path / "run.mcap"
+    rec.write_bytes(b"\x89MCAP0\r\n")
+    with pytest.raises(UserError, match="run.mcap is not a correction table"):
+        load_table(rec)
+    with pytest.raises(UserError, match="no such correction table"):
+        load_table(tmp_path / "none.json")

@@ -21,9 +21,39 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=12345, help="seed of the random targets")
     p.add_argument("--sim-seed", type=int, help="simulated truth seed (default: the recording's)")
     p.add_argument("--effects", help="simulated effects (default: the recording's)")
-    p.add_argument("--model-name", dest="robot_model", help="robot model for real cells")
-    p.add_argument("--readings", type=int, default=5, help="tracker readings per target (real)")
+    p.add_argument(
+        "--model-name", dest="robot_model", help="robot model for real cells (default: the model's)"
+    )
+    p.add_argument(
+        "--readings", type=int, help="tracker readings per target (real tracker; default 5)"
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object")
+
+
+MAX_TARGETS = 10_000  # ~10 s a target: more than a day at the tracker
+MAX_READINGS = 1000
+
+
+def check_options(args: argparse.Namespace) -> None:
+    """Refuse out-of-range options before loading anything or connecting."""
+    if not 1 <= args.targets <= MAX_TARGETS:
+        raise UserError(f"--targets must be 1..{MAX_TARGETS}, got {args.targets}")
+    for name in ("seed", "sim_seed"):
+        v = getattr(args, name)
+        if v is not None and v < 0:
+            raise UserError(f"--{name.replace('_', '-')} must be a non-negative integer, got {v}")
+    if args.readings is not None and not 1 <= args.readings <= MAX_READINGS:
+        raise UserError(f"--readings must be 1..{MAX_READINGS}, got {args.readings}")
+    sim = args.robot == "sim" and args.tracker == "sim"
+    if sim and (args.readings is not None or args.robot_model):
+        given = [
+            o for o, v in (("--readings", args.readings), ("--model-name", args.robot_model)) if v
+        ]
+        raise UserError(
+            f"{' and '.join(given)} {'is' if len(given) == 1 else 'are'} for a real cell; the "
+            "simulation rebuilds the model's robot and scores against its true positions "
+            "(leave them out, or give --robot ur://HOST --tracker serial://PORT)"
+        )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -39,6 +69,7 @@ def run(args: argparse.Namespace) -> int:
         tracker_measure,
     )
 
+    check_options(args)
     model = load_model(args.model)
     log = (lambda m: None) if args.json else print
     rec, _ = model_recording(model)
@@ -81,7 +112,7 @@ def run(args: argparse.Namespace) -> int:
             seed=0,
         )
         cell, robot, tracker, _ = open_cell(ns)
-        measure = tracker_measure(tracker, args.readings)
+        measure = tracker_measure(tracker, args.readings or 5)
         spec, tool = cell.spec, cell.tool_m
         temps = None
     robot.connect()

@@ -219,10 +219,15 @@ class CorrectionTable:
 
 
 def load_table(path: str | os.PathLike) -> CorrectionTable:
-    p = Path(path)
+    given = p = Path(path)
     if p.suffix.lower() != ".json":
-        p = p.with_suffix(".json")
+        p = p.with_suffix(".json")  # `export --out X.script` writes the table as X.json
     if not p.exists():
+        if given != p and given.exists():
+            raise UserError(
+                f"{given} is not a correction table (.json) and there is no {p.name} beside it; "
+                "write one with `workcell export`"
+            )
         raise UserError(f"{p}: no such correction table; write one with `workcell export`")
     try:
         d = json.loads(p.read_text())
