@@ -28,6 +28,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "diagnose": ("workcell.commands.diagnose", "find the physics the nominal model left out"),
     "export": ("workcell.commands.export", "write a correction for the robot controller"),
     "validate": ("workcell.commands.validate", "closed-loop check of an exported correction"),
+    "envelope": ("workcell.commands.envelope", "write or check a safety envelope file"),
     "tui": ("workcell.commands.tui", "the shop-floor terminal UI"),
     "bench": ("workcell.commands.bench", "benchmarks that print their figures"),
 }

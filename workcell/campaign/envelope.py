@@ -164,3 +164,63 @@ def default_envelope(spec: RobotSpec) -> Envelope:
         max_speed_rad_s=1.0,
         max_accel_rad_s2=2.0,
     )
+
+
+def check_envelope_for(env: Envelope, spec: RobotSpec, source: str = "envelope") -> Envelope:
+    """Refuse an envelope that does not belong to this arm: a different joint count, or joint
+    limits beyond the arm's own range (a file typed in degrees lands here). Returns `env`."""
+    from workcell.errors import UserError
+
+    lim = np.asarray(env.joint_limits_rad)
+    if len(lim) != spec.n_joints:
+        raise UserError(f"{source}: {len(lim)} joint limits for a {spec.n_joints}-joint arm")
+    arm = np.asarray(spec.joint_limits_rad)
+    tol = 1e-9
+    bad = np.where((lim[:, 0] < arm[:, 0] - tol) | (lim[:, 1] > arm[:, 1] + tol))[0]
+    if len(bad):
+        j = int(bad[0])
+        hint = "; looks like degrees (give radians)" if np.max(np.abs(lim[j])) > 2.5 * np.pi else ""
+        raise UserError(
+            f"{source}: joint {j + 1} limits [{lim[j, 0]:.4g}, {lim[j, 1]:.4g}] rad go beyond the "
+            f"arm's range [{arm[j, 0]:.4g}, {arm[j, 1]:.4g}] rad{hint}"
+        )
+    vmax = float(np.min(spec.max_joint_speed_rad_s))
+    if env.max_speed_rad_s > vmax:
+        raise UserError(
+            f"{source}: max_speed_rad_s {env.max_speed_rad_s:g} is above the arm's joint speed "
+            f"limit {vmax:.4g} rad/s"
+        )
+    return env
+
+
+def load_envelope(path, spec: RobotSpec) -> Envelope:
+    """An envelope JSON file (the `Envelope.to_dict` layout, SI) checked for `spec`; every
+    problem is one `UserError` naming the file."""
+    import json
+    from pathlib import Path
+
+    from workcell.errors import UserError
+
+    p = Path(path)
+    if not p.is_file():
+        raise UserError(f"envelope file {p} does not exist (or is not a file)")
+    try:
+        env = Envelope.from_dict(json.loads(p.read_text()))
+    except (ValueError, UnicodeDecodeError) as e:
+        raise UserError(f"envelope file {p}: {e}") from None
+    return check_envelope_for(env, spec, f"envelope file {p}")
+
+
+def envelope_of_session(camp: dict, spec: RobotSpec, source: str) -> Envelope | None:
+    """The envelope a recorded campaign ran in (its session's `campaign.envelope`), checked for
+    `spec`; None when the recording has none (made by another tool)."""
+    from workcell.errors import UserError
+
+    d = (camp or {}).get("envelope")
+    if d is None:
+        return None
+    try:
+        env = Envelope.from_dict(d)
+    except ValueError as e:
+        raise UserError(f"{source}: recorded envelope unusable ({e})") from None
+    return check_envelope_for(env, spec, f"{source}: recorded envelope")

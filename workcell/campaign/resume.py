@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 
 from workcell.campaign.devices import open_cell
+from workcell.campaign.envelope import envelope_of_session
 from workcell.campaign.executor import CampaignConfig, CampaignControl
 from workcell.campaign.run import run_campaign
 from workcell.errors import UserError
@@ -58,6 +59,18 @@ def plan_continuation(kind: str, info: dict) -> dict:
     return {"skip_ids": info["done"]}
 
 
+def recorded_envelope(camp: dict, spec, source: str, default, say=None):
+    """The envelope the old campaign ran in: its poses were planned inside it and every motion of
+    the continuation must stay inside it. A recording without one gets `default`, and `say`
+    (default: stderr) is told so."""
+    env = envelope_of_session(camp, spec, source)
+    if env is None:
+        msg = f"{source}: no recorded envelope; resuming inside the arm's default envelope"
+        (say or (lambda m: print(m, file=sys.stderr)))(msg)
+        return default
+    return env
+
+
 def default_out(old: Path) -> Path:
     k = 1
     while True:
@@ -78,6 +91,11 @@ def resume_campaign(args: argparse.Namespace) -> int:
     if remaining <= 0:
         print(f"{old}: all {camp['poses']} poses already measured; nothing to resume")
         return 0
+    if getattr(args, "envelope", None) not in (None, "", "default"):
+        raise UserError(
+            "--resume keeps the envelope the campaign was recorded with (its poses were planned "
+            "inside it); leave --envelope out"
+        )
     ns = copy.copy(args)
     ns.robot = camp.get("robot_url", args.robot)
     ns.tracker = camp.get("tracker_url", args.tracker)
@@ -85,7 +103,9 @@ def resume_campaign(args: argparse.Namespace) -> int:
         ns.effects = camp["effects"]
     ns.seed = int(camp["seed"])
     ns.model = info["recording"].session.get("robot", {}).get("model", args.model)
+    ns.envelope = None
     cell, robot, tracker, env = open_cell(ns)
+    env = recorded_envelope(camp, cell.spec, str(old), default=env)
     cfg = CampaignConfig(
         readings_per_pose=int(camp.get("readings_per_pose", args.readings)),
         settle_s=float(camp.get("settle_s", args.settle)),

@@ -38,6 +38,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="exercise the arm this many seconds before measuring",
     )
     p.add_argument("--time-scale", type=float, default=1.0, help="simulators: time scale")
+    p.add_argument(
+        "--envelope",
+        metavar="FILE",
+        help="safety envelope JSON (joint limits in rad, workspace box and floor in m, speed "
+        "caps; `workcell envelope` writes the default to edit); default: the arm's default",
+    )
     p.add_argument("--dry-run", action="store_true", help="print and check the plan; do not move")
     p.add_argument("--resume", help="continue this interrupted recording in a new chained file")
     p.add_argument("--online", choices=["ekf-ann"], help="feed samples to an online estimator")

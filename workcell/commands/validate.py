@@ -18,6 +18,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--targets", type=int, default=50, help="random targets to measure")
     p.add_argument("--table", help="exported table (.json); default: build it from the model")
     p.add_argument("--volume", help="x0,y0,z0,x1,y1,z1 in m (when building the table)")
+    p.add_argument(
+        "--envelope", metavar="FILE", help="safety envelope JSON; default: the arm's default"
+    )
     p.add_argument("--seed", type=int, default=12345, help="seed of the random targets")
     p.add_argument("--sim-seed", type=int, help="simulated truth seed (default: the recording's)")
     p.add_argument("--effects", help="simulated effects (default: the recording's)")
@@ -57,7 +60,7 @@ def check_options(args: argparse.Namespace) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from workcell.campaign.envelope import default_envelope
+    from workcell.campaign.devices import envelope_from_args
     from workcell.estimation.models import load_model
     from workcell.export.build import make_table, model_recording, nominal_for_model, parse_vec
     from workcell.export.correction import Conditions
@@ -115,6 +118,7 @@ def run(args: argparse.Namespace) -> int:
         measure = tracker_measure(tracker, args.readings or 5)
         spec, tool = cell.spec, cell.tool_m
         temps = None
+    env = envelope_from_args(args, spec)  # before connecting
     robot.connect()
     tracker.connect()
     try:
@@ -132,7 +136,6 @@ def run(args: argparse.Namespace) -> int:
                 model, model_path=args.model, volume=vol, conditions=cond, log=log
             )
             nominal = corr.nominal
-        env = default_envelope(spec)
         res = run_validation(
             nominal,
             table,

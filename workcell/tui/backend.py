@@ -178,23 +178,9 @@ class PlanConfig:
 def envelope_for(plan: PlanConfig, dev: Devices):
     if plan.envelope in ("", "default"):
         return dev.envelope
-    import json
+    from workcell.campaign.envelope import load_envelope
 
-    from workcell.campaign.envelope import Envelope
-
-    p = Path(plan.envelope)
-    if not p.is_file():
-        raise UserError(f"envelope file {p} does not exist (or is not a file)")
-    try:
-        env = Envelope.from_dict(json.loads(p.read_text()))
-    except (ValueError, UnicodeDecodeError) as e:
-        raise UserError(f"envelope file {p}: {e}") from None
-    if len(env.joint_limits_rad) != dev.cell.spec.n_joints:
-        raise UserError(
-            f"envelope file {p}: {len(env.joint_limits_rad)} joint limits for a "
-            f"{dev.cell.spec.n_joints}-joint arm"
-        )
-    return env
+    return load_envelope(plan.envelope, dev.cell.spec)
 
 
 def campaign_config(plan: PlanConfig, dev: Devices):
@@ -373,8 +359,14 @@ def start_campaign(
     plan.validate()
     out = Path(plan.out)
     kw: dict = {}
+    env = None
     if resume_from:
-        from workcell.campaign.resume import default_out, plan_continuation, resume_plan
+        from workcell.campaign.resume import (
+            default_out,
+            plan_continuation,
+            recorded_envelope,
+            resume_plan,
+        )
         from workcell.recording.dataset import file_sha256
 
         old = Path(resume_from)
@@ -383,6 +375,13 @@ def start_campaign(
         if int(camp["poses"]) - len(info["done"]) <= 0:
             raise UserError(f"{old}: all {camp['poses']} poses already measured")
         out = default_out(old) if (not plan.out or out == old or out.exists()) else out
+        env = recorded_envelope(
+            camp,
+            dev.cell.spec,
+            str(old),
+            default=dev.envelope,
+            say=lambda m: on_event({"level": "warning", "kind": "envelope", "message": m}),
+        )
         plan = PlanConfig(
             kind=camp["plan"],
             poses=int(camp["poses"]),
@@ -413,7 +412,7 @@ def start_campaign(
         plan=plan.kind,
         poses=plan.poses,
         seed=plan.seed,
-        envelope=envelope_for(plan, dev),
+        envelope=env if resume_from else envelope_for(plan, dev),
         config=campaign_config(plan, dev),
         control=control,
         on_sample=on_sample,

@@ -1,0 +1,150 @@
+"""A configured safety envelope: written and checked by `workcell envelope`, taken by `campaign
+--envelope` (and `validate`), recorded in the session, and reused by `--resume` so the continued
+campaign plans the same poses and never leaves it."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from workcell.campaign.envelope import load_envelope
+from workcell.campaign.executor import CampaignControl
+from workcell.campaign.run import run_campaign, sim_cell
+from workcell.cli import main
+from workcell.recording.reader import read_recording
+
+SEED, POSES = 3, 12
+
+
+@pytest.fixture
+def tight(tmp_path, capsys):
+    """The default UR5e envelope with joint 1 narrowed to +-0.5 rad and joint 3 to 0.3..1.5 rad."""
+    path = tmp_path / "env.json"
+    assert main(["envelope", "--robot", "ur5e", "--out", str(path)]) == 0
+    d = json.loads(path.read_text())
+    d["joint_limits_rad"][0] = [-0.5, 0.5]
+    d["joint_limits_rad"][2] = [0.3, 1.5]
+    path.write_text(json.dumps(d))
+    capsys.readouterr()
+    return path
+
+
+def q_commanded(path) -> dict[int, list[float]]:
+    return {int(s["pose_id"]): s["q_commanded_rad"] for s in read_recording(path).samples}
+
+
+def inside(q: list[float]) -> bool:
+    return -0.5 <= q[0] <= 0.5 and 0.3 <= q[2] <= 1.5
+
+
+def test_envelope_command_round_trip_and_refusals(tmp_path, tight, capsys):
+    assert main(["envelope", "--robot", "ur5e", "--check", str(tight)]) == 0
+    out = capsys.readouterr().out
+    assert "ok" in out and "joint 1  [-0.5000, +0.5000] rad" in out
+    d = json.loads(tight.read_text())
+    cases = {
+        "deg": ({**d, "joint_limits_rad": np.degrees(d["joint_limits_rad"]).tolist()}, "degrees"),
+        "nan": ({**d, "box_min_m": [float("nan"), 0, 0]}, "finite"),
+        "five": ({**d, "joint_limits_rad": d["joint_limits_rad"][:5]}, "5 joint limits"),
+        "fast": ({**d, "max_speed_rad_s": 50.0}, "joint speed limit"),
+    }
+    for name, (bad, match) in cases.items():
+        p = tmp_path / f"{name}.json"
+        p.write_text(json.dumps(bad))
+        assert main(["envelope", "--check", str(p)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and match in err[0], (name, err)
+        # the same file stops a campaign before it connects or writes anything
+        rec = tmp_path / f"{name}.mcap"
+        argv = ["campaign", "--poses", "3", "--envelope", str(p), "--out", str(rec)]
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and match in err[0] and not rec.exists(), (name, err)
+
+
+def test_campaign_stays_inside_and_resume_reuses_the_recorded_envelope(tmp_path, tight, capsys):
+    # the whole campaign, uninterrupted, in the tight envelope
+    full = tmp_path / "full.mcap"
+    base = ["campaign", "--robot", "sim", "--tracker", "sim", "--effects", "none"]
+    base += ["--seed", str(SEED), "--poses", str(POSES), "--readings", "2"]
+    assert main([*base, "--envelope", str(tight), "--out", str(full)]) == 0
+    planned = q_commanded(full)
+    assert len(planned) == POSES and all(inside(q) for q in planned.values())
+    env = read_recording(full).session["campaign"]["envelope"]
+    assert env["joint_limits_rad"][0] == [-0.5, 0.5]
+
+    # the same campaign stopped after 4 poses (a clean abort stands in for a dead process)
+    world, robot, tracker, cell = sim_cell("ur5e", "none", SEED)
+    control = CampaignControl()
+
+    def stop_after_4(s: dict) -> None:
+        if s["index"] >= 3:
+            control.abort.set()
+
+    cut = tmp_path / "cut.mcap"
+    run_campaign(
+        robot,
+        tracker,
+        cell,
+        cut,
+        plan="random",
+        poses=POSES,
+        seed=SEED,
+        envelope=load_envelope(tight, cell.spec),
+        control=control,
+        on_sample=stop_after_4,
+        extra_campaign={"robot_url": "sim", "tracker_url": "sim", "effects": "none"},
+    )
+    first = q_commanded(cut)
+    assert 0 < len(first) < POSES
+
+    # --envelope with --resume is refused: the plan was made inside the recorded one
+    assert main(["campaign", "--resume", str(cut), "--envelope", str(tight)]) == 2
+    assert "keeps the envelope" in capsys.readouterr().err
+    # --resume re-plans inside the recorded envelope: the same poses as the uninterrupted run
+    assert main(["campaign", "--resume", str(cut)]) == 0
+    rest = q_commanded(tmp_path / "cut.resumed1.mcap")
+    assert set(first) | set(rest) == set(planned) and not set(first) & set(rest)
+    for pid, q in {**first, **rest}.items():
+        assert np.allclose(q, planned[pid], atol=1e-12), pid
+        assert inside(q), (pid, q)
+
+
+def test_tui_resume_reuses_the_recorded_envelope(tmp_path, tight, monkeypatch):
+    """The TUI's resume (backend.start_campaign with resume_from) re-plans inside the recorded
+    envelope even when the Plan screen is back on the default one."""
+    from workcell.tui import backend
+
+    monkeypatch.chdir(tmp_path)
+    dev = backend.open_devices(backend.DeviceConfig(effects="none", seed=SEED))
+    try:
+        plan = backend.PlanConfig(
+            poses=POSES, seed=SEED, readings_per_pose=2, envelope=str(tight), out="a.mcap"
+        )
+        control = CampaignControl()
+
+        def stop_after_4(s: dict) -> None:
+            if s["index"] >= 3:
+                control.abort.set()
+
+        backend.start_campaign(
+            dev, plan, control=control, on_sample=stop_after_4, on_event=lambda e: None
+        )
+        first = q_commanded(tmp_path / "a.mcap")
+        assert 0 < len(first) < POSES
+        plan_default = backend.PlanConfig(poses=POSES, seed=SEED, envelope="default", out="a.mcap")
+        path, _ = backend.start_campaign(
+            dev,
+            plan_default,
+            control=CampaignControl(),
+            on_sample=lambda s: None,
+            on_event=lambda e: None,
+            resume_from="a.mcap",
+        )
+    finally:
+        dev.close()
+    rest = q_commanded(path)
+    assert len(first) + len(rest) == POSES
+    assert all(inside(q) for q in rest.values()), rest
