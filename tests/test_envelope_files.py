@@ -148,3 +148,42 @@ def test_tui_resume_reuses_the_recorded_envelope(tmp_path, tight, monkeypatch):
     rest = q_commanded(path)
     assert len(first) + len(rest) == POSES
     assert all(inside(q) for q in rest.values()), rest
+
+
+def test_validate_moves_inside_the_given_envelope_and_at_its_speed_cap(tmp_path, capsys):
+    """`validate --envelope FILE`: targets outside it are skipped and every move is commanded at
+    or below its speed and acceleration caps."""
+    from sim_devices.inprocess import SimRobot
+
+    rec = tmp_path / "c.mcap"
+    argv = ["campaign", "--effects", "none", "--seed", str(SEED), "--poses", "16"]
+    assert main([*argv, "--readings", "2", "--out", str(rec)]) == 0
+    model = tmp_path / "m.json"
+    assert main(["fit", str(rec), "--holdout", "0", "--out", str(model)]) == 0
+    slow = tmp_path / "slow.json"
+    assert main(["envelope", "--out", str(slow)]) == 0
+    d = json.loads(slow.read_text())
+    d["max_speed_rad_s"], d["max_accel_rad_s2"] = 0.2, 0.4
+    d["joint_limits_rad"][0] = [-1.0, 1.5]  # narrower than the default +-170 deg
+    slow.write_text(json.dumps(d))
+    moves: list[tuple[np.ndarray, float, float]] = []
+    orig = SimRobot.move_joints
+
+    def spy(self, q, speed, accel):
+        moves.append((np.asarray(q, float), speed, accel))
+        return orig(self, q, speed, accel)
+
+    SimRobot.move_joints = spy
+    try:
+        rc = main(["validate", str(model), "--envelope", str(slow), "--targets", "6", "--json"])
+    finally:
+        SimRobot.move_joints = orig
+    cap = capsys.readouterr()
+    assert rc == 0, cap.err
+    out = cap.out
+    res = json.loads(out.strip().splitlines()[-1])
+    assert res["targets"] + len(res["skipped"]) == 6 and res["targets"] >= 1
+    assert moves and all(s <= 0.2 and a <= 0.4 for _, s, a in moves)
+    assert all(-1.0 <= q[0] <= 1.5 for q, _, _ in moves)
+    # the file's joint-1 range (not the default +-170 deg) is what refused these targets
+    assert res["skipped"] and all("joint 1 target" in w for w in res["skipped"]), res["skipped"]

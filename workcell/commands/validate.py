@@ -139,7 +139,7 @@ def run(args: argparse.Namespace) -> int:
         res = run_validation(
             nominal,
             table,
-            robot_mover(robot),
+            robot_mover(robot, *env.cap(0.5, 1.0)),  # speeds capped by the envelope
             measure,
             n=args.targets,
             seed=args.seed,
