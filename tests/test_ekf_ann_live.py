@@ -197,3 +197,16 @@ def test_live_filter_predicts_new_poses_far_better_than_nominal(tmp_path):
     for s in rec.samples:
         lf2.update(s)
     assert lf2.prefit_accepted is False and np.isfinite(lf2.last_innovation_m)
+
+
+def test_measurement_noise_is_floored_by_the_tracker_mpe():
+    """The recorded sigma of a mean (scatter of the readings) is repeatability only; the filter's
+    noise is max(recorded, (A + B * range) / 4) per axis, as in fit and diagnose."""
+    from workcell.kinematics.robots import robot_by_name
+
+    lf = LiveFilter(robot_by_name("ur5e"), np.array([0.0, 0.0, 0.06]))
+    y = np.array([3.0, 0.0, 4.0])  # 5 m from the tracker: (15 + 30) um / 4 = 11.25 um
+    assert np.allclose(lf._sigma(y, np.full(3, 2e-6)), 11.25e-6)
+    assert np.allclose(lf._sigma(y, np.full(3, 40e-6)), 40e-6)  # a larger recorded sigma wins
+    raw = LiveFilter(robot_by_name("ur5e"), np.array([0.0, 0.0, 0.06]), tracker_mpe=None)
+    assert np.allclose(raw._sigma(y, np.full(3, 2e-6)), 2e-6)

@@ -29,6 +29,7 @@ from collections import deque
 import numpy as np
 from scipy.stats import chi2
 
+from workcell.estimation.dh import TRACKER_MPE_M
 from workcell.estimation.ekf_ann import ann as A
 from workcell.estimation.ekf_ann.filter import EkfAnnFilter, FilterConfig, prefit_weights
 from workcell.estimation.ekf_ann.model import EkfAnnModel
@@ -71,6 +72,7 @@ class LiveFilter:
         seed: int = 0,
         adaptive_geometry: bool = True,
         window: int = 100,
+        tracker_mpe: tuple[float, float] | None = TRACKER_MPE_M,
     ) -> None:
         if n_init < 6:
             raise ValueError(
@@ -83,6 +85,10 @@ class LiveFilter:
         self.hidden = hidden
         self.seed = seed
         self.adaptive_geometry = adaptive_geometry
+        # measurement noise per axis: max(recorded sigma of the mean, tracker MPE / 4) -- the
+        # recorded sigma comes from the scatter of the readings at one pose and leaves out the
+        # tracker's per-pose systematic error (None: the recorded sigma alone)
+        self.tracker_mpe = tracker_mpe
         self.filter: EkfAnnFilter | None = None
         self._buf: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self._nis: deque = deque(maxlen=window)
@@ -116,9 +122,16 @@ class LiveFilter:
         s = np.where(np.isfinite(s) & (s > 0), s, 1e-5)
         return q, y, s
 
+    def _sigma(self, y: np.ndarray, s: np.ndarray) -> np.ndarray:
+        if self.tracker_mpe is None or not np.all(np.isfinite(y)):
+            return s
+        a, b = self.tracker_mpe
+        return np.maximum(s, (a + b * float(np.linalg.norm(y))) / 4.0)
+
     def update(self, sample: dict) -> str:
         """Process one /campaign/sample dict; return a one-line progress string."""
         q, y, s = self._parse(sample)
+        s = self._sigma(y, s)
         if not (np.all(np.isfinite(q)) and np.all(np.isfinite(y))):
             return f"ekf-ann {self.n:5d}  sample {sample.get('index')} skipped (non-finite)"
         self.n += 1
