@@ -5,10 +5,13 @@ Every motion target is checked before any motion; a target outside is refused wi
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
+from workcell.errors import UserError
 from workcell.kinematics.chain import base_T_frames, pack
 from workcell.kinematics.robots import RobotSpec
 
@@ -169,8 +172,6 @@ def default_envelope(spec: RobotSpec) -> Envelope:
 def check_envelope_for(env: Envelope, spec: RobotSpec, source: str = "envelope") -> Envelope:
     """Refuse an envelope that does not belong to this arm: a different joint count, or joint
     limits beyond the arm's own range (a file typed in degrees lands here). Returns `env`."""
-    from workcell.errors import UserError
-
     lim = np.asarray(env.joint_limits_rad)
     if len(lim) != spec.n_joints:
         raise UserError(f"{source}: {len(lim)} joint limits for a {spec.n_joints}-joint arm")
@@ -196,11 +197,6 @@ def check_envelope_for(env: Envelope, spec: RobotSpec, source: str = "envelope")
 def load_envelope(path, spec: RobotSpec) -> Envelope:
     """An envelope JSON file (the `Envelope.to_dict` layout, SI) checked for `spec`; every
     problem is one `UserError` naming the file."""
-    import json
-    from pathlib import Path
-
-    from workcell.errors import UserError
-
     p = Path(path)
     if not p.is_file():
         raise UserError(f"envelope file {p} does not exist (or is not a file)")
@@ -214,8 +210,6 @@ def load_envelope(path, spec: RobotSpec) -> Envelope:
 def envelope_of_session(camp: dict, spec: RobotSpec, source: str) -> Envelope | None:
     """The envelope a recorded campaign ran in (its session's `campaign.envelope`), checked for
     `spec`; None when the recording has none (made by another tool)."""
-    from workcell.errors import UserError
-
     d = (camp or {}).get("envelope")
     if d is None:
         return None
