@@ -74,6 +74,9 @@ def test_campaign_stays_inside_and_resume_reuses_the_recorded_envelope(tmp_path,
     assert len(planned) == POSES and all(inside(q) for q in planned.values())
     env = read_recording(full).session["campaign"]["envelope"]
     assert env["joint_limits_rad"][0] == [-0.5, 0.5]
+    capsys.readouterr()
+    assert main(["info", str(full)]) == 0
+    assert "envelope    joints [-29..29, -175..-5, 17..86," in capsys.readouterr().out
 
     # the same campaign stopped after 4 poses (a clean abort stands in for a dead process)
     world, robot, tracker, cell = sim_cell("ur5e", "none", SEED)

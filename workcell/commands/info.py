@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import json
 
+import numpy as np
+
 from workcell.recording import checks
 from workcell.recording.reader import Recording, read_recording
 
@@ -45,6 +47,7 @@ def summary(path: str) -> dict:
         "problems": rec.problems,
         "value_problems": value_problems(rec),
         "plan": _get(s.get("campaign"), "plan"),
+        "envelope": _get(s.get("campaign"), "envelope"),
         "chained_from": s.get("chained_from"),
         "size_bytes": rec.size_bytes,
     }
@@ -65,6 +68,8 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"closed      {'cleanly' if d['closed_cleanly'] else 'NOT cleanly (crash or still open)'}"
     )
+    if d["envelope"] is not None:
+        print(f"envelope    {envelope_line(d['envelope'])}")
     if d["chained_from"]:
         print(f"continues   {_get(d['chained_from'], 'path')}")
     for p in d["problems"]:
@@ -77,3 +82,20 @@ def run(args: argparse.Namespace) -> int:
     if vp:
         print("            fits refuse this file until these values are repaired")
     return 0
+
+
+def envelope_line(d) -> str:
+    """The recorded safety envelope in one line (joint limits in degrees for reading)."""
+    from workcell.campaign.envelope import Envelope
+
+    try:
+        env = Envelope.from_dict(d)
+    except ValueError as e:
+        return f"unusable ({e})"
+    lim = np.degrees(env.joint_limits_rad)
+    joints = ", ".join(f"{lo:.0f}..{hi:.0f}" for lo, hi in lim)
+    return (
+        f"joints [{joints}] deg, SMR box {np.round(env.box_min_m, 3).tolist()}.."
+        f"{np.round(env.box_max_m, 3).tolist()} m, floor {env.floor_z_m:g} m, "
+        f"<= {env.max_speed_rad_s:g} rad/s"
+    )
