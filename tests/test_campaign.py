@@ -94,6 +94,33 @@ def test_target_outside_envelope_refused_before_any_motion():
     assert env.cap(10.0, 10.0) == (env.max_speed_rad_s, env.max_accel_rad_s2)
 
 
+class ClockRobot(RecordingRobot):
+    """Robot time advances one second per move (the warm-up runs on robot time)."""
+
+    def state(self):
+        from workcell.drivers.protocols import RobotState
+
+        return RobotState(t_s=float(len(self.moves)), q_rad=np.zeros(6), qd_rad_s=np.zeros(6))
+
+
+def test_warm_up_never_leaves_the_envelope():
+    """The warm-up swings the arm around the first target: a centre outside the envelope means
+    no warm-up at all (one event), and every swing it does make is inside."""
+    env = default_envelope(UR5E)
+    tool = np.array([0, 0, 0.06])
+    cfg = CampaignConfig(warmup_s=8.0)
+    robot, sink = ClockRobot(), NullSink()
+    ex = Executor(robot, None, UR5E, env, sink, tool_m=tool, config=cfg)
+    ex.warm_up(np.array([0.0, 0.3, 0.0, 0.0, 0.0, 0.0]))  # joint 2 outside [-175, -5] deg
+    assert robot.moves == []
+    assert [k for k, _ in sink.events] == ["refused"] and "warm-up skipped" in sink.events[0][1]
+    robot, sink = ClockRobot(), NullSink()
+    ex = Executor(robot, None, UR5E, env, sink, tool_m=tool, config=cfg)
+    ex.warm_up(np.array([0.0, -1.2, 1.2, -1.5, -1.5, 0.0]))
+    assert len(robot.moves) >= 8
+    assert all(v is None for v in env.violations(UR5E, np.array(robot.moves), tool))
+
+
 def test_sim_campaign_records_every_pose_or_an_event(tmp_path):
     world, robot, tracker, cell = sim_cell("ur5e", "realistic", seed=4, beam_break_prob=0.15)
     p = tmp_path / "c.mcap"

@@ -386,6 +386,10 @@ class Executor:
         joints reach their working temperature before measuring (no measurement is taken)."""
         if self.cfg.warmup_s <= 0:
             return
+        why = self.env.violations(self.spec, np.atleast_2d(q_centre), self.tool_m)[0]
+        if why is not None:  # the warm-up moves around the first target: never outside
+            self.event("error", "refused", f"warm-up skipped: its centre (first target): {why}")
+            return
         self.event("info", "warmup", f"warming up for {self.cfg.warmup_s:.0f} s before measuring")
         start = self.elapsed()
         k = 0
