@@ -627,6 +627,13 @@ class UrRobot:
                 raise DeviceError(f"UR {self.host}: RTDE connection lost during a move")
             self._raise_if_stopped(rr, "during a move")
             if int(rr.getRuntimeState()) != RUNTIME_PLAYING:
+                # ur_rtde updates the received fields one by one, so the runtime state can
+                # change a packet before the safety bits are seen: look again for a moment
+                # so that a protective stop is reported as one (CI caught this race).
+                t_grace = time.monotonic() + 0.2
+                while rr.isConnected() and time.monotonic() < t_grace:
+                    self._raise_if_stopped(rr, "during a move")
+                    time.sleep(self.poll_s)
                 raise DeviceError(f"UR {self.host}: control program stopped during a move")
             err = float(np.max(np.abs(np.array(rr.getActualQ()) - q)))
             if err < self.arrival_tol_rad:
