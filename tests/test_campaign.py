@@ -9,9 +9,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from workcell.campaign.envelope import EnvelopeViolation, default_envelope
+from workcell.campaign.envelope import EnvelopeViolation, default_envelope, route
 from workcell.campaign.executor import CampaignConfig, Executor
-from workcell.campaign.plans import PoseTarget, make_plan
+from workcell.campaign.plans import PoseTarget, make_plan, random_configurations
 from workcell.campaign.run import run_campaign, sim_cell
 from workcell.kinematics.robots import UR5E
 from workcell.recording.reader import read_recording
@@ -95,12 +95,18 @@ def test_target_outside_envelope_refused_before_any_motion():
 
 
 class ClockRobot(RecordingRobot):
-    """Robot time advances one second per move (the warm-up runs on robot time)."""
+    """Robot time advances one second per move (the warm-up runs on robot time); the arm is
+    where it was last sent (it starts at `q0`)."""
+
+    def __init__(self, q0=(0.0, -1.57, 1.57, -1.57, -1.57, 0.0)):
+        super().__init__()
+        self.q0 = np.array(q0, float)
 
     def state(self):
         from workcell.drivers.protocols import RobotState
 
-        return RobotState(t_s=float(len(self.moves)), q_rad=np.zeros(6), qd_rad_s=np.zeros(6))
+        q = self.moves[-1] if self.moves else self.q0
+        return RobotState(t_s=float(len(self.moves)), q_rad=q, qd_rad_s=np.zeros(6))
 
 
 def test_warm_up_never_leaves_the_envelope():
@@ -224,3 +230,65 @@ def test_an_envelope_file_is_either_refused_or_really_confines(data):
         env.check(UR5E, q, np.array([0, 0, 0.06]))
     speed, accel = env.cap(1e9, 1e9)
     assert 0 < speed < 1e9 and 0 < accel < 1e9
+
+
+def _grid_dip():
+    """A consecutive pair of grid-plan poses (seed 0) whose joint-space path dips below the
+    workspace box although both ends are inside: what end-point checks alone would let through."""
+    env = default_envelope(UR5E)
+    tool = np.array([0, 0, 0.06])
+    gen, _ = make_plan("grid", UR5E, env, 60, seed=0, tool_m=tool)
+    targets = list(gen)
+    ex = Executor(None, None, UR5E, env, None, tool_m=tool)
+    for a, b in zip(targets[:-1], targets[1:], strict=True):
+        pre = ex._prepose(b)
+        if env.path_violation(UR5E, a.q_rad, pre, tool) is not None:
+            return env, tool, a, b, pre
+    raise AssertionError("no dipping segment in this plan; pick another seed")
+
+
+def test_joint_paths_between_valid_poses_are_checked_and_routed():
+    env, tool, a, b, pre = _grid_dip()
+    assert env.violations(UR5E, np.array([a.q_rad, pre]), tool) == [None, None]
+    why = env.path_violation(UR5E, a.q_rad, pre, tool)
+    assert "of the way" in why and "outside the workspace box" in why
+    # the executor goes round it (via the upright posture) or refuses; never along the dip
+    robot, sink = ClockRobot(q0=a.q_rad), NullSink()
+    ex = Executor(robot, None, UR5E, env, sink, tool_m=tool)
+    ok = ex._move_along(pre, f"pose {b.pose_id}")
+    path = [a.q_rad, *robot.moves]
+    if ok:
+        assert len(robot.moves) == 2 and [k for k, _ in sink.events] == ["via"]
+    else:
+        assert robot.moves == [] and [k for k, _ in sink.events] == ["refused"]
+    for q0, q1 in zip(path[:-1], path[1:], strict=True):
+        assert env.path_violation(UR5E, q0, q1, tool) is None
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.integers(0, 2**31 - 1))
+def test_route_between_random_valid_poses_never_leaves_the_envelope(seed):
+    env = default_envelope(UR5E)
+    tool = np.array([0, 0, 0.06])
+    a, b = random_configurations(UR5E, env, 2, np.random.default_rng(seed), tool)
+    waypoints, why = route(env, UR5E, tool, a, b)
+    if why is not None:
+        assert waypoints == [] and env.path_violation(UR5E, a, b, tool) is not None
+        return
+    path = [a, *waypoints]
+    assert np.allclose(path[-1], b)
+    for q0, q1 in zip(path[:-1], path[1:], strict=True):
+        assert env.path_violation(UR5E, q0, q1, tool) is None
+
+
+def test_a_planned_campaign_has_no_move_that_leaves_the_envelope():
+    """The demo's plan (UR5e, 150 random poses, seed 1): in the order drawn, six moves between
+    consecutive poses dipped below the box even via the upright posture and the executor refused
+    those poses; the planner now defers such a pose until one it can be reached from."""
+    env = default_envelope(UR5E)
+    tool = np.array([0, 0, 0.06])
+    gen, q = make_plan("random", UR5E, env, 150, seed=1, tool_m=tool)
+    targets = list(gen)
+    assert len(targets) == 150 and len({t.pose_id for t in targets}) == 150
+    ex = Executor(None, None, UR5E, env, None, tool_m=tool)
+    assert ex.check_plan(targets) == []

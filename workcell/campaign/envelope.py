@@ -134,6 +134,34 @@ class Envelope:
                 )
         return out
 
+    def path_violation(
+        self,
+        spec: RobotSpec,
+        q_from: np.ndarray,
+        q_to: np.ndarray,
+        tool_m: np.ndarray,
+        max_step_rad: float = 0.02,
+    ) -> str | None:
+        """Where the joint-space straight line q_from -> q_to (the path of a UR moveJ: all
+        joints start and stop together) leaves the envelope, or None. Joint limits are convex,
+        but the workspace box and the floor are not in joint space: two valid end points can
+        have a path that dips the SMR or a link below the table. Sampled at most `max_step_rad`
+        apart on every joint (0.02 rad moves a point 1 m out by 2 cm)."""
+        q0, q1 = np.asarray(q_from, float), np.asarray(q_to, float)
+        if not (np.all(np.isfinite(q0)) and np.all(np.isfinite(q1))):
+            return "path with non-finite joint values"
+        n = max(1, int(np.ceil(np.max(np.abs(q1 - q0)) / max_step_rad)))
+        m = max(
+            32, 1 << int(np.ceil(np.log2(n + 1)))
+        )  # few distinct shapes: JAX compiles once each
+        s = np.linspace(0.0, 1.0, m)
+        for si, v in zip(
+            s, self.violations(spec, q0 + s[:, None] * (q1 - q0), tool_m), strict=True
+        ):
+            if v is not None:
+                return f"the joint path leaves the envelope {100 * si:.0f} % of the way: {v}"
+        return None
+
     def check(self, spec: RobotSpec, q: np.ndarray, tool_m: np.ndarray) -> None:
         v = self.violations(spec, np.atleast_2d(q), tool_m)[0]
         if v is not None:
@@ -218,3 +246,32 @@ def envelope_of_session(camp: dict, spec: RobotSpec, source: str) -> Envelope | 
     except ValueError as e:
         raise UserError(f"{source}: recorded envelope unusable ({e})") from None
     return check_envelope_for(env, spec, f"{source}: recorded envelope")
+
+
+def upright(q: np.ndarray) -> np.ndarray:
+    """The via posture for a UR arm: q with shoulder, elbow and wrist 1 set to (-pi/2, 0, -pi/2),
+    upper arm and forearm pointing straight up, base and wrists 2-3 where they are."""
+    u = np.array(q, float)
+    u[1:4] = (-np.pi / 2, 0.0, -np.pi / 2)
+    return u
+
+
+def route(
+    env: Envelope, spec: RobotSpec, tool_m: np.ndarray, q_from: np.ndarray, q_to: np.ndarray
+) -> tuple[list[np.ndarray], str | None]:
+    """Waypoints from q_from to q_to whose joint paths stay inside `env`: the direct move, else
+    via the upright posture (`upright(q_from)`). Returns (waypoints, None), or ([], why) when
+    neither stays inside (then nothing may move)."""
+    q_to = np.asarray(q_to, float)
+    why = env.path_violation(spec, q_from, q_to, tool_m)
+    if why is None:
+        return [q_to], None
+    if spec.n_joints == 6:
+        u = upright(q_from)
+        if (
+            env.violations(spec, u[None], tool_m)[0] is None
+            and env.path_violation(spec, q_from, u, tool_m) is None
+            and env.path_violation(spec, u, q_to, tool_m) is None
+        ):
+            return [u, q_to], None
+    return [], why

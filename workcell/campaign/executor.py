@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from workcell.campaign.envelope import Envelope, EnvelopeViolation
+from workcell.campaign.envelope import Envelope, EnvelopeViolation, route
 from workcell.campaign.plans import Plan, PoseTarget
 from workcell.drivers.protocols import (
     DeviceError,
@@ -138,6 +138,7 @@ class Executor:
         self.result = CampaignResult()
         self._t_robot0: float | None = None
         self._t_wall0_ns = time.time_ns() if t_wall0_ns is None else t_wall0_ns
+        self._warned_outside = False
         self._elapsed0 = elapsed0_s
         self._last_js = -1e9
 
@@ -253,15 +254,60 @@ class Executor:
     def check_plan(self, targets: list[PoseTarget]) -> list[str]:
         """Dry run: every target and pre-pose against the envelope. Returns the problems."""
         problems = []
+        prev = None
         for t in targets:
-            for q, what in ((t.q_rad, "target"), (self._prepose(t), "approach pre-pose")):
+            pre = self._prepose(t)
+            bad = False
+            for q, what in ((t.q_rad, "target"), (pre, "approach pre-pose")):
                 v = self.env.violations(self.spec, q, self.tool_m)[0]
                 if v:
                     problems.append(f"pose {t.pose_id} {what}: {v}")
+                    bad = True
+            if bad:
+                continue  # refused: the arm stays at the previous pose
+            v = self.env.path_violation(self.spec, pre, t.q_rad, self.tool_m)
+            if v is None and prev is not None:
+                _, v = route(self.env, self.spec, self.tool_m, prev, pre)
+            if v:
+                problems.append(f"pose {t.pose_id} path: {v}; also via the upright posture")
+                continue
+            prev = t.q_rad
         return problems
 
     def _prepose(self, t: PoseTarget) -> np.ndarray:
         return t.q_rad - np.sign(t.approach_sign) * self.cfg.approach_rad
+
+    def _move_along(self, q_to: np.ndarray, what: str) -> bool:
+        """Move to q_to along joint paths inside the envelope (direct, or via the upright
+        posture); False, with a `refused` event and no motion, when neither stays inside. An arm
+        that starts outside the envelope (placed there by the operator) makes its first move
+        without the path check, said once as a warning."""
+        q_now = np.asarray(self._robot_call(lambda: self.robot.state()).q_rad, float)
+        outside = self.env.violations(self.spec, q_now[None], self.tool_m)[0]
+        if outside is not None:
+            if not self._warned_outside:
+                self._warned_outside = True
+                self.event(
+                    "warning",
+                    "envelope",
+                    f"the arm starts outside the envelope ({outside}); the move to {what} is not "
+                    "path-checked",
+                )
+            waypoints = [np.asarray(q_to, float)]
+        else:
+            waypoints, why = route(self.env, self.spec, self.tool_m, q_now, q_to)
+            if why is not None:
+                self.event("error", "refused", f"{what}: {why}; also via the upright posture")
+                return False
+            if len(waypoints) > 1:
+                self.event("info", "via", f"{what}: direct path leaves the envelope; via upright")
+        for q in waypoints:
+            self._move(q)
+        return True
+
+    def _skip(self, t: PoseTarget) -> None:
+        self.result.skipped += 1
+        self.result.skipped_ids.append(t.pose_id)
 
     def run_pose(self, t: PoseTarget) -> dict | None:
         pre = self._prepose(t)
@@ -270,10 +316,16 @@ class Executor:
                 self.env.check(self.spec, q, self.tool_m)
             except EnvelopeViolation as e:
                 self.event("error", "refused", f"pose {t.pose_id} {what}: {e}")
-                self.result.skipped += 1
-                self.result.skipped_ids.append(t.pose_id)
+                self._skip(t)
                 return None
-        self._move(pre)
+        why = self.env.path_violation(self.spec, pre, t.q_rad, self.tool_m)
+        if why is not None:
+            self.event("error", "refused", f"pose {t.pose_id} approach: {why}")
+            self._skip(t)
+            return None
+        if not self._move_along(pre, f"pose {t.pose_id}"):
+            self._skip(t)
+            return None
         self._record_state(force=True)
         self._move(t.q_rad)
         approach = np.sign(t.q_rad - pre)
@@ -400,7 +452,8 @@ class Executor:
             q = q_centre + (offsets if k % 2 == 0 else -offsets)
             if self.env.violations(self.spec, q, self.tool_m)[0] is not None:
                 q = q_centre
-            self._move(q)
+            if not self._move_along(q, "the warm-up"):
+                break
             self._record_state(force=False)
             k += 1
         self.event("info", "warmup", f"warm-up done after {k} moves")

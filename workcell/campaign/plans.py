@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from workcell.campaign.envelope import Envelope
+from workcell.campaign.envelope import Envelope, route
 from workcell.kinematics.robots import RobotSpec
 
 
@@ -110,6 +110,42 @@ def approach_signs(
     return q[ok], signs[ok]
 
 
+def order_for_paths(
+    spec: RobotSpec,
+    env: Envelope,
+    q: np.ndarray,
+    signs: np.ndarray,
+    tool_m: np.ndarray,
+    approach_rad: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Keep the given (random or raster) order, but defer a pose whose move from the previous
+    pose leaves the envelope part-way (the joint-space path of a moveJ can dip the SMR or a link
+    below the table between two valid end points) until a pose it can be reached from has been
+    measured, the way the executor moves: directly, else via the upright posture. A pose whose
+    own approach (pre-pose -> pose) leaves the envelope is dropped, and so is a pose from which
+    no remaining pose can be reached (the order then goes on from the pose before it).
+    Deterministic, so a resumed campaign re-plans the same pose ids."""
+    pre = q - signs * approach_rad
+    ok = [env.path_violation(spec, pre[i], q[i], tool_m) is None for i in range(len(q))]
+    remaining = [i for i in range(len(q)) if ok[i]]
+    order: list[int] = []
+    while remaining:
+        if not order:
+            nxt = remaining[0]
+        else:
+            prev = q[order[-1]]
+            nxt = next(
+                (i for i in remaining if route(env, spec, tool_m, prev, pre[i])[1] is None), None
+            )
+            if nxt is None:
+                order.pop()  # a dead end: drop it and go on from the pose before it
+                continue
+        order.append(nxt)
+        remaining.remove(nxt)
+    idx = np.array(order, int)
+    return q[idx], signs[idx]
+
+
 def static_plan(
     q: np.ndarray, signs: np.ndarray, *, start_id: int = 0, skip_ids: set[int] | None = None
 ) -> Plan:
@@ -143,10 +179,16 @@ def make_plan(
         else:
             q = grid_configurations(spec, env, int(n * 1.1) + 2, tool_m, seed)
         q, signs = approach_signs(spec, env, q, tool_m, approach_rad, seed)
+        if kind == "grid" and len(q) > n:
+            idx = np.round(np.linspace(0, len(q) - 1, n)).astype(int)
+            q, signs = q[idx], signs[idx]
+        q, signs = order_for_paths(spec, env, q, signs, tool_m, approach_rad)
         if len(q) < n:
-            raise ValueError(f"only {len(q)} of {n} poses fit the envelope with their approach")
-        idx = np.round(np.linspace(0, len(q) - 1, n)).astype(int) if kind == "grid" else slice(0, n)
-        q, signs = q[idx], signs[idx]
+            raise ValueError(
+                f"only {len(q)} of {n} poses fit the envelope with their approach and the paths "
+                "between them; widen the envelope or ask for fewer poses"
+            )
+        q, signs = q[:n], signs[:n]
         return static_plan(q, signs, skip_ids=skip_ids), q
     if kind in ("bo", "dopt"):
         from workcell.campaign import adaptive  # optional module (experiment design)
