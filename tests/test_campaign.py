@@ -292,3 +292,31 @@ def test_a_planned_campaign_has_no_move_that_leaves_the_envelope():
     assert len(targets) == 150 and len({t.pose_id for t in targets}) == 150
     ex = Executor(None, None, UR5E, env, None, tool_m=tool)
     assert ex.check_plan(targets) == []
+
+
+def test_encoder_noise_at_the_envelope_edge_does_not_switch_the_path_check_off():
+    """An arm sent to a target on a joint limit reads a hair beyond it; the next move is still
+    path-checked from the target it was sent to (no 'starts outside' warning, no unchecked move)."""
+
+    class NoisyRobot(ClockRobot):
+        def state(self):
+            st = super().state()
+            return type(st)(
+                t_s=st.t_s, q_rad=st.q_rad + np.array([5e-4, 0, 0, 0, 0, 0]), qd_rad_s=st.qd_rad_s
+            )
+
+    env = default_envelope(UR5E)
+    tool = np.array([0, 0, 0.06])
+    home = np.array([0.0, -1.57, 1.57, -1.57, -1.57, 0.0])
+    at_limit = home.copy()
+    at_limit[0] = env.joint_limits_rad[0, 1]
+    assert (
+        env.violations(UR5E, np.array([at_limit, at_limit + [5e-4, 0, 0, 0, 0, 0]]), tool)[0]
+        is None
+    )
+    assert env.violations(UR5E, (at_limit + [5e-4, 0, 0, 0, 0, 0])[None], tool)[0] is not None
+    robot, sink = NoisyRobot(q0=home), NullSink()
+    ex = Executor(robot, None, UR5E, env, sink, tool_m=tool)
+    assert ex._move_along(at_limit, "edge") and ex._move_along(home, "back")
+    assert [k for k, _ in sink.events if k == "envelope"] == []
+    assert len(robot.moves) == 2
