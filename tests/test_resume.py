@@ -71,3 +71,42 @@ def test_ctrl_c_finishes_the_recording_cleanly(tmp_path):
     assert r.closed_cleanly and not r.problems
     assert r.events[-1]["kind"] == "abort"
     assert 5 <= len(r.samples) < 60
+
+
+def test_resume_refuses_a_recording_whose_plan_this_version_would_not_recreate(
+    tmp_path, monkeypatch
+):
+    """Static plans resume by pose id: if the re-created plan puts a recorded pose id elsewhere
+    (another version's planner, an edited seed), resuming would measure poses twice or miss some,
+    so it is refused in one line; the plan of the same version is accepted."""
+    import copy
+
+    import numpy as np
+    import pytest
+
+    from workcell.campaign import plans
+    from workcell.campaign.envelope import default_envelope
+    from workcell.campaign.resume import check_same_plan, resume_plan
+    from workcell.campaign.run import run_campaign, sim_cell
+    from workcell.errors import UserError
+
+    rec = tmp_path / "c.mcap"
+    _, robot, tracker, cell = sim_cell("ur5e", "none", 3)
+    run_campaign(robot, tracker, cell, rec, plan="random", poses=6, seed=3)
+    info = resume_plan(str(rec))
+    env = default_envelope(cell.spec)
+    check_same_plan(info, cell.spec, env, cell.tool_m, "c.mcap")  # same version: accepted
+
+    other = copy.deepcopy(info)
+    other["campaign"]["seed"] = 4
+    with pytest.raises(UserError, match="pose 0 was commanded"):
+        check_same_plan(other, cell.spec, env, cell.tool_m, "c.mcap")
+
+    real_order = plans.order_for_paths
+    monkeypatch.setattr(
+        plans,
+        "order_for_paths",
+        lambda *a: tuple(np.flip(x, 0) for x in real_order(*a)),  # a planner of another version
+    )
+    with pytest.raises(UserError, match="another workcell version"):
+        check_same_plan(info, cell.spec, env, cell.tool_m, "c.mcap")

@@ -59,6 +59,43 @@ def plan_continuation(kind: str, info: dict) -> dict:
     return {"skip_ids": info["done"]}
 
 
+def check_same_plan(info: dict, spec, env, tool_m, source: str) -> None:
+    """A grid or random plan is resumed by pose id, so the re-created plan must put every
+    recorded pose id at the configuration that was commanded for it; else (a recording made by
+    a version that planned differently, another tool, an edited session) poses would be measured
+    twice or missed. Refuses with one line. Adaptive plans check themselves on their history."""
+    import numpy as np
+
+    from workcell.campaign.plans import make_plan
+
+    camp = info["campaign"]
+    if camp["plan"] not in ("grid", "random"):
+        return
+    try:
+        _, q = make_plan(
+            camp["plan"],
+            spec,
+            env,
+            int(camp["poses"]),
+            seed=int(camp["seed"]),
+            tool_m=tool_m,
+            approach_rad=float(camp.get("approach_rad", 0.02)),
+        )
+    except ValueError as e:
+        raise UserError(f"{source}: cannot re-create its plan ({e})") from None
+    for pid, sample in sorted(info["history"].items()):
+        q_rec = np.asarray(sample.get("q_commanded_rad", []), float)
+        if not (0 <= pid < len(q) and q_rec.shape == q[pid].shape) or not np.allclose(
+            q_rec, q[pid], rtol=0.0, atol=1e-9
+        ):
+            raise UserError(
+                f"{source}: pose {pid} was commanded at a configuration this version's "
+                f"{camp['plan']} plan (seed {camp['seed']}) does not put there (recorded by "
+                "another workcell version?); resuming would measure poses twice or miss some. "
+                "Start a new campaign, or fit what is recorded"
+            )
+
+
 def recorded_envelope(camp: dict, spec, source: str, default, say=None):
     """The envelope the old campaign ran in: its poses were planned inside it and every motion of
     the continuation must stay inside it. A recording without one gets `default`, and `say`
@@ -106,6 +143,7 @@ def resume_campaign(args: argparse.Namespace) -> int:
     ns.envelope = None
     cell, robot, tracker, env = open_cell(ns)
     env = recorded_envelope(camp, cell.spec, str(old), default=env)
+    check_same_plan(info, cell.spec, env, cell.tool_m, str(old))
     cfg = CampaignConfig(
         readings_per_pose=int(camp.get("readings_per_pose", args.readings)),
         settle_s=float(camp.get("settle_s", args.settle)),

@@ -362,6 +362,7 @@ def start_campaign(
     env = None
     if resume_from:
         from workcell.campaign.resume import (
+            check_same_plan,
             default_out,
             plan_continuation,
             recorded_envelope,
@@ -382,6 +383,7 @@ def start_campaign(
             default=dev.envelope,
             say=lambda m: on_event({"level": "warning", "kind": "envelope", "message": m}),
         )
+        check_same_plan(info, dev.cell.spec, env, dev.cell.tool_m, str(old))
         plan = PlanConfig(
             kind=camp["plan"],
             poses=int(camp["poses"]),
