@@ -151,9 +151,8 @@ class Envelope:
         if not (np.all(np.isfinite(q0)) and np.all(np.isfinite(q1))):
             return "path with non-finite joint values"
         n = max(1, int(np.ceil(np.max(np.abs(q1 - q0)) / max_step_rad)))
-        m = max(
-            32, 1 << int(np.ceil(np.log2(n + 1)))
-        )  # few distinct shapes: JAX compiles once each
+        # a power of two >= 32 samples: few distinct shapes, so JAX compiles few times
+        m = max(32, 1 << int(np.ceil(np.log2(n + 1))))
         s = np.linspace(0.0, 1.0, m)
         for si, v in zip(
             s, self.violations(spec, q0 + s[:, None] * (q1 - q0), tool_m), strict=True

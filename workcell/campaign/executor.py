@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from workcell.campaign.envelope import Envelope, EnvelopeViolation, route
+from workcell.campaign.envelope import Envelope, route
 from workcell.campaign.plans import Plan, PoseTarget
 from workcell.drivers.protocols import (
     DeviceError,
@@ -254,27 +254,38 @@ class Executor:
 
     # ------------------------------------------------------------------ steps
     def check_plan(self, targets: list[PoseTarget]) -> list[str]:
-        """Dry run: every target and pre-pose against the envelope. Returns the problems."""
-        problems = []
+        """Dry run: every target, pre-pose, approach and the path from the pose before against
+        the envelope. Returns the problems."""
+        problems: list[str] = []
         prev = None
         for t in targets:
-            pre = self._prepose(t)
-            bad = False
-            for q, what in ((t.q_rad, "target"), (pre, "approach pre-pose")):
-                v = self.env.violations(self.spec, q, self.tool_m)[0]
-                if v:
-                    problems.append(f"pose {t.pose_id} {what}: {v}")
-                    bad = True
-            if bad:
-                continue  # refused: the arm stays at the previous pose
-            v = self.env.path_violation(self.spec, pre, t.q_rad, self.tool_m)
-            if v is None and prev is not None:
-                _, v = route(self.env, self.spec, self.tool_m, prev, pre)
-            if v:
-                problems.append(f"pose {t.pose_id} path: {v}; also via the upright posture")
-                continue
-            prev = t.q_rad
+            found = self._pose_problems(t, prev)
+            problems += found
+            if not found:
+                prev = t.q_rad  # a refused pose leaves the arm at the previous one
         return problems
+
+    def _pose_problems(self, t: PoseTarget, prev: np.ndarray | None = None) -> list[str]:
+        """Why pose t may not run: its target or pre-pose outside the envelope; else its
+        approach path (pre-pose -> target); else, given the pose before, the route to its
+        pre-pose (direct or via upright). Empty when it may."""
+        pre = self._prepose(t)
+        ends = self.env.violations(self.spec, np.array([t.q_rad, pre]), self.tool_m)
+        out = [
+            f"pose {t.pose_id} {what}: refused before any motion: {v}"
+            for v, what in zip(ends, ("target", "approach pre-pose"), strict=True)
+            if v is not None
+        ]
+        if out:
+            return out
+        v = self.env.path_violation(self.spec, pre, t.q_rad, self.tool_m)
+        if v is not None:
+            return [f"pose {t.pose_id} approach: {v}"]
+        if prev is not None:
+            _, v = route(self.env, self.spec, self.tool_m, prev, pre)
+            if v is not None:
+                return [f"pose {t.pose_id} path: {v}; also via the upright posture"]
+        return []
 
     def _prepose(self, t: PoseTarget) -> np.ndarray:
         return t.q_rad - np.sign(t.approach_sign) * self.cfg.approach_rad
@@ -323,16 +334,9 @@ class Executor:
 
     def run_pose(self, t: PoseTarget) -> dict | None:
         pre = self._prepose(t)
-        for q, what in ((t.q_rad, "target"), (pre, "approach pre-pose")):
-            try:
-                self.env.check(self.spec, q, self.tool_m)
-            except EnvelopeViolation as e:
-                self.event("error", "refused", f"pose {t.pose_id} {what}: {e}")
-                self._skip(t)
-                return None
-        why = self.env.path_violation(self.spec, pre, t.q_rad, self.tool_m)
-        if why is not None:
-            self.event("error", "refused", f"pose {t.pose_id} approach: {why}")
+        problems = self._pose_problems(t)
+        if problems:
+            self.event("error", "refused", problems[0])
             self._skip(t)
             return None
         if not self._move_along(pre, f"pose {t.pose_id}"):

@@ -544,6 +544,14 @@ class UrRobot:
         if bits & BIT_EMERGENCY_STOP:
             raise DeviceError(f"UR {self.host}: emergency stop {when}")
 
+    def _raise_if_stopped_soon(self, rr, when: str, within_s: float = 0.2) -> None:
+        """`_raise_if_stopped`, re-read for `within_s`: a stop's safety bits can arrive a packet
+        after the refusal or runtime-state change they explain."""
+        t_end = time.monotonic() + within_s
+        while rr.isConnected() and time.monotonic() < t_end:
+            self._raise_if_stopped(rr, when)
+            time.sleep(self.poll_s)
+
     def _bury(self, name: str) -> None:
         obj = getattr(self, name)
         setattr(self, name, None)
@@ -599,10 +607,8 @@ class UrRobot:
     def _diagnose(self, what: str) -> None:
         """Raise the most specific error for a refused/aborted command."""
         rr = self._rr
-        t_end = time.monotonic() + 0.2
-        while rr is not None and rr.isConnected() and time.monotonic() < t_end:
-            self._raise_if_stopped(rr, f"({what})")
-            time.sleep(self.poll_s)
+        if rr is not None:
+            self._raise_if_stopped_soon(rr, f"({what})")
         if rr is None or not rr.isConnected():
             self._kill_control()
             raise DeviceError(f"UR {self.host}: RTDE connection lost ({what})")
@@ -628,12 +634,8 @@ class UrRobot:
             self._raise_if_stopped(rr, "during a move")
             if int(rr.getRuntimeState()) != RUNTIME_PLAYING:
                 # ur_rtde updates the received fields one by one, so the runtime state can
-                # change a packet before the safety bits are seen: look again for a moment
-                # so that a protective stop is reported as one (CI caught this race).
-                t_grace = time.monotonic() + 0.2
-                while rr.isConnected() and time.monotonic() < t_grace:
-                    self._raise_if_stopped(rr, "during a move")
-                    time.sleep(self.poll_s)
+                # change a packet before the safety bits are seen (CI caught this race)
+                self._raise_if_stopped_soon(rr, "during a move")
                 raise DeviceError(f"UR {self.host}: control program stopped during a move")
             err = float(np.max(np.abs(np.array(rr.getActualQ()) - q)))
             if err < self.arrival_tol_rad:
