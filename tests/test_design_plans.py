@@ -232,3 +232,47 @@ def test_adaptive_plan_resumes_where_it_stopped(kind):
     # a history that does not come from this plan (another seed) is refused with a reason
     with pytest.raises(ValueError, match="cannot resume"):
         make_adaptive_plan(kind, spec, env, 14, history=history, **{**kw, "seed": 7})
+
+
+def _targets(samples: list[dict]):
+    from workcell.campaign.plans import PoseTarget
+
+    return [
+        PoseTarget(s["pose_id"], np.array(s["q_commanded_rad"]), np.array(s["approach_sign"]))
+        for s in samples
+    ]
+
+
+@pytest.mark.parametrize("kind,seed,n", [("dopt", 1, 40), ("bo", 0, 30)])
+def test_adaptive_plans_choose_only_poses_the_executor_may_move_to(kind, seed, n):
+    """The best-scored candidate can be one whose joint path from the last pose dips below the
+    table even via upright (dopt favours extreme postures): choosing it blindly, the executor
+    refused poses; the live plan passes it over for the best reachable one."""
+    from workcell.campaign.adaptive import Reach, _candidates, plan_over_candidates
+    from workcell.campaign.executor import Executor
+
+    truth, env, tool = _cell(seed)
+    spec = truth.nominal
+    ex = Executor(None, None, spec, env, None, tool_m=tool)
+    assert ex.cfg.approach_rad == 0.02
+
+    def run(reach: bool) -> tuple[list[str], list[dict]]:
+        q_c, s_c = _candidates(spec, env, 1000, seed, tool, 0.02)
+        choices: list[dict] = []
+        gen = plan_over_candidates(
+            kind, spec, q_c, s_c, tool, list(range(n)), seed=seed, on_choice=choices.append,
+            reach=Reach(spec, env, tool, q_c, s_c, 0.02) if reach else None,
+        )  # fmt: skip
+        targets = _targets(drive_plan(gen, truth, np.random.default_rng(seed)))
+        assert len(targets) == n
+        return ex.check_plan(targets), choices
+
+    blind, _ = run(reach=False)
+    assert blind, "this setting no longer exercises the path check"
+    problems, choices = run(reach=True)
+    assert problems == []
+    assert any(c.get("passed_over_unreachable") for c in choices)
+    assert not any(c.get("unreachable") for c in choices)
+    # the plan the campaign engine builds is the one with the path check
+    gen = make_adaptive_plan(kind, spec, env, n, seed=seed, tool_m=tool)
+    assert ex.check_plan(_targets(drive_plan(gen, truth, np.random.default_rng(seed)))) == []

@@ -4,7 +4,10 @@ Both plans choose from a finite candidate set drawn once per campaign: joint con
 sampled uniformly inside the envelope (`plans.random_configurations`), so every candidate is
 reachable and *is* its own IK solution; approach signs are chosen so the approach pre-pose stays
 inside the envelope too (`plans.approach_signs`). A candidate's pose on S3 x R3 is the nominal
-flange quaternion (wxyz, base frame) and the nominal SMR position (base frame).
+flange quaternion (wxyz, base frame) and the nominal SMR position (base frame). Each step takes
+the best-scored candidate the arm may move to from the last measured pose the way the executor
+moves (approach path inside the envelope; direct joint path to the pre-pose, else via the
+upright posture: `Reach`), so an adaptive campaign is not left with refused poses.
 
 ``bo`` (Das, Touma & Burdick, Algorithm 1): GP-UCB over the candidates with the S3 x R3 product
 kernel (heat kernel on S3 times SE on R3, `workcell.estimation.design`). The objective is the
@@ -44,7 +47,7 @@ from collections.abc import Callable
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from workcell.campaign.envelope import Envelope
+from workcell.campaign.envelope import Envelope, route
 from workcell.campaign.plans import Plan, PoseTarget, approach_signs, random_configurations
 from workcell.estimation.identifiability import analyse
 from workcell.kinematics.chain import (
@@ -112,6 +115,63 @@ def identifiable_mask(spec: RobotSpec, J: np.ndarray) -> np.ndarray:
     free = np.zeros(len(names), bool)
     free[[names.index(n) for n in ident.identifiable]] = True
     return free
+
+
+class Reach:
+    """Which candidates the arm may go to next, checked the way the executor moves (its
+    `_pose_problems`): the approach path pre-pose -> pose inside the envelope, and a route from
+    the last measured pose to the pre-pose (direct, else via the upright posture). Checked
+    lazily, best-scored candidate first, so a step costs about one path check."""
+
+    SCAN = 50  # candidates tried, best first, before giving up and returning the best one
+
+    def __init__(
+        self,
+        spec: RobotSpec,
+        env: Envelope,
+        tool_m: np.ndarray,
+        q_c: np.ndarray,
+        s_c: np.ndarray,
+        approach_rad: float,
+    ) -> None:
+        self.spec, self.env, self.tool_m = spec, env, np.asarray(tool_m, float)
+        self.q_c = q_c
+        self.pre = q_c - np.sign(s_c) * approach_rad
+        self._approach_ok: dict[int, bool] = {}
+        self.last: np.ndarray | None = None  # the last measured target (the arm is there)
+
+    def ok(self, i: int) -> bool:
+        if i not in self._approach_ok:
+            v = self.env.path_violation(self.spec, self.pre[i], self.q_c[i], self.tool_m)
+            self._approach_ok[i] = v is None
+        if not self._approach_ok[i]:
+            return False
+        if self.last is None:
+            return True
+        return route(self.env, self.spec, self.tool_m, self.last, self.pre[i])[1] is None
+
+    def first(self, order) -> tuple[int | None, int]:
+        """(the first candidate of `order` (best first) the arm may go to, or None if none of
+        the first SCAN may; how many better ones were passed over)."""
+        for k, i in enumerate(list(order)[: self.SCAN]):
+            if self.ok(int(i)):
+                return int(i), k
+        return None, min(len(order), self.SCAN)
+
+
+def _pick(reach: Reach | None, order, info: dict) -> int:
+    """The best candidate of `order` the arm may reach (all of them when reach is None); if
+    none may, the best one (the executor then refuses it with no motion)."""
+    order = np.asarray(order, int)
+    if reach is None:
+        return int(order[0])
+    i, passed = reach.first(order)
+    if passed:
+        info["passed_over_unreachable"] = passed
+    if i is None:
+        info["unreachable"] = True
+        return int(order[0])
+    return i
 
 
 # ------------------------------------------------------------------------- measurements
@@ -233,6 +293,7 @@ def make_adaptive_plan(
         kind, spec, q_c, s_c, tool_m, ids, seed=seed, n_seed=n_seed, index=index,
         beta_schedule=beta_schedule, negate_objective=negate_objective,
         relinearise_every=relinearise_every, on_choice=on_choice,
+        reach=Reach(spec, env, tool_m, q_c, s_c, approach_rad),
     )  # fmt: skip
     return _replayed(plan, history) if history else plan
 
@@ -252,11 +313,14 @@ def plan_over_candidates(
     negate_objective: bool = True,
     relinearise_every: int = 5,
     on_choice: Callable[[dict], None] | None = None,
+    reach: Reach | None = None,
 ) -> Plan:
     """The adaptive plan `kind` choosing, for each pose id in `ids`, one of the given candidate
     configurations q_c (M, n) with approach signs s_c (M, n) (each at most once). Used by
     `make_adaptive_plan` (candidates drawn in the envelope) and to replay a design over the
-    poses of an existing recording (`workcell bench design-real`)."""
+    poses of an existing recording (`workcell bench design-real`). With `reach` (a live
+    campaign), each step takes the best-scored candidate the arm may move to from the last
+    measured pose (see `Reach`); without, the best-scored one."""
     from workcell.estimation.bounded import jacobian_padded
 
     if kind not in ADAPTIVE_KINDS:
@@ -272,11 +336,11 @@ def plan_over_candidates(
     if kind == "bo":
         return _bo_plan(
             spec, q_c, s_c, poses, free, tool_m, ids, n_seed, seed, beta_schedule,
-            negate_objective, on_choice,
+            negate_objective, on_choice, reach,
         )  # fmt: skip
     return _dopt_plan(
         spec, q_c, s_c, poses, J_c, free, tool_m, ids, n_seed, seed, index,
-        relinearise_every, on_choice,
+        relinearise_every, on_choice, reach,
     )  # fmt: skip
 
 
@@ -319,9 +383,10 @@ def _seed_order(poses: np.ndarray, n_seed: int, seed: int) -> list[int]:
 
 
 def _bo_plan(
-    spec, q_c, s_c, poses, free, tool_m, ids, n_seed, seed, beta_schedule, negate, on_choice
-) -> Plan:
-    from workcell.estimation.design.gp import pose_error_objective, select_next_pose
+    spec, q_c, s_c, poses, free, tool_m, ids, n_seed, seed, beta_schedule, negate, on_choice,
+    reach,
+) -> Plan:  # fmt: skip
+    from workcell.estimation.design.gp import pose_error_objective, ucb_scores
 
     meas = _Measurements(spec, tool_m, free)
     available = np.ones(len(q_c), bool)
@@ -331,18 +396,20 @@ def _bo_plan(
         info: dict = {"plan": "bo", "pose_id": pid, "k": k}
         if k < len(seeds) or len(measured_idx) < 3:
             pending = [i for i in seeds if available[i]]
-            i = pending[0] if pending else _farthest(poses, measured_idx, available)
+            order = pending + [i for i in _farthest_order(poses, measured_idx, available)
+                               if i not in pending]  # fmt: skip
+            i = _pick(reach, order, info)
             info["rule"] = "space-filling seed"
         else:
             meas.refit()
             err = meas.errors_m()
             y = pose_error_objective(err, negate=negate)
             cand = np.where(available)[0]
-            j = select_next_pose(
+            score = ucb_scores(
                 poses[cand], poses[measured_idx], y, beta_schedule=beta_schedule,
                 iteration=len(measured_idx) + 1,
             )  # fmt: skip
-            i = int(cand[j])
+            i = _pick(reach, cand[np.argsort(-score, kind="stable")], info)
             info.update(
                 rule="GP-UCB",
                 calibrated=meas.calibrated,
@@ -356,19 +423,23 @@ def _bo_plan(
         if sample is not None:
             meas.add(sample)
             measured_idx.append(i)
+            if reach is not None:
+                reach.last = q_c[i]
 
 
-def _farthest(poses, measured_idx, available) -> int:
+def _farthest_order(poses, measured_idx, available) -> np.ndarray:
+    """Available candidates, farthest from the measured poses first (S3 x R3 distance)."""
     cand = np.where(available)[0]
     if not measured_idx:
-        return int(cand[0])
+        return cand
     d = pose_distance2(poses[cand], poses[measured_idx]).min(axis=1)
-    return int(cand[np.argmax(d)])
+    return cand[np.argsort(-d, kind="stable")]
 
 
 def _dopt_plan(
-    spec, q_c, s_c, poses, J_c, free, tool_m, ids, n_seed, seed, index, relin_every, on_choice
-) -> Plan:
+    spec, q_c, s_c, poses, J_c, free, tool_m, ids, n_seed, seed, index, relin_every, on_choice,
+    reach,
+) -> Plan:  # fmt: skip
     from workcell.estimation.bounded import jacobian_padded
 
     L = int(free.sum())
@@ -396,9 +467,9 @@ def _dopt_plan(
         A = np.einsum("mkl,mkp->lp", Js[measured_idx], Js[measured_idx]) if measured_idx else None
         if A is None:
             A = np.zeros((L, L))
-        pending = [i for i in seeds if available[i]]
-        if k < len(seeds) and pending:
-            i = pending[0]
+        pending = [i for i in seeds if available[i]] if k < len(seeds) else []
+        i = (reach.first(pending)[0] if reach is not None else pending[0]) if pending else None
+        if i is not None:
             info["rule"] = "space-filling seed"
         else:
             cand = np.where(available)[0]
@@ -412,8 +483,9 @@ def _dopt_plan(
                 S = np.eye(3)[None] + np.einsum("mkl,lp,mjp->mkj", Js[cand], Ainv, Js[cand])
                 score = np.linalg.slogdet(S)[1]
                 info["rule"] = "max O1 (D-optimal)"
-            i = int(cand[np.argmax(score)])
-            info["score"] = float(np.max(score))
+            order = np.argsort(-score, kind="stable")
+            i = _pick(reach, cand[order], info)
+            info["score"] = float(score[cand == i][0])
         available[i] = False
         info["candidate"] = i
         if on_choice:
@@ -422,10 +494,13 @@ def _dopt_plan(
         if sample is not None:
             meas.add(sample)
             measured_idx.append(i)
+            if reach is not None:
+                reach.last = q_c[i]
 
 
 __all__ = [
     "ADAPTIVE_KINDS",
+    "Reach",
     "candidate_poses",
     "identifiable_mask",
     "make_adaptive_plan",

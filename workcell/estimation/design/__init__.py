@@ -2,7 +2,7 @@
 
 ``kernels``: heat kernel on unit quaternions, SE kernel on positions, their product over poses
 ``(N, 7) = [qw qx qy qz px py pz]`` and the naive geodesic kernel (counter-example).
-``gp``: GP regression with those kernels, GP-UCB and :func:`select_next_pose`.
+``gp``: GP regression with those kernels, GP-UCB (:func:`ucb_scores`, :func:`select_next_pose`).
 """
 
 from workcell.estimation.design.gp import (
@@ -11,6 +11,7 @@ from workcell.estimation.design.gp import (
     pose_error_objective,
     select_next_pose,
     srinivas_beta,
+    ucb_scores,
 )
 from workcell.estimation.design.kernels import (
     heat_kernel_num_terms,
@@ -37,4 +38,5 @@ __all__ = [
     "se_kernel_r3",
     "select_next_pose",
     "srinivas_beta",
+    "ucb_scores",
 ]

@@ -327,17 +327,29 @@ def select_next_pose(
     candidate_poses: np.ndarray,
     measured_poses: np.ndarray,
     objective_values: np.ndarray,
+    **kw: object,
+) -> int:
+    """Index into ``candidate_poses (M, 7)`` of the next pose to measure (GP-UCB, Algorithm 1):
+    the argmax of :func:`ucb_scores` (same arguments; first index on ties)."""
+    return int(np.argmax(ucb_scores(candidate_poses, measured_poses, objective_values, **kw)))
+
+
+def ucb_scores(
+    candidate_poses: np.ndarray,
+    measured_poses: np.ndarray,
+    objective_values: np.ndarray,
     *,
     beta_schedule: BetaSchedule = "srinivas",
     delta: float = 0.1,
     iteration: int | None = None,
     hyperparameters: GPHyperparameters | None = None,
     optimize_hyperparameters: bool = True,
-) -> int:
-    """Index into ``candidate_poses (M, 7)`` of the next pose to measure (GP-UCB, Algorithm 1).
+) -> np.ndarray:
+    """GP-UCB scores ``(M,)`` of ``candidate_poses (M, 7)`` (Algorithm 1); the next pose to
+    measure is the best-scored one (or, when a motion constraint rules it out, the best allowed).
 
     Fits a :class:`PoseGP` on ``(measured_poses (N, 7), objective_values (N,))`` and returns
-    ``argmax_i mu(x_i) + sqrt(beta_t) sigma(x_i)`` (first index on ties).  The objective is
+    ``mu(x_i) + sqrt(beta_t) sigma(x_i)`` for every candidate.  The objective is
     maximised as given: pass the paper's ``f`` from :func:`pose_error_objective` (minus the
     normalised error) to reproduce the paper, or ``negate=False`` there to seek large errors.
 
@@ -350,8 +362,9 @@ def select_next_pose(
     known to be conservative (explorative) in practice.  A float gives a constant beta, a
     callable ``(t, M) -> beta`` any other schedule.
 
-    With ``N = 0`` the posterior is the prior (flat mean, equal variance) and index 0 is
-    returned: seed the campaign with a few spread poses first, as the paper does.
+    With ``N = 0`` the posterior is the prior (flat mean, equal variance), all scores are
+    equal and :func:`select_next_pose` returns index 0: seed the campaign with a few spread
+    poses first, as the paper does.
     Hyperparameters are fitted by marginal likelihood when ``optimize_hyperparameters`` and
     ``N >= 3``; otherwise ``hyperparameters`` (or the defaults) are used as given.
     """
@@ -367,7 +380,7 @@ def select_next_pose(
     beta = _resolve_beta(beta_schedule, t, cands.shape[0], delta)
     gp = PoseGP(hyperparameters)
     gp.fit(measured, objective_values, optimize=optimize_hyperparameters)
-    return int(np.argmax(gp.ucb(cands, beta)))
+    return gp.ucb(cands, beta)
 
 
 # ------------------------------------------------------------------------------ objective
