@@ -105,6 +105,24 @@ def test_jacobians_match_finite_differences():
         np.testing.assert_allclose(Jq[:, :, j], fd, atol=1e-8)
 
 
+@pytest.mark.parametrize("n", [6, 7])
+def test_analytic_joint_jacobian_matches_autodiff(n):
+    """The analytic dp/dq used by the LDDMM evaluation equals jax.jacfwd of the FK, with every
+    parameter perturbed (Hayati betas, offsets, base pose, tool) and for 6 and 7 joints."""
+    import jax
+
+    rng = np.random.default_rng(11 + n)
+    theta = rng.normal(0, 0.3, 5 * n + 9)
+    base_ref = transform_from(matrix_from_rotvec(rng.normal(0, 1, 3)), rng.normal(0, 2, 3))
+    for q in rng.uniform(-3, 3, (5, n)):
+        p, J = chain.p_tracker_and_jacobian_single(theta, base_ref, q)
+        p_ref = chain.p_tracker_single(theta, base_ref, q)
+        J_ref = jax.jacfwd(lambda qq: chain.p_tracker_single(theta, base_ref, qq))(q)
+        assert np.shape(J) == (3, n)
+        np.testing.assert_allclose(p, p_ref, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(J, J_ref, rtol=0, atol=1e-12)
+
+
 def test_gravity_torque_is_minus_gradient_of_potential_energy():
     spec = UR10
     theta = chain.pack(spec.dh)

@@ -19,7 +19,7 @@ import numpy as np
 from workcell.estimation.dh import DHModel, fit_dh, nominal_registered
 from workcell.estimation.lddmm import LddmmModel, fit_lddmm, linear_cv_scores
 from workcell.estimation.models import model_from_dict
-from workcell.kinematics.chain import p_tracker_single
+from workcell.kinematics.chain import p_tracker_and_jacobian_single, p_tracker_single
 
 
 class _ChainK0:
@@ -35,6 +35,10 @@ class _ChainK0:
 
     def __call__(self, q):
         return p_tracker_single(self._th, self._br, q)
+
+    def value_and_jacobian(self, q):
+        """(k0(q), Dk0(q)) analytically (the LDDMM evaluation needs both at every point)."""
+        return p_tracker_and_jacobian_single(self._th, self._br, q)
 
     def __hash__(self) -> int:
         return hash(self._key)
