@@ -165,7 +165,7 @@ def test_plan_argument_errors():
     truth, env, tool = _cell(0)
     with pytest.raises(ValueError, match="unknown adaptive plan"):
         make_adaptive_plan("ucb", truth.nominal, env, 5, seed=0, tool_m=tool)
-    with pytest.raises(ValueError, match="n_candidates"):
+    with pytest.raises(ValueError, match="from 10 candidate configurations; ask for at most 10"):
         make_adaptive_plan("bo", truth.nominal, env, 50, seed=0, tool_m=tool, n_candidates=10)
     with pytest.raises(ValueError, match="index"):
         make_adaptive_plan("dopt", truth.nominal, env, 5, seed=0, tool_m=tool, index="trace")

@@ -123,6 +123,8 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--eval-points", type=int, default=100_000, help="points for the throughput")
     ap.add_argument("--skip-pendulum", action="store_true")
     args = ap.parse_args(argv)
+    if args.poses < 12 or args.eval_points < 1:
+        ap.error("need --poses >= 12 (a fit needs 12 poses) and --eval-points >= 1")
     doc: dict = {"targets": TARGETS, "cpu_count": os.cpu_count()}
     if not args.skip_pendulum:
         doc["pendulum"] = bench_pendulum()

@@ -281,7 +281,10 @@ def make_adaptive_plan(
     if index not in ("o1", "min_sv"):
         raise ValueError(f"index must be 'o1' or 'min_sv', got {index!r}")
     if n_candidates < n:
-        raise ValueError(f"n_candidates ({n_candidates}) must be at least the pose count ({n})")
+        raise ValueError(
+            f"an adaptive plan chooses each pose from {n_candidates} candidate configurations; "
+            f"ask for at most {n_candidates} poses (got {n}), or use --plan random or grid"
+        )
     tool_m = np.asarray(tool_m, float)
     q_c, s_c = _candidates(spec, env, n_candidates, seed, tool_m, approach_rad)
     if len(q_c) < n:
