@@ -50,9 +50,13 @@ def test_envelope_command_round_trip_and_refusals(tmp_path, tight, capsys):
         "five": ({**d, "joint_limits_rad": d["joint_limits_rad"][:5]}, "5 joint limits"),
         "fast": ({**d, "max_speed_rad_s": 50.0}, "joint speed limit"),
     }
+    cases["binary"] = (b"\x89MCAP0\r\n\xff", "not a text file")
     for name, (bad, match) in cases.items():
         p = tmp_path / f"{name}.json"
-        p.write_text(json.dumps(bad))
+        if isinstance(bad, bytes):  # e.g. a recording given where the envelope goes
+            p.write_bytes(bad)
+        else:
+            p.write_text(json.dumps(bad))
         assert main(["envelope", "--check", str(p)]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and match in err[0], (name, err)

@@ -228,8 +228,15 @@ def load_envelope(path, spec: RobotSpec) -> Envelope:
     if not p.is_file():
         raise UserError(f"envelope file {p} does not exist (or is not a file)")
     try:
-        env = Envelope.from_dict(json.loads(p.read_text()))
-    except (ValueError, UnicodeDecodeError) as e:
+        text = p.read_text()
+    except UnicodeDecodeError:
+        raise UserError(
+            f"envelope file {p}: not a text file; an envelope is JSON "
+            "(`workcell envelope --out FILE` writes one to edit)"
+        ) from None
+    try:
+        env = Envelope.from_dict(json.loads(text))
+    except ValueError as e:
         raise UserError(f"envelope file {p}: {e}") from None
     return check_envelope_for(env, spec, f"envelope file {p}")
 
