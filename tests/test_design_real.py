@@ -57,7 +57,7 @@ def test_plan_over_candidates_picks_each_candidate_once(sim_recording):
                                   list(range(5)), seed=0))  # fmt: skip
 
 
-@pytest.mark.parametrize("plan", ["random", "dopt"])
+@pytest.mark.parametrize("plan", ["random", "dopt", "vopt"])
 def test_design_real_run_reaches_a_pool_based_target(sim_recording, plan):
     from workcell.bench.design_real import _heldout_rms
     from workcell.estimation.bounded import fit_dh_bounded
@@ -97,3 +97,4 @@ def test_design_real_json_keys(sim_recording, capsys):
     assert out["best_plan"] == "dopt" and out["ratio_best_to_random"] == pytest.approx(
         out["poses_to_target"]["dopt"]["mean"] / out["poses_to_target"]["random"]["mean"]
     )
+    assert out["ratios_to_random"] == {"dopt": out["ratio_best_to_random"]}

@@ -8,7 +8,7 @@ this project made these numbers.
 Split: the project's held-out split (`Dataset.holdout_split`, seeded, 25 % held out, the split
 `workcell fit` uses). The other poses are the candidate pool. Each plan chooses poses one at a
 time from the pool and "measures" a pose by reading its recorded tracker position:
-``random`` (a seeded random order of the pool), ``dopt`` and ``bo`` (the campaign plans' code,
+``random`` (a seeded random order of the pool), ``dopt``, ``vopt`` and ``bo`` (the campaign plans' code,
 `workcell.campaign.adaptive.plan_over_candidates`, fed the recorded samples as a campaign would).
 
 Fitted model: the DH fit (`fit_dh_bounded(bounds=None)`, as `workcell bench design`) on the
@@ -18,8 +18,8 @@ transmission error...). The reference is therefore the DH fit on the *whole pool
 this model reaches with all the data; the target is a held-out RMS <= (1 + tolerance) R_pool
 (`--tolerance`, default 0.10). Poses to target is the smallest n (from the rank bound
 ceil(L / 3) on; every n up to 40, then every 5th) that reaches it; a run that does not within `--max-poses` counts as
-max-poses + 1 (`censored`). `ratio_best_to_random` = mean poses of the better of dopt / bo over
-random's; `best_possible_ratio` = rank bound over random's mean.
+max-poses + 1 (`censored`). `ratio_best_to_random` = mean poses of the best adaptive plan over
+random's (`ratios_to_random`: each plan's); `best_possible_ratio` = rank bound over random's mean.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-PLANS = ("random", "dopt", "bo")
+PLANS = ("random", "dopt", "vopt", "bo")
 DENSE_UNTIL, COARSE_STEP = 40, 5  # evaluate after every pose up to 40, then every 5th
 DEFAULT_RECORDING = (
     Path(__file__).resolve().parents[3]
@@ -119,7 +119,7 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--seeds", type=int, default=10, help="random orders / plan seeds (>= 1)")
     ap.add_argument("--max-poses", type=int, default=150, help="poses per run at most")
     ap.add_argument("--tolerance", type=float, default=0.10, help="target: <= (1 + this) R_pool")
-    ap.add_argument("--plans", default=",".join(PLANS), help="comma list of random,dopt,bo")
+    ap.add_argument("--plans", default=",".join(PLANS), help=f"comma list of {','.join(PLANS)}")
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     a = ap.parse_args(argv)
     plans = [p.strip() for p in a.plans.split(",") if p.strip()]
@@ -136,7 +136,7 @@ def main(argv: list[str]) -> int:
             file=sys.stderr,
         )
         return 2
-    from workcell.bench.design import best_vs_random, poses_summary
+    from workcell.bench.design import best_vs_random, poses_summary, ratios_to_random
     from workcell.campaign.adaptive import identifiable_mask
     from workcell.estimation.bounded import fit_dh_bounded, jacobian_padded
     from workcell.kinematics.chain import pack
@@ -186,6 +186,7 @@ def main(argv: list[str]) -> int:
         "rank_bound_poses": n_min,
         "poses_to_target": summary,
         "ratio_best_to_random": ratio,
+        "ratios_to_random": ratios_to_random(summary),
         "best_plan": best,
         "best_possible_ratio": n_min / summary["random"]["mean"] if "random" in summary else None,
         "wall_seconds": time.perf_counter() - t0,
@@ -199,8 +200,9 @@ def main(argv: list[str]) -> int:
         cens = f"  [{r['censored']} not reached]" if r["censored"] else ""
         print(f"{p:8}{r['mean']:8.1f}{r['std']:8.1f}{r['median']:8.1f}  {r['runs']}{cens}")
     if ratio is not None:
+        each = ", ".join(f"{p} {v:.2f}" for p, v in out["ratios_to_random"].items())
         print(
-            f"ratio best ({best}) / random: {ratio:.2f}; rank bound {n_min} poses "
+            f"ratio best ({best}) / random: {ratio:.2f} ({each}); rank bound {n_min} poses "
             f"(best possible {out['best_possible_ratio']:.2f})"
         )
     print(f"wall {out['wall_seconds']:.0f} s")

@@ -29,6 +29,14 @@ singular value instead once A has full rank. The Jacobian is re-linearised at th
 calibrated model every ``relinearise_every`` poses once a fit is possible, and skipped poses
 (sample None) add no information.
 
+``vopt``: greedy V-optimal (I-optimal) design, with dopt's information matrix A (identifiable
+parameters, column-scaled, relinearised the same way): the next pose is the one that most
+reduces the mean prediction variance of the SMR position over the candidate poses,
+``tr(W A^-1)`` with ``W = mean_c J_c^T J_c`` (Woodbury update with the candidate's 3x3 block);
+until A has full rank the D-optimal rule chooses. Its aim is what a calibration is judged on,
+the position error over the workspace, rather than the joint confidence volume of the
+parameters (D-optimality), which rewards extreme postures.
+
 `skip_ids`: pose ids that are not yielded; the plan then chooses the remaining
 ``n - |skip_ids & range(n)|`` poses without knowing those measurements.
 `history` (resume): the samples of a recording being resumed, by pose id. The plan is re-created
@@ -48,7 +56,13 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from workcell.campaign.envelope import Envelope, route
-from workcell.campaign.plans import Plan, PoseTarget, approach_signs, random_configurations
+from workcell.campaign.plans import (
+    ADAPTIVE_KINDS,
+    Plan,
+    PoseTarget,
+    approach_signs,
+    random_configurations,
+)
 from workcell.estimation.identifiability import analyse
 from workcell.kinematics.chain import (
     base_T_flange,
@@ -58,9 +72,6 @@ from workcell.kinematics.chain import (
 )
 from workcell.kinematics.robots import RobotSpec
 from workcell.recording.dataset import Dataset
-
-ADAPTIVE_KINDS = ("bo", "dopt")
-
 
 # ---------------------------------------------------------------------------- candidates
 
@@ -270,12 +281,12 @@ def make_adaptive_plan(
 ) -> Plan:
     """A generator of `PoseTarget`s that receives each recorded sample (or None) via `.send()`.
 
-    kind "bo" or "dopt" (see the module docstring). `n_candidates` reachable configurations are
-    drawn once (seeded); `n_seed` space-filling poses start the campaign (default 5 for bo,
-    1 for dopt). `on_choice` is called with a small dict per chosen pose (for logs and tests).
+    kind "bo", "dopt" or "vopt" (see the module docstring). `n_candidates` reachable
+    configurations are drawn once (seeded); `n_seed` space-filling poses start the campaign
+    (default 5 for bo, 1 for dopt and vopt); `index` is dopt's criterion ("o1" or "min_sv").
+    `on_choice` is called with a small dict per chosen pose (for logs and tests).
     """
-    if kind not in ADAPTIVE_KINDS:
-        raise ValueError(f"unknown adaptive plan {kind!r}; choose bo or dopt")
+    _check_kind(kind)
     if n <= 0:
         raise ValueError(f"number of poses must be positive, got {n}")
     if index not in ("o1", "min_sv"):
@@ -326,8 +337,7 @@ def plan_over_candidates(
     measured pose (see `Reach`); without, the best-scored one."""
     from workcell.estimation.bounded import jacobian_padded
 
-    if kind not in ADAPTIVE_KINDS:
-        raise ValueError(f"unknown adaptive plan {kind!r}; choose bo or dopt")
+    _check_kind(kind)
     q_c, s_c = np.asarray(q_c, float), np.asarray(s_c, float)
     if len(q_c) < len(ids):
         raise ValueError(f"only {len(q_c)} candidates for {len(ids)} poses")
@@ -342,9 +352,14 @@ def plan_over_candidates(
             negate_objective, on_choice, reach,
         )  # fmt: skip
     return _dopt_plan(
-        spec, q_c, s_c, poses, J_c, free, tool_m, ids, n_seed, seed, index,
-        relinearise_every, on_choice, reach,
+        spec, q_c, s_c, poses, J_c, free, tool_m, ids, n_seed, seed,
+        "v" if kind == "vopt" else index, relinearise_every, on_choice, reach, kind,
     )  # fmt: skip
+
+
+def _check_kind(kind: str) -> None:
+    if kind not in ADAPTIVE_KINDS:
+        raise ValueError(f"unknown adaptive plan {kind!r}; choose {', '.join(ADAPTIVE_KINDS)}")
 
 
 def _replayed(plan: Plan, history: dict[int, dict]) -> Plan:
@@ -441,7 +456,7 @@ def _farthest_order(poses, measured_idx, available) -> np.ndarray:
 
 def _dopt_plan(
     spec, q_c, s_c, poses, J_c, free, tool_m, ids, n_seed, seed, index, relin_every, on_choice,
-    reach,
+    reach, kind="dopt",
 ) -> Plan:  # fmt: skip
     from workcell.estimation.bounded import jacobian_padded
 
@@ -460,7 +475,7 @@ def _dopt_plan(
     seeds = _seed_order(poses, n_seed, seed)
     last_relin = 0
     for k, pid in enumerate(ids):
-        info: dict = {"plan": "dopt", "pose_id": pid, "k": k}
+        info: dict = {"plan": kind, "pose_id": pid, "k": k}
         if relin_every > 0 and len(meas) >= meas.n_fit and len(meas) - last_relin >= relin_every:
             meas.refit()
             if meas.calibrated:
@@ -481,6 +496,16 @@ def _dopt_plan(
                 M = A[None] + np.einsum("mkl,mkp->mlp", Js[cand], Js[cand])
                 score = np.linalg.eigvalsh(M)[:, 0]
                 info["rule"] = "max min singular value"
+            elif index == "v" and full_rank:
+                # decrease of the mean prediction variance over the candidates, tr(W A^-1),
+                # by adding c (Woodbury with the 3x3 block of c)
+                W = np.einsum("mkl,mkp->lp", Js, Js) / len(Js)
+                Ainv = np.linalg.inv(A)
+                B = np.einsum("lp,mkp->mlk", Ainv, Js[cand])  # (M, L, 3)
+                S = np.eye(3)[None] + np.einsum("mkl,mlj->mkj", Js[cand], B)
+                BWB = np.einsum("mlk,lp,mpj->mkj", B, W, B)
+                score = np.trace(np.linalg.solve(S, BWB), axis1=1, axis2=2)
+                info["rule"] = "min mean prediction variance (V-optimal)"
             else:
                 Ainv = np.linalg.inv(A + eps * np.eye(L))
                 S = np.eye(3)[None] + np.einsum("mkl,lp,mjp->mkj", Js[cand], Ainv, Js[cand])

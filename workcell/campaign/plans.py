@@ -2,7 +2,7 @@
 
 A plan yields `PoseTarget`s; the executor turns each into Move (via an approach pre-pose) ->
 Settle -> Measure -> Record, and sends the recorded sample (or None if the pose was skipped) back
-into the generator, so adaptive plans (bo, dopt) can choose the next pose from what was measured.
+into the generator, so adaptive plans (bo, dopt, vopt) can choose the next pose from what was measured.
 
 `grid` and `random` choose joint configurations inside the envelope. The approach direction of
 every joint is varied on purpose: each pose is approached from a pre-pose offset by
@@ -28,6 +28,11 @@ class PoseTarget:
 
 
 Plan = Generator[PoseTarget, "dict | None", None]
+
+STATIC_KINDS = ("grid", "random")  # planned ahead, resumed by pose id
+ADAPTIVE_KINDS = ("bo", "dopt", "vopt")  # each pose chosen from the measurements so far
+PLAN_KINDS = STATIC_KINDS + ADAPTIVE_KINDS
+PLAN_CHOICES = ", ".join(PLAN_KINDS[:-1]) + " or " + PLAN_KINDS[-1]
 
 
 def random_configurations(
@@ -190,7 +195,7 @@ def make_plan(
             )
         q, signs = q[:n], signs[:n]
         return static_plan(q, signs, skip_ids=skip_ids), q
-    if kind in ("bo", "dopt"):
+    if kind in ADAPTIVE_KINDS:
         from workcell.campaign import adaptive  # optional module (experiment design)
 
         return adaptive.make_adaptive_plan(
@@ -204,4 +209,4 @@ def make_plan(
             approach_rad=approach_rad,
             **kw,
         ), None
-    raise ValueError(f"unknown plan {kind!r}; choose grid, random, bo or dopt")
+    raise ValueError(f"unknown plan {kind!r}; choose {PLAN_CHOICES}")

@@ -53,8 +53,10 @@ def resume_plan(old: str) -> dict:
 
 def plan_continuation(kind: str, info: dict) -> dict:
     """run_campaign arguments that continue the old plan: static plans skip the measured pose
-    ids; adaptive plans (bo, dopt) are fed the recorded samples to rebuild their state."""
-    if kind in ("bo", "dopt"):
+    ids; adaptive plans (bo, dopt, vopt) are fed the recorded samples to rebuild their state."""
+    from workcell.campaign.plans import ADAPTIVE_KINDS
+
+    if kind in ADAPTIVE_KINDS:
         return {"plan_kwargs": {"history": info["history"]}}
     return {"skip_ids": info["done"]}
 
@@ -66,10 +68,10 @@ def check_same_plan(info: dict, spec, env, tool_m, source: str) -> None:
     twice or missed. Refuses with one line. Adaptive plans check themselves on their history."""
     import numpy as np
 
-    from workcell.campaign.plans import make_plan
+    from workcell.campaign.plans import STATIC_KINDS, make_plan
 
     camp = info["campaign"]
-    if camp["plan"] not in ("grid", "random"):
+    if camp["plan"] not in STATIC_KINDS:
         return
     try:
         _, q = make_plan(

@@ -19,7 +19,7 @@ MAX_POSES = 100_000  # ~10 s a pose: eleven days at the tracker
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--robot", default="sim", help="sim or ur://HOST")
     p.add_argument("--tracker", default="sim", help="sim or serial:///dev/ttyX")
-    p.add_argument("--plan", default="random", help="grid, random, bo or dopt")
+    p.add_argument("--plan", default="random", help="grid, random, bo, dopt or vopt")
     p.add_argument("--poses", type=int, default=50, help="number of poses to measure")
     p.add_argument("--out", help="recording to write (.mcap); must not exist")
     p.add_argument("--seed", type=int, default=0, help="plan seed (and simulated truth seed)")

@@ -163,8 +163,10 @@ class PlanConfig:
     warmup_s: float = 0.0
 
     def validate(self) -> None:
-        if self.kind not in ("grid", "random", "bo", "dopt"):
-            raise UserError(f"plan type {self.kind!r}: choose grid, random, bo or dopt")
+        from workcell.campaign.plans import PLAN_CHOICES, PLAN_KINDS
+
+        if self.kind not in PLAN_KINDS:
+            raise UserError(f"plan type {self.kind!r}: choose {PLAN_CHOICES}")
         if self.poses <= 0:
             raise UserError(f"number of poses must be positive, got {self.poses}")
         if self.readings_per_pose <= 0:

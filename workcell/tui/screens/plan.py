@@ -20,6 +20,7 @@ PLAN_KINDS = [
     ("grid (joints 1-3, varied wrist)", "grid"),
     ("bo (adaptive, GP-UCB)", "bo"),
     ("dopt (adaptive, D-optimal)", "dopt"),
+    ("vopt (adaptive, least mean prediction variance)", "vopt"),
 ]
 
 
