@@ -76,3 +76,17 @@ def test_table_path_that_is_not_a_table(tmp_path):
         load_table(rec)
     with pytest.raises(UserError, match="no such correction table"):
         load_table(tmp_path / "none.json")
+
+
+def test_a_closed_output_pipe_is_not_reported_as_an_error(monkeypatch, capsys):
+    """`workcell envelope | head -1`: the reader went away; no error line, exit 141 (SIGPIPE)."""
+    import io
+    import sys
+
+    class ClosedPipe(io.StringIO):
+        def write(self, s):
+            raise BrokenPipeError(32, "Broken pipe")
+
+    monkeypatch.setattr(sys, "stdout", ClosedPipe())
+    assert main(["envelope", "--robot", "ur5e"]) == 141
+    assert capsys.readouterr().err == ""
