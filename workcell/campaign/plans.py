@@ -2,7 +2,8 @@
 
 A plan yields `PoseTarget`s; the executor turns each into Move (via an approach pre-pose) ->
 Settle -> Measure -> Record, and sends the recorded sample (or None if the pose was skipped) back
-into the generator, so adaptive plans (bo, dopt, vopt) can choose the next pose from what was measured.
+into the generator, so adaptive plans (bo, dopt, vopt) can choose the next pose from what was
+measured.
 
 `grid` and `random` choose joint configurations inside the envelope. The approach direction of
 every joint is varied on purpose: each pose is approached from a pre-pose offset by
