@@ -55,11 +55,12 @@ from collections.abc import Callable
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from workcell.campaign.envelope import Envelope, route
+from workcell.campaign.envelope import Envelope
 from workcell.campaign.plans import (
     ADAPTIVE_KINDS,
     Plan,
     PoseTarget,
+    Reach,
     approach_signs,
     random_configurations,
 )
@@ -128,46 +129,7 @@ def identifiable_mask(spec: RobotSpec, J: np.ndarray) -> np.ndarray:
     return free
 
 
-class Reach:
-    """Which candidates the arm may go to next, checked the way the executor moves (its
-    `_pose_problems`): the approach path pre-pose -> pose inside the envelope, and a route from
-    the last measured pose to the pre-pose (direct, else via the upright posture). Checked
-    lazily, best-scored candidate first, so a step costs about one path check."""
-
-    SCAN = 50  # candidates tried, best first, before giving up and returning the best one
-
-    def __init__(
-        self,
-        spec: RobotSpec,
-        env: Envelope,
-        tool_m: np.ndarray,
-        q_c: np.ndarray,
-        s_c: np.ndarray,
-        approach_rad: float,
-    ) -> None:
-        self.spec, self.env, self.tool_m = spec, env, np.asarray(tool_m, float)
-        self.q_c = q_c
-        self.pre = q_c - np.sign(s_c) * approach_rad
-        self._approach_ok: dict[int, bool] = {}
-        self.last: np.ndarray | None = None  # the last measured target (the arm is there)
-
-    def ok(self, i: int) -> bool:
-        if i not in self._approach_ok:
-            v = self.env.path_violation(self.spec, self.pre[i], self.q_c[i], self.tool_m)
-            self._approach_ok[i] = v is None
-        if not self._approach_ok[i]:
-            return False
-        if self.last is None:
-            return True
-        return route(self.env, self.spec, self.tool_m, self.last, self.pre[i])[1] is None
-
-    def first(self, order) -> tuple[int | None, int]:
-        """(the first candidate of `order` (best first) the arm may go to, or None if none of
-        the first SCAN may; how many better ones were passed over)."""
-        for k, i in enumerate(list(order)[: self.SCAN]):
-            if self.ok(int(i)):
-                return int(i), k
-        return None, min(len(order), self.SCAN)
+SCAN = 50  # candidates tried, best first, before giving up on reaching one from here
 
 
 def _pick(reach: Reach | None, order, info: dict) -> int:
@@ -176,7 +138,7 @@ def _pick(reach: Reach | None, order, info: dict) -> int:
     order = np.asarray(order, int)
     if reach is None:
         return int(order[0])
-    i, passed = reach.first(order)
+    i, passed = reach.first(order, scan=SCAN)
     if passed:
         info["passed_over_unreachable"] = passed
     if i is None:
@@ -467,7 +429,11 @@ def _dopt_plan(
     def scaled(J):
         return J[:, :, free] / scale  # (M, 3, L)
 
+    def mean_information(Js):  # W: the mean prediction-variance weight over the candidates
+        return np.einsum("mkl,mkp->lp", Js, Js) / len(Js) if index == "v" else None
+
     Js = scaled(J_c)
+    W = mean_information(Js)
     eps = 1e-6 * float(np.mean(np.einsum("mkl,mkl->l", Js, Js))) / len(Js)
     meas = _Measurements(spec, tool_m, free)
     available = np.ones(len(q_c), bool)
@@ -480,13 +446,16 @@ def _dopt_plan(
             meas.refit()
             if meas.calibrated:
                 Js = scaled(jacobian_padded(meas.theta, np.eye(4), q_c))
+                W = mean_information(Js)
                 last_relin = len(meas)
                 info["relinearised"] = True
         A = np.einsum("mkl,mkp->lp", Js[measured_idx], Js[measured_idx]) if measured_idx else None
         if A is None:
             A = np.zeros((L, L))
         pending = [i for i in seeds if available[i]] if k < len(seeds) else []
-        i = (reach.first(pending)[0] if reach is not None else pending[0]) if pending else None
+        i = None
+        if pending:
+            i = pending[0] if reach is None else reach.first(pending, SCAN)[0]
         if i is not None:
             info["rule"] = "space-filling seed"
         else:
@@ -499,7 +468,6 @@ def _dopt_plan(
             elif index == "v" and full_rank:
                 # decrease of the mean prediction variance over the candidates, tr(W A^-1),
                 # by adding c (Woodbury with the 3x3 block of c)
-                W = np.einsum("mkl,mkp->lp", Js, Js) / len(Js)
                 Ainv = np.linalg.inv(A)
                 B = np.einsum("lp,mkp->mlk", Ainv, Js[cand])  # (M, L, 3)
                 S = np.eye(3)[None] + np.einsum("mkl,mlj->mkj", Js[cand], B)

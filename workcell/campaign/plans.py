@@ -116,6 +116,51 @@ def approach_signs(
     return q[ok], signs[ok]
 
 
+class Reach:
+    """Which poses the arm may go to next, checked the way the executor moves (its
+    `_pose_problems`): the approach path pre-pose -> pose inside the envelope, and a route from
+    the last pose the arm was sent to (`last`) to the pre-pose (direct, else via the upright
+    posture). Checked lazily and the approach checks cached, so a caller that takes the first
+    reachable of an ordered list pays about one path check a step."""
+
+    def __init__(
+        self,
+        spec: RobotSpec,
+        env: Envelope,
+        tool_m: np.ndarray,
+        q: np.ndarray,
+        signs: np.ndarray,
+        approach_rad: float,
+    ) -> None:
+        self.spec, self.env, self.tool_m = spec, env, np.asarray(tool_m, float)
+        self.q = q
+        self.pre = q - np.sign(signs) * approach_rad
+        self._approach_ok: dict[int, bool] = {}
+        self.last: np.ndarray | None = None  # where the arm is (None: not known, not checked)
+
+    def approach_ok(self, i: int) -> bool:
+        if i not in self._approach_ok:
+            v = self.env.path_violation(self.spec, self.pre[i], self.q[i], self.tool_m)
+            self._approach_ok[i] = v is None
+        return self._approach_ok[i]
+
+    def ok(self, i: int) -> bool:
+        if not self.approach_ok(i):
+            return False
+        if self.last is None:
+            return True
+        return route(self.env, self.spec, self.tool_m, self.last, self.pre[i])[1] is None
+
+    def first(self, order, scan: int | None = None) -> tuple[int | None, int]:
+        """(the first pose of `order` the arm may go to, or None if none of the first `scan`
+        (all: None) may; how many were passed over)."""
+        order = list(order)[:scan]
+        for k, i in enumerate(order):
+            if self.ok(int(i)):
+                return int(i), k
+        return None, len(order)
+
+
 def order_for_paths(
     spec: RobotSpec,
     env: Envelope,
@@ -127,25 +172,19 @@ def order_for_paths(
     """Keep the given (random or raster) order, but defer a pose whose move from the previous
     pose leaves the envelope part-way (the joint-space path of a moveJ can dip the SMR or a link
     below the table between two valid end points) until a pose it can be reached from has been
-    measured, the way the executor moves: directly, else via the upright posture. A pose whose
-    own approach (pre-pose -> pose) leaves the envelope is dropped, and so is a pose from which
-    no remaining pose can be reached (the order then goes on from the pose before it).
+    measured, the way the executor moves (`Reach`). A pose whose own approach (pre-pose -> pose)
+    leaves the envelope is dropped, and so is a pose from which no remaining pose can be reached
+    (the order then goes on from the pose before it).
     Deterministic, so a resumed campaign re-plans the same pose ids."""
-    pre = q - signs * approach_rad
-    ok = [env.path_violation(spec, pre[i], q[i], tool_m) is None for i in range(len(q))]
-    remaining = [i for i in range(len(q)) if ok[i]]
+    reach = Reach(spec, env, tool_m, q, signs, approach_rad)
+    remaining = [i for i in range(len(q)) if reach.approach_ok(i)]
     order: list[int] = []
     while remaining:
-        if not order:
-            nxt = remaining[0]
-        else:
-            prev = q[order[-1]]
-            nxt = next(
-                (i for i in remaining if route(env, spec, tool_m, prev, pre[i])[1] is None), None
-            )
-            if nxt is None:
-                order.pop()  # a dead end: drop it and go on from the pose before it
-                continue
+        reach.last = q[order[-1]] if order else None
+        nxt, _ = reach.first(remaining)
+        if nxt is None:
+            order.pop()  # a dead end: drop it and go on from the pose before it
+            continue
         order.append(nxt)
         remaining.remove(nxt)
     idx = np.array(order, int)
