@@ -38,6 +38,14 @@ async def until(pilot, cond, timeout_s: float = 120.0) -> None:
 async def settle(pilot) -> None:
     pilot.app.clear_notifications()
     await pilot.pause(0.1)
+    # a RichLog scrolls to its last line after the refresh that follows a write; do it now,
+    # else the capture can catch the event log one scroll step behind (seen once in a full run)
+    from textual.widgets import RichLog
+
+    for log in pilot.app.screen.query(RichLog):
+        if log.auto_scroll:
+            log.scroll_end(animate=False, immediate=True)
+    await pilot.pause(0.05)
 
 
 async def connect(pilot) -> None:
