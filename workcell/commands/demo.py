@@ -14,6 +14,7 @@ import time
 import numpy as np
 
 from workcell.errors import UserError, check_output_path
+from workcell.estimation.models import interval_um
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -109,6 +110,7 @@ def run(args: argparse.Namespace) -> int:
         save_model(diagnosis.model, out / f"{rec_path.stem}.augmented.json")
         results["augmented"] = {
             "heldout_rms_m": r["rms_after_m"],
+            "heldout_rms_ci95_m": r.get("rms_after_ci95_m"),
             "heldout_max_m": r["max_after_m"],
             "fit_seconds": time.perf_counter() - t1,
             "heldout_poses": r.get("heldout_poses"),
@@ -132,6 +134,7 @@ def run(args: argparse.Namespace) -> int:
         "noise_floor_m": floor,
         "nominal_rms_m": dh["nominal_rms_m"],
         "calibrated_rms_m": {m: r["heldout_rms_m"] for m, r in results.items()},
+        "calibrated_rms_ci95_m": {m: r.get("heldout_rms_ci95_m") for m, r in results.items()},
         "calibrated_max_m": {m: r["heldout_max_m"] for m, r in results.items()},
         "fit_seconds": {m: r["fit_seconds"] for m, r in results.items()},
         "unidentifiable": dh["unidentifiable"],
@@ -158,10 +161,14 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(summary))
         return 0
     print()
-    print(f"{'':24}{'held-out RMS':>14}{'max':>12}")
+    print(f"{'':24}{'held-out RMS':>14}{'max':>12}   95 % CI of the RMS")
     print(f"{'nominal model':24}{um(dh['nominal_rms_m']):>14}{um(dh['nominal_max_m']):>12}")
     for m, r in results.items():
-        print(f"{'calibrated: ' + m:24}{um(r['heldout_rms_m']):>14}{um(r['heldout_max_m']):>12}")
+        ci = interval_um(r.get("heldout_rms_ci95_m"), label=False)
+        print(
+            f"{'calibrated: ' + m:24}{um(r['heldout_rms_m']):>14}{um(r['heldout_max_m']):>12}"
+            + (f"   {ci}" if ci else "")
+        )
     print(f"{'noise floor (expected)':24}{um(floor):>14}")
     best = min(results.values(), key=lambda r: r["heldout_rms_m"])
     print(

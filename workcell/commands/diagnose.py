@@ -17,6 +17,7 @@ import numpy as np
 
 from workcell.commands.options import add_tracker_mpe, parse_tracker_mpe
 from workcell.errors import UserError, check_output_path
+from workcell.estimation.models import interval_um
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -115,14 +116,16 @@ def print_report(r: dict) -> None:
     print()
     print(r["summary"])
     print()
-    print(f"{'model':42s}{'held-out RMS':>14}{'max':>12}")
+    print(f"{'model':42s}{'held-out RMS':>14}{'max':>12}   95 % CI of the RMS")
     print(
-        f"{'geometry (DH + offsets + base + SMR)':42s}{um(r['rms_before_m']):>14}{um(r['max_before_m']):>12}"
+        f"{'geometry (DH + offsets + base + SMR)':42s}{um(r['rms_before_m']):>14}"
+        f"{um(r['max_before_m']):>12}   {interval_um(r.get('rms_before_ci95_m'), False)}"
     )
     for s in r["steps"]:
         print(f"{'  + ' + s['after']:42s}{um(s['heldout_rms_m']):>14}{um(s['heldout_max_m']):>12}")
     print(
-        f"{'final (nonlinear joint refit)':42s}{um(r['rms_after_m']):>14}{um(r['max_after_m']):>12}"
+        f"{'final (nonlinear joint refit)':42s}{um(r['rms_after_m']):>14}"
+        f"{um(r['max_after_m']):>12}   {interval_um(r.get('rms_after_ci95_m'), False)}"
     )
     npm = r["unexplained"].get("np_model")
     if npm:

@@ -12,6 +12,7 @@ import numpy as np
 from workcell.commands.options import add_tracker_mpe, parse_tracker_mpe
 from workcell.errors import UserError, check_output_path
 from workcell.estimation.fitting import FIT_METHODS, fit_recording
+from workcell.estimation.models import interval_um
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -77,7 +78,11 @@ def print_report(r: dict) -> None:
     print(f"poses           {r['train_poses']} train, {r['heldout_poses']} held out ({r['split']})")
     on = "held-out RMS" if r["heldout_poses"] else "train RMS   "  # --holdout 0: no held-out
     print(f"nominal         {on} {um(r['nominal_rms_m'])}   (nominal chain, base registered)")
-    print(f"calibrated      {on} {um(r['heldout_rms_m'])}   max {um(r['heldout_max_m'])}")
+    ci = interval_um(r.get("heldout_rms_ci95_m"))
+    print(
+        f"calibrated      {on} {um(r['heldout_rms_m'])}   max {um(r['heldout_max_m'])}"
+        + (f"   ({ci}, resampling the poses)" if ci else "")
+    )
     if r.get("stated_noise_floor_m"):
         print(
             f"noise floor     {um(r['stated_noise_floor_m'])}   repeatability: the recorded "

@@ -74,7 +74,12 @@ from workcell.estimation.effects import (
     thermal_signal,
     thermal_source,
 )
-from workcell.estimation.models import error_stats
+from workcell.estimation.models import (
+    RMS_INTERVAL_BASIS,
+    error_stats,
+    interval_um,
+    rms_gain_interval,
+)
 from workcell.kinematics.chain import PARAM_NAMES, jac_joints
 from workcell.recording.dataset import Dataset
 
@@ -617,8 +622,8 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
     # ---- 6. show: held-out before/after, per step (linearised prefix models)
     pred_dh_te = padded_call(dh.predict, dte.q)
     pred_te = model.predict_parametric(dte.q, **aux(dte))
-    before = error_stats(pred_dh_te, dte.p_tracker)
-    after = error_stats(pred_te, dte.p_tracker)
+    before = error_stats(pred_dh_te, dte.p_tracker, interval=True)
+    after = error_stats(pred_te, dte.p_tracker, interval=True)
     X_te = fs.features(theta, dte.q, **aux(dte))
     Jt_te, Je_te = jac_aug(theta, eff0, base_ref, dte.q, X_te)
     p0_te = p_aug(theta, eff0, base_ref, dte.q, X_te)
@@ -628,6 +633,7 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
         g, b = lin.coef(ii)
         return p0_te + Jt_te[:, :, free] @ g + (Je_te[:, :, ii] @ b if ii else 0.0)
 
+    e_all_te = np.linalg.norm(lin_pred_te(M) - dte.p_tracker, axis=1)
     per_step = []
     for k in range(len(M)):
         st = error_stats(lin_pred_te(M[: k + 1]), dte.p_tracker)
@@ -648,7 +654,12 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
         frac = float(
             (lin.cv_errors(prev).mean() - lin.cv_errors(upto).mean()) / max(cv_geo.mean(), 1e-300)
         )
-        wo = error_stats(lin_pred_te([d for d in M if d is not c]), dte.p_tracker)
+        p_wo = lin_pred_te([d for d in M if d is not c])
+        wo = error_stats(p_wo, dte.p_tracker)
+        # paired over the held-out poses, both linearised: the final model with / without c
+        e_wo = np.linalg.norm(p_wo - dte.p_tracker, axis=1)
+        gain = float(np.sqrt(np.mean(e_wo**2)) - np.sqrt(np.mean(e_all_te**2)))
+        gain_ci = list(rms_gain_interval(e_wo, e_all_te))
         s = step_of.get(c.key)
         effects_out.append(
             {
@@ -669,6 +680,8 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
                     "heldout_rms_without_m": wo["rms_m"],
                     "heldout_rms_with_m": after["rms_m"],
                     "heldout_confirms": bool(wo["rms_m"] > after["rms_m"]),
+                    "heldout_gain_m": gain,
+                    "heldout_gain_ci95_m": gain_ci,
                 },
             }
         )
@@ -704,9 +717,12 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
         "heldout_poses": int(len(test)),
         "outliers_rejected": n_out,
         "rms_before_m": before["rms_m"],
+        "rms_before_ci95_m": before["rms_ci95_m"],
         "max_before_m": before["max_m"],
         "rms_after_m": after["rms_m"],
+        "rms_after_ci95_m": after["rms_ci95_m"],
         "max_after_m": after["max_m"],
+        "rms_interval_basis": RMS_INTERVAL_BASIS,
         "noise_floor_m": floor,
         "noise_floor_basis": (
             f"per-pose sigma = max(recorded, tracker MPE ({cfg.tracker_mpe[0] * 1e6:.0f} um + "
@@ -920,18 +936,33 @@ def effect_sentence(e: dict) -> str:
         size = f"{name.replace('_', ' ')} {_fmt_value(v['value'], v['std'], v['unit'])}"
     ev = e["evidence"]
     conf = "" if ev.get("heldout_confirms", True) else " - NOT confirmed on the held-out poses"
+    gain = ""
+    ci = ev.get("heldout_gain_ci95_m")
+    if ci is not None and ev.get("heldout_gain_m") is not None and all(np.isfinite(ci)):
+        gain = (
+            f", a held-out gain of {ev['heldout_gain_m'] * 1e6:.1f} um (95 % CI "
+            f"{ci[0] * 1e6:.1f} to {ci[1] * 1e6:.1f} um"
+            + ("; within chance)" if ci[0] <= 0.0 else ")")
+        )
     return (
         f"{e['description']}: {size}; explains {100 * e['explained_fraction']:.0f} % of the "
         f"geometry-only residual power (F test p = {ev['p_value']:.1g}, CV p = "
-        f"{ev['cv_p_value']:.1g}; held-out RMS without it {ev['heldout_rms_without_m'] * 1e6:.1f} um){conf}"
+        f"{ev['cv_p_value']:.1g}; held-out RMS without it "
+        f"{ev['heldout_rms_without_m'] * 1e6:.1f} um{gain}){conf}"
     )
+
+
+def _ci(r: dict, key: str) -> str:
+    s = interval_um(r.get(key))
+    return s + ", " if s else ""
 
 
 def summary_text(r: dict) -> str:
     um = lambda x: f"{x * 1e6:.1f} um"  # noqa: E731
     lines = [
         f"Geometric calibration alone (DH, joint offsets, base, SMR; estimated jointly) leaves a "
-        f"held-out RMS of {um(r['rms_before_m'])} (max {um(r['max_before_m'])}); the noise floor "
+        f"held-out RMS of {um(r['rms_before_m'])} ({_ci(r, 'rms_before_ci95_m')}max "
+        f"{um(r['max_before_m'])}); the noise floor "
         f"expected from the tracker is {um(r['noise_floor_m'])} "
         f"({r['rms_before_m'] / r['noise_floor_m']:.1f}x).",
     ]
@@ -947,7 +978,8 @@ def summary_text(r: dict) -> str:
         for e in r["effects"]:
             lines.append("  - " + effect_sentence(e))
         lines.append(
-            f"With these effects the held-out RMS is {um(r['rms_after_m'])} (max "
+            f"With these effects the held-out RMS is {um(r['rms_after_m'])} "
+            f"({_ci(r, 'rms_after_ci95_m')}max "
             f"{um(r['max_after_m'])}), {r['rms_after_m'] / r['noise_floor_m']:.2f}x the noise floor."
         )
     else:

@@ -21,7 +21,12 @@ from workcell.estimation.dh import (
     pose_sigma,
     pose_sigma_model,
 )
-from workcell.estimation.models import aux_from_dataset, error_stats, save_model
+from workcell.estimation.models import (
+    RMS_INTERVAL_BASIS,
+    aux_from_dataset,
+    error_stats,
+    save_model,
+)
 from workcell.kinematics.chain import p_tracker
 from workcell.recording.dataset import HOLDOUT_SEED, Dataset
 
@@ -81,7 +86,7 @@ def fit_dataset(
     th_nom, base_nom = nominal_registered(dtr)
     ev = dte if len(dte) else dtr
     nominal = error_stats(np.asarray(p_tracker(th_nom, base_nom, ev.q)), ev.p_tracker)
-    held = error_stats(model.predict(ev.q, **aux_from_dataset(ev)), ev.p_tracker)
+    held = error_stats(model.predict(ev.q, **aux_from_dataset(ev)), ev.p_tracker, interval=True)
     train_stats = error_stats(model.predict(dtr.q, **aux_from_dataset(dtr)), dtr.p_tracker)
     params = model.parameters()
     info = getattr(model, "info", {}) or {}
@@ -98,6 +103,8 @@ def fit_dataset(
         "nominal_rms_m": nominal["rms_m"],
         "nominal_max_m": nominal["max_m"],
         "heldout_rms_m": held["rms_m"],
+        "heldout_rms_ci95_m": held["rms_ci95_m"],
+        "rms_interval_basis": RMS_INTERVAL_BASIS,
         "heldout_max_m": held["max_m"],
         "heldout_median_m": held["median_m"],
         "train_rms_m": train_stats["rms_m"],

@@ -20,6 +20,7 @@ from collections.abc import Callable
 import numpy as np
 
 from workcell.errors import UserError
+from workcell.estimation.models import interval_um, rms_interval
 from workcell.export.correction import Q_REF, Nominal, rotvec_to_matrix
 from workcell.export.table import CorrectionTable
 
@@ -39,10 +40,13 @@ def random_targets(
 
 
 def accuracy_stats(err_vec: np.ndarray) -> dict:
+    """Mean, RMS (with its 95 % interval over the targets), max and mean vector of the position
+    errors (N, 3)."""
     e = np.linalg.norm(err_vec, axis=1)
     return {
         "mean_m": float(e.mean()),
         "rms_m": float(np.sqrt(np.mean(e**2))),
+        "rms_ci95_m": list(rms_interval(e)),
         "max_m": float(e.max()),
         "bias_m": err_vec.mean(0).tolist(),
     }
@@ -119,6 +123,7 @@ def run_validation(
         f"  validation on {out['targets']} targets: RMS {out['before_rms_m'] * 1e6:.1f} um -> "
         f"{out['after_rms_m'] * 1e6:.1f} um ({out['improvement']:.1f}x), max "
         f"{out['before']['max_m'] * 1e6:.1f} -> {out['after']['max_m'] * 1e6:.1f} um"
+        + (f"; after: {ci}" if (ci := interval_um(out["after"]["rms_ci95_m"])) else "")
     )
     return out
 

@@ -528,7 +528,7 @@ def _replay(recording, progress, holdout: float = 0.25, model_out=None) -> dict:
     dtr = ds.subset(train)
     th, base = nominal_registered(dtr)
     pred = model.predict(ev.q, **aux_from_dataset(ev))
-    held = error_stats(pred, ev.p_tracker)
+    held = error_stats(pred, ev.p_tracker, interval=True)
     nom_pred = np.asarray(p_tracker(th, base, ev.q))
     nominal = error_stats(nom_pred, ev.p_tracker)
     out = Path(model_out) if model_out else Path(recording).with_suffix(".ekf-ann.model.json")
@@ -540,6 +540,7 @@ def _replay(recording, progress, holdout: float = 0.25, model_out=None) -> dict:
         "nominal_rms_m": nominal["rms_m"],
         "nominal_max_m": nominal["max_m"],
         "heldout_rms_m": held["rms_m"],
+        "heldout_rms_ci95_m": held["rms_ci95_m"],
         "heldout_max_m": held["max_m"],
         "fit_seconds": time.perf_counter() - t0,
         "estimate": lf.estimate(),

@@ -11,6 +11,7 @@ from textual.containers import Horizontal, Vertical
 from textual.widgets import Button, DataTable, Input, Label, Select
 
 from workcell.errors import UserError
+from workcell.estimation.models import interval_um
 from workcell.tui.messages import FitRequested
 from workcell.tui.screens.base import WorkcellScreen, um
 from workcell.tui.widgets import SeriesPlot
@@ -127,6 +128,9 @@ class FitScreen(WorkcellScreen):
                 "nominal (base registered)", um(r["nominal_rms_m"]), um(r.get("nominal_max_m"))
             )
         t.add_row(f"{method} fitted", um(r.get("heldout_rms_m")), um(r.get("heldout_max_m")))
+        ci = interval_um(r.get("heldout_rms_ci95_m"), label=False)
+        if ci:
+            t.add_row("  95 % CI of its RMS", ci, "")
         if r.get("train_rms_m") is not None:
             t.add_row(f"{method} on training poses", um(r["train_rms_m"]), "")
         if r.get("stated_noise_floor_m") is not None:
