@@ -15,6 +15,11 @@ from workcell.errors import UserError
 from workcell.kinematics.chain import base_T_frames, pack
 from workcell.kinematics.robots import RobotSpec
 
+# Ceilings of an envelope's caps, whatever the arm: the UR controller's own joint limits (ur_rtde
+# refuses a moveJ above 3.14 rad/s or 40 rad/s^2); the simulated 7-joint arm is slower.
+SPEED_CEILING_RAD_S = float(np.pi)
+ACCEL_CEILING_RAD_S2 = 40.0
+
 
 class EnvelopeViolation(ValueError):
     """A target outside the configured envelope; nothing moved."""
@@ -68,6 +73,15 @@ class Envelope:
                 "envelope floor_z_m, max_speed_rad_s and max_accel_rad_s2 must be finite and the "
                 f"caps > 0, got {caps}"
             )
+        for name, v, ceiling, what in (
+            ("max_speed_rad_s", caps[1], SPEED_CEILING_RAD_S, "speed limit (rad/s)"),
+            ("max_accel_rad_s2", caps[2], ACCEL_CEILING_RAD_S2, "acceleration limit (rad/s^2)"),
+        ):
+            if v > ceiling:
+                raise ValueError(
+                    f"envelope {name} {v:g} is above every supported arm's joint {what}, "
+                    f"{ceiling:.4g}; give radians"
+                )
         self.joint_limits_rad, self.box_min_m, self.box_max_m = lim, lo_box, hi_box
         self.floor_z_m, self.max_speed_rad_s, self.max_accel_rad_s2 = caps
 
