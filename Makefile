@@ -7,7 +7,7 @@ export JAX_PLATFORMS ?= cpu
 export OPENBLAS_NUM_THREADS ?= 1
 export OMP_NUM_THREADS ?= 1
 
-.PHONY: install demo test test-all bench lint format clean
+.PHONY: install demo test test-all fuzz bench lint format clean
 
 install: $(STAMP)
 
@@ -25,6 +25,14 @@ test: install
 
 test-all: install
 	$(PY) -m pytest -q
+
+# property tests with fresh random examples, FUZZ_RUNS times (`make test` draws fixed ones)
+FUZZ_RUNS ?= 5
+fuzz: install
+	for i in $$(seq $(FUZZ_RUNS)); do \
+	  HYPOTHESIS_PROFILE=fuzz $(PY) -m pytest -q -m "not slow" -p no:cacheprovider \
+	    $$(grep -l "@given" tests/*.py) || exit 1; \
+	done
 
 bench: install
 	$(VENV)/bin/workcell bench all
