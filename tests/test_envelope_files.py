@@ -49,6 +49,7 @@ def test_envelope_command_round_trip_and_refusals(tmp_path, tight, capsys):
         "nan": ({**d, "box_min_m": [float("nan"), 0, 0]}, "finite"),
         "five": ({**d, "joint_limits_rad": d["joint_limits_rad"][:5]}, "5 joint limits"),
         "fast": ({**d, "max_speed_rad_s": 50.0}, "joint speed limit"),
+        "jerky": ({**d, "max_accel_rad_s2": 1e9}, "joint acceleration limit"),  # found by fuzzing
     }
     cases["binary"] = (b"\x89MCAP0\r\n\xff", "not a text file")
     for name, (bad, match) in cases.items():
