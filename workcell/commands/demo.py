@@ -183,6 +183,7 @@ def run(args: argparse.Namespace) -> int:
         print(
             f"correction ({c['targets']} targets): RMS {um(c['before_rms_m'])} -> "
             f"{um(c['after_rms_m'])}"
+            + (f" ({ci})" if (ci := interval_um(c.get("after", {}).get("rms_ci95_m"))) else "")
         )
     return 0
 
