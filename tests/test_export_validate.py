@@ -1,13 +1,22 @@
 """Closed loop on the simulated robot: a model equal to the true geometry corrects to the table's
 interpolation error; the nominal-only 'correction' does nothing."""
 
-import numpy as np
+import dataclasses
 
-from workcell.campaign.envelope import default_envelope
+import numpy as np
+import pytest
+
+from workcell.campaign.envelope import Guard, default_envelope
 from workcell.campaign.run import sim_cell
+from workcell.errors import UserError
 from workcell.estimation.dh import DHModel
 from workcell.export.build import make_table
-from workcell.export.validate import run_validation, sim_measure
+from workcell.export.validate import (
+    commanded_joints,
+    random_targets,
+    run_validation,
+    sim_measure,
+)
 from workcell.kinematics.chain import pack
 from workcell.kinematics.robots import DH
 
@@ -42,9 +51,86 @@ def test_closed_loop_geometry_only():
         sim_measure(world),
         n=12,
         seed=1,
-        check=lambda q: env.violations(cell.spec, q, cell.tool_m)[0],
+        guard=Guard(env, cell.spec, cell.tool_m),
+        q_start=world.joint_state()[0],
     )
     assert res["targets"] >= 10
     assert res["before_rms_m"] > 2e-4  # the nominal controller misses by the DH errors
     assert res["after_rms_m"] < 1e-5  # interpolation error (5 um max) + nothing else
     assert res["after"]["max_m"] < 1.5e-5
+
+
+def test_every_validation_move_stays_inside_the_envelope():
+    """Closed-loop validation moves the arm between random targets: every motion (transit to a
+    pre-pose, approach) is path-checked before it starts, and a target that cannot be reached
+    inside the envelope is skipped before its first motion. A workspace box as tight as the
+    table's volume makes the plain joint moves between targets leave it (checked first)."""
+    world, robot, tracker, cell = sim_cell("ur5e", "none", 3)
+    table, corr = make_table(_truth_model(world.truth), target_error_m=5e-6)
+    env = dataclasses.replace(
+        default_envelope(cell.spec), box_min_m=table.lo_m.copy(), box_max_m=table.hi_m.copy()
+    )
+    centre = 0.5 * (table.lo_m + table.hi_m)
+    q0 = commanded_joints(corr.nominal, table, centre[None], np.array([0]), False)[0]
+    world.clock.advance(world.command_move(q0, 0.5, 1.0))
+    n, seed = 30, 1
+
+    # the unguarded sequence of joint moves (what validation did before) leaves the box
+    P, k = random_targets(table, n, seed)
+    sign = np.sign(np.asarray(table.meta["conditions"]["approach_sign"]))
+    q_u = commanded_joints(corr.nominal, table, P, k, corrected=False)
+    q_c = commanded_joints(corr.nominal, table, P, k, corrected=True)
+    seq = [q0]
+    for i in range(n):  # per target: uncorrected, then corrected, each via its pre-pose
+        for q in (q_u[i], q_c[i]):
+            seq += [q - sign * 0.02, q]
+    leaving = [
+        j
+        for j in range(len(seq) - 1)
+        if np.all(np.isfinite(seq[j + 1]))
+        and np.all(np.isfinite(seq[j]))
+        and env.path_violation(cell.spec, seq[j], seq[j + 1], cell.tool_m) is not None
+    ]
+    assert leaving, "the test's envelope must be one the unguarded moves would leave"
+
+    path = [np.asarray(world.joint_state()[0], float)]
+
+    def move(q):
+        path.append(np.asarray(q, float))
+        world.clock.advance(world.command_move(q, 0.5, 1.0))
+
+    res = run_validation(
+        corr.nominal,
+        table,
+        move,
+        sim_measure(world),
+        n=n,
+        seed=seed,
+        guard=Guard(env, cell.spec, cell.tool_m),
+        q_start=path[0],
+    )
+    assert res["skipped"] and res["targets"] == n - len(res["skipped"]) >= n // 2
+    for a, b in zip(path[:-1], path[1:], strict=True):
+        assert env.path_violation(cell.spec, a, b, cell.tool_m) is None
+    assert res["after_rms_m"] < 1e-5  # the targets it did measure are still corrected
+
+
+def test_validation_refuses_to_start_outside_the_envelope():
+    world, robot, tracker, cell = sim_cell("ur5e", "none", 3)
+    table, corr = make_table(_truth_model(world.truth), target_error_m=5e-6)
+    env = default_envelope(cell.spec)
+    q_out = np.array(world.joint_state()[0], float)
+    q_out[1] = -0.2  # shoulder down: the forearm below the table
+    assert env.violations(cell.spec, q_out[None], cell.tool_m)[0] is not None
+    moved = []
+    with pytest.raises(UserError, match="outside the envelope before validation"):
+        run_validation(
+            corr.nominal,
+            table,
+            moved.append,
+            sim_measure(world),
+            n=5,
+            guard=Guard(env, cell.spec, cell.tool_m),
+            q_start=q_out,
+        )
+    assert moved == []

@@ -295,3 +295,23 @@ def route(
         ):
             return [u, q_to], None
     return [], why
+
+
+@dataclass
+class Guard:
+    """The envelope with its arm and tool, for code that moves the arm outside the campaign
+    executor (closed-loop validation): may the arm stand at q, go straight from a to b, or get
+    from a to b at all (direct or via upright)?"""
+
+    env: Envelope
+    spec: RobotSpec
+    tool_m: np.ndarray
+
+    def pose(self, q: np.ndarray) -> str | None:
+        return self.env.violations(self.spec, np.asarray(q, float)[None], self.tool_m)[0]
+
+    def direct(self, q_from: np.ndarray, q_to: np.ndarray) -> str | None:
+        return self.env.path_violation(self.spec, q_from, q_to, self.tool_m)
+
+    def route(self, q_from: np.ndarray, q_to: np.ndarray) -> tuple[list[np.ndarray], str | None]:
+        return route(self.env, self.spec, self.tool_m, q_from, q_to)

@@ -61,6 +61,7 @@ def check_options(args: argparse.Namespace) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from workcell.campaign.devices import envelope_from_args
+    from workcell.campaign.envelope import Guard
     from workcell.estimation.models import load_model
     from workcell.export.build import make_table, model_recording, nominal_for_model, parse_vec
     from workcell.export.correction import Conditions
@@ -143,7 +144,8 @@ def run(args: argparse.Namespace) -> int:
             measure,
             n=args.targets,
             seed=args.seed,
-            check=lambda q: env.violations(spec, q, tool)[0],
+            guard=Guard(env, spec, tool),
+            q_start=np.asarray(robot.state().q_rad, float),
             log=log,
         )
     finally:

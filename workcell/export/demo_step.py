@@ -14,7 +14,7 @@ N_TARGETS = 50
 
 
 def correction_step(world, cell, model, method: str, out_dir, log) -> dict:
-    from workcell.campaign.envelope import default_envelope
+    from workcell.campaign.envelope import Guard, default_envelope
     from workcell.export.build import make_table
     from workcell.export.urscript import write_urscript
 
@@ -49,7 +49,8 @@ def correction_step(world, cell, model, method: str, out_dir, log) -> dict:
         sim_measure(world),
         n=N_TARGETS,
         seed=12345,
-        check=lambda q: env.violations(cell.spec, q, cell.tool_m)[0],
+        guard=Guard(env, cell.spec, cell.tool_m),
+        q_start=world.joint_state()[0],
         log=log,
     )
     held = (getattr(model, "info", {}) or {}).get("heldout_rms_m")

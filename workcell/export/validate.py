@@ -19,6 +19,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from workcell.campaign.envelope import Guard
 from workcell.errors import UserError
 from workcell.estimation.models import interval_um, rms_interval
 from workcell.export.correction import Q_REF, Nominal, rotvec_to_matrix
@@ -79,13 +80,27 @@ def run_validation(
     n: int = 50,
     seed: int = 0,
     approach_rad: float = 0.02,
-    check: Callable[[np.ndarray], str | None] | None = None,
+    guard: Guard | None = None,
+    q_start: np.ndarray | None = None,
     log: Callable[[str], None] | None = None,
 ) -> dict:
-    """Measure n targets uncorrected and corrected. `move(q)` moves the robot (blocking),
-    `measure()` returns the SMR position in the tracker frame, `check(q)` returns a reason to skip
-    (envelope) or None."""
+    """Measure n targets uncorrected and corrected. `move(q)` moves the robot (blocking, along
+    the joint-space straight line), `measure()` returns the SMR position in the tracker frame.
+
+    With a `guard` (the envelope) every motion is checked before the arm moves: each target and
+    pre-pose, the approach (pre-pose -> target) and the transit from where the arm is (`q_start`
+    at first) to the pre-pose, direct or via the upright posture. A target any of whose four
+    moves would leave the envelope is skipped, with the reason, before its first motion."""
     log = log or (lambda m: None)
+    if guard is not None:
+        if q_start is None:
+            raise ValueError("run_validation: a guard needs q_start, the arm's joints now")
+        why = guard.pose(q_start)
+        if why is not None:
+            raise UserError(
+                f"the arm is outside the envelope before validation ({why}); jog it inside, "
+                "then run again"
+            )
     P, k = random_targets(table, n, seed)
     sign = np.sign(np.asarray(table.meta.get("conditions", {}).get("approach_sign", [1.0] * 6)))
     q_u = commanded_joints(nominal, table, P, k, corrected=False)
@@ -93,12 +108,12 @@ def run_validation(
     p_goal = nominal.to_tracker(P)
     keep = np.all(np.isfinite(q_u), 1) & np.all(np.isfinite(q_c), 1)
     skipped = []
-    if check is not None:
+    if guard is not None:
         for i in range(len(P)):
             if not keep[i]:
                 continue
             for q in (q_u[i], q_c[i], q_u[i] - sign * approach_rad, q_c[i] - sign * approach_rad):
-                why = check(q)
+                why = guard.pose(q)
                 if why:
                     keep[i] = False
                     skipped.append(f"target {i}: {why}")
@@ -106,12 +121,38 @@ def run_validation(
     if not keep.any():
         raise UserError("no target could be reached inside the envelope; check the volume")
     meas = {"before": [], "after": []}
+    q_at = None if q_start is None else np.asarray(q_start, float)
+    n_via = 0
     for i in np.where(keep)[0]:
-        for key, q in (("before", q_u[i]), ("after", q_c[i])):
-            move(q - sign * approach_rad)
+        legs = []  # (waypoints to the pre-pose, target) for the uncorrected and corrected visit
+        why = None
+        for q in (q_u[i], q_c[i]):
+            pre = q - sign * approach_rad
+            if guard is None:
+                legs.append(([pre], q))
+                continue
+            wps, why = guard.route(q_at if not legs else legs[-1][1], pre)
+            if why is None and (v := guard.direct(pre, q)) is not None:
+                why = f"approach: {v}"
+            if why is not None:
+                break
+            legs.append((wps, q))
+        if why is not None:
+            keep[i] = False
+            skipped.append(f"target {i}: {why}")
+            continue
+        for key, (wps, q) in zip(("before", "after"), legs, strict=True):
+            n_via += len(wps) - 1
+            for w in wps:
+                move(w)
             move(q)
             meas[key].append(measure())
-    out = {"targets": int(keep.sum()), "skipped": skipped}
+            q_at = q
+    if not keep.any():
+        raise UserError(
+            "no target could be reached along paths inside the envelope; check the volume"
+        )
+    out = {"targets": int(keep.sum()), "skipped": skipped, "via_upright_moves": n_via}
     for key in ("before", "after"):
         ev = np.asarray(meas[key]) - p_goal[keep]
         st = accuracy_stats(ev)
@@ -119,6 +160,8 @@ def run_validation(
     out["before_rms_m"] = out["before"]["rms_m"]
     out["after_rms_m"] = out["after"]["rms_m"]
     out["improvement"] = out["before_rms_m"] / max(out["after_rms_m"], 1e-15)
+    if skipped:
+        log(f"  {len(skipped)} target(s) skipped before any motion; first: {skipped[0]}")
     log(
         f"  validation on {out['targets']} targets: RMS {out['before_rms_m'] * 1e6:.1f} um -> "
         f"{out['after_rms_m'] * 1e6:.1f} um ({out['improvement']:.1f}x), max "
