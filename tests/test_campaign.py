@@ -1,5 +1,6 @@
 """In-process simulated campaign: plans inside the envelope, refusal before motion, recording."""
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -320,3 +321,58 @@ def test_encoder_noise_at_the_envelope_edge_does_not_switch_the_path_check_off()
     assert ex._move_along(at_limit, "edge") and ex._move_along(home, "back")
     assert [k for k, _ in sink.events if k == "envelope"] == []
     assert len(robot.moves) == 2
+
+
+def _shrunk(env, by_m: float):
+    """env with every box face moved in and the floor moved up by `by_m`: every clearance drops
+    by exactly that much."""
+    return dataclasses.replace(
+        env,
+        box_min_m=env.box_min_m + by_m,
+        box_max_m=env.box_max_m - by_m,
+        floor_z_m=env.floor_z_m + by_m,
+    )
+
+
+def test_the_path_check_sees_a_dip_between_its_samples():
+    """Two postures whose 32 evenly spaced path samples are all inside, while the SMR or a link
+    leaves the envelope between two samples: the check refuses the path. (Sampling alone, the
+    check before today, let it through.)"""
+    env = default_envelope(UR5E)
+    tool = np.array([0, 0, 0.06])
+    rng = np.random.default_rng(5)
+    s32, dense = np.linspace(0, 1, 32), np.linspace(0, 1, 2048)
+    found = 0
+    for _ in range(100):
+        a, b = random_configurations(UR5E, env, 2, rng, tool)
+        c_samples = env.clearance(UR5E, a + s32[:, None] * (b - a), tool).min()
+        c_dense = env.clearance(UR5E, a + dense[:, None] * (b - a), tool).min()
+        if c_samples - c_dense < 2.5e-4:  # a dip of a quarter millimetre (5x the tolerance)
+            continue
+        tight = _shrunk(env, 0.5 * (c_samples + c_dense))
+        samples = a + s32[:, None] * (b - a)
+        assert all(v is None for v in tight.violations(UR5E, samples, tool))
+        assert any(
+            v is not None for v in tight.violations(UR5E, a + dense[:, None] * (b - a), tool)
+        )
+        # max_step_rad 10: exactly those 32 samples to start from
+        why = tight.path_violation(UR5E, a, b, tool, max_step_rad=10.0)
+        assert why is not None and "leaves the envelope" in why
+        found += 1
+    assert found >= 3, found  # 7 of these 100 paths: not a contrived case
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.integers(0, 2**31 - 1), st.floats(0.0, 0.15))
+def test_a_path_the_check_passes_is_inside_all_along(seed, shrink_m):
+    """Random postures, envelopes shrunk by up to 15 cm: a path the check lets through has no
+    point outside by more than the stated tolerance on a dense sampling (4,096 points)."""
+    from workcell.campaign.envelope import PATH_TOL_M
+
+    env = default_envelope(UR5E)
+    tool = np.array([0, 0, 0.06])
+    a, b = random_configurations(UR5E, env, 2, np.random.default_rng(seed), tool)
+    tight = _shrunk(env, shrink_m)
+    if tight.path_violation(UR5E, a, b, tool, max_step_rad=10.0) is None:
+        s = np.linspace(0, 1, 4096)
+        assert tight.clearance(UR5E, a + s[:, None] * (b - a), tool).min() >= -PATH_TOL_M / 2

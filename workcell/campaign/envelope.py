@@ -113,6 +113,18 @@ class Envelope:
 
     def violations(self, spec: RobotSpec, q: np.ndarray, tool_m: np.ndarray) -> list[str | None]:
         """For each row of q (N, n): None if inside, else the reason."""
+        return self._evaluate(spec, q, tool_m)[0]
+
+    def clearance(self, spec: RobotSpec, q: np.ndarray, tool_m: np.ndarray) -> np.ndarray:
+        """For each row of q (N, n): how far (m) the SMR is from the workspace box's nearest face
+        and the link frames 2..n from the floor, the smaller of the two; negative outside.
+        (Joint limits are left out: they are convex in joint space, a straight joint path
+        between two postures inside them stays inside.)"""
+        return self._evaluate(spec, q, tool_m)[1]
+
+    def _evaluate(
+        self, spec: RobotSpec, q: np.ndarray, tool_m: np.ndarray
+    ) -> tuple[list[str | None], np.ndarray]:
         q = np.atleast_2d(np.asarray(q, float))
         if q.shape[1] != len(self.joint_limits_rad):
             raise ValueError(
@@ -123,6 +135,11 @@ class Envelope:
         lim = self.joint_limits_rad
         T = np.asarray(base_T_frames(pack(spec.dh), np.where(finite[:, None], q, 0.0)))
         smr = np.einsum("nab,b->na", T[:, -1, :3, :3], np.asarray(tool_m, float)) + T[:, -1, :3, 3]
+        clear = np.minimum(
+            np.minimum(smr - self.box_min_m, self.box_max_m - smr).min(axis=1),
+            (T[:, 2:, 2, 3] - self.floor_z_m).min(axis=1),
+        )
+        clear[~finite] = -np.inf
         for i in range(len(q)):
             if not finite[i]:
                 out[i] = "target has non-finite joint values"
@@ -146,7 +163,7 @@ class Envelope:
                 out[i] = (
                     f"a link frame would go down to z = {zmin:.3f} m, below the floor {self.floor_z_m} m"
                 )
-        return out
+        return out, clear
 
     def path_violation(
         self,
@@ -159,21 +176,43 @@ class Envelope:
         """Where the joint-space straight line q_from -> q_to (the path of a UR moveJ: all
         joints start and stop together) leaves the envelope, or None. Joint limits are convex,
         but the workspace box and the floor are not in joint space: two valid end points can
-        have a path that dips the SMR or a link below the table. Sampled at most `max_step_rad`
-        apart on every joint (0.02 rad moves a point 1 m out by 2 cm)."""
+        have a path that dips the SMR or a link below the table.
+
+        The whole path is checked, not only samples of it. Samples at most `max_step_rad` apart
+        on every joint are checked first; then, between neighbours s_k, s_k+1, no checked point
+        (SMR, link frames) moves more than L (s_k+1 - s_k), L = sum_i |dq_i| R_i with R_i the
+        chain's length beyond joint i (`_motion_bound`), and the box and floor distances change
+        no faster. So the stretch is inside when the two clearances add up to at least that;
+        where they do not, it is split in four and checked again, down to stretches along which
+        nothing moves more than PATH_TOL_M (0.1 mm; then nothing can be outside by more than
+        half of that)."""
         q0, q1 = np.asarray(q_from, float), np.asarray(q_to, float)
         if not (np.all(np.isfinite(q0)) and np.all(np.isfinite(q1))):
             return "path with non-finite joint values"
-        n = max(1, int(np.ceil(np.max(np.abs(q1 - q0)) / max_step_rad)))
+        dq = q1 - q0
+        n = max(1, int(np.ceil(np.max(np.abs(dq)) / max_step_rad)))
         # a power of two >= 32 samples: few distinct shapes, so JAX compiles few times
         m = max(32, 1 << int(np.ceil(np.log2(n + 1))))
         s = np.linspace(0.0, 1.0, m)
-        for si, v in zip(
-            s, self.violations(spec, q0 + s[:, None] * (q1 - q0), tool_m), strict=True
-        ):
-            if v is not None:
-                return f"the joint path leaves the envelope {100 * si:.0f} % of the way: {v}"
-        return None
+        L = _motion_bound(spec, tool_m, dq)
+        new = s
+        c = np.empty(0)
+        while True:
+            msgs, c_new = self._evaluate(spec, _pad_pow2(q0 + new[:, None] * dq), tool_m)
+            for si, v in zip(new, msgs, strict=False):
+                if v is not None:
+                    return f"the joint path leaves the envelope {100 * si:.0f} % of the way: {v}"
+            if new is not s:
+                order = np.argsort(np.r_[s, new], kind="stable")
+                s, c = np.r_[s, new][order], np.r_[c, c_new[: len(new)]][order]
+            else:
+                c = c_new[: len(s)]
+            h = np.diff(s)
+            open_ = (c[:-1] + c[1:] < L * h) & (L * h > PATH_TOL_M)
+            if not open_.any():
+                return None
+            k = np.where(open_)[0]
+            new = (s[k, None] + h[k, None] * np.array([0.25, 0.5, 0.75])).ravel()
 
     def check(self, spec: RobotSpec, q: np.ndarray, tool_m: np.ndarray) -> None:
         v = self.violations(spec, np.atleast_2d(q), tool_m)[0]
@@ -182,6 +221,24 @@ class Envelope:
 
     def cap(self, speed: float, accel: float) -> tuple[float, float]:
         return min(speed, self.max_speed_rad_s), min(accel, self.max_accel_rad_s2)
+
+
+PATH_TOL_M = 1e-4  # path_violation: stretches along which nothing moves more than this pass
+
+
+def _motion_bound(spec: RobotSpec, tool_m: np.ndarray, dq: np.ndarray) -> float:
+    """How far (m) any link frame or the SMR can travel along the joint path q + s dq, s in
+    [0, 1]: joint i turns by |dq_i| about an axis through frame i-1's origin, and every point it
+    carries is at most R_i = sum_(j >= i) (|a_j| + |d_j|) + |tool| from there."""
+    seg = np.abs(np.asarray(spec.dh.a, float)) + np.abs(np.asarray(spec.dh.d, float))
+    reach = np.cumsum(seg[::-1])[::-1] + float(np.linalg.norm(tool_m))
+    return float(np.abs(np.asarray(dq, float)) @ reach)
+
+
+def _pad_pow2(q: np.ndarray) -> np.ndarray:
+    """q padded (repeating its last row) to a power of two >= 32 rows: few shapes to compile."""
+    m = max(32, 1 << int(np.ceil(np.log2(len(q)))))
+    return q if len(q) == m else np.r_[q, np.repeat(q[-1:], m - len(q), axis=0)]
 
 
 def default_envelope(spec: RobotSpec) -> Envelope:
