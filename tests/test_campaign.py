@@ -323,6 +323,35 @@ def test_encoder_noise_at_the_envelope_edge_does_not_switch_the_path_check_off()
     assert len(robot.moves) == 2
 
 
+def test_an_arm_outside_the_envelope_is_not_moved(tmp_path):
+    """Placed outside (shoulder down: the forearm under the table), the arm is not moved at all:
+    a campaign refuses to start in one line and records nothing; an executor that finds it
+    outside mid-campaign (jogged during a pause) says so and stops, resumable."""
+    from workcell.campaign.executor import ArmOutsideEnvelope
+    from workcell.errors import UserError
+
+    env = default_envelope(UR5E)
+    tool = np.array([0, 0, 0.06])
+    outside = np.array([0.0, -0.2, 1.57, -1.57, -1.57, 0.0])
+    assert env.violations(UR5E, outside[None], tool)[0] is not None
+    robot, sink = ClockRobot(q0=outside), NullSink()
+    ex = Executor(robot, None, UR5E, env, sink, tool_m=tool)
+    with pytest.raises(ArmOutsideEnvelope, match="jog it inside"):
+        ex._move_along(np.array([0.0, -1.2, 1.2, -1.5, -1.5, 0.0]), "pose 0")
+    assert robot.moves == [] and [k for k, _ in sink.events] == ["envelope"]
+
+    world, srobot, tracker, cell = sim_cell("ur5e", "none", 3)
+    world.clock.advance(world.command_move(outside, 0.5, 1.0))
+    moved = []
+    orig = srobot.move_joints
+    srobot.move_joints = lambda *a, **k: (moved.append(a), orig(*a, **k))
+    out = tmp_path / "c.mcap"
+    with pytest.raises(UserError, match="outside the envelope at the start") as e:
+        run_campaign(srobot, tracker, cell, out, plan="random", poses=3, seed=0)
+    assert "\n" not in str(e.value) and "nothing was recorded" in str(e.value)
+    assert moved == [] and not out.exists()
+
+
 def _shrunk(env, by_m: float):
     """env with every box face moved in and the floor moved up by `by_m`: every clearance drops
     by exactly that much."""

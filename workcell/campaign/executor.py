@@ -34,6 +34,10 @@ from workcell.errors import UserError
 from workcell.kinematics.robots import RobotSpec
 
 
+class ArmOutsideEnvelope(UserError):
+    """The arm is outside the envelope: the campaign will not move it (nothing moved)."""
+
+
 @dataclass
 class CampaignConfig:
     readings_per_pose: int = 5
@@ -138,7 +142,6 @@ class Executor:
         self.result = CampaignResult()
         self._t_robot0: float | None = None
         self._t_wall0_ns = time.time_ns() if t_wall0_ns is None else t_wall0_ns
-        self._warned_outside = False
         self._last_cmd: np.ndarray | None = None  # the last target the arm arrived at
         self._elapsed0 = elapsed0_s
         self._last_js = -1e9
@@ -293,8 +296,9 @@ class Executor:
     def _move_along(self, q_to: np.ndarray, what: str) -> bool:
         """Move to q_to along joint paths inside the envelope (direct, or via the upright
         posture); False, with a `refused` event and no motion, when neither stays inside. An arm
-        that starts outside the envelope (placed there by the operator) makes its first move
-        without the path check, said once as a warning."""
+        found outside the envelope (placed there by the operator, e.g. jogged during a pause) is
+        not moved at all: an `error` event, then `ArmOutsideEnvelope` ends the campaign with the
+        recording closed, to be resumed once the arm is back inside."""
         q_now = np.asarray(self._robot_call(lambda: self.robot.state()).q_rad, float)
         outside = self.env.violations(self.spec, q_now[None], self.tool_m)[0]
         last = self._last_cmd
@@ -308,22 +312,18 @@ class Executor:
             # is where it was sent, a checked posture, so check the path from there
             q_now, outside = last, None
         if outside is not None:
-            if not self._warned_outside:
-                self._warned_outside = True
-                self.event(
-                    "warning",
-                    "envelope",
-                    f"the arm starts outside the envelope ({outside}); the move to {what} is not "
-                    "path-checked",
-                )
-            waypoints = [np.asarray(q_to, float)]
-        else:
-            waypoints, why = route(self.env, self.spec, self.tool_m, q_now, q_to)
-            if why is not None:
-                self.event("error", "refused", f"{what}: {why}; also via the upright posture")
-                return False
-            if len(waypoints) > 1:
-                self.event("info", "via", f"{what}: direct path leaves the envelope; via upright")
+            msg = (
+                f"the arm is outside the envelope ({outside}); no move to {what} from there: jog "
+                "it inside, then resume the campaign (--resume)"
+            )
+            self.event("error", "envelope", msg)
+            raise ArmOutsideEnvelope(msg)
+        waypoints, why = route(self.env, self.spec, self.tool_m, q_now, q_to)
+        if why is not None:
+            self.event("error", "refused", f"{what}: {why}; also via the upright posture")
+            return False
+        if len(waypoints) > 1:
+            self.event("info", "via", f"{what}: direct path leaves the envelope; via upright")
         for q in waypoints:
             self._move(q)
         return True

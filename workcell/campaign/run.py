@@ -10,7 +10,13 @@ from pathlib import Path
 import numpy as np
 
 from workcell.campaign.envelope import Envelope, default_envelope
-from workcell.campaign.executor import CampaignConfig, CampaignControl, CampaignResult, Executor
+from workcell.campaign.executor import (
+    ArmOutsideEnvelope,
+    CampaignConfig,
+    CampaignControl,
+    CampaignResult,
+    Executor,
+)
 from workcell.campaign.plans import make_plan
 from workcell.kinematics.robots import RobotSpec
 from workcell.recording.writer import RecordingWriter
@@ -90,6 +96,18 @@ def run_campaign(
         session["chained_from"] = chained_from
     robot.connect()
     tracker.connect()
+    q0 = np.asarray(robot.state().q_rad, float)
+    why = env.violations(cell.spec, q0[None], cell.tool_m)[0]
+    if why is not None:
+        for dev in (robot, tracker):
+            try:
+                dev.close()
+            except Exception:  # noqa: BLE001 - closing is best effort
+                pass
+        raise ArmOutsideEnvelope(
+            f"the arm is outside the envelope at the start ({why}); the campaign will not move it "
+            "from there: jog it inside, then start again (nothing was recorded)"
+        )
     with RecordingWriter(out, session) as w:
         ex = Executor(
             robot,
