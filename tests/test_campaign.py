@@ -297,7 +297,7 @@ def test_a_planned_campaign_has_no_move_that_leaves_the_envelope():
 
 def test_encoder_noise_at_the_envelope_edge_does_not_switch_the_path_check_off():
     """An arm sent to a target on a joint limit reads a hair beyond it; the next move is still
-    path-checked from the target it was sent to (no 'starts outside' warning, no unchecked move)."""
+    path-checked from the target it was sent to (not taken for an arm outside the envelope)."""
 
     class NoisyRobot(ClockRobot):
         def state(self):
