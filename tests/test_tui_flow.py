@@ -122,6 +122,16 @@ def test_whole_flow(tmp_path, monkeypatch):
             for f in s["files"]:
                 assert (tmp_path / f).stat().st_size > 0
             assert s["validation"]["max_interp_error_m"] > 0
+            # closed loop on the connected (simulated) cell: the tracker measures both visits
+            await set_input(pilot, ex, "targets", "6")
+            await pilot.press("ctrl+t")
+            await until(pilot, lambda: not ex.validating, 240, "closed-loop check")
+            v = app.last_validation
+            assert v is not None, app.notices[-3:]
+            assert v["truth"] == "tracker" and v["targets"] + len(v["skipped"]) == 6
+            assert v["after_rms_m"] < 0.5 * v["before_rms_m"], v
+            rows = dict(ex.result_rows)
+            assert "Closed loop after" in rows and "x better" in rows["Closed loop after"]
             assert not [n for n in app.notices if n[1] == "UI error"], app.notices
 
     asyncio.run(flow())

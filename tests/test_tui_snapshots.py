@@ -176,6 +176,28 @@ class TestExportScreen:
         assert snap_compare(new_app(), terminal_size=size, run_before=run_before)
 
     @pytest.mark.parametrize("size", SIZES)
+    def test_closed_loop(self, snap_compare, in_tmp, results, size):
+        """The closed-loop check's rows under the export's (a fixed result: the layout)."""
+        res = {
+            "targets": 19,
+            "truth": "tracker",
+            "skipped": ["target 7: SMR at [0.1, -0.4, 0.46] m (base) outside the workspace box"],
+            "before": {"rms_m": 412.3e-6, "max_m": 590.1e-6},
+            "after": {"rms_m": 11.8e-6, "max_m": 19.6e-6, "rms_ci95_m": [10.4e-6, 13.5e-6]},
+            "improvement": 34.9,
+        }
+
+        async def run_before(pilot):
+            await pilot.press("f6")
+            view = pilot.app.views["export"]
+            view.set_model("big.dh.model.json")
+            view.show_summary(results["export"])
+            view.show_validation(res)
+            await settle(pilot)
+
+        assert snap_compare(new_app(), terminal_size=size, run_before=run_before)
+
+    @pytest.mark.parametrize("size", SIZES)
     def test_refused(self, snap_compare, in_tmp, size):
         async def run_before(pilot):
             await pilot.press("f6")

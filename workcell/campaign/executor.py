@@ -35,7 +35,12 @@ from workcell.kinematics.robots import RobotSpec
 
 
 class ArmOutsideEnvelope(UserError):
-    """The arm is outside the envelope: the campaign will not move it (nothing moved)."""
+    """The arm is outside the envelope: the campaign will not move it (nothing moved).
+    `reason`: which limit it is beyond."""
+
+    def __init__(self, message: str, reason: str = "") -> None:
+        super().__init__(message)
+        self.reason = reason
 
 
 @dataclass
@@ -317,7 +322,7 @@ class Executor:
                 "it inside, then resume the campaign (--resume)"
             )
             self.event("error", "envelope", msg)
-            raise ArmOutsideEnvelope(msg)
+            raise ArmOutsideEnvelope(msg, outside)
         waypoints, why = route(self.env, self.spec, self.tool_m, q_now, q_to)
         if why is not None:
             self.event("error", "refused", f"{what}: {why}; also via the upright posture")

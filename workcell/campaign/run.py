@@ -96,46 +96,48 @@ def run_campaign(
         session["chained_from"] = chained_from
     robot.connect()
     tracker.connect()
-    q0 = np.asarray(robot.state().q_rad, float)
-    why = env.violations(cell.spec, q0[None], cell.tool_m)[0]
-    if why is not None:
+    ex = None
+    try:
+        with RecordingWriter(out, session) as w:
+            ex = Executor(
+                robot,
+                tracker,
+                cell.spec,
+                env,
+                w,
+                tool_m=cell.tool_m,
+                config=cfg,
+                control=control,
+                on_sample=on_sample,
+                on_event=on_event,
+                index0=index0,
+                t_wall0_ns=time.time_ns(),
+                elapsed0_s=elapsed0_s,
+            )
+            if chained_from:
+                ex.event(
+                    "info",
+                    "resume_from",
+                    f"continues {chained_from.get('path')} ({chained_from.get('samples')} samples)",
+                )
+            result = ex.run(gen)
+    except ArmOutsideEnvelope as e:
+        if ex is not None and ex.result.measured == 0 and not ex.result.skipped:
+            # found outside before its first motion: a session header and no sample, nothing
+            # to keep or resume
+            Path(out).unlink(missing_ok=True)
+            raise ArmOutsideEnvelope(
+                f"the arm is outside the envelope at the start ({e.reason}); the campaign will "
+                "not move it from there: jog it inside, then start again (nothing was recorded)",
+                e.reason,
+            ) from None
+        raise
+    finally:
         for dev in (robot, tracker):
             try:
                 dev.close()
             except Exception:  # noqa: BLE001 - closing is best effort
                 pass
-        raise ArmOutsideEnvelope(
-            f"the arm is outside the envelope at the start ({why}); the campaign will not move it "
-            "from there: jog it inside, then start again (nothing was recorded)"
-        )
-    with RecordingWriter(out, session) as w:
-        ex = Executor(
-            robot,
-            tracker,
-            cell.spec,
-            env,
-            w,
-            tool_m=cell.tool_m,
-            config=cfg,
-            control=control,
-            on_sample=on_sample,
-            on_event=on_event,
-            index0=index0,
-            t_wall0_ns=time.time_ns(),
-            elapsed0_s=elapsed0_s,
-        )
-        if chained_from:
-            ex.event(
-                "info",
-                "resume_from",
-                f"continues {chained_from.get('path')} ({chained_from.get('samples')} samples)",
-            )
-        result = ex.run(gen)
-    for dev in (robot, tracker):
-        try:
-            dev.close()
-        except Exception:  # noqa: BLE001 - closing is best effort
-            pass
     return Path(out), result
 
 

@@ -118,6 +118,8 @@ class WorkcellApp(App):
         self.last_fit: dict | None = None
         self.last_diagnosis: dict | None = None
         self.last_export: dict | None = None
+        self.last_validation: dict | None = None
+        self.validating = False  # the closed-loop check moves the arm: no campaign meanwhile
         self.campaign_log: list[dict] = []  # events of the current campaign (tests read it)
         self.finished: list[m.CampaignFinished] = []
         self.notices: list[tuple[str, str, str]] = []
@@ -190,6 +192,11 @@ class WorkcellApp(App):
                 answer,
             )
             return
+        if self.validating and self.devices is not None:
+            try:  # the closed-loop check has no pause: stop the arm where it is
+                self.devices.robot.stop()
+            except Exception:  # noqa: BLE001 - stopping is best effort while quitting
+                pass
         self._close_devices()
         self.exit()
 
@@ -233,6 +240,9 @@ class WorkcellApp(App):
             self.views["diagnose"].done(f"diagnosis failed: {escape(msg.error)}")
         elif msg.job == "export":
             self.views["export"].refused(msg.error)
+        elif msg.job == "validate":
+            self.validating = False
+            self.views["export"].show_validation(None, msg.error)
 
     # ------------------------------------------------------------------ devices
     @guarded
@@ -270,8 +280,10 @@ class WorkcellApp(App):
 
     @guarded
     def on_disconnect_requested(self, msg: m.DisconnectRequested) -> None:
-        if self.campaign_running:
-            self.notify_error("a campaign is running; abort it first")
+        if self.campaign_running or self.validating:
+            self.notify_error(
+                "the arm is moving (campaign or closed-loop check); wait or abort first"
+            )
             return
         dev, self.devices = self.devices, None
         self._push_context()
@@ -336,6 +348,9 @@ class WorkcellApp(App):
     def on_campaign_start_requested(self, msg: m.CampaignStartRequested) -> None:
         if self.campaign_running:
             self.notify_error("a campaign is already running")
+            return
+        if self.validating:
+            self.notify_error("the closed-loop check is moving the arm; wait for it (F6)")
             return
         dev = self.devices
         if dev is None:
@@ -606,6 +621,45 @@ class WorkcellApp(App):
         self.notify(
             f"wrote {', '.join(Path(f).name for f in msg.summary.get('files', []))}",
             title="Export done",
+            timeout=self.notify_timeout_s,
+        )
+
+    @guarded
+    def on_validate_requested(self, msg: m.ValidateRequested) -> None:
+        view = self.views["export"]
+        dev = self.devices
+        why = (
+            "connect the devices first (F1)"
+            if dev is None
+            else "a campaign is running; the check moves the same arm"
+            if self.campaign_running
+            else ""
+        )
+        if why:
+            view.show_validation(None, why)
+            self.notify_error(why, title="Validate")
+            return
+        self.validating = True
+
+        def log(text: str) -> None:
+            self.post_message(m.JobProgress("export", str(text)))
+
+        def work() -> None:
+            res = backend.closed_loop(msg.model, msg.table, dev, msg.targets, log=log)
+            self.post_message(m.ValidateFinished(res))
+
+        self._thread(work, "validate")
+
+    @guarded
+    def on_validate_finished(self, msg: m.ValidateFinished) -> None:
+        self.validating = False
+        self.last_validation = msg.result
+        self.views["export"].show_validation(msg.result)
+        r = msg.result
+        self.notify(
+            f"RMS {r['before_rms_m'] * 1e6:.1f} -> {r['after_rms_m'] * 1e6:.1f} um on "
+            f"{r['targets']} targets",
+            title="Closed-loop check",
             timeout=self.notify_timeout_s,
         )
 

@@ -660,3 +660,55 @@ def export(cfg: ExportConfig, log: Callable[[str], None] | None = None) -> dict:
         ]
     summary["seconds"] = time.perf_counter() - t0
     return summary
+
+
+# ----------------------------------------------------------------------------- closed loop
+def closed_loop(
+    model_path: str,
+    table_path: str,
+    dev: Devices,
+    targets: int = 20,
+    *,
+    readings: int = 3,
+    log: Callable[[str], None] | None = None,
+) -> dict:
+    """`workcell validate` on the connected cell: random targets in the table's volume, each
+    measured by the tracker uncorrected and corrected through the table; every motion checked
+    against the cell's envelope first. Measured by the tracker, as on a real cell (in simulation
+    too: the simulated tracker's noise is in the numbers)."""
+    from workcell.campaign.envelope import Guard
+    from workcell.estimation.models import load_model
+    from workcell.export.build import nominal_for_model
+    from workcell.export.table import load_table
+    from workcell.export.validate import robot_mover, run_validation, tracker_measure
+
+    if not 1 <= targets <= 1000:
+        raise UserError(f"targets must be 1..1000, got {targets}")
+    if not table_path or not Path(table_path).exists():
+        raise UserError("export a table first (the check moves the arm to its corrected targets)")
+    model = load_model(model_path)
+    table = load_table(table_path)
+    env, spec, tool = dev.envelope, dev.cell.spec, dev.cell.tool_m
+    dev.robot.connect()  # as a campaign does: it closes them when it ends
+    dev.tracker.connect()
+    try:
+        res = run_validation(
+            nominal_for_model(model),
+            table,
+            robot_mover(dev.robot, *env.cap(0.5, 1.0)),
+            tracker_measure(dev.tracker, readings),
+            n=targets,
+            seed=12345,
+            guard=Guard(env, spec, tool),
+            q_start=np.asarray(dev.robot.state().q_rad, float),
+            log=log,
+        )
+    finally:
+        for d in (dev.robot, dev.tracker):
+            try:
+                d.close()
+            except Exception:  # noqa: BLE001 - closing is best effort
+                pass
+    res["truth"] = "tracker"
+    res["table"] = str(table_path)
+    return res

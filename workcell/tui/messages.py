@@ -63,6 +63,14 @@ class ExportRequested(Message):
         self.config = config
 
 
+class ValidateRequested(Message):
+    """Closed-loop check of the exported table on the connected cell (`targets` random targets)."""
+
+    def __init__(self, model: str, table: str, targets: int) -> None:
+        super().__init__()
+        self.model, self.table, self.targets = model, table, targets
+
+
 # ----------------------------------------------------------------------------- results (worker -> app)
 class DevicesOpened(Message):
     def __init__(self, devices, status: dict) -> None:
@@ -138,6 +146,12 @@ class ExportFinished(Message):
     def __init__(self, summary: dict) -> None:
         super().__init__()
         self.summary = summary
+
+
+class ValidateFinished(Message):
+    def __init__(self, result: dict) -> None:
+        super().__init__()
+        self.result = result
 
 
 class JobFailed(Message):

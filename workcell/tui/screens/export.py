@@ -1,5 +1,6 @@
-"""Export: format, volume, path; the validation result of the written correction; refusals are
-shown clearly (one line, in red, and as a notification)."""
+"""Export: format, volume, path; the validation result of the written correction (interpolation
+check, and on request the closed-loop check on the connected cell); refusals are shown clearly
+(one line, in red, and as a notification)."""
 
 from __future__ import annotations
 
@@ -12,8 +13,9 @@ from textual.containers import Horizontal, Vertical, VerticalScroll
 from textual.widgets import Button, Input, Label, Select, Static
 
 from workcell.errors import UserError
+from workcell.estimation.models import interval_um
 from workcell.tui.backend import ExportConfig
-from workcell.tui.messages import ExportRequested
+from workcell.tui.messages import ExportRequested, ValidateRequested
 from workcell.tui.screens.base import WorkcellScreen, um
 from workcell.tui.widgets import KeyValue
 
@@ -32,10 +34,14 @@ class ExportScreen(WorkcellScreen):
     ExportScreen .row Label { width: 10; padding: 1 1 0 0; }
     ExportScreen .row Input { width: 1fr; }
     ExportScreen .row Select { width: 1fr; }
+    ExportScreen .row #targets { width: 12; }
     ExportScreen #status { height: auto; padding: 0 1; }
     ExportScreen #result-box { height: 1fr; border: round $primary; padding: 0 1; }
     """
-    BINDINGS = [Binding("ctrl+r", "export", "Export")]
+    BINDINGS = [
+        Binding("ctrl+r", "export", "Export"),
+        Binding("ctrl+t", "validate", "Validate on the cell"),
+    ]
 
     def __init__(self, model: str = "", out: str = "correction") -> None:
         super().__init__()
@@ -44,6 +50,8 @@ class ExportScreen(WorkcellScreen):
         self.running = False
         self.status = "a correction for the robot controller; refused if it is too large"
         self.result_rows: list[tuple[str, str]] = []
+        self.validating = False
+        self.validation: dict | None = None
 
     def body(self) -> ComposeResult:
         with Vertical(id="form"):
@@ -61,6 +69,10 @@ class ExportScreen(WorkcellScreen):
                 yield Label("Path")
                 yield Input(self.out, id="out")
                 yield Button("Export", id="run", variant="primary")
+            with Horizontal(classes="row"):
+                yield Label("Check")
+                yield Input("20", id="targets", placeholder="targets")
+                yield Button("Validate on the cell", id="validate")
         yield Static(self.status, id="status")
         with VerticalScroll(id="result-box"):
             yield KeyValue(id="result")
@@ -101,11 +113,36 @@ class ExportScreen(WorkcellScreen):
         self.update_view()
         self.post_message(ExportRequested(cfg))
 
+    def action_validate(self) -> None:
+        """Closed loop: the connected arm goes to random targets uncorrected and corrected
+        through the exported table, the tracker measures both."""
+        if self.running or self.validating:
+            self.notify("wait for the running export or check", severity="warning")
+            return
+        table = next((f for f in (self.summary or {}).get("files", []) if f.endswith(".json")), "")
+        try:
+            if not table:
+                raise UserError("export a table (or urscript) first; the check uses its table")
+            n = self.number("targets", int, "targets")
+            if not 1 <= n <= 1000:
+                raise UserError(f"targets must be 1..1000, got {n}")
+        except UserError as e:
+            self.notify(str(e), severity="error", title="Validate")
+            return
+        self.validating = True
+        self.status = f"closed-loop check on {n} targets: the arm moves ..."
+        self.update_view()
+        self.post_message(ValidateRequested(self.summary.get("model", ""), table, n))
+
     def on_button_pressed(self, event: Button.Pressed) -> None:
-        self.action_export()
+        if event.button.id == "validate":
+            self.action_validate()
+        else:
+            self.action_export()
 
     def on_input_submitted(self, event: Input.Submitted) -> None:
-        self.action_export()
+        if event.input.id != "targets":
+            self.action_export()
 
     # ---------------------------------------------------------------- attributes down
     def show_progress(self, text: str) -> None:
@@ -120,7 +157,8 @@ class ExportScreen(WorkcellScreen):
 
     def render_view(self) -> None:
         self.query_one("#status", Static).update(self.status)
-        self.query_one("#run", Button).disabled = self.running
+        self.query_one("#run", Button).disabled = self.running or self.validating
+        self.query_one("#validate", Button).disabled = self.running or self.validating
         self.query_one("#result", KeyValue).set_rows(self.result_rows)
 
     def show_summary(self, s: dict) -> None:
@@ -155,4 +193,30 @@ class ExportScreen(WorkcellScreen):
             )
         self.result_rows = rows
         self.status = f"[green]exported[/green] {len(s.get('files', []))} file(s)"
+        self.update_view()
+
+    def show_validation(self, r: dict | None, error: str = "") -> None:
+        """The closed-loop result (None with `error` when the check failed)."""
+        self.validating = False
+        self.validation = r
+        rows = [row for row in self.result_rows if not row[0].startswith("Closed loop")]
+        if r is None:
+            self.status = f"[b red]check failed[/b red] {escape(error)}"
+        else:
+            b, a = r["before"], r["after"]
+            ci = interval_um(a.get("rms_ci95_m"), label=False)
+            rows += [
+                ("Closed loop", f"{r['targets']} targets, measured by the {r.get('truth', '?')}"),
+                ("Closed loop before", f"RMS {um(b['rms_m'])}, max {um(b['max_m'])}"),
+                (
+                    "Closed loop after",
+                    f"RMS {um(a['rms_m'])}"
+                    + (f" (95 % CI {ci})" if ci else "")
+                    + f", max {um(a['max_m'])}: {r['improvement']:.1f}x better",
+                ),
+            ]
+            if r.get("skipped"):
+                rows.append(("Closed loop skipped", f"{len(r['skipped'])}: {r['skipped'][0]}"))
+            self.status = f"[green]closed-loop check done[/green] on {r['targets']} targets"
+        self.result_rows = rows
         self.update_view()
