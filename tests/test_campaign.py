@@ -11,7 +11,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from workcell.campaign.envelope import EnvelopeViolation, default_envelope, route
-from workcell.campaign.executor import CampaignConfig, Executor
+from workcell.campaign.executor import ArmOutsideEnvelope, CampaignConfig, Executor
 from workcell.campaign.plans import PoseTarget, make_plan, random_configurations
 from workcell.campaign.run import run_campaign, sim_cell
 from workcell.kinematics.robots import UR5E
@@ -327,7 +327,6 @@ def test_an_arm_outside_the_envelope_is_not_moved(tmp_path):
     """Placed outside (shoulder down: the forearm under the table), the arm is not moved at all:
     a campaign refuses to start in one line and records nothing; an executor that finds it
     outside mid-campaign (jogged during a pause) says so and stops, resumable."""
-    from workcell.campaign.executor import ArmOutsideEnvelope
     from workcell.errors import UserError
 
     env = default_envelope(UR5E)
@@ -350,6 +349,32 @@ def test_an_arm_outside_the_envelope_is_not_moved(tmp_path):
         run_campaign(srobot, tracker, cell, out, plan="random", poses=3, seed=0)
     assert "\n" not in str(e.value) and "nothing was recorded" in str(e.value)
     assert moved == [] and not out.exists()
+
+
+def test_an_arm_beyond_the_joint_ranges_only_comes_back_along_a_checked_path():
+    """An envelope narrower than where the arm stands (joint 3 at 1.57 rad, the envelope's range
+    up to 1.5 rad) but with the SMR in the box: the first move goes, said as a warning, along a
+    path checked against the box and floor; with the box shrunk so that way dips out, refused."""
+    env = default_envelope(UR5E)
+    lim = env.joint_limits_rad.copy()
+    lim[2] = [0.3, 1.5]
+    env = dataclasses.replace(env, joint_limits_rad=lim)
+    tool = np.array([0, 0, 0.06])
+    home = np.array([0.0, -1.57, 1.57, -1.57, -1.57, 0.0])
+    target = np.array([0.0, -1.2, 1.2, -1.5, -1.5, 0.0])
+    assert "joint 3" in env.violations(UR5E, home[None], tool)[0]
+    robot, sink = ClockRobot(q0=home), NullSink()
+    ex = Executor(robot, None, UR5E, env, sink, tool_m=tool)
+    assert ex._move_along(target, "pose 0")
+    assert len(robot.moves) == 1 and [k for k, _ in sink.events] == ["envelope"]
+    assert env.with_arm_joint_ranges(UR5E).path_violation(UR5E, home, target, tool) is None
+    # the same start with the floor raised above the arm's links: not moved at all
+    high = dataclasses.replace(env, floor_z_m=0.5)
+    robot, sink = ClockRobot(q0=home), NullSink()
+    ex = Executor(robot, None, UR5E, high, sink, tool_m=tool)
+    with pytest.raises(ArmOutsideEnvelope):
+        ex._move_along(target, "pose 0")
+    assert robot.moves == []
 
 
 def _shrunk(env, by_m: float):

@@ -6,7 +6,7 @@ Every motion target is checked before any motion; a target outside is refused wi
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -84,6 +84,11 @@ class Envelope:
                 )
         self.joint_limits_rad, self.box_min_m, self.box_max_m = lim, lo_box, hi_box
         self.floor_z_m, self.max_speed_rad_s, self.max_accel_rad_s2 = caps
+
+    def with_arm_joint_ranges(self, spec: RobotSpec) -> Envelope:
+        """This envelope with the arm's own joint ranges instead of its own: the box and the
+        floor (what a motion may hit) stay. For the way back into the joint ranges."""
+        return replace(self, joint_limits_rad=np.asarray(spec.joint_limits_rad, float).copy())
 
     def to_dict(self) -> dict:
         return {
@@ -372,3 +377,7 @@ class Guard:
 
     def route(self, q_from: np.ndarray, q_to: np.ndarray) -> tuple[list[np.ndarray], str | None]:
         return route(self.env, self.spec, self.tool_m, q_from, q_to)
+
+    def with_arm_joint_ranges(self) -> Guard:
+        """The same guard with the arm's own joint ranges (`Envelope.with_arm_joint_ranges`)."""
+        return Guard(self.env.with_arm_joint_ranges(self.spec), self.spec, self.tool_m)

@@ -316,14 +316,25 @@ class Executor:
             # at a target on the envelope's edge, encoder noise can read just outside: the arm
             # is where it was sent, a checked posture, so check the path from there
             q_now, outside = last, None
+        env = self.env
         if outside is not None:
-            msg = (
-                f"the arm is outside the envelope ({outside}); no move to {what} from there: jog "
-                "it inside, then resume the campaign (--resume)"
+            # beyond the envelope's joint ranges only (its SMR above the table, in the box):
+            # the way back in may go, checked against the box and floor all along
+            env = self.env.with_arm_joint_ranges(self.spec)
+            if env.violations(self.spec, q_now[None], self.tool_m)[0] is not None:
+                msg = (
+                    f"the arm is outside the envelope ({outside}); no move to {what} from there: "
+                    "jog it inside, then resume the campaign (--resume)"
+                )
+                self.event("error", "envelope", msg)
+                raise ArmOutsideEnvelope(msg, outside)
+            self.event(
+                "warning",
+                "envelope",
+                f"the arm starts outside the envelope's joint ranges ({outside}); the move to "
+                f"{what} is checked against the box and the floor",
             )
-            self.event("error", "envelope", msg)
-            raise ArmOutsideEnvelope(msg, outside)
-        waypoints, why = route(self.env, self.spec, self.tool_m, q_now, q_to)
+        waypoints, why = route(env, self.spec, self.tool_m, q_now, q_to)
         if why is not None:
             self.event("error", "refused", f"{what}: {why}; also via the upright posture")
             return False

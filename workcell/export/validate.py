@@ -92,15 +92,20 @@ def run_validation(
     at first) to the pre-pose, direct or via the upright posture. A target any of whose four
     moves would leave the envelope is skipped, with the reason, before its first motion."""
     log = log or (lambda m: None)
+    start_guard = guard  # for the first transit only
     if guard is not None:
         if q_start is None:
             raise ValueError("run_validation: a guard needs q_start, the arm's joints now")
         why = guard.pose(q_start)
         if why is not None:
-            raise UserError(
-                f"the arm is outside the envelope before validation ({why}); jog it inside, "
-                "then run again"
-            )
+            # beyond the joint ranges only: come back in along a path checked for box and floor
+            start_guard = guard.with_arm_joint_ranges()
+            if start_guard.pose(q_start) is not None:
+                raise UserError(
+                    f"the arm is outside the envelope before validation ({why}); jog it inside, "
+                    "then run again"
+                )
+            log(f"  the arm starts outside the envelope's joint ranges ({why}); moves checked")
     P, k = random_targets(table, n, seed)
     sign = np.sign(np.asarray(table.meta.get("conditions", {}).get("approach_sign", [1.0] * 6)))
     q_u = commanded_joints(nominal, table, P, k, corrected=False)
@@ -131,7 +136,8 @@ def run_validation(
             if guard is None:
                 legs.append(([pre], q))
                 continue
-            wps, why = guard.route(q_at if not legs else legs[-1][1], pre)
+            g = start_guard if (not legs and not any(meas.values())) else guard
+            wps, why = g.route(q_at if not legs else legs[-1][1], pre)
             if why is None and (v := guard.direct(pre, q)) is not None:
                 why = f"approach: {v}"
             if why is not None:
