@@ -59,3 +59,21 @@ def test_error_stats_adds_the_interval_only_when_asked():
     st = error_stats(p, q, interval=True)
     lo, hi = st["rms_ci95_m"]
     assert lo < st["rms_m"] < hi
+
+
+def test_paired_gain_interval_sees_a_consistent_gain_and_not_noise():
+    from workcell.estimation.models import rms_gain_interval
+
+    rng = np.random.default_rng(2)
+    e_with = np.linalg.norm(rng.normal(0.0, 10e-6, (40, 3)), axis=1)
+    # a gain of ~2 % on every pose: far inside the unpaired intervals, but paired it is clear
+    lo, hi = rms_gain_interval(1.02 * e_with, e_with)
+    assert 0.0 < lo < 0.02 * np.sqrt(np.mean(e_with**2)) < hi
+    a, b = rms_interval(1.02 * e_with), rms_interval(e_with)
+    assert a[0] < b[1]  # the two RMS intervals overlap
+    # pure noise between the two: the interval reaches zero
+    e_other = np.linalg.norm(rng.normal(0.0, 10e-6, (40, 3)), axis=1)
+    lo, hi = rms_gain_interval(e_other, e_with)
+    assert lo < 0.0 < hi
+    with pytest.raises(ValueError, match="same shape"):
+        rms_gain_interval(e_with, e_with[:-1])

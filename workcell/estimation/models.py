@@ -139,68 +139,22 @@ RMS_INTERVAL_BASIS = (
 )
 
 
-def rms_interval(
-    e_norm: np.ndarray, level: float = RMS_INTERVAL_LEVEL, seed: int = 0
-) -> tuple[float, float]:
-    """Confidence interval of sqrt(mean(e^2)) over the poses: BCa bootstrap over the per-pose
-    error norms `e_norm` (N,) (scipy.stats.bootstrap, seeded so a report is reproducible).
-    (nan, nan) for fewer than 3 poses; percentile bootstrap when BCa is degenerate."""
+def _rms(x, axis=-1):
+    return np.sqrt(np.mean(x**2, axis=axis))
+
+
+def _bootstrap_interval(data: tuple, stat, level: float, seed: int) -> tuple[float, float]:
+    """scipy.stats.bootstrap over the poses (paired when several arrays): BCa, percentile when
+    BCa is degenerate, the point value twice when there is no spread to resample at all."""
     from scipy.stats import bootstrap
-
-    e = np.asarray(e_norm, float).ravel()
-    if len(e) < 3 or not np.all(np.isfinite(e)):
-        return float("nan"), float("nan")
-
-    def stat(x, axis=-1):
-        return np.sqrt(np.mean(x**2, axis=axis))
-
-    ci = None
-    for method in ("BCa", "percentile"):
-        with np.errstate(all="ignore"), warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            res = bootstrap(
-                (e,),
-                stat,
-                confidence_level=level,
-                n_resamples=RMS_INTERVAL_RESAMPLES,
-                method=method,
-                rng=np.random.default_rng(seed),
-            )
-        lo, hi = float(res.confidence_interval.low), float(res.confidence_interval.high)
-        if np.isfinite(lo) and np.isfinite(hi):
-            ci = (lo, hi)
-            break
-    if ci is None:  # all errors equal: no spread to resample
-        r = float(stat(e))
-        ci = (r, r)
-    return ci
-
-
-def rms_gain_interval(
-    e_without: np.ndarray, e_with: np.ndarray, level: float = RMS_INTERVAL_LEVEL, seed: int = 0
-) -> tuple[float, float]:
-    """Confidence interval of RMS(e_without) - RMS(e_with) over the same poses (paired BCa
-    bootstrap): the held-out gain of adding something to a model, with the pose-to-pose spread
-    that a point comparison hides. (nan, nan) for fewer than 3 poses."""
-    from scipy.stats import bootstrap
-
-    a = np.asarray(e_without, float).ravel()
-    b = np.asarray(e_with, float).ravel()
-    if a.shape != b.shape:
-        raise ValueError(f"paired errors need the same shape, got {a.shape} and {b.shape}")
-    if len(a) < 3 or not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
-        return float("nan"), float("nan")
-
-    def stat(x, y, axis=-1):
-        return np.sqrt(np.mean(x**2, axis=axis)) - np.sqrt(np.mean(y**2, axis=axis))
 
     for method in ("BCa", "percentile"):
         with np.errstate(all="ignore"), warnings.catch_warnings():
             warnings.simplefilter("ignore")
             res = bootstrap(
-                (a, b),
+                data,
                 stat,
-                paired=True,
+                paired=len(data) > 1,
                 confidence_level=level,
                 n_resamples=RMS_INTERVAL_RESAMPLES,
                 method=method,
@@ -209,8 +163,37 @@ def rms_gain_interval(
         lo, hi = float(res.confidence_interval.low), float(res.confidence_interval.high)
         if np.isfinite(lo) and np.isfinite(hi):
             return lo, hi
-    g = float(stat(a, b))
-    return g, g
+    v = float(stat(*data))
+    return v, v
+
+
+def rms_interval(
+    e_norm: np.ndarray, level: float = RMS_INTERVAL_LEVEL, seed: int = 0
+) -> tuple[float, float]:
+    """Confidence interval of sqrt(mean(e^2)) over the poses: BCa bootstrap over the per-pose
+    error norms `e_norm` (N,) (scipy.stats.bootstrap, seeded so a report is reproducible).
+    (nan, nan) for fewer than 3 poses or a non-finite error."""
+    e = np.asarray(e_norm, float).ravel()
+    if len(e) < 3 or not np.all(np.isfinite(e)):
+        return float("nan"), float("nan")
+    return _bootstrap_interval((e,), _rms, level, seed)
+
+
+def rms_gain_interval(
+    e_without: np.ndarray, e_with: np.ndarray, level: float = RMS_INTERVAL_LEVEL, seed: int = 0
+) -> tuple[float, float]:
+    """Confidence interval of RMS(e_without) - RMS(e_with) over the same poses (paired BCa
+    bootstrap): the held-out gain of adding something to a model, with the pose-to-pose spread
+    that a point comparison hides. (nan, nan) for fewer than 3 poses."""
+    a = np.asarray(e_without, float).ravel()
+    b = np.asarray(e_with, float).ravel()
+    if a.shape != b.shape:
+        raise ValueError(f"paired errors need the same shape, got {a.shape} and {b.shape}")
+    if len(a) < 3 or not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+        return float("nan"), float("nan")
+    return _bootstrap_interval(
+        (a, b), lambda x, y, axis=-1: _rms(x, axis) - _rms(y, axis), level, seed
+    )
 
 
 def interval_um(ci, label: bool = True) -> str:
