@@ -62,7 +62,7 @@ def check_options(args: argparse.Namespace) -> None:
 def run(args: argparse.Namespace) -> int:
     from workcell.campaign.devices import envelope_from_args
     from workcell.campaign.envelope import Guard
-    from workcell.estimation.models import load_model
+    from workcell.estimation.models import interval_um, load_model
     from workcell.export.build import make_table, model_recording, nominal_for_model, parse_vec
     from workcell.export.correction import Conditions
     from workcell.export.table import load_table
@@ -159,14 +159,18 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(res))
         return 0
     print(
-        f"{'':10}{'mean':>12}{'RMS':>12}{'max':>12}   ({res['targets']} targets, "
-        f"truth: {res['truth']})"
+        f"{'':10}{'mean':>12}{'RMS':>12}{'max':>12}   95 % CI of the RMS   ({res['targets']} "
+        f"targets, truth: {res['truth']})"
     )
     for key in ("before", "after"):
         s = res[key]
         print(
             f"{key:10}{s['mean_m'] * 1e6:>9.1f} um{s['rms_m'] * 1e6:>9.1f} um"
-            f"{s['max_m'] * 1e6:>9.1f} um"
+            f"{s['max_m'] * 1e6:>9.1f} um   {interval_um(s.get('rms_ci95_m'), label=False)}"
+        )
+    if res.get("skipped"):
+        print(
+            f"skipped   {len(res['skipped'])} target(s) before any motion; first: {res['skipped'][0]}"
         )
     print(f"improvement (RMS): {res['improvement']:.1f}x")
     return 0
