@@ -301,8 +301,9 @@ class Executor:
     def _move_along(self, q_to: np.ndarray, what: str) -> bool:
         """Move to q_to along joint paths inside the envelope (direct, or via the upright
         posture); False, with a `refused` event and no motion, when neither stays inside. An arm
-        found outside the envelope (placed there by the operator, e.g. jogged during a pause) is
-        not moved at all: an `error` event, then `ArmOutsideEnvelope` ends the campaign with the
+        the operator left beyond the envelope's joint ranges only comes back along a path checked
+        against the box and the floor (a `warning`). One outside the box or below the floor is not
+        moved at all: an `error` event, then `ArmOutsideEnvelope` ends the campaign with the
         recording closed, to be resumed once the arm is back inside."""
         q_now = np.asarray(self._robot_call(lambda: self.robot.state()).q_rad, float)
         outside = self.env.violations(self.spec, q_now[None], self.tool_m)[0]
