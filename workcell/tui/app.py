@@ -250,8 +250,8 @@ class WorkcellApp(App):
         self._connect(msg.config)
 
     def _connect(self, cfg: DeviceConfig) -> None:
-        if self.campaign_running:
-            self.notify_error("a campaign is running; abort it before reconnecting")
+        if self.campaign_running or self.validating:
+            self.notify_error("the arm is moving (campaign or closed-loop check); reconnect after")
             return
         self.device_config = cfg
         old, self.devices = self.devices, None
