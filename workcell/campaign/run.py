@@ -18,6 +18,7 @@ from workcell.campaign.executor import (
     Executor,
 )
 from workcell.campaign.plans import make_plan
+from workcell.drivers.protocols import close_quietly
 from workcell.kinematics.robots import RobotSpec
 from workcell.recording.writer import RecordingWriter
 
@@ -133,11 +134,7 @@ def run_campaign(
             ) from None
         raise
     finally:
-        for dev in (robot, tracker):
-            try:
-                dev.close()
-            except Exception:  # noqa: BLE001 - closing is best effort
-                pass
+        close_quietly(robot, tracker)
     return Path(out), result
 
 

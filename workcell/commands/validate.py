@@ -62,6 +62,7 @@ def check_options(args: argparse.Namespace) -> None:
 def run(args: argparse.Namespace) -> int:
     from workcell.campaign.devices import envelope_from_args
     from workcell.campaign.envelope import Guard
+    from workcell.drivers.protocols import close_quietly
     from workcell.estimation.models import interval_um, load_model
     from workcell.export.build import make_table, model_recording, nominal_for_model, parse_vec
     from workcell.export.correction import Conditions
@@ -149,11 +150,7 @@ def run(args: argparse.Namespace) -> int:
             log=log,
         )
     finally:
-        for dev in (robot, tracker):
-            try:
-                dev.close()
-            except Exception:  # noqa: BLE001
-                pass
+        close_quietly(robot, tracker)
     res["truth"] = "simulated robot" if args.robot == "sim" else "tracker"
     if args.json:
         print(json.dumps(res))

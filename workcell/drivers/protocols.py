@@ -74,3 +74,13 @@ class Tracker(Protocol):
     def measure(self) -> TrackerReading:
         """One reading; status other than `ok` for beam break etc. Raises DeviceError on I/O."""
         ...
+
+
+def close_quietly(*devices) -> None:
+    """Close each device, best effort: a device that fails to close (already gone, connection
+    dropped) does not stop the others from closing."""
+    for dev in devices:
+        try:
+            dev.close()
+        except Exception:  # noqa: BLE001 - closing is best effort
+            pass

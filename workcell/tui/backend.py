@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from workcell.drivers.protocols import close_quietly
 from workcell.errors import UserError
 
 
@@ -54,11 +55,7 @@ class Devices:
     notes: list[str] = field(default_factory=list)
 
     def close(self) -> None:
-        for dev in (self.robot, self.tracker):
-            try:
-                dev.close()
-            except Exception:  # noqa: BLE001 - closing is best effort
-                pass
+        close_quietly(self.robot, self.tracker)
         if self.sim_process is not None:
             try:
                 self.sim_process.stop()
@@ -704,11 +701,7 @@ def closed_loop(
             log=log,
         )
     finally:
-        for d in (dev.robot, dev.tracker):
-            try:
-                d.close()
-            except Exception:  # noqa: BLE001 - closing is best effort
-                pass
+        close_quietly(dev.robot, dev.tracker)
     res["truth"] = "tracker"
     res["table"] = str(table_path)
     return res
