@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from workcell.campaign.envelope import Envelope, route
+from workcell.campaign.envelope import Envelope, Guard
 from workcell.kinematics.robots import RobotSpec
 
 
@@ -132,7 +132,7 @@ class Reach:
         signs: np.ndarray,
         approach_rad: float,
     ) -> None:
-        self.spec, self.env, self.tool_m = spec, env, np.asarray(tool_m, float)
+        self.guard = Guard(env, spec, np.asarray(tool_m, float))
         self.q = q
         self.pre = q - np.sign(signs) * approach_rad
         self._approach_ok: dict[int, bool] = {}
@@ -140,8 +140,7 @@ class Reach:
 
     def approach_ok(self, i: int) -> bool:
         if i not in self._approach_ok:
-            v = self.env.path_violation(self.spec, self.pre[i], self.q[i], self.tool_m)
-            self._approach_ok[i] = v is None
+            self._approach_ok[i] = self.guard.direct(self.pre[i], self.q[i]) is None
         return self._approach_ok[i]
 
     def ok(self, i: int) -> bool:
@@ -149,7 +148,7 @@ class Reach:
             return False
         if self.last is None:
             return True
-        return route(self.env, self.spec, self.tool_m, self.last, self.pre[i])[1] is None
+        return self.guard.route(self.last, self.pre[i])[1] is None
 
     def first(self, order, scan: int | None = None) -> tuple[int | None, int]:
         """(the first pose of `order` the arm may go to, or None if none of the first `scan`
