@@ -35,10 +35,16 @@ def _truth_model(truth):  # tests may read the truth; here it builds a perfect g
     )
 
 
-def test_closed_loop_geometry_only():
+def _cell_and_table():
+    """A simulated cell with DH errors only and the correction table of its true geometry
+    (5 um interpolation error): (world, cell, table, correction)."""
     world, robot, tracker, cell = sim_cell("ur5e", "none", 3)
-    model = _truth_model(world.truth)
-    table, corr = make_table(model, target_error_m=5e-6)
+    table, corr = make_table(_truth_model(world.truth), target_error_m=5e-6)
+    return world, cell, table, corr
+
+
+def test_closed_loop_geometry_only():
+    world, cell, table, corr = _cell_and_table()
     env = default_envelope(cell.spec)
 
     def move(q):
@@ -65,8 +71,7 @@ def test_every_validation_move_stays_inside_the_envelope():
     pre-pose, approach) is path-checked before it starts, and a target that cannot be reached
     inside the envelope is skipped before its first motion. A workspace box as tight as the
     table's volume makes the plain joint moves between targets leave it (checked first)."""
-    world, robot, tracker, cell = sim_cell("ur5e", "none", 3)
-    table, corr = make_table(_truth_model(world.truth), target_error_m=5e-6)
+    world, cell, table, corr = _cell_and_table()
     env = dataclasses.replace(
         default_envelope(cell.spec), box_min_m=table.lo_m.copy(), box_max_m=table.hi_m.copy()
     )
@@ -116,8 +121,7 @@ def test_every_validation_move_stays_inside_the_envelope():
 
 
 def test_validation_refuses_to_start_outside_the_envelope():
-    world, robot, tracker, cell = sim_cell("ur5e", "none", 3)
-    table, corr = make_table(_truth_model(world.truth), target_error_m=5e-6)
+    world, cell, table, corr = _cell_and_table()
     env = default_envelope(cell.spec)
     q_out = np.array(world.joint_state()[0], float)
     q_out[1] = -0.2  # shoulder down: the forearm below the table
