@@ -195,3 +195,59 @@ def test_validate_moves_inside_the_given_envelope_and_at_its_speed_cap(tmp_path,
     assert all(-1.0 <= q[0] <= 1.5 for q, _, _ in moves)
     # the file's joint-1 range (not the default +-170 deg) is what refused these targets
     assert res["skipped"] and all("joint 1 target" in w for w in res["skipped"]), res["skipped"]
+
+
+def test_kinematic_margin_keeps_the_true_arm_inside_the_box():
+    """The envelope computes with the nominal kinematics; the real arm is off by mm. Scored on
+    the simulated true arm (realistic effects, a warm arm): its SMR error from the nominal is
+    below the default margin on random poses, and a box face placed where the nominal check
+    with no margin would pass a pose whose true SMR is outside is refused with the margin."""
+    import dataclasses
+
+    from sim_devices.truth import NOMINAL_SMR_M, make_truth
+    from workcell.campaign.envelope import DEFAULT_KINEMATIC_MARGIN_M, default_envelope
+    from workcell.campaign.plans import random_configurations
+    from workcell.kinematics.chain import base_T_frames, pack
+    from workcell.kinematics.robots import UR5E
+
+    env0 = dataclasses.replace(default_envelope(UR5E), kinematic_margin_m=0.0)
+    q = random_configurations(UR5E, env0, 300, np.random.default_rng(0), NOMINAL_SMR_M)
+    T = np.asarray(base_T_frames(pack(UR5E.dh), q))
+    nominal = np.einsum("nab,b->na", T[:, -1, :3, :3], NOMINAL_SMR_M) + T[:, -1, :3, 3]
+    err = np.zeros_like(nominal)
+    for seed in range(3):
+        truth = make_truth("ur5e", "realistic", seed=seed)
+        true = np.array([truth.smr_in_base(qi, np.ones(6), 3600.0) for qi in q])
+        err = np.where(np.abs(true - nominal) > np.abs(err), true - nominal, err)
+    assert np.max(np.abs(err)) < DEFAULT_KINEMATIC_MARGIN_M
+    i = int(np.argmin(err[:, 2]))  # the pose whose true SMR sits lowest below its nominal
+    assert err[i, 2] < -5e-4  # the sim's arm is off by more than tracker noise
+    face = nominal[i, 2] + 0.5 * err[i, 2]  # nominal above the face, true below it
+    box = dataclasses.replace(env0, box_min_m=np.r_[env0.box_min_m[:2], face])
+    assert box.violations(UR5E, q[i][None], NOMINAL_SMR_M)[0] is None  # no margin: let through
+    margin = dataclasses.replace(box, kinematic_margin_m=DEFAULT_KINEMATIC_MARGIN_M)
+    why = margin.violations(UR5E, q[i][None], NOMINAL_SMR_M)[0]
+    assert why is not None and "kinematic margin" in why
+
+
+def test_margin_absent_from_an_older_file_or_session(tmp_path):
+    """An envelope written before the margin existed: a file gets the default margin (safer),
+    a recorded session the 0 it ran with (so that --resume plans the same poses)."""
+    from workcell.campaign.envelope import (
+        DEFAULT_KINEMATIC_MARGIN_M,
+        default_envelope,
+        envelope_of_session,
+    )
+    from workcell.errors import UserError
+    from workcell.kinematics.robots import UR5E
+
+    d = default_envelope(UR5E).to_dict()
+    assert d.pop("kinematic_margin_m") == DEFAULT_KINEMATIC_MARGIN_M
+    path = tmp_path / "old.json"
+    path.write_text(json.dumps(d))
+    assert load_envelope(path, UR5E).kinematic_margin_m == DEFAULT_KINEMATIC_MARGIN_M
+    assert envelope_of_session({"envelope": d}, UR5E, "rec").kinematic_margin_m == 0.0
+    for bad in (-0.001, 0.5, float("nan")):
+        path.write_text(json.dumps({**d, "kinematic_margin_m": bad}))
+        with pytest.raises(UserError, match="kinematic_margin_m"):
+            load_envelope(path, UR5E)

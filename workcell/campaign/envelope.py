@@ -20,6 +20,11 @@ from workcell.kinematics.robots import RobotSpec
 SPEED_CEILING_RAD_S = float(np.pi)
 ACCEL_CEILING_RAD_S2 = 40.0
 
+# How far the real arm may be from where the nominal kinematics put it, which is what every check
+# here computes with. Measured on the real UR10 of ../shared/data/ur10-leica (series B, nominal
+# DH after the best-fit base registration): SMR error RMS 2.9 mm, max 5.0 mm. Twice the max.
+DEFAULT_KINEMATIC_MARGIN_M = 0.01
+
 
 class EnvelopeViolation(ValueError):
     """A target outside the configured envelope; nothing moved."""
@@ -33,6 +38,9 @@ class Envelope:
     floor_z_m: float = 0.02  # every DH frame origin (2..n) must stay above this (base frame)
     max_speed_rad_s: float = 1.0
     max_accel_rad_s2: float = 2.0
+    # the box and the floor are kept this far from every checked point (the nominal kinematics'
+    # error; 0 trusts the model exactly, e.g. in a simulation with a known arm)
+    kinematic_margin_m: float = DEFAULT_KINEMATIC_MARGIN_M
 
     def __post_init__(self) -> None:
         """An envelope with NaN, an empty range or a non-positive cap would let motions through
@@ -45,6 +53,7 @@ class Envelope:
                 float(self.floor_z_m),
                 float(self.max_speed_rad_s),
                 float(self.max_accel_rad_s2),
+                float(self.kinematic_margin_m),
             ]
         except (TypeError, ValueError):
             raise ValueError("envelope: every limit must be a number") from None
@@ -70,8 +79,18 @@ class Envelope:
             )
         if not all(np.isfinite(caps)) or caps[1] <= 0 or caps[2] <= 0:
             raise ValueError(
-                "envelope floor_z_m, max_speed_rad_s and max_accel_rad_s2 must be finite and the "
-                f"caps > 0, got {caps}"
+                "envelope floor_z_m, max_speed_rad_s, max_accel_rad_s2 and kinematic_margin_m must "
+                f"be finite and the caps > 0, got {caps}"
+            )
+        if caps[3] < 0 or caps[3] > 0.1:
+            raise ValueError(
+                f"envelope kinematic_margin_m {caps[3]:g} must be within [0, 0.1] m (metres; the "
+                "nominal kinematics' error, a few mm on an uncalibrated arm)"
+            )
+        if np.any(hi_box - lo_box <= 2 * caps[3]):
+            raise ValueError(
+                f"envelope box {lo_box.tolist()}..{hi_box.tolist()} m leaves no room inside the "
+                f"kinematic margin {caps[3]:g} m on each face"
             )
         for name, v, ceiling, what in (
             ("max_speed_rad_s", caps[1], SPEED_CEILING_RAD_S, "speed limit (rad/s)"),
@@ -83,7 +102,8 @@ class Envelope:
                     f"{ceiling:.4g}; give radians"
                 )
         self.joint_limits_rad, self.box_min_m, self.box_max_m = lim, lo_box, hi_box
-        self.floor_z_m, self.max_speed_rad_s, self.max_accel_rad_s2 = caps
+        self.floor_z_m, self.max_speed_rad_s, self.max_accel_rad_s2 = caps[:3]
+        self.kinematic_margin_m = caps[3]
 
     def with_arm_joint_ranges(self, spec: RobotSpec) -> Envelope:
         """This envelope with the arm's own joint ranges instead of its own: the box and the
@@ -98,10 +118,14 @@ class Envelope:
             "floor_z_m": self.floor_z_m,
             "max_speed_rad_s": self.max_speed_rad_s,
             "max_accel_rad_s2": self.max_accel_rad_s2,
+            "kinematic_margin_m": self.kinematic_margin_m,
         }
 
     @classmethod
-    def from_dict(cls, d: dict) -> Envelope:
+    def from_dict(cls, d: dict, margin_if_absent_m: float = DEFAULT_KINEMATIC_MARGIN_M) -> Envelope:
+        """The `to_dict` layout. A dict without `kinematic_margin_m` (written before it existed)
+        gets `margin_if_absent_m`: the default for a file, 0 for a recorded session (what that
+        campaign ran with, so that its resumption plans the same poses)."""
         if not isinstance(d, dict):
             raise ValueError("envelope: expected a JSON object")
         try:
@@ -112,6 +136,7 @@ class Envelope:
                 floor_z_m=d.get("floor_z_m", 0.02),
                 max_speed_rad_s=d.get("max_speed_rad_s", 1.0),
                 max_accel_rad_s2=d.get("max_accel_rad_s2", 2.0),
+                kinematic_margin_m=d.get("kinematic_margin_m", margin_if_absent_m),
             )
         except KeyError as e:
             raise ValueError(f"envelope: missing {e.args[0]!r}") from None
@@ -122,7 +147,8 @@ class Envelope:
 
     def clearance(self, spec: RobotSpec, q: np.ndarray, tool_m: np.ndarray) -> np.ndarray:
         """For each row of q (N, n): how far (m) the SMR is from the workspace box's nearest face
-        and the link frames 2..n from the floor, the smaller of the two; negative outside.
+        and the link frames 2..n from the floor, the smaller of the two, less the kinematic
+        margin; negative outside.
         (Joint limits are left out: they are convex in joint space, a straight joint path
         between two postures inside them stays inside.)"""
         return self._evaluate(spec, q, tool_m)[1]
@@ -140,10 +166,15 @@ class Envelope:
         lim = self.joint_limits_rad
         T = np.asarray(base_T_frames(pack(spec.dh), np.where(finite[:, None], q, 0.0)))
         smr = np.einsum("nab,b->na", T[:, -1, :3, :3], np.asarray(tool_m, float)) + T[:, -1, :3, 3]
-        clear = np.minimum(
-            np.minimum(smr - self.box_min_m, self.box_max_m - smr).min(axis=1),
-            (T[:, 2:, 2, 3] - self.floor_z_m).min(axis=1),
+        margin = self.kinematic_margin_m
+        clear = (
+            np.minimum(
+                np.minimum(smr - self.box_min_m, self.box_max_m - smr).min(axis=1),
+                (T[:, 2:, 2, 3] - self.floor_z_m).min(axis=1),
+            )
+            - margin
         )
+        within = f" less the {1e3 * margin:g} mm kinematic margin" if margin > 0 else ""
         clear[~finite] = -np.inf
         for i in range(len(q)):
             if not finite[i]:
@@ -157,16 +188,18 @@ class Envelope:
                     f"[{lim[j, 0]:.4f}, {lim[j, 1]:.4f}] rad"
                 )
                 continue
-            if np.any(smr[i] < self.box_min_m) or np.any(smr[i] > self.box_max_m):
+            if np.any(smr[i] < self.box_min_m + margin) or np.any(smr[i] > self.box_max_m - margin):
                 out[i] = (
                     f"SMR at {np.round(smr[i], 3).tolist()} m (base) outside the workspace box "
                     f"{np.round(self.box_min_m, 3).tolist()}..{np.round(self.box_max_m, 3).tolist()}"
+                    + within
                 )
                 continue
             zmin = T[i, 2:, 2, 3].min()
-            if zmin < self.floor_z_m:
+            if zmin < self.floor_z_m + margin:
                 out[i] = (
-                    f"a link frame would go down to z = {zmin:.3f} m, below the floor {self.floor_z_m} m"
+                    f"a link frame would go down to z = {zmin:.3f} m, below the floor "
+                    f"{self.floor_z_m} m{within}"
                 )
         return out, clear
 
@@ -269,6 +302,7 @@ def default_envelope(spec: RobotSpec) -> Envelope:
         floor_z_m=0.02,
         max_speed_rad_s=1.0,
         max_accel_rad_s2=2.0,
+        kinematic_margin_m=DEFAULT_KINEMATIC_MARGIN_M,
     )
 
 
@@ -324,7 +358,7 @@ def envelope_of_session(camp: dict, spec: RobotSpec, source: str) -> Envelope | 
     if d is None:
         return None
     try:
-        env = Envelope.from_dict(d)
+        env = Envelope.from_dict(d, margin_if_absent_m=0.0)
     except ValueError as e:
         raise UserError(f"{source}: recorded envelope unusable ({e})") from None
     return check_envelope_for(env, spec, f"{source}: recorded envelope")

@@ -64,6 +64,10 @@ def describe(env, spec, title: str) -> str:
     lines.append(f"  SMR box  {lo.round(3).tolist()} .. {hi.round(3).tolist()} m (base frame)")
     lines.append(f"  floor    every link frame above z = {env.floor_z_m:g} m (base frame)")
     lines.append(
+        f"  margin   {1e3 * env.kinematic_margin_m:g} mm kept from the box and the floor (the "
+        "checks use the nominal kinematics; the real arm is off by mm)"
+    )
+    lines.append(
         f"  caps     {env.max_speed_rad_s:g} rad/s, {env.max_accel_rad_s2:g} rad/s^2 per joint"
     )
     return "\n".join(lines)

@@ -89,7 +89,7 @@ def envelope_line(d) -> str:
     from workcell.campaign.envelope import Envelope
 
     try:
-        env = Envelope.from_dict(d)
+        env = Envelope.from_dict(d, margin_if_absent_m=0.0)
     except ValueError as e:
         return f"unusable ({e})"
     lim = np.degrees(env.joint_limits_rad)
@@ -97,5 +97,10 @@ def envelope_line(d) -> str:
     return (
         f"joints [{joints}] deg, SMR box {np.round(env.box_min_m, 3).tolist()}.."
         f"{np.round(env.box_max_m, 3).tolist()} m, floor {env.floor_z_m:g} m, "
-        f"<= {env.max_speed_rad_s:g} rad/s"
+        + (
+            f"margin {1e3 * env.kinematic_margin_m:g} mm, "
+            if isinstance(d, dict) and "kinematic_margin_m" in d
+            else ""
+        )
+        + f"<= {env.max_speed_rad_s:g} rad/s"
     )

@@ -221,7 +221,8 @@ def envelope_summary(env) -> list[str]:
         "joints (deg): " + " ".join(f"J{j + 1}[{lim[j, 0]:.0f},{lim[j, 1]:.0f}]" for j in range(6)),
         "box (m): "
         + f"{np.round(env.box_min_m, 2).tolist()} .. {np.round(env.box_max_m, 2).tolist()}",
-        f"floor {env.floor_z_m:.2f} m, speed <= {env.max_speed_rad_s:g} rad/s",
+        f"floor {env.floor_z_m:.2f} m, margin {1e3 * env.kinematic_margin_m:g} mm, "
+        f"speed <= {env.max_speed_rad_s:g} rad/s",
     ]
     return rows
 
