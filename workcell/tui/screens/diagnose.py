@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 from textual.app import ComposeResult
@@ -23,8 +24,9 @@ class DiagnoseScreen(WorkcellScreen):
     DiagnoseScreen #status { height: 1; padding: 0 1; }
     DiagnoseScreen #summary-box { height: 1fr; border: round $primary; padding: 0 1; }
     DiagnoseScreen #lower { height: 1fr; }
-    DiagnoseScreen DataTable { width: 3fr; height: 1fr; }
-    DiagnoseScreen SeriesPlot { width: 2fr; }
+    DiagnoseScreen DataTable { width: 78; height: 1fr; }
+    DiagnoseScreen SeriesPlot { width: 1fr; }
+    DiagnoseScreen.narrow DataTable { width: 1fr; }
     DiagnoseScreen.narrow SeriesPlot { display: none; }
     """
     BINDINGS = [Binding("ctrl+r", "diagnose", "Diagnose")]
@@ -51,7 +53,7 @@ class DiagnoseScreen(WorkcellScreen):
 
     def on_mount(self) -> None:
         self.query_one("#effects", DataTable).add_columns(
-            "model / effect", "joint", "explains", "held-out RMS"
+            "model / effect", "joint", "explains", "held-out RMS", "gain um (95 %)"
         )
         super().on_mount()
 
@@ -100,7 +102,7 @@ class DiagnoseScreen(WorkcellScreen):
         self.query_one("#summary", Static).update(r.get("summary", ""))
         t = self.query_one("#effects", DataTable)
         t.clear()
-        t.add_row("geometry only (DH+base+SMR)", "", "", um(r.get("rms_before_m")))
+        t.add_row("geometry only (DH+base+SMR)", "", "", um(r.get("rms_before_m")), "")
         step_rms = {s["after"]: s["heldout_rms_m"] for s in r.get("steps", [])}
         for e in r.get("effects", []):
             t.add_row(
@@ -108,9 +110,10 @@ class DiagnoseScreen(WorkcellScreen):
                 str(e.get("joint") if e.get("joint") is not None else "-"),
                 f"{100 * float(e.get('explained_fraction', 0.0)):.0f} %",
                 um(step_rms.get(e.get("key"))) if e.get("key") in step_rms else "",
+                gain_cell(e.get("evidence", {})),
             )
-        t.add_row("final (all effects)", "", "", um(r.get("rms_after_m")))
-        t.add_row("noise floor (expected)", "", "", um(r.get("noise_floor_m")))
+        t.add_row("final (all effects)", "", "", um(r.get("rms_after_m")), "")
+        t.add_row("noise floor (expected)", "", "", um(r.get("noise_floor_m")), "")
         steps = [r.get("rms_before_m")] + [s["heldout_rms_m"] for s in r.get("steps", [])]
         steps.append(r.get("rms_after_m"))
         ys = [float(v) * 1e6 for v in steps if v is not None]
@@ -119,3 +122,16 @@ class DiagnoseScreen(WorkcellScreen):
         if floor is not None:
             series.append(("noise floor", [0, len(ys) - 1], [floor * 1e6] * 2, "line"))
         self.query_one("#plot", SeriesPlot).set_series(series)
+
+
+def gain_cell(ev: dict) -> str:
+    """An effect's held-out gain (RMS without it minus with it) and its paired 95 % interval, in
+    um (an interval reaching zero: within chance; the summary says so in words)."""
+    g, ci = ev.get("heldout_gain_m"), ev.get("heldout_gain_ci95_m")
+    if g is None or ci is None or not all(math.isfinite(float(v)) for v in (g, *ci)):
+        return ""
+
+    def f(v: float) -> str:
+        return f"{v * 1e6:.0f}" if abs(v) >= 1e-5 else f"{v * 1e6:.1f}"
+
+    return f"{f(g)} ({f(ci[0])}..{f(ci[1])})"
