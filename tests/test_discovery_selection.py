@@ -129,3 +129,44 @@ def test_effect_outside_the_library_is_unexplained_located_and_reduced(tmp_path)
     # located: the truth's extra error depends on joint 2's angle
     assert u["where"] and "joint(s) 2" in u["where"][0]
     assert "What is not explained: a structured residual" in r["summary"]
+
+
+def test_harmonic_overlap_over_part_of_a_turn_is_said():
+    """Harmonics of a joint angle separate over a full turn, not over part of one: over joint 2's
+    range in a UR campaign (-175..-7 deg) an order-1 term and the offset take up nearly all of an
+    order-2 one, and the report says so beside the fitted amplitude."""
+    from workcell.estimation.discovery import effect_sentence, harmonic_overlap
+
+    rng = np.random.default_rng(0)
+    full = rng.uniform(-np.pi, np.pi, 4000)
+    part = rng.uniform(np.radians(-175), np.radians(-7), 300)
+    assert harmonic_overlap(full, 1, 2) < 0.01
+    assert harmonic_overlap(part, 1, 2) > 0.9
+    # the worst phase is found: sin(2q + 1.1) alone (the sim's phase) is less reproduced
+    X = np.c_[np.ones_like(part), np.sin(part), np.cos(part)]
+    y = np.sin(2 * part + 1.1) - np.sin(2 * part + 1.1).mean()
+    r = y - X @ np.linalg.lstsq(X, y, rcond=None)[0]
+    assert harmonic_overlap(part, 1, 2) >= 1 - (r @ r) / (y @ y) - 1e-12
+
+    e = {
+        "kind": "transmission_error",
+        "joint": 2,
+        "order": 1,
+        "description": "joint 2 transmission error (harmonic order 1)",
+        "explained_fraction": 0.01,
+        "parameters": {
+            "amplitude": {"value": 6e-5, "std": 3e-6, "unit": "rad"},
+            "phase": {"value": -0.15, "std": 0.05, "unit": "rad"},
+        },
+        "evidence": {
+            "p_value": 1e-9,
+            "cv_p_value": 1e-3,
+            "heldout_rms_without_m": 1.7e-5,
+            "joint_range_rad": [float(part.min()), float(part.max())],
+            "harmonic_overlap": {"2": harmonic_overlap(part, 1, 2), "3": 0.3},
+        },
+    }
+    text = effect_sentence(e)
+    assert "of an order-2 harmonic" in text and "not a separable gear harmonic" in text
+    e["evidence"]["harmonic_overlap"] = {"2": harmonic_overlap(full, 1, 2)}
+    assert "separable" not in effect_sentence(e)

@@ -55,6 +55,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+import scipy.linalg
 from scipy import stats
 from scipy.optimize import least_squares
 
@@ -665,6 +666,7 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
             {
                 "kind": c.kind,
                 "joint": c.joint,
+                "order": c.order,
                 "key": c.key,
                 "description": c.describe(),
                 "parameters": model.effect_parameters(c),
@@ -685,6 +687,20 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
                 },
             }
         )
+        if c.kind == "transmission_error":
+            qj = dfit.q[:, c.joint - 1]
+            others = [
+                k
+                for k in cfg.orders
+                if k != c.order
+                and not any(d.kind == c.kind and d.joint == c.joint and d.order == k for d in M)
+            ]
+            effects_out[-1]["evidence"].update(
+                {
+                    "joint_range_rad": [float(qj.min()), float(qj.max())],
+                    "harmonic_overlap": {str(k): harmonic_overlap(qj, c.order, k) for k in others},
+                }
+            )
 
     not_identifiable = [
         {"candidate": k, "rho": v["rho"], "absorbed_by": v.get("absorbed_by", [])}
@@ -723,6 +739,7 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
         "rms_after_ci95_m": after["rms_ci95_m"],
         "max_after_m": after["max_m"],
         "rms_interval_basis": RMS_INTERVAL_BASIS,
+        "parameter_std_basis": PARAMETER_STD_BASIS,
         "noise_floor_m": floor,
         "noise_floor_basis": (
             f"per-pose sigma = max(recorded, tracker MPE ({cfg.tracker_mpe[0] * 1e6:.0f} um + "
@@ -948,7 +965,49 @@ def effect_sentence(e: dict) -> str:
         f"{e['description']}: {size}; explains {100 * e['explained_fraction']:.0f} % of the "
         f"geometry-only residual power (F test p = {ev['p_value']:.1g}, CV p = "
         f"{ev['cv_p_value']:.1g}; held-out RMS without it "
-        f"{ev['heldout_rms_without_m'] * 1e6:.1f} um{gain}){conf}"
+        f"{ev['heldout_rms_without_m'] * 1e6:.1f} um{gain}){conf}{_range_note(e)}"
+    )
+
+
+PARAMETER_STD_BASIS = (
+    "+- is one standard deviation from the joint refit of geometry and the accepted effects, "
+    "s0^2 (J^T W J)^-1 with s0^2 the weighted residual variance; it holds for the selected model: "
+    "an effect left out that the accepted ones can reproduce biases them beyond it"
+)
+
+
+def harmonic_overlap(q: np.ndarray, order: int, other: int) -> float:
+    """How much of a harmonic of order `other` in the joint angle (the worst phase) a harmonic of
+    `order` plus a constant (the joint offset) reproduces over the angles `q` (R^2, 0..1). Over a
+    full turn, evenly covered, 0; over part of a turn the orders are not separable, and an
+    amplitude fitted for `order` takes up the `other` one's share."""
+    q = np.asarray(q, float)
+    X = np.c_[np.ones_like(q), np.sin(order * q), np.cos(order * q)]
+    Y = np.c_[np.sin(other * q), np.cos(other * q)]
+    Y = Y - Y.mean(axis=0)
+    PY = X @ np.linalg.lstsq(X, Y, rcond=None)[0]
+    # the worst phase: max over v of |P Y v|^2 / |Y v|^2, a generalised eigenvalue
+    try:
+        lam = scipy.linalg.eigh(Y.T @ PY, Y.T @ Y, eigvals_only=True)
+    except np.linalg.LinAlgError:  # too few distinct angles to tell the orders apart at all
+        return 1.0
+    return float(np.clip(lam.max(), 0.0, 1.0))
+
+
+def _range_note(e: dict) -> str:
+    """For a transmission error fitted over part of a turn: which other order it can stand in for."""
+    ev = e.get("evidence", {})
+    ov = {int(k): v for k, v in (ev.get("harmonic_overlap") or {}).items() if v >= 0.5}
+    lo_hi = ev.get("joint_range_rad")
+    if not ov or lo_hi is None:
+        return ""
+    k, v = max(ov.items(), key=lambda kv: kv[1])
+    lo, hi = np.degrees(lo_hi)
+    return (
+        f" [joint {e['joint']} covered {lo:.0f}..{hi:.0f} deg: over it this term and the offset "
+        f"reproduce {100 * v:.0f} % of an order-{k} harmonic, so the amplitude is order "
+        f"{e.get('order')}'s share of the joint's periodic error there, not a separable gear "
+        "harmonic]"
     )
 
 
@@ -977,6 +1036,7 @@ def summary_text(r: dict) -> str:
         )
         for e in r["effects"]:
             lines.append("  - " + effect_sentence(e))
+        lines.append(f"  ({r.get('parameter_std_basis', PARAMETER_STD_BASIS)}.)")
         lines.append(
             f"With these effects the held-out RMS is {um(r['rms_after_m'])} "
             f"({_ci(r, 'rms_after_ci95_m')}max "
