@@ -150,6 +150,12 @@ def test_fit_cli_json_keys_and_model_file(dh_only, tmp_path):
     ):
         assert k in d
     assert all({"value", "std"} <= set(v) for v in d["parameters"].values())
+    # what the std is (with the variance factor it carries) and the frames of the groups
+    vf = load_model_info(out)["variance_factor"]
+    assert f"s0^2 = {vf:.3g}" in d["parameter_std_basis"]
+    assert "tracker_T_base" in d["parameter_frames"]["base_t*, base_r*"]
+    lo, hi = d["nominal_rms_ci95_m"]
+    assert lo < d["nominal_rms_m"] < hi
     from workcell.estimation.models import load_model
 
     m = load_model(out)
@@ -158,6 +164,10 @@ def test_fit_cli_json_keys_and_model_file(dh_only, tmp_path):
         fit_dh(ds.subset(ds.holdout_split(0.25)[0])).predict(ds.q[:5]),
         atol=1e-9,
     )
+
+
+def load_model_info(path) -> dict:
+    return json.loads(Path(path).read_text())["info"]
 
 
 @pytest.mark.skipif(not REAL_B.exists(), reason="shared real data not present")

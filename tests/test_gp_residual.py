@@ -71,7 +71,7 @@ def test_fit_gp_reports_every_hyperparameter_with_std_or_at_bound(tmp_path, caps
     params = json.loads(json.dumps(m.parameters()))
     for j in range(6):
         p = params[f"gp_lengthscale_q{j + 1}"]
-        assert (p["std"] is None) == p["at_bound"]
+        assert (p["std"] is None) == (p["at_bound"] or bool(p.get("no_std")))
 
 
 def test_fit_report_prints_every_kind_of_parameter(capsys):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -77,7 +78,12 @@ def print_report(r: dict) -> None:
     print(f"recording       {r['recording']}")
     print(f"poses           {r['train_poses']} train, {r['heldout_poses']} held out ({r['split']})")
     on = "held-out RMS" if r["heldout_poses"] else "train RMS   "  # --holdout 0: no held-out
-    print(f"nominal         {on} {um(r['nominal_rms_m'])}   (nominal chain, base registered)")
+    nci = interval_um(r.get("nominal_rms_ci95_m"))
+    print(
+        f"nominal         {on} {um(r['nominal_rms_m'])}   (nominal chain, base registered"
+        + (f"; {nci}" if nci else "")
+        + ")"
+    )
     ci = interval_um(r.get("heldout_rms_ci95_m"))
     print(
         f"calibrated      {on} {um(r['heldout_rms_m'])}   max {um(r['heldout_max_m'])}"
@@ -91,7 +97,8 @@ def print_report(r: dict) -> None:
     if r.get("tracker_noise_floor_m"):
         print(
             f"                {um(r['tracker_noise_floor_m'])}   with the tracker's accuracy "
-            f"(MPE {r['tracker_mpe_m'][0] * 1e6:g} um + {r['tracker_mpe_m'][1] * 1e6:g} um/m, "
+            f"(MPE {r['tracker_mpe']['a_m'] * 1e6:g} um + {r['tracker_mpe']['b_m_per_m'] * 1e6:g} "
+            "um/m, "
             "sigma = MPE/4)"
         )
     print(f"fit time        {r['fit_seconds']:.2f} s")
@@ -107,7 +114,10 @@ def print_report(r: dict) -> None:
     params = r.get("parameters") or {}
     shown = [(k, v) for k, v in params.items() if v.get("estimated", True)]
     if shown:
-        print(f"{'parameter':>16} {'value m|rad':>14} {'- nominal':>12} {'std':>10}  unit")
+        print(
+            f"{'parameter':>16} {'value m|rad':>14} {'- nominal':>12} {'std':>10}  "
+            "unit of '- nominal' and std"
+        )
         for k, v in shown:
             d = v["value"] - v.get("nominal", v["value"]) if "nominal" in v else float("nan")
             scale, unit = (
@@ -121,10 +131,22 @@ def print_report(r: dict) -> None:
             if std is not None:
                 std_s = f"{std * scale:10.4f}"
             else:  # a bound was hit, or a discrete (cross-validated) choice: no Gaussian std
-                why = "at bound" if v.get("at_bound") else "CV grid" if v.get("chosen_by") else "-"
+                why = (
+                    "at bound"
+                    if v.get("at_bound")
+                    else "CV grid"
+                    if v.get("chosen_by")
+                    else "no peak"
+                    if v.get("no_std")
+                    else "-"
+                )
                 std_s = f"{why:>10}"
             d_s = f"{d * scale:12.4f}" if "nominal" in v else " " * 12
             print(f"{k:>16} {v['value']:14.6f} {d_s} {std_s}  {unit}")
+        if r.get("parameter_std_basis"):
+            print(textwrap.fill(f"std: {r['parameter_std_basis']}", width=100))
     for k, v in (r.get("extra") or {}).items():
+        if k.startswith("gp_") and isinstance(v, (int, float, list)):
+            continue  # the GP's hyperparameters: in the table above, with their std
         print(f"{k:>16} {v}")
     print(f"model           {r['model']}")

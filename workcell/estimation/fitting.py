@@ -27,7 +27,7 @@ from workcell.estimation.models import (
     error_stats,
     save_model,
 )
-from workcell.kinematics.chain import p_tracker
+from workcell.kinematics.chain import PARAMETER_FRAMES, p_tracker
 from workcell.recording.dataset import HOLDOUT_SEED, Dataset
 
 # method -> "module:function(ds_train, *, on, bounds, progress) -> (model, extra dict)"
@@ -44,6 +44,37 @@ def _fit_dh(ds: Dataset, *, bounds=None, progress=None, **_) -> tuple[DHModel, d
 
         return fit_dh_bounded(ds, bounds=bounds), {}
     return fit_dh(ds), {}
+
+
+def parameter_std_basis(model: object) -> str:
+    """What the `std` beside each fitted parameter is, for this model (and its base models)."""
+    geo = getattr(model, "base", None) or getattr(model, "on_model", None) or model
+    info = getattr(geo, "info", {}) or {}
+    vf = info.get("variance_factor")
+    parts = [
+        "geometry (DH, offsets, base, SMR): 1 sigma, s0^2 (J^T W J)^-1 at the fit, W from the "
+        "recorded per-pose sigmas"
+        + (
+            f", s0^2 = {vf:.3g} the a posteriori variance factor (weighted residual variance; "
+            "above 1 when the recorded sigmas or the model leave scatter unexplained, which this "
+            "std then carries)"
+            if isinstance(vf, (int, float)) and np.isfinite(vf)
+            else ""
+        )
+        + "; it holds for this model: an effect it leaves out biases beyond it"
+    ]
+    if hasattr(model, "log_hyper_std"):
+        parts.append(
+            "gp_*: Laplace, the inverse Hessian of the negative log marginal likelihood in log "
+            "space propagated to the value; none at a bound ('at bound') or where the likelihood "
+            "has no proper maximum ('no peak': its Hessian is not positive definite)"
+        )
+    if hasattr(model, "lddmm"):
+        parts.append(
+            "lddmm_*: chosen by 5-fold cross-validation over a grid (extra.cv_grid), no Gaussian "
+            "std"
+        )
+    return "; ".join(parts)
 
 
 def stated_noise_floor(ds: Dataset) -> float:
@@ -85,7 +116,9 @@ def fit_dataset(
     fit_s = time.perf_counter() - t0
     th_nom, base_nom = nominal_registered(dtr)
     ev = dte if len(dte) else dtr
-    nominal = error_stats(np.asarray(p_tracker(th_nom, base_nom, ev.q)), ev.p_tracker)
+    nominal = error_stats(
+        np.asarray(p_tracker(th_nom, base_nom, ev.q)), ev.p_tracker, interval=True
+    )
     held = error_stats(model.predict(ev.q, **aux_from_dataset(ev)), ev.p_tracker, interval=True)
     train_stats = error_stats(model.predict(dtr.q, **aux_from_dataset(dtr)), dtr.p_tracker)
     params = model.parameters()
@@ -101,6 +134,7 @@ def fit_dataset(
         if len(test)
         else "no hold-out: numbers are on the training poses",
         "nominal_rms_m": nominal["rms_m"],
+        "nominal_rms_ci95_m": nominal["rms_ci95_m"],
         "nominal_max_m": nominal["max_m"],
         "heldout_rms_m": held["rms_m"],
         "heldout_rms_ci95_m": held["rms_ci95_m"],
@@ -110,13 +144,15 @@ def fit_dataset(
         "train_rms_m": train_stats["rms_m"],
         "stated_noise_floor_m": stated_noise_floor(ev),
         "tracker_noise_floor_m": tracker_noise_floor(ev, tracker_mpe),
-        "tracker_mpe_m": [float(tracker_mpe[0]), float(tracker_mpe[1])],
+        "tracker_mpe": {"a_m": float(tracker_mpe[0]), "b_m_per_m": float(tracker_mpe[1])},
         "tracker_noise_floor_basis": (
             f"per-pose sigma = max(recorded, tracker MPE ({tracker_mpe[0] * 1e6:g} um + "
             f"{tracker_mpe[1] * 1e6:g} um/m) / 4)"
         ),
         "fit_seconds": fit_s,
         "parameters": params,
+        "parameter_std_basis": parameter_std_basis(model),
+        "parameter_frames": PARAMETER_FRAMES,
         "unidentifiable": getattr(model, "unidentifiable", []),
         "identifiability": info.get("identifiability"),
         "outliers_rejected": info.get("outliers_rejected", 0),

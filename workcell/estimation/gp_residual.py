@@ -91,6 +91,21 @@ class GPResidualModel:
             )
         out["gp_signal_std"] = entry(float(np.sqrt(self.signal_var)), ls[0], 0.5, "m")
         out["gp_noise_std"] = entry(float(np.sqrt(self.noise_var)), ls[7], 0.5, "m")
+        at = self.info.get("hyper_at_bound")  # (8,) in log_hyper_std's order; older models: none
+        if at is not None and len(at) == 8:
+            names = [
+                "gp_signal_std",
+                *(f"gp_lengthscale_q{j + 1}" for j in range(6)),
+                "gp_noise_std",
+            ]
+            for name, b in zip(names, at, strict=True):
+                e = out[name]
+                e["at_bound"] = bool(b) and e["std"] is None
+                if e["std"] is None and not b:
+                    e["no_std"] = (
+                        "the log marginal likelihood's Hessian over the free hyperparameters is "
+                        "not positive definite: no proper maximum, no Gaussian approximation"
+                    )
         return out
 
     def to_dict(self) -> dict:
@@ -187,8 +202,17 @@ def fit_gp_residual(
             "train_poses": int(len(q)),
             "identifiability": base.info.get("identifiability"),
             "outliers_rejected": base.info.get("outliers_rejected", 0),
+            "hyper_at_bound": _at_bound(gpr).tolist(),
         },
     )
+
+
+def _at_bound(gpr, rel_bound: float = 1e-2) -> np.ndarray:
+    """Which log-hyperparameters sit within `rel_bound` of their search range (laplace_log_std
+    holds these fixed)."""
+    theta = np.asarray(gpr.kernel_.theta, float)
+    bounds = np.asarray(gpr.kernel_.bounds, float)
+    return ~((theta - bounds[:, 0] > rel_bound) & (bounds[:, 1] - theta > rel_bound))
 
 
 def laplace_log_std(gpr, rel_bound: float = 1e-2) -> np.ndarray:
@@ -199,8 +223,7 @@ def laplace_log_std(gpr, rel_bound: float = 1e-2) -> np.ndarray:
     search range are held fixed (nan); so is everything when the Hessian of the free ones is not
     positive definite (the optimum is not a proper maximum: no Gaussian approximation)."""
     theta = np.asarray(gpr.kernel_.theta, float)
-    bounds = np.asarray(gpr.kernel_.bounds, float)
-    free = (theta - bounds[:, 0] > rel_bound) & (bounds[:, 1] - theta > rel_bound)
+    free = ~_at_bound(gpr, rel_bound)
     out = np.full(len(theta), np.nan)
     idx = np.where(free)[0]
     if idx.size == 0:

@@ -73,7 +73,7 @@ class LddmmCalibration:
         out = dict(self.base.parameters()) if self.on == "dh" else {}
         kp = self.lddmm.kp
         # chosen from a grid by 5-fold cross-validation: a discrete choice, no Gaussian std
-        cv = "5-fold cross-validation over a grid (info.cv_grid)"
+        cv = "5-fold cross-validation over a grid (cv_grid: in the fit report's extra, the model's info)"
         out["lddmm_sigma_v"] = {"value": kp.sigma_v, "std": None, "unit": "rad", "chosen_by": cv}
         out["lddmm_sigma_w"] = {"value": kp.sigma_w, "std": None, "unit": "m", "chosen_by": cv}
         out["lddmm_sigma"] = {"value": self.lddmm.sigma, "std": None, "unit": "1", "chosen_by": cv}

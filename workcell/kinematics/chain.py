@@ -24,6 +24,17 @@ import numpy as np
 from workcell._jax import jax, jnp
 from workcell.kinematics.robots import DH
 
+# What each parameter group is, and in which frame (for reports beside the numbers)
+PARAMETER_FRAMES = {
+    "a, d, alpha, theta_offset": "standard DH of link i, in frame i-1 (m, rad)",
+    "beta": "Hayati tilt of link i about its y axis (rad), where the next axis is parallel",
+    "base_t*, base_r*": (
+        "tracker_T_base = base_ref @ Trans(t) @ Rot(r): offsets from base_ref (the model's rigid "
+        "registration) along the base axes (m, rad; base_rz about joint 1's axis)"
+    ),
+    "tool_*": "p_flange_smr: the SMR centre in the flange frame (m)",
+}
+
 N_JOINTS = 6
 BASE_NAMES = ["base_tx", "base_ty", "base_tz", "base_rx", "base_ry", "base_rz"]
 TOOL_NAMES = ["tool_x", "tool_y", "tool_z"]
