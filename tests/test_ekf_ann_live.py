@@ -59,7 +59,28 @@ def test_replay_command_prints_the_live_lines(campaign, capsys):
     out = capsys.readouterr().out.splitlines()
     rec = read_recording(path, streams=False)
     ref = LiveFilter.from_session(rec.session)
-    assert [ln.strip() for ln in out[:-1]] == [ref.update(s) for s in rec.samples]
+    end = next(i for i, ln in enumerate(out) if ln.startswith("replayed "))
+    assert [ln.strip() for ln in out[:end]] == [ref.update(s) for s in rec.samples]
+    # 14 samples, the CLI's filter starts after 30: it says so instead of an estimate
+    assert out[end + 1] == (
+        f"no estimate: the filter starts after its first {ref.n_init} samples, and this "
+        f"recording has {len(rec.samples)}"
+    )
+
+
+def test_estimate_gives_each_geometric_state_with_a_scaled_std(campaign):
+    """The filter's sqrt(diag P) is right only if the stated noise is: the reported std is scaled
+    by the innovation variance factor (when above 1), and both are given with their basis."""
+    _, live, _ = campaign
+    est = live.estimate()
+    s0 = est["variance_factor"]
+    geo = est["geometric"]
+    assert len(geo) > 0 and set(geo) == set(est["geometric_std"])
+    for name, g in geo.items():
+        assert g["std_filter"] == est["geometric_std"][name]
+        assert g["std"] == pytest.approx(g["std_filter"] * np.sqrt(max(s0, 1.0)))
+        assert g["unit"] in ("m", "rad")
+    assert "std_filter" in est["geometric_std_basis"]
 
 
 def test_model_roundtrip_predicts_the_same(campaign, tmp_path):

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import textwrap
 import time
 
 from workcell.errors import UserError, check_output_path
@@ -76,4 +77,29 @@ def run(args: argparse.Namespace) -> int:
             f"replayed {len(rec.samples)} samples in {dt:.1f} s "
             f"({est['samples_per_s']:.0f} samples/s)"
         )
+        geo = est.get("geometric") or {}
+        if not est.get("initialised"):
+            print(
+                f"no estimate: the filter starts after its first {lf.n_init} samples, and this "
+                f"recording has {len(rec.samples)}"
+            )
+        elif geo:
+            s0 = est.get("variance_factor", float("nan"))
+            print(
+                f"geometric estimate at the last sample (variance factor s0^2 {s0:.3g}, "
+                f"{'passes' if est.get('variance_test_ok') else 'fails'} the 95 % chi^2 test):"
+            )
+            for n, g in geo.items():
+                k, u = (
+                    (1e3, "mm")
+                    if g["unit"] == "m"
+                    else (1e3, "mrad")
+                    if g["unit"] == "rad"
+                    else (1, g["unit"])
+                )
+                print(
+                    f"  {n:>14} {g['value'] * k:12.4f} +- {g['std'] * k:.3g} {u}"
+                    f"   (filter alone +- {g['std_filter'] * k:.3g})"
+                )
+            print(textwrap.fill(f"std: {est['geometric_std_basis']}", width=100))
     return 0

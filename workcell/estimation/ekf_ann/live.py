@@ -37,6 +37,7 @@ from workcell.estimation.identifiability import analyse
 from workcell.kinematics.chain import (
     N_PARAMS,
     PARAM_NAMES,
+    PARAM_UNITS,
     jac_params,
     p_tracker,
     pack,
@@ -45,6 +46,12 @@ from workcell.kinematics.chain import (
 )
 from workcell.kinematics.frames import kabsch
 from workcell.kinematics.robots import DH, RobotSpec, robot_from_session
+
+GEOMETRIC_STD_BASIS = (
+    "std_filter: sqrt(diag P) of the filter, right only if the stated measurement noise is; std: "
+    "that times sqrt(max(1, s0^2)), s0^2 the innovation variance factor over the window "
+    "(variance_factor; above 1 the innovations are larger than the stated noise)"
+)
 
 
 def identifiable_geometry(
@@ -236,12 +243,30 @@ class LiveFilter:
                     "prefit_accepted": self.prefit_accepted,
                     "geometric_states": list(f.cfg.geometric),
                     "theta": f.theta.tolist(),
+                    "theta_names": list(PARAM_NAMES),
                     "geometric_std": f.geometric_std(),
+                    "geometric": self._geometric(f, s0),
+                    "geometric_std_basis": GEOMETRIC_STD_BASIS,
                     "ann_iterations": f.ann_iterations,
                     "ann_iterations_accepted": f.ann_accepted,
                     "state_norm": float(np.linalg.norm(f.x)),
                 }
             )
+        return out
+
+    @staticmethod
+    def _geometric(f: EkfAnnFilter, s0: float) -> dict[str, dict]:
+        """Each estimated geometric state: value, the filter's std, and that std scaled by the
+        innovation variance factor (`GEOMETRIC_STD_BASIS`)."""
+        k = float(np.sqrt(max(s0, 1.0))) if np.isfinite(s0) else 1.0
+        x_geo = f.x[f.n_weights :]
+        out = {}
+        for i, (n, sd) in enumerate(f.geometric_std().items()):
+            if n in PARAM_NAMES:
+                value, unit = float(f.theta[PARAM_NAMES.index(n)]), PARAM_UNITS[n]
+            else:  # paper mode: the position state, tracker frame
+                value, unit = float(x_geo[i]), "m"
+            out[n] = {"value": value, "std": sd * k, "std_filter": sd, "unit": unit}
         return out
 
     def model(self) -> EkfAnnModel:
