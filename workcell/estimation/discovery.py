@@ -81,7 +81,7 @@ from workcell.estimation.models import (
     interval_um,
     rms_gain_interval,
 )
-from workcell.kinematics.chain import PARAM_NAMES, jac_joints
+from workcell.kinematics.chain import PARAM_NAMES, PARAMETER_FRAMES, jac_joints
 from workcell.recording.dataset import Dataset
 
 
@@ -357,7 +357,7 @@ def locate(
             r = float(np.corrcoef(tau[ok, j], y)[0, 1])
             slope = float(np.polyfit(tau[ok, j], y, 1)[0])
             row["torque_corr"] = r
-            row["torque_slope_rad_per_nm"] = slope
+            row["torque_slope_rad_per_n_m"] = slope
             if abs(r) > thr:
                 findings.append(
                     {
@@ -740,6 +740,7 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
         "max_after_m": after["max_m"],
         "rms_interval_basis": RMS_INTERVAL_BASIS,
         "parameter_std_basis": PARAMETER_STD_BASIS,
+        "parameter_frames": PARAMETER_FRAMES,
         "noise_floor_m": floor,
         "noise_floor_basis": (
             f"per-pose sigma = max(recorded, tracker MPE ({cfg.tracker_mpe[0] * 1e6:.0f} um + "
@@ -877,6 +878,18 @@ def noise_floor_m(dh: DHModel, dtr: Dataset, dte: Dataset, sig_tr, sig_te) -> fl
     return float(np.sqrt(np.mean(3 * sig_te**2 + par)))
 
 
+def _deviation(v: dict) -> dict:
+    """A fitted geometric parameter as `fit` reports it (value absolute, as `fit --json` has it)
+    with its deviation from nominal beside it."""
+    return {
+        "value": v["value"],
+        "nominal": v["nominal"],
+        "deviation": v["value"] - v["nominal"],
+        "std": v["std"],
+        "unit": v["unit"],
+    }
+
+
 def _geometry_items(dh: DHModel) -> list[dict]:
     """Geometric kinds: the estimated deviations from nominal, grouped."""
     params = dh.parameters()
@@ -889,9 +902,7 @@ def _geometry_items(dh: DHModel) -> list[dict]:
                 {
                     "kind": "joint_offset",
                     "joint": j,
-                    "parameters": {
-                        n: {"value": v["value"] - v["nominal"], "std": v["std"], "unit": "rad"}
-                    },
+                    "parameters": {n: _deviation(v)},
                 }
             )
     for j in range(1, 7):
@@ -900,7 +911,7 @@ def _geometry_items(dh: DHModel) -> list[dict]:
             n = f"{base}{j}"
             v = params[n]
             if v["estimated"]:
-                ps[n] = {"value": v["value"] - v["nominal"], "std": v["std"], "unit": v["unit"]}
+                ps[n] = _deviation(v)
         if ps:
             items.append({"kind": "link_geometry", "joint": j, "parameters": ps})
     items.append(
@@ -947,7 +958,13 @@ def effect_sentence(e: dict) -> str:
     p = e["parameters"]
     if e["kind"] == "transmission_error":
         a = p["amplitude"]
-        size = f"amplitude {_fmt_value(a['value'], a['std'], 'rad')}, phase {p['phase']['value']:+.2f} rad"
+        ph = p["phase"]
+        ph_sd = ph.get("std")
+        size = (
+            f"amplitude {_fmt_value(a['value'], a['std'], 'rad')}, phase {ph['value']:+.2f}"
+            + (f" +- {ph_sd:.2g}" if ph_sd is not None and np.isfinite(ph_sd) else "")
+            + " rad"
+        )
     else:
         ((name, v),) = [(k, x) for k, x in p.items()]
         size = f"{name.replace('_', ' ')} {_fmt_value(v['value'], v['std'], v['unit'])}"
