@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import textwrap
 
 import numpy as np
 
@@ -63,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
     from workcell.campaign.devices import envelope_from_args
     from workcell.campaign.envelope import Guard
     from workcell.drivers.protocols import close_quietly
-    from workcell.estimation.models import interval_um, load_model
+    from workcell.estimation.models import RMS_INTERVAL_BASIS, interval_um, load_model
     from workcell.export.build import make_table, model_recording, nominal_for_model, parse_vec
     from workcell.export.correction import Conditions
     from workcell.export.table import load_table
@@ -152,6 +153,7 @@ def run(args: argparse.Namespace) -> int:
     finally:
         close_quietly(robot, tracker)
     res["truth"] = "simulated robot" if args.robot == "sim" else "tracker"
+    res["rms_interval_basis"] = RMS_INTERVAL_BASIS
     if args.json:
         print(json.dumps(res))
         return 0
@@ -170,4 +172,5 @@ def run(args: argparse.Namespace) -> int:
             f"skipped   {len(res['skipped'])} target(s) before any motion; first: {res['skipped'][0]}"
         )
     print(f"improvement (RMS): {res['improvement']:.1f}x")
+    print(textwrap.fill(f"CI: {RMS_INTERVAL_BASIS} (here the targets)", width=100))
     return 0
