@@ -71,6 +71,14 @@ def test_clean_recording_claims_no_physical_effect(clean):
     assert r["effects"] == []
     assert r["rms_after_m"] == pytest.approx(r["rms_before_m"], rel=1e-6)
     assert "No physical effect" in r["summary"]
+    # geometry: the absolute value as `fit` gives it, with nominal and deviation beside it
+    links = [g for g in r["geometry"] if g["kind"] in ("link_geometry", "joint_offset")]
+    assert links
+    for g in links:
+        for v in g["parameters"].values():
+            assert v["deviation"] == pytest.approx(v["value"] - v["nominal"], abs=1e-15)
+            assert v["std"] > 0
+    assert "base_ref" in r["parameter_frames"]["base_t*, base_r*"]
 
 
 def test_tracker_scale_is_reported_as_not_identifiable(tmpdir_mod):
