@@ -9,14 +9,49 @@ class UserError(Exception):
         self.exit_code = exit_code
 
 
-def check_output_path(path, what: str = "output", *, folder: bool = False):
+MCAP_MAGIC = b"\x89MCAP"
+
+
+def refuse_overwrite(outputs, inputs=(), what: str = "output") -> None:
+    """Refuse, before any work, to write an output over one of the command's `inputs` (the same
+    file, by any path) or over an existing recording: either would lose data that may not be
+    measurable again."""
+    import os
+    from pathlib import Path
+
+    for o in outputs:
+        o = Path(o)
+        if not o.is_file():
+            continue
+        for i in inputs:
+            if i is not None and Path(i).exists() and os.path.samefile(o, i):
+                raise UserError(
+                    f"{what} {o} is the input {i}; writing there would destroy it; choose "
+                    "another name"
+                )
+        try:
+            with open(o, "rb") as f:
+                head = f.read(len(MCAP_MAGIC))
+        except OSError:
+            continue
+        if head == MCAP_MAGIC:
+            raise UserError(
+                f"{what} {o} is an existing recording (MCAP); writing there would destroy it; "
+                "choose another name"
+            )
+
+
+def check_output_path(path, what: str = "output", *, folder: bool = False, inputs=()):
     """Refuse, before any work, an output path that cannot be written: a file where a folder
-    is needed (or the reverse), or a read-only folder. Missing folders are fine (created).
-    Returns the path as a `pathlib.Path`."""
+    is needed (or the reverse), or a read-only folder, or one of the command's `inputs` or an
+    existing recording (`refuse_overwrite`). Missing folders are fine (created). Returns the
+    path as a `pathlib.Path`."""
     import os
     from pathlib import Path
 
     p = Path(path)
+    if not folder:
+        refuse_overwrite([p], inputs, what)
     if folder and p.exists() and not p.is_dir():
         raise UserError(f"{what} {p} exists and is a file; give a folder")
     if not folder and p.is_dir():

@@ -128,6 +128,11 @@ class Envelope:
         campaign ran with, so that its resumption plans the same poses)."""
         if not isinstance(d, dict):
             raise ValueError("envelope: expected a JSON object")
+        for key, v in d.items():
+            flat = np.ravel(np.asarray(v, dtype=object)) if isinstance(v, list) else [v]
+            bad = [x for x in flat if isinstance(x, (bool, str)) or x is None]
+            if bad:
+                raise ValueError(f"envelope {key}: every value must be a number, got {bad[0]!r}")
         try:
             return cls(
                 joint_limits_rad=d["joint_limits_rad"],
@@ -322,6 +327,22 @@ def check_envelope_for(env: Envelope, spec: RobotSpec, source: str = "envelope")
             f"{source}: joint {j + 1} limits [{lim[j, 0]:.4g}, {lim[j, 1]:.4g}] rad go beyond the "
             f"arm's range [{arm[j, 0]:.4g}, {arm[j, 1]:.4g}] rad{hint}"
         )
+    from workcell.recording.checks import millimetre_hint, reach_m
+
+    r = reach_m(spec.dh, np.zeros(3)) + 0.5  # the arm plus a generous tool
+    far = float(np.max(np.abs(np.r_[env.box_min_m, env.box_max_m])))
+    if far > 3 * r:
+        raise UserError(
+            f"{source}: the workspace box reaches {far:.4g} m from the base, far beyond the arm "
+            f"({r:.3g} m with a tool); "
+            + millimetre_hint(far, r, "give the box in metres (base frame)")
+        )
+    if not env.floor_z_m < env.box_max_m[2]:
+        raise UserError(
+            f"{source}: floor_z_m {env.floor_z_m:g} m is above the box's top "
+            f"{env.box_max_m[2]:g} m: no posture could pass"
+            + ("; it looks like millimetres, give metres" if env.floor_z_m > 3 * r else "")
+        )
     vmax = float(np.min(spec.max_joint_speed_rad_s))
     if env.max_speed_rad_s > vmax:
         raise UserError(
@@ -338,7 +359,7 @@ def load_envelope(path, spec: RobotSpec) -> Envelope:
     if not p.is_file():
         raise UserError(f"envelope file {p} does not exist (or is not a file)")
     try:
-        text = p.read_text()
+        text = p.read_text(encoding="utf-8-sig")  # a BOM from a Windows editor is fine
     except UnicodeDecodeError:
         raise UserError(
             f"envelope file {p}: not a text file; an envelope is JSON "

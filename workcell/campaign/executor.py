@@ -85,6 +85,12 @@ class CampaignConfig:
             if not ok:
                 what = "> 0" if name in positive else ">= 0"
                 raise UserError(f"{_setting(name)} must be a finite number {what}, got {v}")
+        # a settle time or warm-up given in ms (or minutes taken for hours) would hold the arm
+        # for days: refuse beyond what a campaign could mean
+        for name, most in (("settle_s", 600.0), ("warmup_s", 4 * 3600.0)):
+            v = getattr(self, name)
+            if v > most:
+                raise UserError(f"{_setting(name)} {v:g} s is more than {most:g} s; give seconds")
 
 
 def _setting(name: str) -> str:

@@ -74,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
     if args.report:
         check_output_path(args.report, "report folder", folder=True)
     if args.out:
-        check_output_path(args.out, "model file")
+        check_output_path(args.out, "model file", inputs=[args.recording])
     diag = diagnose(ds, cfg, progress=log)
     rep = diag.report
     outdir = Path(args.report) if args.report else None

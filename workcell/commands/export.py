@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from workcell.errors import UserError, check_output_path
+from workcell.errors import UserError, check_output_path, refuse_overwrite
 
 FORMATS = ("table", "urscript", "ros-yaml", "targets")
 
@@ -52,7 +52,13 @@ def run(args: argparse.Namespace) -> int:
     from workcell.export.build import make_table, parse_vec
     from workcell.export.correction import Conditions
 
+    for opt, path in (("--recording", args.recording), ("--in", args.targets_in)):
+        if path is not None and not Path(path).is_file():
+            raise UserError(f"{opt} {path} does not exist (or is not a file)")
     out = check_output_path(args.out, "output")
+    refuse_overwrite(
+        _output_files(args.format, out), [args.model, args.recording, args.targets_in], "output"
+    )
     model = load_model(args.model)
     summary: dict = {"format": args.format, "model": args.model}
     if args.format == "ros-yaml":
@@ -98,6 +104,17 @@ def run(args: argparse.Namespace) -> int:
         files += [str(p) for p in table.save(script.with_suffix(""))]
         summary["files"] = files
     return _report(args, summary)
+
+
+def _output_files(fmt: str, out: Path) -> list[Path]:
+    """The files `export --format fmt --out out` writes (a table is PATH.json + PATH.csv)."""
+    if fmt in ("ros-yaml", "targets"):
+        return [out]
+    if fmt == "table":
+        base = out.with_suffix("") if out.suffix.lower() in (".json", ".csv") else out
+        return [base.with_suffix(".json"), base.with_suffix(".csv")]
+    script = out if out.suffix else out.with_suffix(".script")
+    return [script, script.with_suffix(".json"), script.with_suffix(".csv")]
 
 
 def _report(args, summary: dict) -> int:

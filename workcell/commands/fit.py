@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from workcell.commands.options import add_tracker_mpe, parse_tracker_mpe
+from workcell.commands.options import add_tracker_mpe, display_unit, parse_tracker_mpe
 from workcell.errors import UserError, check_output_path
 from workcell.estimation.fitting import FIT_METHODS, fit_recording
 from workcell.estimation.models import interval_um
@@ -41,9 +41,15 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"unknown method {args.method!r}; choose from {', '.join(FIT_METHODS)}")
     if not 0.0 <= args.holdout < 0.9:
         raise UserError(f"--holdout must be in [0, 0.9), got {args.holdout}")
+    if args.bounds and args.method != "dh":
+        raise UserError(f"--bounds applies to --method dh only (the bounded QP), not {args.method}")
+    if args.on not in ("auto", "dh", "nominal"):
+        raise UserError(f"--on must be dh, nominal or auto, got {args.on!r}")
+    if args.on != "auto" and args.method == "dh":
+        raise UserError("--on chooses the base model of lddmm and gp; --method dh has none")
     mpe = parse_tracker_mpe(args.tracker_mpe)
     out = Path(args.out) if args.out else Path(args.recording).with_suffix(f".{args.method}.json")
-    check_output_path(out, "model file")
+    check_output_path(out, "model file", inputs=[args.recording, args.bounds])
     report = fit_recording(
         args.recording,
         method=args.method,
@@ -120,13 +126,7 @@ def print_report(r: dict) -> None:
         )
         for k, v in shown:
             d = v["value"] - v.get("nominal", v["value"]) if "nominal" in v else float("nan")
-            scale, unit = (
-                (1e3, "mm")
-                if v["unit"] == "m"
-                else (1e3, "mrad")
-                if v["unit"] == "rad"
-                else (1, v["unit"])
-            )
+            scale, unit = display_unit(v["unit"])
             std = v.get("std")
             if std is not None:
                 std_s = f"{std * scale:10.4f}"

@@ -39,3 +39,8 @@ def parse_tracker_mpe(text: str) -> tuple[float, float]:
             "a value above 1e-3 looks like micrometres or millimetres"
         )
     return mpe[0], mpe[1]
+
+
+def display_unit(unit: str) -> tuple[float, str]:
+    """(scale, label) to print a parameter of SI `unit` in a table: m as mm, rad as mrad."""
+    return {"m": (1e3, "mm"), "rad": (1e3, "mrad")}.get(unit, (1.0, unit))

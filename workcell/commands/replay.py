@@ -27,6 +27,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from workcell.commands.options import display_unit
     from workcell.estimation.ekf_ann.live import LiveFilter
     from workcell.recording import checks
     from workcell.recording.reader import read_recording
@@ -36,7 +37,7 @@ def run(args: argparse.Namespace) -> int:
     if args.every < 1:
         raise UserError(f"--every must be >= 1, got {args.every}")
     if args.save:
-        check_output_path(args.save, "model file")
+        check_output_path(args.save, "model file", inputs=[args.recording])
     rec = read_recording(args.recording, streams=False)
     if not rec.samples:
         raise UserError(f"{args.recording}: no /campaign/sample messages; nothing to replay")
@@ -90,13 +91,7 @@ def run(args: argparse.Namespace) -> int:
                 f"{'passes' if est.get('variance_test_ok') else 'fails'} the 95 % chi^2 test):"
             )
             for n, g in geo.items():
-                k, u = (
-                    (1e3, "mm")
-                    if g["unit"] == "m"
-                    else (1e3, "mrad")
-                    if g["unit"] == "rad"
-                    else (1, g["unit"])
-                )
+                k, u = display_unit(g["unit"])
                 print(
                     f"  {n:>14} {g['value'] * k:12.4f} +- {g['std'] * k:.3g} {u}"
                     f"   (filter alone +- {g['std_filter'] * k:.3g})"

@@ -142,7 +142,7 @@ def resolve_bounds(
         if not path.is_file():
             raise UserError(f"bounds file {path} not found (give a JSON file or 'default')")
         try:
-            spec = json.loads(path.read_text())
+            spec = json.loads(path.read_text(encoding="utf-8-sig"))
         except (OSError, json.JSONDecodeError) as e:
             raise UserError(f"bounds file {path}: not valid JSON ({e})") from None
         where = str(path)
@@ -163,7 +163,7 @@ def resolve_bounds(
         if (
             not isinstance(v, (list, tuple))
             or len(v) != 2
-            or not all(isinstance(x, (int, float)) for x in v)
+            or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v)
         ):
             raise UserError(f"{where}: {name} must be [lo, hi] (two numbers), got {v!r}")
         a, b = float(v[0]), float(v[1])
@@ -171,6 +171,19 @@ def resolve_bounds(
             raise UserError(f"{where}: {name} bound [{a}, {b}] is empty (need lo <= hi)")
         i = index[name]
         off = th[i] if mode == "delta" else 0.0
+        if not (a + off <= th[i] <= b + off):
+            metres = name[0] in "ad" and name[1:].isdigit()
+            unit = "m" if metres or name.startswith(("base_t", "tool")) else "rad"
+            mm = unit == "m" and max(abs(a), abs(b)) > 300 * max(abs(th[i]), 0.01)
+            raise UserError(
+                f"{where}: {name} bound [{a:g}, {b:g}] {unit} ({mode}) does not contain the "
+                f"nominal value {th[i]:.6g} {unit}, where the fit starts; "
+                + (
+                    "it looks like millimetres, give metres"
+                    if mm
+                    else 'widen it, or give offsets from nominal with {"mode": "delta"}'
+                )
+            )
         lo[i], hi[i] = a + off, b + off
     return lo, hi
 

@@ -72,7 +72,7 @@ def load_model(path: str | os.PathLike) -> FittedModel:
     if not p.exists():
         raise UserError(f"{p}: no such model file; fit one with `workcell fit REC --out {p}`")
     try:
-        d = json.loads(p.read_text())
+        d = json.loads(p.read_text(encoding="utf-8-sig"))
     except (ValueError, UnicodeDecodeError):
         raise UserError(f"{p}: not a workcell model file (not JSON)") from None
     if not isinstance(d, dict) or d.get("format") != MODEL_FORMAT:

@@ -74,6 +74,7 @@ def make_table(
         lo, hi = default_volume(spec)
     else:
         lo, hi = np.asarray(volume[:3], float), np.asarray(volume[3:], float)
+        check_volume(lo, hi, nominal)
     rv = np.asarray(orientations or [DEFAULT_ORIENTATION], float).reshape(-1, 3)
     rec, sha = model_recording(model)
     meta = {
@@ -95,3 +96,20 @@ def make_table(
         log=log,
     )
     return tab, corr
+
+
+def check_volume(lo: np.ndarray, hi: np.ndarray, nominal: Nominal) -> None:
+    """A table volume (base frame, m) must lie within the arm's reach: a corner farther than
+    that cannot be corrected (no joint solution), and a volume typed in millimetres would ask
+    for ~10^12 nodes."""
+    from workcell.kinematics.chain import unpack_dh
+    from workcell.recording.checks import millimetre_hint, reach_m
+
+    r = reach_m(unpack_dh(nominal.theta), nominal.tool_m)
+    far = float(np.max(np.abs(np.r_[lo, hi])))
+    if np.all(np.isfinite(np.r_[lo, hi])) and far > r:
+        raise UserError(
+            f"--volume {np.r_[lo, hi].tolist()}: a bound {far:.4g} m from the base is beyond the "
+            f"{nominal.robot}'s reach of {r:.3g} m; "
+            + millimetre_hint(far, r, "give the volume in metres, within reach")
+        )

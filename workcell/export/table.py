@@ -230,7 +230,7 @@ def load_table(path: str | os.PathLike) -> CorrectionTable:
             )
         raise UserError(f"{p}: no such correction table; write one with `workcell export`")
     try:
-        d = json.loads(p.read_text())
+        d = json.loads(p.read_text(encoding="utf-8-sig"))
         if not isinstance(d, dict):
             raise ValueError("not a JSON object")
         return CorrectionTable.from_dict(d)

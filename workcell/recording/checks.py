@@ -32,7 +32,13 @@ QUAT_NORM_TOL = 1e-3
 
 
 def _number(x) -> bool:
-    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+    """A finite JSON number (an integer too large for a float is not: OverflowError)."""
+    if not isinstance(x, (int, float)) or isinstance(x, bool):
+        return False
+    try:
+        return math.isfinite(x)
+    except OverflowError:
+        return False
 
 
 def _numbers(v, n: int) -> bool:

@@ -1,0 +1,174 @@
+"""Mistakes a technician makes at the command line: each is one line and exit 2, before any work,
+and no input file (recording, model, targets) is ever written over. Cases found by an audit of
+every subcommand with malformed and mistyped input (2026-11-23); each failed before its fix
+(a traceback, exit 0, or a destroyed input)."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+
+import pytest
+
+from workcell.cli import main
+
+POSES = 20
+
+
+@pytest.fixture(scope="module")
+def cell(tmp_path_factory):
+    """A small simulated recording and a DH model fitted to it."""
+    from workcell.campaign.executor import CampaignConfig
+    from workcell.campaign.run import run_campaign, sim_cell
+
+    d = tmp_path_factory.mktemp("badinput")
+    _, robot, tracker, c = sim_cell("ur5e", "none", seed=2)
+    rec = d / "r.mcap"
+    run_campaign(
+        robot,
+        tracker,
+        c,
+        rec,
+        plan="random",
+        poses=POSES,
+        seed=2,
+        config=CampaignConfig(readings_per_pose=2, settle_s=0.2),
+    )
+    model = d / "m.json"
+    assert main(["fit", str(rec), "--method", "dh", "--out", str(model)]) == 0
+    return d, rec, model
+
+
+def digest(p) -> str:
+    return hashlib.sha256(p.read_bytes()).hexdigest()
+
+
+def one_line_refusal(capsys, argv: list[str], match: str) -> None:
+    capsys.readouterr()
+    rc = main(argv)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and match in err[0], (rc, err)
+
+
+@pytest.mark.parametrize(
+    "argv, match",
+    [
+        (["fit", "{rec}", "--out", "{rec}"], "is the input"),
+        (["fit", "{rec}", "--out", "{dir}/./r.mcap"], "is the input"),
+        (["fit", "{rec}", "--out", "{other}"], "is an existing recording"),
+        (["diagnose", "{rec}", "--out", "{rec}"], "is the input"),
+        (["replay", "{rec}", "--online", "ekf-ann", "--save", "{rec}"], "is the input"),
+        (["export", "{model}", "--format", "table", "--out", "{dir}/m"], "is the input"),
+        (["export", "{model}", "--format", "urscript", "--out", "{model}"], "is the input"),
+        (["export", "{model}", "--format", "ros-yaml", "--out", "{other}"], "existing recording"),
+        (
+            ["export", "{model}", "--format", "targets", "--in", "{t}", "--out", "{t}"],
+            "is the input",
+        ),
+    ],
+)
+def test_no_output_over_an_input_or_a_recording(cell, capsys, argv, match):
+    d, rec, model = cell
+    other = d / "other.mcap"
+    other.write_bytes(rec.read_bytes())
+    t = d / "t.csv"
+    t.write_text("x,y,z\n0.4,0.1,0.3\n")
+    before = {p: digest(p) for p in (rec, model, other, t)}
+    fill = {"rec": rec, "model": model, "dir": d, "other": other, "t": t}
+    one_line_refusal(capsys, [a.format(**fill) for a in argv], match)
+    assert {p: digest(p) for p in before} == before
+
+
+def test_a_huge_integer_in_a_recording_is_a_bad_value_not_a_traceback(cell, capsys, tmp_path):
+    """JSON allows integers no float holds: 10**400 as a joint angle."""
+    from workcell.recording.reader import read_recording
+    from workcell.recording.schema import SAMPLE
+    from workcell.recording.writer import RecordingWriter
+
+    _, rec, _ = cell
+    r = read_recording(rec, streams=False)
+    bad = tmp_path / "huge.mcap"
+    samples = [dict(s) for s in r.samples]
+    samples[5]["q_measured_rad"] = [10**400, *samples[5]["q_measured_rad"][1:]]
+    with RecordingWriter(bad, r.session) as w:
+        for i, s in enumerate(samples):  # past the writer's own check, as another tool would
+            w._write(SAMPLE, s, 10**9 * (i + 1))
+    one_line_refusal(capsys, ["fit", str(bad)], "q_measured_rad must be 6 finite numbers")
+
+
+def test_export_volume_in_millimetres(cell, capsys):
+    _, _, model = cell
+    one_line_refusal(
+        capsys,
+        ["export", str(model), "--format", "table", "--volume=-500,-500,0,500,500,800", "--out",
+         str(model.parent / "t")],
+        "looks like millimetres",
+    )  # fmt: skip
+    one_line_refusal(
+        capsys,
+        ["export", str(model), "--format", "table", "--recording", "nope.mcap", "--out",
+         str(model.parent / "t")],
+        "--recording nope.mcap does not exist",
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "change, match",
+    [
+        ({"box_min_m": [-1150.0, -1150.0, 50.0], "box_max_m": [1150.0, 1150.0, 1312.0]}, "millimetres"),
+        ({"floor_z_m": 20.0}, "above the box's top"),
+        ({"max_speed_rad_s": True}, "must be a number"),
+        ({"kinematic_margin_m": "0.01"}, "must be a number"),
+    ],
+)  # fmt: skip
+def test_envelope_file_mistakes(tmp_path, capsys, change, match):
+    path = tmp_path / "env.json"
+    assert main(["envelope", "--out", str(path)]) == 0
+    d = json.loads(path.read_text())
+    path.write_text(json.dumps({**d, **change}))
+    one_line_refusal(capsys, ["envelope", "--check", str(path)], match)
+
+
+def test_envelope_file_with_a_byte_order_mark_is_read(tmp_path, capsys):
+    """Windows Notepad saves UTF-8 with a BOM; the file is still the technician's envelope."""
+    path = tmp_path / "env.json"
+    assert main(["envelope", "--out", str(path)]) == 0
+    path.write_bytes(b"\xef\xbb\xbf" + path.read_bytes())
+    capsys.readouterr()
+    assert main(["envelope", "--check", str(path)]) == 0
+
+
+@pytest.mark.parametrize(
+    "bounds, extra, match",
+    [
+        ({"a2": [-430, -420]}, [], "looks like millimetres"),
+        ({"a2": [0.1, 0.2]}, [], "does not contain the nominal value"),
+        ({"alpha2": [1.0, 2.0]}, [], "rad (absolute) does not contain"),
+        ({"a2": [False, True]}, [], "two numbers"),
+        ({"a2": [-0.43, -0.42]}, ["--method", "gp"], "--bounds applies to --method dh only"),
+    ],
+)
+def test_bounds_mistakes(cell, tmp_path, capsys, bounds, extra, match):
+    _, rec, _ = cell
+    path = tmp_path / "b.json"
+    path.write_text(json.dumps(bounds))
+    argv = ["fit", str(rec), "--bounds", str(path), "--out", str(tmp_path / "m.json"), *extra]
+    one_line_refusal(capsys, argv, match)
+
+
+def test_fit_on_is_for_lddmm_and_gp(cell, capsys, tmp_path):
+    _, rec, _ = cell
+    out = str(tmp_path / "m.json")
+    one_line_refusal(capsys, ["fit", str(rec), "--on", "bogus", "--out", out], "--on must be")
+    one_line_refusal(capsys, ["fit", str(rec), "--on", "dh", "--out", out], "has none")
+
+
+def test_settle_time_in_milliseconds_is_refused(tmp_path, capsys):
+    out = tmp_path / "c.mcap"
+    one_line_refusal(
+        capsys,
+        ["campaign", "--robot", "sim", "--tracker", "sim", "--poses", "3", "--settle", "1000",
+         "--out", str(out)],
+        "is more than 600 s",
+    )  # fmt: skip
+    assert not out.exists()
