@@ -172,3 +172,41 @@ def test_settle_time_in_milliseconds_is_refused(tmp_path, capsys):
         "is more than 600 s",
     )  # fmt: skip
     assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    "option, match",
+    [
+        ("--orientation=0,180,0", "looks like degrees"),
+        ("--spacing=100", "wider than the volume"),
+        ("--max-correction=5", "beyond any calibration"),
+    ],
+)
+def test_export_table_options_in_the_wrong_unit(cell, capsys, option, match):
+    _, _, model = cell
+    out = model.parent / "t_unit"
+    one_line_refusal(
+        capsys, ["export", str(model), "--format", "table", option, "--out", str(out)], match
+    )
+    assert not out.with_suffix(".json").exists()
+
+
+def test_export_targets_rotations_in_degrees(cell, capsys, tmp_path):
+    _, _, model = cell
+    t = tmp_path / "t.csv"
+    t.write_text("x,y,z,rx,ry,rz\n0.4,0.1,0.3,0,180,0\n")
+    one_line_refusal(
+        capsys,
+        ["export", str(model), "--format", "targets", "--in", str(t), "--out", str(tmp_path / "o.csv")],
+        "row 2: rotation vector of 180 rad",
+    )  # fmt: skip
+
+
+def test_an_unmet_interpolation_target_is_said(cell, capsys):
+    """A target no grid within the node limit meets: the table is written, with a warning."""
+    _, _, model = cell
+    capsys.readouterr()
+    out = model.parent / "t_fine"
+    rc = main(["export", str(model), "--format", "table", "--interp-error=1e-9", "--out", str(out)])
+    text = capsys.readouterr().out
+    assert rc == 0 and "warning: the interpolation error target 0.001 um is not met" in text

@@ -176,7 +176,8 @@ def run(args: argparse.Namespace) -> int:
             f"{'calibrated: ' + m:24}{um(r['heldout_rms_m']):>14}{um(r['heldout_max_m']):>12}"
             + (f"   {ci}" if ci else "")
         )
-    print(f"{'noise floor (sim noise)':24}{um(floor):>14}   {NOISE_FLOOR_BASIS}")
+    print(f"{'noise floor (sim noise)':24}{um(floor):>14}")
+    print(f"  (noise floor: {NOISE_FLOOR_BASIS})")
     best = min(results.values(), key=lambda r: r["heldout_rms_m"])
     print(
         f"\nimprovement nominal/calibrated: {dh['nominal_rms_m'] / best['heldout_rms_m']:.0f}x; "

@@ -94,6 +94,8 @@ def run(args: argparse.Namespace) -> int:
     summary["grid"] = {"shape": list(table.shape), "spacing_m": table.spacing_m.tolist()}
     summary["max_interp_error_m"] = table.meta["max_interp_error_m"]
     summary["max_correction_m"] = table.meta["max_correction_m"]
+    summary["interp_error_target_met"] = table.meta["interp_error_target_met"]
+    summary["target_interp_error_m"] = table.meta["target_interp_error_m"]
     if args.format == "table":
         summary["files"] = [str(p) for p in table.save(out)]
     else:
@@ -129,6 +131,13 @@ def _report(args, summary: dict) -> int:
                 f"{summary['max_interp_error_m'] * 1e6:.2f} um, max correction "
                 f"{summary['max_correction_m'] * 1e3:.3f} mm"
             )
+            if not summary.get("interp_error_target_met", True):
+                print(
+                    f"warning: the interpolation error target "
+                    f"{summary['target_interp_error_m'] * 1e6:.3g} um is not met (node limit "
+                    "reached); the table holds the error above; a smaller volume or fewer "
+                    "orientations give a finer grid"
+                )
     return 0
 
 
@@ -197,7 +206,15 @@ def _targets(args, model, cond, summary) -> int:
         P = np.stack([num["x"], num["y"], num["z"]], 1)
         _check_reach(src, P, nom)
         if {"rx", "ry", "rz"} <= cols:
-            R = rotvec_to_matrix(np.stack([num["rx"], num["ry"], num["rz"]], 1))
+            rv = np.stack([num["rx"], num["ry"], num["rz"]], 1)
+            turn = np.linalg.norm(rv, axis=1)
+            if np.any(turn > 2 * np.pi + 1e-9):
+                i = int(np.argmax(turn))
+                raise UserError(
+                    f"{src}: row {i + 2}: rotation vector of {turn[i]:.4g} rad, more than a full "
+                    "turn; it looks like degrees, give radians (UR rotation vectors)"
+                )
+            R = rotvec_to_matrix(rv)
         else:
             R = np.broadcast_to(rotvec_to_matrix([0.0, np.pi, 0.0])[0], (len(P), 3, 3))
         seeds = np.stack([num[c] for c in qcols], 1) if set(qcols) <= cols else Q_REF

@@ -329,9 +329,25 @@ def build_table(
     ):
         if not (np.isfinite(v) and v > 0):
             raise UserError(f"{name} must be a positive number of metres, got {v}")
+    if max_correction_m > 0.1:
+        raise UserError(
+            f"max correction {max_correction_m:g} m is beyond any calibration (they are mm); "
+            "give metres"
+        )
+    rv_norm = np.linalg.norm(np.asarray(orientations_rotvec, float).reshape(-1, 3), axis=1)
+    if np.any(rv_norm > 2 * np.pi + 1e-9):
+        raise UserError(
+            f"orientation rotation vector of {rv_norm.max():.4g} rad: more than a full turn; "
+            "it looks like degrees, give radians (UR rotation vectors)"
+        )
     if spacing_m is not None:
         if not (np.isfinite(spacing_m) and spacing_m > 0):
             raise UserError(f"spacing must be a positive number of metres, got {spacing_m}")
+        if spacing_m > (hi_m - lo_m).max():
+            raise UserError(
+                f"spacing {spacing_m:g} m is wider than the volume ({(hi_m - lo_m).max():.3g} m "
+                "at its widest): one cell, no table; give metres"
+            )
         n = float(np.prod(np.floor((hi_m - lo_m) / spacing_m) + 2))
         if n > MAX_FIXED_NODES:
             h_min = float((np.prod(hi_m - lo_m) / MAX_FIXED_NODES) ** (1 / 3))
