@@ -210,3 +210,72 @@ def test_an_unmet_interpolation_target_is_said(cell, capsys):
     rc = main(["export", str(model), "--format", "table", "--interp-error=1e-9", "--out", str(out)])
     text = capsys.readouterr().out
     assert rc == 0 and "warning: the interpolation error target 0.001 um is not met" in text
+
+
+@pytest.mark.parametrize(
+    "argv, match",
+    [
+        (["--seed", "-1"], "--seed must be >= 0"),
+        (["--model", "kuka"], "unknown robot 'kuka'"),
+        (["--effects", "gravity_wave"], "unknown effect 'gravity_wave'"),
+        (["--robot", "ftp://x"], "expected sim or ur://HOST"),
+        (["--tracker", "bogus"], "expected sim or serial:///dev/ttyX"),
+        (["--out", "{file}/c.mcap"], "is a file, not a folder"),
+    ],
+)
+def test_tui_options_refused_before_it_starts(tmp_path, capsys, argv, match):
+    """The TUI used to start with these and fail later on a screen (or never)."""
+    f = tmp_path / "afile"
+    f.write_text("x")
+    one_line_refusal(capsys, ["tui", *[a.format(file=f) for a in argv]], match)
+
+
+def test_bench_ekf_ann_counts(capsys):
+    """--repeats 0 divided by zero after minutes of work; now refused at once."""
+    with pytest.raises(SystemExit) as e:
+        main(["bench", "ekf-ann", "--repeats", "0"])
+    assert e.value.code == 2 and "need --draws >= 1, --repeats >= 1" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "argv, match",
+    [
+        (
+            ["campaign", "--poses", "ten"],
+            "invalid int value: 'ten' (see `workcell campaign --help`)",
+        ),
+        (["fit", "r.mcap", "--method"], "expected one argument"),
+        (["bench", "dh", "--fast"], "unrecognized arguments: --fast"),
+        (["demo", "--methods", "neural"], "--methods: unknown ['neural']"),
+        (["demo", "--poses", "100000000"], "--poses must be 20..5000"),
+    ],
+)
+def test_option_mistakes_are_one_line(capsys, argv, match):
+    """argparse printed its whole usage block (2-9 lines); demo ran a whole campaign before
+    finding an unknown method, and took 13 GB for 10^8 poses."""
+    capsys.readouterr()
+    try:
+        rc = main(argv)
+    except SystemExit as e:
+        rc = e.code
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and match in err[0], (rc, err)
+
+
+def test_the_same_pose_measured_again_is_not_a_fit(cell, capsys, tmp_path):
+    """40 samples of one pose gave a held-out RMS of 0.0 um (the held-out poses were the
+    training pose)."""
+    from workcell.recording.reader import read_recording
+    from workcell.recording.schema import SAMPLE
+    from workcell.recording.writer import RecordingWriter
+
+    _, rec, _ = cell
+    r = read_recording(rec, streams=False)
+    same = tmp_path / "same.mcap"
+    with RecordingWriter(same, r.session) as w:
+        for i in range(40):
+            s = {**r.samples[0], "pose_id": i}
+            w._write(SAMPLE, s, 10**9 * (i + 1))
+    one_line_refusal(
+        capsys, ["fit", str(same), "--out", str(tmp_path / "m.json")], "only 1 distinct"
+    )

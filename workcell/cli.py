@@ -15,7 +15,7 @@ import os
 import sys
 
 from workcell.drivers.protocols import DeviceError
-from workcell.errors import UserError
+from workcell.errors import OneLineParser, UserError
 
 # name -> (module, one-line help). Modules are imported lazily (JAX start-up is slow).
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -45,11 +45,11 @@ def _load(name: str):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="workcell",
         description="Robot calibration with a laser tracker: campaign, fit, diagnose, export.",
     )
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=OneLineParser)
     return parser, sub
 
 

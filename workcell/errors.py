@@ -1,5 +1,7 @@
 """Errors meant for a person: one line, what is wrong and what to do."""
 
+import argparse
+
 
 class UserError(Exception):
     """Bad input or an unusable environment; printed as one line, exit code `exit_code`."""
@@ -64,3 +66,10 @@ def check_output_path(path, what: str = "output", *, folder: bool = False, input
     if not os.access(anc, os.W_OK):
         raise UserError(f"cannot write {what} {p}: {anc} is not writable")
     return p
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """An option mistake is one line (what is wrong, where the help is), not the usage block."""
+
+    def error(self, message: str):  # type: ignore[override]
+        self.exit(2, f"{self.prog}: error: {message} (see `{self.prog} --help`)\n")

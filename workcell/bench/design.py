@@ -47,13 +47,14 @@ Envelope: the WAM's joint limits less 5 deg, links above z = -0.25 m (its mounti
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import sys
 import time
 
 import numpy as np
+
+from workcell.errors import OneLineParser
 
 PLANS = ("random", "dopt", "vopt", "bo")
 
@@ -274,7 +275,7 @@ def summarise(runs: dict[str, list[dict]]) -> dict:
 
 
 def main(argv: list[str]) -> int:
-    ap = argparse.ArgumentParser(prog="workcell bench design", description=__doc__.split("\n")[0])
+    ap = OneLineParser(prog="workcell bench design", description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", type=int, default=10, help="number of simulated cells (>= 1)")
     ap.add_argument("--seed0", type=int, default=0, help="first seed")
     ap.add_argument("--max-poses", type=int, default=80, help="poses per run at most")

@@ -24,7 +24,6 @@ random's (`ratios_to_random`: each plan's); `best_possible_ratio` = rank bound o
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import sys
@@ -32,6 +31,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from workcell.errors import OneLineParser
 
 PLANS = ("random", "dopt", "vopt", "bo")
 DENSE_UNTIL, COARSE_STEP = 40, 5  # evaluate after every pose up to 40, then every 5th
@@ -112,9 +113,7 @@ def one_run(plan: str, seed: int, pool, test, n_min: int, target_m: float, max_p
 
 
 def main(argv: list[str]) -> int:
-    ap = argparse.ArgumentParser(
-        prog="workcell bench design-real", description=__doc__.split("\n")[0]
-    )
+    ap = OneLineParser(prog="workcell bench design-real", description=__doc__.split("\n")[0])
     ap.add_argument("--recording", default=str(DEFAULT_RECORDING), help="real recording (.mcap)")
     ap.add_argument("--seeds", type=int, default=10, help="random orders / plan seeds (>= 1)")
     ap.add_argument("--max-poses", type=int, default=150, help="poses per run at most")

@@ -7,7 +7,6 @@ Jacobian throughput.
 
 from __future__ import annotations
 
-import argparse
 import json
 import tempfile
 import time
@@ -15,9 +14,11 @@ from pathlib import Path
 
 import numpy as np
 
+from workcell.errors import OneLineParser
+
 
 def main(argv: list[str]) -> int:
-    ap = argparse.ArgumentParser(prog="workcell bench dh")
+    ap = OneLineParser(prog="workcell bench dh")
     ap.add_argument("--poses", type=int, default=500)
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)

@@ -26,7 +26,6 @@ build and score the cases.
 
 from __future__ import annotations
 
-import argparse
 import copy
 import json
 import sys
@@ -36,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
+from workcell.errors import OneLineParser
 from workcell.kinematics.chain import jac_params, pack
 
 SINGLE_CASES: list[tuple[str, int | None]] = (
@@ -359,9 +359,7 @@ def run_case(kinds, seed, n_poses, ratio, tmp: Path, rng, log, np_check: bool = 
 
 
 def main(argv: list[str]) -> int:
-    ap = argparse.ArgumentParser(
-        prog="workcell bench discovery", description=__doc__.split("\n")[0]
-    )
+    ap = OneLineParser(prog="workcell bench discovery", description=__doc__.split("\n")[0])
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--draws", type=int, default=1, help="repetitions of the single-effect set")
     ap.add_argument("--pairs", type=int, default=10, help="pair cases per draw")

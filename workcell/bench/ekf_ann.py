@@ -22,13 +22,14 @@ physics, 0.6 mm variation); first 80 % filtered, last 20 % predicted (test).
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import sys
 import time
 
 import numpy as np
+
+from workcell.errors import OneLineParser
 
 
 def _frac(ann_t: np.ndarray, ng: np.ndarray) -> float:
@@ -41,7 +42,7 @@ def _rms(e: np.ndarray) -> float:
 
 
 def main(argv: list[str]) -> int:
-    ap = argparse.ArgumentParser(prog="workcell bench ekf-ann", description=__doc__.split("\n")[0])
+    ap = OneLineParser(prog="workcell bench ekf-ann", description=__doc__.split("\n")[0])
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--draws", type=int, default=10)
     ap.add_argument("--samples", type=int, default=7300)
@@ -50,6 +51,11 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--filterpy-samples", type=int, default=60)
     ap.add_argument("--repeats", type=int, default=3, help="timed runs of each filter (best kept)")
     a = ap.parse_args(argv)
+    if a.draws < 1 or a.repeats < 1 or a.filterpy_samples < 1 or a.samples < 50 or a.seed < 0:
+        ap.error(
+            "need --draws >= 1, --repeats >= 1, --filterpy-samples >= 1, --samples >= 50, "
+            "--seed >= 0"
+        )
 
     from sim_devices.trajectory import make_trajectory
     from workcell.estimation.dh import register_base

@@ -33,7 +33,6 @@ determinant of phi_1 and psi_1 over the test set (reported min of both), and a h
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
@@ -43,6 +42,7 @@ import time
 import numpy as np
 
 from workcell._jax import jnp
+from workcell.errors import OneLineParser
 
 L1, L2 = 1.0, 0.5
 G = 9.81
@@ -187,9 +187,7 @@ def run_scenarios(
 
 
 def main(argv: list[str]) -> int:
-    ap = argparse.ArgumentParser(
-        prog="workcell bench lddmm-pendulum", description=__doc__.split("\n")[0]
-    )
+    ap = OneLineParser(prog="workcell bench lddmm-pendulum", description=__doc__.split("\n")[0])
     ap.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     ap.add_argument(
         "--out",

@@ -17,7 +17,6 @@ Times are wall-clock on this machine; the 1-minute load average is reported with
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import sys
@@ -26,6 +25,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from workcell.errors import OneLineParser
 
 TARGETS = {"pendulum_fit_s": 5.0, "fit_500_s": 60.0, "eval_points_per_s": 100_000.0}
 EVAL_RUNS = 3  # timed evaluations of all the points; the figure is their median
@@ -117,7 +118,7 @@ def bench_6dof(poses: int = 500, n_eval: int = 100_000, seed: int = 5) -> dict:
 
 
 def main(argv: list[str]) -> int:
-    ap = argparse.ArgumentParser(prog="workcell bench lddmm", description=__doc__.split("\n")[0])
+    ap = OneLineParser(prog="workcell bench lddmm", description=__doc__.split("\n")[0])
     ap.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     ap.add_argument("--poses", type=int, default=500, help="poses of the 6-joint recording")
     ap.add_argument("--eval-points", type=int, default=100_000, help="points for the throughput")

@@ -49,8 +49,21 @@ def run(args: argparse.Namespace) -> int:
     from workcell.estimation.models import save_model
     from workcell.recording.dataset import Dataset
 
-    if args.poses < 20:
-        raise UserError(f"--poses must be at least 20 for a meaningful fit, got {args.poses}")
+    if not 20 <= args.poses <= 5000:
+        raise UserError(
+            f"--poses must be 20..5000 (a fit needs 20; a demo is not a long campaign), got "
+            f"{args.poses}"
+        )
+    if args.seed < 0:
+        raise UserError(f"--seed must be >= 0, got {args.seed}")
+    from workcell.estimation.fitting import FIT_METHODS
+
+    known = (*FIT_METHODS, "augmented")
+    unknown = [m.strip() for m in args.methods.split(",") if m.strip() and m.strip() not in known]
+    if unknown or not args.methods.strip():
+        raise UserError(
+            f"--methods: unknown {unknown or args.methods!r}; choose from {', '.join(known)}"
+        )
     log = (lambda m: print(m, file=sys.stderr, flush=True)) if args.json else print
     out = check_output_path(args.out, "output folder", folder=True)
     out.mkdir(parents=True, exist_ok=True)

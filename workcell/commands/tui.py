@@ -6,6 +6,7 @@ in-process simulation."""
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from workcell.errors import UserError
 
@@ -41,6 +42,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--time-scale must be > 0, got {scale}")
     if args.poses <= 0:
         raise UserError(f"--poses must be positive, got {args.poses}")
+    check_args(args)
     app = make_app(
         args.robot,
         args.tracker,
@@ -54,3 +56,30 @@ def run(args: argparse.Namespace) -> int:
     )
     app.run()
     return 0
+
+
+def check_args(args: argparse.Namespace) -> None:
+    """What the TUI would only find out on its Devices or Campaign screen, refused before it
+    starts: one line each."""
+    from workcell.errors import check_output_path
+    from workcell.kinematics.robots import robot_by_name
+
+    if args.seed < 0:
+        raise UserError(f"--seed must be >= 0, got {args.seed}")
+    if args.robot != "sim" and not args.robot.startswith("ur://"):
+        raise UserError(f"--robot {args.robot!r}: expected sim or ur://HOST")
+    if args.tracker != "sim" and not args.tracker.startswith("serial://"):
+        raise UserError(f"--tracker {args.tracker!r}: expected sim or serial:///dev/ttyX")
+    try:
+        robot_by_name(args.model)
+    except ValueError as e:
+        raise UserError(f"--model: {e}") from None
+    if args.sim or args.robot == "sim":
+        from sim_devices.truth import parse_effects
+
+        try:
+            parse_effects(args.effects)
+        except ValueError as e:
+            raise UserError(f"--effects: {e}") from None
+    if not Path(args.out).exists():  # an existing one: the Campaign screen asks for a new name
+        check_output_path(args.out, "recording")

@@ -82,7 +82,7 @@ from workcell.estimation.models import (
     rms_gain_interval,
 )
 from workcell.kinematics.chain import PARAM_NAMES, PARAMETER_FRAMES, jac_joints
-from workcell.recording.dataset import Dataset
+from workcell.recording.dataset import Dataset, distinct_poses
 
 
 @dataclass
@@ -524,6 +524,11 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
         raise ValueError(f"holdout must be in [0.1, 0.5], got {cfg.holdout}")
     if len(ds) < 40:
         raise UserError(f"only {len(ds)} poses; diagnosis needs at least 40")
+    if (n_distinct := distinct_poses(ds.q)) < 40:
+        raise UserError(
+            f"only {n_distinct} distinct joint configurations among {len(ds)} poses; diagnosis "
+            "needs at least 40 different poses"
+        )
     sig = pose_sigma_model(ds, cfg.tracker_mpe)
     dsw = _with_sigma(ds, sig)
     train, test = dsw.holdout_split(cfg.holdout)

@@ -28,7 +28,7 @@ from workcell.estimation.models import (
     save_model,
 )
 from workcell.kinematics.chain import PARAMETER_FRAMES, p_tracker
-from workcell.recording.dataset import HOLDOUT_SEED, Dataset
+from workcell.recording.dataset import HOLDOUT_SEED, Dataset, distinct_poses
 
 # method -> "module:function(ds_train, *, on, bounds, progress) -> (model, extra dict)"
 FIT_METHODS: dict[str, str] = {
@@ -105,6 +105,13 @@ def fit_dataset(
     train, test = ds.holdout_split(holdout)
     if len(train) < 12:
         raise UserError(f"only {len(train)} training poses; a fit needs at least 12")
+    n_distinct = distinct_poses(ds.q[train])
+    if n_distinct < 12:
+        raise UserError(
+            f"only {n_distinct} distinct joint configurations among the {len(train)} training "
+            "poses; a fit needs at least 12 different poses (the same pose measured again adds "
+            "no geometry)"
+        )
     dtr, dte = ds.subset(train), ds.subset(test)
     mod, fn = FIT_METHODS[method].split(":")
     try:

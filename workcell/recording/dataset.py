@@ -157,3 +157,12 @@ def file_sha256(path: str | os.PathLike) -> str:
         for block in iter(lambda: f.read(1 << 20), b""):
             h.update(block)
     return h.hexdigest()
+
+
+def distinct_poses(q: np.ndarray, tol_rad: float = 1e-6) -> int:
+    """How many different joint configurations `q` (N, n) holds (equal within `tol_rad`): the
+    same pose measured again adds no geometry."""
+    q = np.asarray(q, float)
+    if len(q) == 0:
+        return 0
+    return int(len(np.unique(np.round(q / tol_rad), axis=0)))
