@@ -43,11 +43,12 @@ def _cell_and_table():
     return world, cell, table, corr
 
 
-def test_closed_loop_geometry_only():
-    world, cell, table, corr = _cell_and_table()
-    env = default_envelope(cell.spec)
+def _validate(world, cell, table, corr, env, n: int, seed: int):
+    """Run the closed-loop validation on the simulated world: (result, joint path moved)."""
+    path = [np.asarray(world.joint_state()[0], float)]
 
     def move(q):
+        path.append(np.asarray(q, float))
         world.clock.advance(world.command_move(q, 0.5, 1.0))
 
     res = run_validation(
@@ -55,11 +56,17 @@ def test_closed_loop_geometry_only():
         table,
         move,
         sim_measure(world),
-        n=12,
-        seed=1,
+        n=n,
+        seed=seed,
         guard=Guard(env, cell.spec, cell.tool_m),
-        q_start=world.joint_state()[0],
+        q_start=path[0],
     )
+    return res, path
+
+
+def test_closed_loop_geometry_only():
+    world, cell, table, corr = _cell_and_table()
+    res, _ = _validate(world, cell, table, corr, default_envelope(cell.spec), n=12, seed=1)
     assert res["targets"] >= 10
     assert res["before_rms_m"] > 2e-4  # the nominal controller misses by the DH errors
     assert res["after_rms_m"] < 1e-5  # interpolation error (5 um max) + nothing else
@@ -98,22 +105,7 @@ def test_every_validation_move_stays_inside_the_envelope():
     ]
     assert leaving, "the test's envelope must be one the unguarded moves would leave"
 
-    path = [np.asarray(world.joint_state()[0], float)]
-
-    def move(q):
-        path.append(np.asarray(q, float))
-        world.clock.advance(world.command_move(q, 0.5, 1.0))
-
-    res = run_validation(
-        corr.nominal,
-        table,
-        move,
-        sim_measure(world),
-        n=n,
-        seed=seed,
-        guard=Guard(env, cell.spec, cell.tool_m),
-        q_start=path[0],
-    )
+    res, path = _validate(world, cell, table, corr, env, n=n, seed=seed)
     assert res["skipped"] and res["targets"] == n - len(res["skipped"]) >= n // 2
     for a, b in zip(path[:-1], path[1:], strict=True):
         assert env.path_violation(cell.spec, a, b, cell.tool_m) is None

@@ -143,10 +143,10 @@ def _report(args, summary: dict) -> int:
 
 def _check_reach(src: Path, P: np.ndarray, nom) -> None:
     """Targets (SMR/TCP in base) must be within the arm's reach; refuse with the row."""
-    from workcell.kinematics.chain import unpack_dh
-    from workcell.recording.checks import millimetre_hint, reach_m
+    from workcell.export.build import reach_of
+    from workcell.recording.checks import millimetre_hint
 
-    r = reach_m(unpack_dh(nom.theta), nom.tool_m)
+    r = reach_of(nom)
     dist = np.linalg.norm(P, axis=1)
     i = int(np.argmax(dist))
     if dist[i] > r:

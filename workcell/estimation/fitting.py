@@ -48,7 +48,7 @@ def _fit_dh(ds: Dataset, *, bounds=None, progress=None, **_) -> tuple[DHModel, d
 
 def parameter_std_basis(model: object) -> str:
     """What the `std` beside each fitted parameter is, for this model (and its base models)."""
-    geo = getattr(model, "base", None) or getattr(model, "on_model", None) or model
+    geo = getattr(model, "base", None) or model  # gp and lddmm sit on a DH model
     info = getattr(geo, "info", {}) or {}
     vf = info.get("variance_factor")
     parts = [

@@ -98,14 +98,21 @@ def make_table(
     return tab, corr
 
 
+def reach_of(nominal: Nominal) -> float:
+    """Upper bound (m) of the SMR/TCP's distance from the base over all joint angles."""
+    from workcell.kinematics.chain import unpack_dh
+    from workcell.recording.checks import reach_m
+
+    return reach_m(unpack_dh(nominal.theta), nominal.tool_m)
+
+
 def check_volume(lo: np.ndarray, hi: np.ndarray, nominal: Nominal) -> None:
     """A table volume (base frame, m) must lie within the arm's reach: a corner farther than
     that cannot be corrected (no joint solution), and a volume typed in millimetres would ask
     for ~10^12 nodes."""
-    from workcell.kinematics.chain import unpack_dh
-    from workcell.recording.checks import millimetre_hint, reach_m
+    from workcell.recording.checks import millimetre_hint
 
-    r = reach_m(unpack_dh(nominal.theta), nominal.tool_m)
+    r = reach_of(nominal)
     far = float(np.max(np.abs(np.r_[lo, hi])))
     if np.all(np.isfinite(np.r_[lo, hi])) and far > r:
         raise UserError(
