@@ -198,7 +198,7 @@ def test_export_targets_rotations_in_degrees(cell, capsys, tmp_path):
     one_line_refusal(
         capsys,
         ["export", str(model), "--format", "targets", "--in", str(t), "--out", str(tmp_path / "o.csv")],
-        "row 2: rotation vector of 180 rad",
+        "line 2: rotation vector of 180 rad",
     )  # fmt: skip
 
 
@@ -279,3 +279,147 @@ def test_the_same_pose_measured_again_is_not_a_fit(cell, capsys, tmp_path):
     one_line_refusal(
         capsys, ["fit", str(same), "--out", str(tmp_path / "m.json")], "only 1 distinct"
     )
+
+
+def test_ctrl_c_while_a_long_plan_is_checked_stops_at_once(tmp_path):
+    """Planning thousands of poses takes minutes; Ctrl-C then stops at once (nothing has moved
+    or been recorded), not after the whole plan is checked."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "long.mcap"
+    p = subprocess.Popen(
+        [sys.executable, "-m", "workcell.cli", "campaign", "--robot", "sim", "--tracker", "sim",
+         "--poses", "20000", "--out", str(out)],
+        stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )  # fmt: skip
+    try:
+        line = p.stderr.readline()
+        assert "planning 20000 poses" in line, line
+        time.sleep(1.0)
+        p.send_signal(signal.SIGINT)
+        t0 = time.monotonic()
+        rc = p.wait(timeout=30)
+        waited = time.monotonic() - t0
+        rest = p.stderr.read()
+    finally:
+        p.kill()
+    assert rc == 130 and "interrupted" in rest, (rc, rest)
+    assert waited < 10.0, waited
+    assert not out.exists()
+
+
+def test_a_damaged_chunk_is_a_warning_with_what_was_used(cell, capsys, tmp_path):
+    """One byte flipped inside a chunk: the fit uses what could be read and says so (before,
+    the dropped samples went unmentioned)."""
+    from workcell.recording.reader import read_recording
+
+    _, rec, _ = cell
+    b = rec.read_bytes()
+    n_all = len(read_recording(rec, streams=False).samples)
+    bad = tmp_path / "flipped.mcap"
+    for k in range(1, 40):  # the first spot inside a chunk that holds samples, after the session
+        bb = bytearray(b)
+        bb[len(b) * k // 40] ^= 0xFF
+        bad.write_bytes(bytes(bb))
+        try:
+            r = read_recording(bad, streams=False)
+        except Exception:  # noqa: BLE001 - the session's own chunk: refused, try further on
+            continue
+        if r.problems and 12 <= len(r.samples) < n_all:
+            break
+    else:
+        pytest.fail("no single flipped byte drops samples but keeps the session")
+    capsys.readouterr()
+    assert main(["fit", str(bad), "--out", str(tmp_path / "m.json"), "--json"]) == 0
+    out, err = capsys.readouterr()
+    assert "warning:" in err and "damaged chunk" in err
+    assert f"using the {len(r.samples)} samples that could be read" in err
+    assert json.loads(out)["recording_problems"] == r.problems
+
+
+def test_a_copy_cut_short_names_the_damage(cell, capsys, tmp_path):
+    _, rec, _ = cell
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(rec.read_bytes()[:100])
+    one_line_refusal(capsys, ["fit", str(cut)], "file ends or is damaged near byte 100 of 100")
+
+
+def test_a_dh_chain_in_millimetres_is_refused(cell, capsys, tmp_path):
+    from workcell.recording.reader import read_recording
+    from workcell.recording.schema import SAMPLE
+    from workcell.recording.writer import RecordingWriter
+
+    _, rec, _ = cell
+    r = read_recording(rec, streams=False)
+    s = json.loads(json.dumps({k: v for k, v in r.session.items() if not k.startswith("_")}))
+    s["robot"]["dh"]["a"] = [x * 1000 for x in s["robot"]["dh"]["a"]]
+    bad = tmp_path / "dh_mm.mcap"
+    with RecordingWriter(bad, s) as w:
+        for i, smp in enumerate(r.samples):
+            w._write(
+                SAMPLE, {k: v for k, v in smp.items() if not k.startswith("_")}, 10**9 * (i + 1)
+            )
+    one_line_refusal(capsys, ["fit", str(bad)], "session robot.dh.a[1] is 425 m")
+
+
+def test_a_model_replaces_only_an_earlier_model_of_the_same_recording(cell, capsys, tmp_path):
+    _, rec, model = cell
+    note = tmp_path / "notes.json"
+    note.write_text('{"mine": 1}')
+    one_line_refusal(capsys, ["fit", str(rec), "--out", str(note)], "is not a workcell model")
+    assert note.read_text() == '{"mine": 1}'
+    m = tmp_path / "m.json"
+    m.write_bytes(model.read_bytes())  # a model of `rec`
+    capsys.readouterr()
+    assert main(["fit", str(rec), "--out", str(m)]) == 0  # a re-fit: replaced, and said so
+    assert f"replacing {m}: an earlier dh model of this recording" in capsys.readouterr().err
+    copy = tmp_path / "copy.mcap"  # the same bytes under another name: the same recording
+    copy.write_bytes(rec.read_bytes())
+    assert main(["fit", str(copy), "--out", str(m)]) == 0
+    before = digest(m)
+    other = _other_recording(tmp_path)
+    for cmd in (["fit", str(other), "--out", str(m)], ["diagnose", str(other), "--out", str(m)]):
+        one_line_refusal(capsys, cmd, "exists and is a model of another recording")
+        assert digest(m) == before
+    assert main(["fit", str(other), "--out", str(m), "--force"]) == 0
+    assert digest(m) != before
+
+
+def _other_recording(tmp_path):
+    """A different simulated campaign (another seed)."""
+    from workcell.campaign.executor import CampaignConfig
+    from workcell.campaign.run import run_campaign, sim_cell
+
+    p = tmp_path / "seed3.mcap"
+    if not p.exists():
+        _, robot, tracker, c = sim_cell("ur5e", "none", seed=3)
+        cfg = CampaignConfig(readings_per_pose=2, settle_s=0.2)
+        run_campaign(robot, tracker, c, p, plan="random", poses=POSES, seed=3, config=cfg)
+    return p
+
+
+def test_a_moved_model_still_finds_its_recording(cell, capsys, tmp_path, monkeypatch):
+    """Model and recording copied to another folder, validate run from a third: the model's
+    recording is found beside it (same sha256), so the simulation's seed comes from it."""
+    d, rec, model = cell
+    moved = tmp_path / "moved"
+    moved.mkdir()
+    (moved / rec.name).write_bytes(rec.read_bytes())
+    info = json.loads(model.read_text())
+    info["info"]["recording"] = "somewhere/else/" + rec.name  # as typed in another folder
+    (moved / "m.json").write_text(json.dumps(info))
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    from workcell.estimation.models import load_model
+
+    assert load_model(moved / "m.json").info["recording"] == str(moved / rec.name)
+    (moved / rec.name).unlink()
+    capsys.readouterr()
+    rc = main(["validate", str(moved / "m.json"), "--targets", "2"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "was not found beside the model" in err[0], err

@@ -184,13 +184,30 @@ def test_cli_targets_land_on_target_and_refuse_bad_rows(tmp_path, capsys):
     q_cmd = np.array([[float(r[f"q{i}_cmd"]) for i in range(1, 7)] for r in rows])
     corr = Corrector(m, nominal_for(m))
     assert np.abs(corr.real_base(q_cmd) - P).max() < 1e-8
+    # as a spreadsheet saves it: a BOM, spaced and capitalised headers, a name column, blank rows
+    sheet = tmp_path / "sheet.csv"
+    sheet.write_text(
+        " Name , X , y ,Z \n"
+        + "".join(f"p{i}, {x},{y}, {z}\n\n" for i, (x, y, z) in enumerate(P)),
+        encoding="utf-8-sig",
+    )
+    out2 = tmp_path / "out2.csv"
+    assert (
+        main(["export", str(path), "--format", "targets", "--in", str(sheet), "--out", str(out2)])
+        == 0
+    )
+    assert out2.read_text() == out.read_text()
     capsys.readouterr()
     bad = {
-        "nan": ("x,y,z\n0.1,-0.4,0.3\nnan,0,0\n", "row 3, column x: not a finite number"),
-        "mm": ("x,y,z\n100,-400,300\n", "row 2: target 509.9 m .* looks like millimetres"),
+        "nan": ("x,y,z\n0.1,-0.4,0.3\nnan,0,0\n", "line 3, column x: not a finite number"),
+        "mm": ("x,y,z\n100,-400,300\n", "line 2: target 509.9 m .* looks like millimetres"),
+        "gap": ("x,y,z\n0.1,-0.4,0.3\n0.1,,0.3\n", "line 3, column y: missing value"),
+        "short": ("x,y,z\n0.1,-0.4\n", "line 2, column z: missing value"),
+        "text": ("x,y,z\n0.1,-0.4,0.3m\n", "line 2, column z: '0.3m' is not a number"),
+        "cols": ("X_m,Y_m,Z_m\n0.1,-0.4,0.3\n", "need columns x,y,z .* 'x_m,y_m,z_m'"),
         "deg": (
             "q1,q2,q3,q4,q5,q6\n0,-1,1,0,0,0\n0,-100,1,0,0,0\n",
-            "row 3: column q2 is -100, .* looks like degrees",
+            "line 3: column q2 is -100, .* looks like degrees",
         ),
     }
     for name, (text, match) in bad.items():

@@ -280,3 +280,47 @@ def test_fault_due_half_way_stops_there_even_when_the_tick_is_late():
     q, qd = world.joint_state()
     np.testing.assert_allclose(q, q_half, atol=1e-12)
     assert np.max(np.abs(q - np.asarray(QB))) > 0.05 and np.allclose(qd, 0.0)
+
+
+@pytest.mark.parametrize("mode, host", [("silent", "127.0.0.27"), ("http", "127.0.0.28")])
+def test_a_device_that_is_not_a_ur_controller_is_named_as_such(mode, host):
+    """Something else at the robot address (a PLC, a web server) accepts TCP on the UR ports:
+    the driver says the device does not answer like a UR controller, in one line, quickly."""
+    import socket
+    import threading
+
+    servers, conns = [], []
+
+    def serve(srv):
+        while True:
+            try:
+                c, _ = srv.accept()
+            except OSError:
+                return
+            conns.append(c)
+            if mode == "http":
+                try:
+                    c.sendall(b"HTTP/1.0 400 Bad Request\r\n\r\n")
+                    c.close()
+                except OSError:
+                    pass
+
+    for port in (29999, 30001, 30002, 30003, 30004):
+        srv = socket.socket()
+        srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        srv.bind((host, port))
+        srv.listen(8)
+        servers.append(srv)
+        threading.Thread(target=serve, args=(srv,), daemon=True).start()
+    try:
+        r = UrRobot(host, connect_timeout_s=1.0)
+        t0 = time.monotonic()
+        with pytest.raises(DeviceError) as ei:
+            r.connect()
+        assert time.monotonic() - t0 < 5.0
+        msg = str(ei.value)
+        assert "\n" not in msg and host in msg and "is this the robot controller's address" in msg
+        r.close()
+    finally:
+        for s in servers + conns:
+            s.close()

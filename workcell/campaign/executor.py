@@ -109,6 +109,16 @@ class CampaignControl:
     auto_resume_protective_stop: bool = True
     resume: threading.Event = field(default_factory=threading.Event)
     waiting_for_resume: threading.Event = field(default_factory=threading.Event)
+    # set while an executor runs: before it (planning, connecting) nothing moves and nothing is
+    # recorded, so Ctrl-C may stop at once; while it runs, Ctrl-C stops after the current step
+    running: threading.Event = field(default_factory=threading.Event)
+
+    def on_sigint(self, *_) -> None:
+        """SIGINT handler for a command line: abort at once before the campaign starts (a plan
+        of many poses takes minutes), cleanly (robot stopped, recording closed) once it runs."""
+        if not self.running.is_set():
+            raise KeyboardInterrupt
+        self.abort.set()
 
 
 @dataclass
@@ -499,6 +509,7 @@ class Executor:
 
     def run(self, plan: Plan) -> CampaignResult:
         sample = None
+        self.control.running.set()
         try:
             t = next(plan)
             self.warm_up(t.q_rad)
@@ -518,6 +529,7 @@ class Executor:
             except Exception:  # noqa: BLE001 - stopping is best effort while aborting
                 pass
             self.event("warning", "abort", "campaign aborted by the operator; recording closed")
+        # `running` stays set: a late Ctrl-C must not cut the recording's closing short
         return self.result
 
 

@@ -153,7 +153,7 @@ def resume_campaign(args: argparse.Namespace) -> int:
         payload_kg=cell.payload_kg,
     )
     control = CampaignControl()
-    signal.signal(signal.SIGINT, lambda *_: control.abort.set())
+    signal.signal(signal.SIGINT, control.on_sigint)
     chained = {"path": str(old), "sha256": file_sha256(old), "samples": info["n_samples"]}
     print(
         f"resuming {old}: {len(info['done'])} poses measured, {remaining} to go -> {out}",

@@ -56,6 +56,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _say_planning(args: argparse.Namespace) -> None:
+    """A long plan is not a hang: say so before checking thousands of paths."""
+    if args.poses >= 1000:
+        print(
+            f"planning {args.poses} poses and checking every path against the envelope "
+            "(minutes for this many; Ctrl-C stops)",
+            file=sys.stderr,
+            flush=True,
+        )
+
+
 def run(args: argparse.Namespace) -> int:
     if args.resume:
         from workcell.campaign.resume import resume_campaign
@@ -82,6 +93,7 @@ def run(args: argparse.Namespace) -> int:
         warmup_s=args.warmup,
     )
     if args.dry_run:
+        _say_planning(args)
         return dry_run(args, cell, env, cfg)
     if not args.out:
         raise UserError("--out REC.mcap is required (the recording to write)")
@@ -89,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"{args.out} already exists; choose a new file or use --resume")
     check_output_path(args.out, "recording")
     control = CampaignControl()
-    signal.signal(signal.SIGINT, lambda *_: control.abort.set())
+    signal.signal(signal.SIGINT, control.on_sigint)
     mode = args.on_protective_stop or ("ask" if sys.stdin.isatty() else "resume")
     if mode == "ask":
         control.auto_resume_protective_stop = False
@@ -118,6 +130,7 @@ def run(args: argparse.Namespace) -> int:
             prev(s)
             print("  " + online.update(s), file=sys.stderr, flush=True)
 
+    _say_planning(args)
     path, res = run_campaign(
         robot,
         tracker,

@@ -39,6 +39,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="level of the likelihood-ratio test per selection step (Bonferroni over candidates)",
     )
     add_tracker_mpe(p)
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace an existing model file (an earlier model of the same recording is "
+        "replaced without it)",
+    )
     p.add_argument("--no-np", action="store_true", help="skip the non-parametric residual check")
 
 
@@ -52,10 +58,16 @@ def _json_default(o):
     raise TypeError(type(o))
 
 
+def _np_path(model_path: Path) -> Path:
+    """Where the non-parametric residual model goes beside the augmented one."""
+    p_np = model_path.with_name(model_path.name.replace(".json", ".np.json"))
+    return model_path.with_suffix(".np.json") if p_np == model_path else p_np
+
+
 def run(args: argparse.Namespace) -> int:
     from workcell.estimation.discovery import DiagnoseConfig, diagnose
-    from workcell.estimation.models import save_model
-    from workcell.recording.dataset import Dataset
+    from workcell.estimation.models import check_model_output, save_model
+    from workcell.recording.dataset import Dataset, read_warnings
 
     if not 0.1 <= args.holdout <= 0.5:
         raise UserError(f"--holdout must be in [0.1, 0.5], got {args.holdout}")
@@ -63,11 +75,9 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--alpha must be in (0, 0.5), got {args.alpha}")
     mpe = parse_tracker_mpe(args.tracker_mpe)
     ds = Dataset.from_recording(args.recording)
-    log = (
-        (lambda m: print(m, file=sys.stderr, flush=True))
-        if args.json
-        else (lambda m: print(m, file=sys.stderr, flush=True))
-    )
+    log = lambda m: print(m, file=sys.stderr, flush=True)  # noqa: E731 - progress and warnings
+    for line in read_warnings(ds):
+        log(line)
     cfg = DiagnoseConfig(
         holdout=args.holdout, alpha=args.alpha, tracker_mpe=mpe, nonparametric=not args.no_np
     )
@@ -75,20 +85,22 @@ def run(args: argparse.Namespace) -> int:
         check_output_path(args.report, "report folder", folder=True)
     if args.out:
         check_output_path(args.out, "model file", inputs=[args.recording])
-    diag = diagnose(ds, cfg, progress=log)
-    rep = diag.report
     outdir = Path(args.report) if args.report else None
-    if outdir:
-        outdir.mkdir(parents=True, exist_ok=True)
     model_path = (
         Path(args.out) if args.out else (outdir / "augmented.model.json" if outdir else None)
     )
     if model_path:
+        for p in (model_path, _np_path(model_path)):
+            check_model_output(p, args.recording, force=args.force, say=log)
+    diag = diagnose(ds, cfg, progress=log)
+    rep = diag.report
+    rep["recording_problems"] = list(ds.read_problems)
+    if outdir:
+        outdir.mkdir(parents=True, exist_ok=True)
+    if model_path:
         rep["model"] = str(save_model(diag.model, model_path))
         if diag.model_np is not None:
-            p_np = model_path.with_name(model_path.name.replace(".json", ".np.json"))
-            if p_np == model_path:
-                p_np = model_path.with_suffix(".np.json")
+            p_np = _np_path(model_path)
             rep["unexplained"].setdefault("np_model", {})["model"] = str(
                 save_model(diag.model_np, p_np)
             )

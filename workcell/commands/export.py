@@ -141,8 +141,8 @@ def _report(args, summary: dict) -> int:
     return 0
 
 
-def _check_reach(src: Path, P: np.ndarray, nom) -> None:
-    """Targets (SMR/TCP in base) must be within the arm's reach; refuse with the row."""
+def _check_reach(src: Path, P: np.ndarray, nom, lines: list[int]) -> None:
+    """Targets (SMR/TCP in base) must be within the arm's reach; refuse with its line in the file."""
     from workcell.export.build import reach_of
     from workcell.recording.checks import millimetre_hint
 
@@ -151,13 +151,13 @@ def _check_reach(src: Path, P: np.ndarray, nom) -> None:
     i = int(np.argmax(dist))
     if dist[i] > r:
         raise UserError(
-            f"{src}: row {i + 2}: target {dist[i]:.4g} m from the base, beyond the "
+            f"{src}: line {lines[i]}: target {dist[i]:.4g} m from the base, beyond the "
             f"{nom.robot}'s reach of {r:.3g} m: {millimetre_hint(dist[i], r, 'out of reach')}"
         )
 
 
-def _check_joints(src: Path, q: np.ndarray, nom) -> None:
-    """Joint targets must be inside the arm's joint ranges; refuse with the row."""
+def _check_joints(src: Path, q: np.ndarray, nom, lines: list[int]) -> None:
+    """Joint targets must be inside the arm's joint ranges; refuse with its line in the file."""
     from workcell.kinematics.robots import robot_by_name
     from workcell.recording.checks import joint_range_problem
 
@@ -167,7 +167,7 @@ def _check_joints(src: Path, q: np.ndarray, nom) -> None:
         return  # unknown arm: its controller checks its own limits
     for i in range(len(q)):
         p = joint_range_problem(
-            f"{src}: row {i + 2}", "q", q[i], spec, label=lambda j: f"column q{j + 1}"
+            f"{src}: line {lines[i]}", "q", q[i], spec, label=lambda j: f"column q{j + 1}"
         )
         if p:
             raise UserError(p[0])
@@ -184,34 +184,49 @@ def _targets(args, model, cond, summary) -> int:
     if not src.exists():
         raise UserError(f"{src}: no such file")
     try:
-        with open(src, newline="") as f:
-            rows = [r for r in csv.DictReader(f)]
+        with open(src, newline="", encoding="utf-8-sig") as f:  # spreadsheets write a BOM
+            reader = csv.reader(f)
+            header = [h.strip().lower() for h in next(reader, [])]
+            rows, lines = [], []  # lines: each row's line number in the file, for messages
+            for r in reader:
+                if any(x.strip() for x in r):
+                    rows.append(r)
+                    lines.append(reader.line_num)
     except (UnicodeDecodeError, csv.Error) as e:
         raise UserError(f"{src}: not a text CSV file ({e})") from None
     if not rows:
         raise UserError(f"{src}: no targets")
-    cols = set(rows[0])
     qcols = [f"q{i}" for i in range(1, 7)]
-    try:
-        num = {c: np.array([float(r[c]) for r in rows]) for c in cols if c}
-    except (TypeError, ValueError) as e:
-        raise UserError(f"{src}: non-numeric or missing value ({e})") from None
+    known = ["x", "y", "z", "rx", "ry", "rz", *qcols]
+    cols = {c for c in header if c in known}
+    num = {c: np.empty(len(rows)) for c in cols}
+    for i, r in enumerate(rows):
+        for c in cols:
+            j = header.index(c)
+            try:
+                num[c][i] = float(r[j])
+            except (IndexError, ValueError):
+                v = r[j].strip() if j < len(r) else ""
+                raise UserError(
+                    f"{src}: line {lines[i]}, column {c}: "
+                    + (f"{v!r} is not a number" if v else "missing value")
+                ) from None
     for c in sorted(num):
         bad = np.where(~np.isfinite(num[c]))[0]
         if bad.size:
-            raise UserError(f"{src}: row {bad[0] + 2}, column {c}: not a finite number")
+            raise UserError(f"{src}: line {lines[bad[0]]}, column {c}: not a finite number")
     corr = Corrector(model, nominal_for_model(model, args.recording), cond)
     nom = corr.nominal
     if {"x", "y", "z"} <= cols:
         P = np.stack([num["x"], num["y"], num["z"]], 1)
-        _check_reach(src, P, nom)
+        _check_reach(src, P, nom, lines)
         if {"rx", "ry", "rz"} <= cols:
             rv = np.stack([num["rx"], num["ry"], num["rz"]], 1)
             turn = np.linalg.norm(rv, axis=1)
             if np.any(turn > 2 * np.pi + 1e-9):
                 i = int(np.argmax(turn))
                 raise UserError(
-                    f"{src}: row {i + 2}: rotation vector of {turn[i]:.4g} rad, more than a full "
+                    f"{src}: line {lines[i]}: rotation vector of {turn[i]:.4g} rad, more than a full "
                     "turn; it looks like degrees, give radians (UR rotation vectors)"
                 )
             R = rotvec_to_matrix(rv)
@@ -221,10 +236,13 @@ def _targets(args, model, cond, summary) -> int:
         seeds = np.broadcast_to(seeds, (len(P), 6))
     elif set(qcols) <= cols:
         seeds = np.stack([num[c] for c in qcols], 1)
-        _check_joints(src, seeds, nom)
+        _check_joints(src, seeds, nom, lines)
         P, R = nom.fk(seeds)
     else:
-        raise UserError(f"{src}: need columns x,y,z (and optional rx,ry,rz, q1..q6) or q1..q6")
+        raise UserError(
+            f"{src}: need columns x,y,z (and optional rx,ry,rz, q1..q6) or q1..q6; the header "
+            f"has {','.join(header)[:80]!r}"
+        )
     c, q, _ = corr.correct_positions(P, R, seeds)
     check_corrections(c - P, P, args.max_correction, where="target")
     rv = matrix_to_rotvec(R)

@@ -13,7 +13,7 @@ import numpy as np
 from workcell.commands.options import add_tracker_mpe, display_unit, parse_tracker_mpe
 from workcell.errors import UserError, check_output_path
 from workcell.estimation.fitting import FIT_METHODS, fit_recording
-from workcell.estimation.models import interval_um
+from workcell.estimation.models import check_model_output, interval_um
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -29,6 +29,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--out", help="write the fitted model here (JSON); default next to the recording"
+    )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace an existing file at --out (an earlier model of the same recording is "
+        "replaced without it)",
     )
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--on", default="auto", help="lddmm/gp: base model (dh, nominal or auto)")
@@ -50,6 +56,9 @@ def run(args: argparse.Namespace) -> int:
     mpe = parse_tracker_mpe(args.tracker_mpe)
     out = Path(args.out) if args.out else Path(args.recording).with_suffix(f".{args.method}.json")
     check_output_path(out, "model file", inputs=[args.recording, args.bounds])
+    check_model_output(
+        out, args.recording, force=args.force, say=lambda m: print(m, file=sys.stderr)
+    )
     report = fit_recording(
         args.recording,
         method=args.method,
@@ -59,6 +68,7 @@ def run(args: argparse.Namespace) -> int:
         bounds=args.bounds,
         tracker_mpe=mpe,
         progress=None if args.json else lambda m: print(m, file=sys.stderr),
+        warn=lambda m: print(m, file=sys.stderr),
     )
     if args.json:
         print(json.dumps(report, default=_json_default))

@@ -23,6 +23,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rate", type=float, default=0.0, help="X times real time (0: max speed)")
     p.add_argument("--json", action="store_true", help="print the final estimate as JSON")
     p.add_argument("--save", help="write the final estimate as a model file")
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace an existing file at --save (an earlier model of the same recording is "
+        "replaced without it)",
+    )
     p.add_argument("--every", type=int, default=1, help="print every Nth progress line")
 
 
@@ -37,13 +43,24 @@ def run(args: argparse.Namespace) -> int:
     if args.every < 1:
         raise UserError(f"--every must be >= 1, got {args.every}")
     if args.save:
+        from workcell.estimation.models import check_model_output
+
         check_output_path(args.save, "model file", inputs=[args.recording])
+        check_model_output(
+            args.save, args.recording, force=args.force, say=lambda m: print(m, file=sys.stderr)
+        )
     rec = read_recording(args.recording, streams=False)
     if not rec.samples:
         raise UserError(f"{args.recording}: no /campaign/sample messages; nothing to replay")
     problems = checks.problems_of(rec.session, rec.samples)
     if problems:
         raise UserError(f"{args.recording}: {checks.first_problem(problems)}")
+    for p in rec.problems:
+        print(
+            f"warning: {args.recording}: {p}; replaying the {len(rec.samples)} samples that "
+            "could be read",
+            file=sys.stderr,
+        )
     lf = LiveFilter.from_session(rec.session)
     out = sys.stderr if args.json else sys.stdout
     t_wall0 = time.perf_counter()

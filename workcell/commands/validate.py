@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import json
 import textwrap
+from pathlib import Path
 
 import numpy as np
 
@@ -80,13 +81,19 @@ def run(args: argparse.Namespace) -> int:
     log = (lambda m: None) if args.json else print
     rec, _ = model_recording(model)
     session = {}
+    missing = ""
     if rec:
         try:
             from workcell.recording.reader import read_recording
 
             session = read_recording(rec).session
-        except Exception:  # noqa: BLE001 - the recording is optional here
+        except Exception as e:  # noqa: BLE001 - the recording is optional here
             session = {}
+            missing = (
+                f"the model's recording {rec} was not found beside the model or where it was fitted"
+                if not Path(rec).is_file()
+                else f"the model's recording {rec} is unreadable ({str(e)[:80]})"
+            )
     camp = session.get("campaign", {}) or {}
     if args.robot == "sim" and args.tracker == "sim":
         from workcell.campaign.run import sim_cell
@@ -94,9 +101,10 @@ def run(args: argparse.Namespace) -> int:
         seed = args.sim_seed if args.sim_seed is not None else camp.get("seed")
         effects = args.effects or camp.get("effects")
         if seed is None or effects is None:
+            why = missing or "the model's recording does not give the simulated seed/effects"
             raise UserError(
-                "simulation: the model's recording does not give the simulated seed/effects; "
-                "pass --sim-seed and --effects (they must match the recording's campaign)"
+                f"simulation: {why}; pass --sim-seed and --effects (they must match the "
+                "recording's campaign), or put the recording beside the model"
             )
         robot_name = (session.get("robot") or {}).get("model") or getattr(
             model, "robot_model", "ur5e"

@@ -485,6 +485,12 @@ class UrRobot:
         try:
             self._db.connect(int(self.connect_timeout_s * 1000))
         except RuntimeError as e:
+            if "cancel" in str(e).lower():  # the port answered TCP, then no greeting in time
+                raise DeviceError(
+                    f"UR {self.host}: the device at this address accepted the dashboard "
+                    f"connection (port 29999) but sent no UR greeting within "
+                    f"{self.connect_timeout_s:g} s; is this the robot controller's address?"
+                ) from None
             raise self._conn_error("dashboard", e) from None
 
     def _dashboard(self):
@@ -501,6 +507,12 @@ class UrRobot:
             mode = db.robotmode().strip()
         except RuntimeError as e:
             raise DeviceError(f"UR {self.host}: dashboard robotmode: {_one_line(e)}") from None
+        if not mode.startswith("Robotmode:"):  # every UR dashboard server answers this way
+            raise DeviceError(
+                f"UR {self.host}: the device at this address does not answer like a UR "
+                f"dashboard server (robotmode -> {mode[:40]!r}); is this the robot controller's "
+                "address?"
+            )
         if mode.endswith("RUNNING"):
             return
         if not self.auto_power_on:

@@ -28,7 +28,7 @@ from workcell.estimation.models import (
     save_model,
 )
 from workcell.kinematics.chain import PARAMETER_FRAMES, p_tracker
-from workcell.recording.dataset import HOLDOUT_SEED, Dataset, distinct_poses
+from workcell.recording.dataset import HOLDOUT_SEED, Dataset, distinct_poses, read_warnings
 
 # method -> "module:function(ds_train, *, on, bounds, progress) -> (model, extra dict)"
 FIT_METHODS: dict[str, str] = {
@@ -178,8 +178,13 @@ def fit_recording(
     bounds=None,
     tracker_mpe=TRACKER_MPE_M,
     progress=None,
+    warn=None,
 ) -> dict:
+    """`warn(line)` hears what the reader could not read (damaged chunk, cut-off end) before
+    the fit starts; the report lists it as `recording_problems`."""
     ds = Dataset.from_recording(path)
+    for line in read_warnings(ds) if warn else ():
+        warn(line)
     model, report = fit_dataset(
         ds,
         method=method,
@@ -189,6 +194,7 @@ def fit_recording(
         tracker_mpe=tracker_mpe,
         progress=progress,
     )
+    report["recording_problems"] = list(ds.read_problems)
     if out is not None:
         info = getattr(model, "info", None)
         if isinstance(info, dict):

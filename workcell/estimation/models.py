@@ -57,6 +57,36 @@ def aux_from_dataset(ds) -> dict:
     }
 
 
+def check_model_output(
+    path: str | os.PathLike, recording: str | os.PathLike, *, force: bool = False, say=None
+) -> None:
+    """Refuse, before any work, to write a model over an existing file, except an earlier model
+    of the same recording (same sha256): the recording re-creates that one, so nothing is lost.
+    `force` replaces anything but a recording (see `errors.refuse_overwrite`); `say(line)` is told
+    what is being replaced."""
+    from workcell.recording.dataset import file_sha256
+
+    p = Path(path)
+    if not p.is_file() or not Path(recording).is_file():
+        return  # nothing to replace, or the command refuses the missing recording itself
+    try:
+        d = json.loads(p.read_text(encoding="utf-8-sig"))
+    except (OSError, ValueError, UnicodeDecodeError):
+        d = None
+    is_model = isinstance(d, dict) and d.get("format") == MODEL_FORMAT
+    info = d.get("info") if is_model and isinstance(d.get("info"), dict) else {}
+    same = is_model and info.get("recording_sha256") == file_sha256(recording)
+    if not (same or force):
+        what = "a model of another recording" if is_model else "not a workcell model"
+        raise UserError(
+            f"model file {p} exists and is {what}; writing there would destroy it; choose "
+            "another name, or pass --force to replace it"
+        )
+    if say is not None:
+        kind = f"an earlier {d.get('method')} model of this recording" if same else "(--force)"
+        say(f"replacing {p}: {kind}")
+
+
 def save_model(model: FittedModel, path: str | os.PathLike) -> Path:
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
@@ -77,7 +107,30 @@ def load_model(path: str | os.PathLike) -> FittedModel:
         raise UserError(f"{p}: not a workcell model file (not JSON)") from None
     if not isinstance(d, dict) or d.get("format") != MODEL_FORMAT:
         raise UserError(f"{p}: not a workcell model file (format is not {MODEL_FORMAT})")
-    return model_from_dict(d, source=str(p))
+    model = model_from_dict(d, source=str(p))
+    _find_recording(model, p)
+    return model
+
+
+def _find_recording(model: FittedModel, model_path: Path) -> None:
+    """Point the model's `info["recording"]` at a file that exists: as stored (fit stores
+    it absolute; older models stored it as typed, relative to wherever fit ran), else relative to
+    the model's folder, else the same file name beside the model. A candidate whose sha256 differs
+    from the stored one is not taken. Left as stored when none is found (the caller says so)."""
+    info = getattr(model, "info", None)
+    rec = info.get("recording") if isinstance(info, dict) else None
+    if not rec or Path(rec).is_file():
+        return
+    sha = info.get("recording_sha256")
+    here = model_path.parent
+    for cand in (here / rec, here / Path(rec).name):
+        if cand.is_file():
+            from workcell.recording.dataset import file_sha256
+
+            if sha and file_sha256(cand) != sha:
+                continue
+            info["recording"] = str(cand)
+            return
 
 
 # joints inside every catalogue arm's range: a loaded model must predict finite positions there

@@ -29,6 +29,7 @@ JOINT_TEMP_RANGE_C = (-40.0, 150.0)  # motor/gear temperature in service
 AMBIENT_TEMP_RANGE_C = (-40.0, 80.0)
 PAYLOAD_FACTOR = 3.0  # payloads beyond 3x the rated payload are not carried
 QUAT_NORM_TOL = 1e-3
+DH_LENGTH_MAX_M = 10.0  # the longest serial arms reach ~4 m; a 10 m link is millimetres
 
 
 def _number(x) -> bool:
@@ -49,17 +50,56 @@ def _fmt(x: float) -> str:
     return f"{x:.4g}"
 
 
+def _norm(v, axis=None):
+    """Euclidean norm that neither overflows to inf nor warns for huge finite values (1e300 in
+    a mistyped file): where it would, the largest component stands in (within sqrt(3) of the
+    norm, enough to say "far too big")."""
+    v = np.asarray(v, dtype=float)
+    with np.errstate(over="ignore", invalid="ignore"):
+        n = np.linalg.norm(v, axis=axis)
+        return np.where(np.isinf(n), np.max(np.abs(v), axis=axis), n)
+
+
+def _length_hint(length_m: float, limit_m: float) -> str:
+    """Why a length is too long: millimetres when a thousandth of it is plausible, else a
+    corrupt value (1e300 is no unit mistake)."""
+    if length_m <= 1000 * limit_m:
+        return "it looks like millimetres; the format wants metres"
+    return "not a length in metres or millimetres (a corrupt value?); repair or drop it"
+
+
+def _dh_problems(robot: RobotSpec) -> list[str]:
+    """The declared DH chain in the format's units: link lengths in metres, angles in radians."""
+    out = []
+    for name, lim, unit, other in (
+        ("a", DH_LENGTH_MAX_M, "m", "millimetres; the format wants metres"),
+        ("d", DH_LENGTH_MAX_M, "m", "millimetres; the format wants metres"),
+        ("alpha", 2 * np.pi, "rad", "degrees; the format wants radians"),
+        ("theta_offset", 2 * np.pi, "rad", "degrees; the format wants radians"),
+    ):
+        v = np.abs(np.asarray(getattr(robot.dh, name), float))
+        if np.any(v > lim):
+            j = int(np.argmax(v))
+            out.append(
+                f"session robot.dh.{name}[{j}] is {_fmt(float(v[j]))} {unit} (more than "
+                f"{_fmt(lim)} {unit}): it looks like {other}"
+            )
+    return out
+
+
 def session_problems(s: dict, robot: RobotSpec | None = None) -> list[str]:
     """Problems of the session's nominal values (tool, tracker placement, payload)."""
     out: list[str] = []
+    if robot is not None:
+        out.extend(_dh_problems(robot))
     tool = s.get("tool")
     smr = tool.get("smr_offset_m") if isinstance(tool, dict) else None
     if not _numbers(smr, 3):
         out.append("session tool.smr_offset_m must be 3 finite numbers (metres)")
-    elif np.linalg.norm(smr) > SMR_OFFSET_MAX_M:
+    elif _norm(smr) > SMR_OFFSET_MAX_M:
         out.append(
-            f"session tool.smr_offset_m is {_fmt(float(np.linalg.norm(smr)))} m from the flange "
-            f"(more than {SMR_OFFSET_MAX_M:g} m): it looks like millimetres; the format wants metres"
+            f"session tool.smr_offset_m is {_fmt(float(_norm(smr)))} m from the flange "
+            f"(more than {SMR_OFFSET_MAX_M:g} m): {_length_hint(_norm(smr), SMR_OFFSET_MAX_M)}"
         )
     tracker = s.get("tracker")
     bit = tracker.get("base_in_tracker") if isinstance(tracker, dict) else None
@@ -71,14 +111,14 @@ def session_problems(s: dict, robot: RobotSpec | None = None) -> list[str]:
             "quaternion_wxyz (4 numbers)"
         )
     else:
-        dist = float(np.linalg.norm(t))
+        dist = float(_norm(t))
         if dist > TRACKER_RANGE_M:
             out.append(
                 f"session tracker.base_in_tracker.translation_m puts the robot {_fmt(dist)} m "
-                f"from the tracker (no tracker measures beyond {TRACKER_RANGE_M:g} m): it looks "
-                "like millimetres; the format wants metres"
+                f"from the tracker (no tracker measures beyond {TRACKER_RANGE_M:g} m): "
+                + _length_hint(dist, TRACKER_RANGE_M)
             )
-        nq = float(np.linalg.norm(qw))
+        nq = float(_norm(qw))
         if abs(nq - 1.0) > QUAT_NORM_TOL:
             out.append(
                 f"session tracker.base_in_tracker.quaternion_wxyz has norm {_fmt(nq)}; write a "
@@ -96,10 +136,10 @@ def session_problems(s: dict, robot: RobotSpec | None = None) -> list[str]:
         com = payload.get("com_m")
         if com is not None and not _numbers(com, 3):
             out.append("session payload.com_m must be 3 finite numbers (metres)")
-        elif com is not None and np.linalg.norm(com) > SMR_OFFSET_MAX_M:
+        elif com is not None and _norm(com) > SMR_OFFSET_MAX_M:
             out.append(
-                f"session payload.com_m is {_fmt(float(np.linalg.norm(com)))} m from the flange: "
-                "it looks like millimetres; the format wants metres"
+                f"session payload.com_m is {_fmt(float(_norm(com)))} m from the flange: "
+                + _length_hint(_norm(com), SMR_OFFSET_MAX_M)
             )
     return out
 
@@ -166,11 +206,11 @@ def sample_problems(smp: dict, k: int, robot: RobotSpec) -> list[str]:
             continue
         if key in ("q_measured_rad", "q_commanded_rad"):
             out.extend(joint_range_problem(where, key, v, robot))
-        elif key == "tracker_position_m" and np.linalg.norm(v) > TRACKER_RANGE_M:
+        elif key == "tracker_position_m" and _norm(v) > TRACKER_RANGE_M:
             out.append(
-                f"{where}: tracker_position_m puts the SMR {_fmt(float(np.linalg.norm(v)))} m "
-                f"from the tracker (no tracker measures beyond {TRACKER_RANGE_M:g} m): it looks like "
-                "millimetres; the format wants metres"
+                f"{where}: tracker_position_m puts the SMR {_fmt(float(_norm(v)))} m "
+                f"from the tracker (no tracker measures beyond {TRACKER_RANGE_M:g} m): "
+                + _length_hint(_norm(v), TRACKER_RANGE_M)
             )
         elif key == "tracker_sigma_m":
             s = np.asarray(v, dtype=float)
@@ -236,7 +276,7 @@ def _temperature_problem(
 
 def reach_m(dh: DH, smr_offset_m: Sequence[float]) -> float:
     """Upper bound of the distance from the base origin to the SMR over all joint angles."""
-    return float(np.sum(np.hypot(dh.a, dh.d)) + np.linalg.norm(smr_offset_m))
+    return float(np.sum(np.hypot(dh.a, dh.d)) + _norm(smr_offset_m))
 
 
 def scale_problems(p_tracker: np.ndarray, robot: RobotSpec, smr_offset_m) -> list[str]:
@@ -244,7 +284,8 @@ def scale_problems(p_tracker: np.ndarray, robot: RobotSpec, smr_offset_m) -> lis
     p = np.asarray(p_tracker, dtype=float)
     if len(p) < 2:
         return []
-    spread = float(np.max(np.linalg.norm(p - p.mean(axis=0), axis=1)))
+    with np.errstate(over="ignore", invalid="ignore"):
+        spread = float(np.max(_norm(p - p.mean(axis=0), axis=1)))
     r = reach_m(robot.dh, smr_offset_m)
     if spread <= 1.5 * (2 * r):
         return []

@@ -39,6 +39,9 @@ class Dataset:
     session: dict = field(default_factory=dict)
     source: str = ""
     source_sha256: str = ""
+    # what the reader could not read (a damaged chunk, a cut-off end): the data set is what
+    # came before or around it; commands print these as warnings
+    read_problems: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         n = len(self.q)
@@ -146,9 +149,18 @@ class Dataset:
             payload_com_m=np.asarray(com if is_finite_list(com, 3) else [0.0, 0.0, 0.0], float),
             pose_id=arr("pose_id", 0, -1).astype(int),
             session=s,
-            source=str(rec.path),
+            source=os.path.abspath(rec.path),
             source_sha256=file_sha256(rec.path),
+            read_problems=tuple(rec.problems),
         )
+
+
+def read_warnings(ds: Dataset) -> list[str]:
+    """One warning line per reader problem: data may be missing and the fit would not show it."""
+    return [
+        f"warning: {ds.source}: {p}; using the {len(ds)} samples that could be read"
+        for p in ds.read_problems
+    ]
 
 
 def file_sha256(path: str | os.PathLike) -> str:

@@ -103,6 +103,12 @@ def read_recording(path: str | os.PathLike, *, streams: bool = True) -> Recordin
     if not rec.closed_cleanly and not any("ends" in x for x in rec.problems):
         rec.problems.append("no summary/footer: the writer did not finish (crash or still open)")
     if not rec.session:
+        if rec.problems and not rec.channel_counts:
+            damage = rec.problems[0].split("; read everything")[0]
+            raise RecordingError(
+                f"{p}: {damage}, before its session (the first message) could be read; nothing "
+                "in it is usable; copy it again from where it was recorded"
+            )
         raise RecordingError(
             f"{p}: no {S.SESSION} message; a recording must start with its session"
         )
