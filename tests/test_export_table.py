@@ -187,8 +187,7 @@ def test_cli_targets_land_on_target_and_refuse_bad_rows(tmp_path, capsys):
     # as a spreadsheet saves it: a BOM, spaced and capitalised headers, a name column, blank rows
     sheet = tmp_path / "sheet.csv"
     sheet.write_text(
-        " Name , X , y ,Z \n"
-        + "".join(f"p{i}, {x},{y}, {z}\n\n" for i, (x, y, z) in enumerate(P)),
+        " Name , X , y ,Z \n" + "".join(f"p{i}, {x},{y}, {z}\n\n" for i, (x, y, z) in enumerate(P)),
         encoding="utf-8-sig",
     )
     out2 = tmp_path / "out2.csv"
