@@ -1,5 +1,7 @@
 """ROS calibration YAML: the published UR defaults for nominal chains, exact FK for calibrated ones."""
 
+import re
+
 import numpy as np
 import pytest
 
@@ -116,3 +118,47 @@ def test_model_without_geometry_is_refused(tmp_path):
 
     with pytest.raises(UserError, match="no geometric"):
         export_ros_yaml(Blob(), tmp_path / "x.yaml")
+
+
+def test_each_value_carries_its_propagated_std(tmp_path):
+    """The +- beside each YAML value is the parameter covariance propagated to first order:
+    it agrees with the spread of the values over parameters drawn from that covariance."""
+    from workcell.export.ros_yaml import KEYS, LINKS, kinematics_std
+
+    m = _calibrated_model(3)
+    rng = np.random.default_rng(5)
+    A = rng.normal(size=(39, 39)) * 2e-5
+    m.cov = A @ A.T  # metres and radians: tens of micrometres / microradians
+    path, info = export_ros_yaml(m, tmp_path / "cal.yaml")
+    std = info["kinematics_std"]
+    draws = rng.multivariate_normal(m.theta, m.cov, size=4000)
+    vals = []
+    for th in draws:
+        m2 = _calibrated_model(3)
+        m2.theta = th
+        k = ros_kinematics(*_geometry(m2))
+        vals.append([k[n][x] for n in LINKS for x in KEYS])
+    vals = np.array(vals)
+    ang = np.tile([False] * 3 + [True] * 3, len(LINKS))
+    ref = vals[0]
+    vals[:, ang] = ref[ang] + (vals[:, ang] - ref[ang] + np.pi) % (2 * np.pi) - np.pi
+    mc = vals.std(axis=0)
+    lin = np.array([std[n][x] for n in LINKS for x in KEYS])
+    big = lin > 1e-7  # values the parameters move (others are zero by construction)
+    assert big.sum() >= 20
+    np.testing.assert_allclose(lin[big], mc[big], rtol=0.1)
+    assert np.all(mc[~big] < 1e-6)
+    # in the file: a comment after whitespace (YAML), the values unchanged for the drivers
+    text = path.read_text()
+    for line in text.splitlines():
+        if line.startswith("    "):
+            assert re.match(r"^    \w+: \S+ +# \+- \S+ (m|rad)$", line), line
+    assert read_ros_yaml(text) == read_ros_yaml(to_yaml(info["kinematics"]))
+    assert kinematics_std(_calibrated_model(3)) is not None  # zero covariance: std 0, not None
+
+
+def _geometry(m):
+    from workcell.export.ros_yaml import model_geometry
+
+    th, B, _, _ = model_geometry(m)
+    return th, B

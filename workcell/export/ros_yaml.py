@@ -170,7 +170,15 @@ def _fmt(x: float) -> str:
     return repr(float(x))
 
 
-def to_yaml(kin: dict, *, comments: list[str] | None = None, hash_: str | None = None) -> str:
+def to_yaml(
+    kin: dict,
+    *,
+    comments: list[str] | None = None,
+    hash_: str | None = None,
+    std: dict | None = None,
+) -> str:
+    """The calibration YAML; `std` ({link: {key: 1-sigma}}) goes beside each value as a comment,
+    which every YAML reader ignores (the drivers read the values only)."""
     if hash_ is None:
         h = hashlib.sha256(repr([[kin[n][k] for k in KEYS] for n in LINKS]).encode()).digest()
         hash_ = f"calib_{int.from_bytes(h[:8], 'big')}"
@@ -179,7 +187,11 @@ def to_yaml(kin: dict, *, comments: list[str] | None = None, hash_: str | None =
     for n in LINKS:
         lines.append(f"  {n}:")
         for k in KEYS:
-            lines.append(f"    {k}: {_fmt(kin[n][k])}")
+            line = f"    {k}: {_fmt(kin[n][k])}"
+            if std is not None:
+                unit = "m" if k in "xyz" else "rad"
+                line = f"{line:<33} # +- {std[n][k]:.2g} {unit}"
+            lines.append(line)
     lines.append(f"  hash: {hash_}")
     return "\n".join(lines) + "\n"
 
@@ -233,6 +245,43 @@ def model_geometry(model) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
     )
 
 
+def _flat(kin: dict) -> np.ndarray:
+    return np.array([kin[n][k] for n in LINKS for k in KEYS], float)
+
+
+def kinematics_std(model, step: float = 1e-7) -> dict | None:
+    """1-sigma of every YAML value ({link: {key: std}}), the geometric part's parameter
+    covariance propagated to first order (central differences, angles wrapped); None when the
+    model carries no covariance."""
+    from workcell.kinematics.chain import tracker_T_base
+
+    th, _, base_ref, _ = model_geometry(model)
+    cov = None
+    for attr in (None, "base", "base_model", "dh_model", "geometric"):
+        m = model if attr is None else getattr(model, attr, None)
+        if m is not None and hasattr(m, "theta") and getattr(m, "cov", None) is not None:
+            cov = np.asarray(m.cov, float)
+            break
+    if cov is None or cov.shape != (len(th), len(th)) or not np.all(np.isfinite(cov)):
+        return None
+
+    def f(t):
+        B = np.linalg.solve(base_ref, np.asarray(tracker_T_base(t, base_ref)))
+        return _flat(ros_kinematics(t, B))
+
+    J = np.zeros((len(LINKS) * len(KEYS), len(th)))
+    for i in np.flatnonzero(np.diag(cov) > 0):
+        e = np.zeros(len(th))
+        e[i] = step
+        d = f(th + e) - f(th - e)
+        ang = np.tile([False, False, False, True, True, True], len(LINKS))
+        d[ang] = (d[ang] + np.pi) % (2 * np.pi) - np.pi
+        J[:, i] = d / (2 * step)
+    sd = np.sqrt(np.clip(np.einsum("ij,jk,ik->i", J, cov, J), 0.0, None))
+    it = iter(sd)
+    return {n: {k: float(next(it)) for k in KEYS} for n in LINKS}
+
+
 def export_ros_yaml(model, path, meta: dict | None = None) -> tuple[Path, dict]:
     from workcell.export.correction import matrix_to_rotvec
 
@@ -250,7 +299,15 @@ def export_ros_yaml(model, path, meta: dict | None = None) -> tuple[Path, dict]:
         f"rotvec {np.round(matrix_to_rotvec(tcp[:3, :3]), 12).tolist()} rad",
         "not carried: non-geometric effects (compliance, backlash, thermal, data-driven residuals)",
     ]
+    std = kinematics_std(model)
+    if std is not None:
+        comments.append(
+            "+- beside a value: 1 sigma, the fit's parameter covariance (see `workcell fit` for its "
+            "basis) propagated to first order"
+        )
+    else:
+        comments.append("no uncertainty: the model carries no parameter covariance")
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    p.write_text(to_yaml(kin, comments=comments))
-    return p, {"kinematics": kin, "tcp_in_tool0": tcp.tolist()}
+    p.write_text(to_yaml(kin, comments=comments, std=std))
+    return p, {"kinematics": kin, "kinematics_std": std, "tcp_in_tool0": tcp.tolist()}
