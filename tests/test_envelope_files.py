@@ -251,3 +251,51 @@ def test_margin_absent_from_an_older_file_or_session(tmp_path):
         path.write_text(json.dumps({**d, "kinematic_margin_m": bad}))
         with pytest.raises(UserError, match="kinematic_margin_m"):
             load_envelope(path, UR5E)
+
+
+def test_margin_from_a_fitted_model_covers_the_true_arm(tmp_path, capsys):
+    """`workcell envelope --model`: the margin measured from a model fitted on a simulated
+    campaign covers how far the simulated true arm is from the nominal kinematics over the
+    configurations the envelope allows (scored on the sim's truth), without being wildly larger;
+    `--check` fails (exit 1) for a file whose margin is below the suggestion."""
+    import dataclasses
+
+    from sim_devices.truth import make_truth
+    from workcell.campaign.envelope import default_envelope
+    from workcell.campaign.executor import CampaignConfig
+    from workcell.estimation.models import load_model
+    from workcell.export.margin import model_deviation
+    from workcell.kinematics.chain import base_T_frames, pack
+    from workcell.kinematics.robots import UR5E
+
+    seed = 5
+    _, robot, tracker, cell = sim_cell("ur5e", "realistic", seed=seed)
+    rec = tmp_path / "r.mcap"
+    cfg = CampaignConfig(readings_per_pose=2, settle_s=0.2)
+    run_campaign(robot, tracker, cell, rec, plan="random", poses=60, seed=seed, config=cfg)
+    model_path = tmp_path / "m.json"
+    assert main(["fit", str(rec), "--out", str(model_path), "--json"]) == 0
+    env = default_envelope(UR5E)
+    dev = model_deviation(load_model(model_path), env, UR5E, samples=1500, seed=1)
+    # score: the true arm over the same kind of configurations, in its own (true) base frame
+    lim = env.joint_limits_rad
+    q = np.random.default_rng(1).uniform(lim[:, 0], lim[:, 1], (1500, 6))
+    q = q[[v is None for v in env.violations(UR5E, q, cell.tool_m)]]
+    T = np.asarray(base_T_frames(pack(UR5E.dh), q))
+    nominal = np.einsum("nab,b->na", T[:, -1, :3, :3], cell.tool_m) + T[:, -1, :3, 3]
+    truth = make_truth("ur5e", "realistic", seed=seed)
+    true = np.array([truth.smr_in_base(qi, np.ones(6), 3600.0) for qi in q])
+    true_max = float(np.max(np.linalg.norm(true - nominal, axis=1)))
+    assert true_max > 1e-3  # the sim's arm is millimetres off: the test can fail
+    assert dev["suggested_margin_m"] >= true_max, (dev, true_max)
+    assert dev["suggested_margin_m"] <= 5 * true_max, (dev, true_max)
+    capsys.readouterr()
+    small = tmp_path / "small.json"
+    small.write_text(json.dumps(dataclasses.replace(env, kinematic_margin_m=0.0005).to_dict()))
+    assert main(["envelope", "--check", str(small), "--model", str(model_path)]) == 1
+    assert "is below the suggested" in capsys.readouterr().out
+    written = tmp_path / "from_model.json"
+    assert main(["envelope", "--out", str(written), "--model", str(model_path)]) == 0
+    assert load_envelope(written, UR5E).kinematic_margin_m >= dev["suggested_margin_m"] - 1e-12
+    assert main(["envelope", "--check", str(written), "--model", str(model_path)]) == 0
+    assert "covers it" in capsys.readouterr().out

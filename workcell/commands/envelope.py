@@ -18,6 +18,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--robot", default="ur5e", help="robot model (ur5e, ur10, ...)")
     p.add_argument("--out", metavar="FILE", help="write the default envelope here (JSON)")
     p.add_argument("--check", metavar="FILE", help="check this envelope file for --robot")
+    p.add_argument(
+        "--model",
+        metavar="MODEL",
+        help="a fitted model of this arm: measure how far it is from the nominal kinematics the "
+        "checks use; with --check, say whether the margin covers it; with --out, write that margin",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -30,11 +36,33 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(str(e)) from None
     if args.check and args.out:
         raise UserError("give --out (write the default) or --check FILE, not both")
+    model = _load_model_for(args.model, spec) if args.model else None
     if args.check:
         env = load_envelope(args.check, spec)
         print(describe(env, spec, f"{args.check} ({spec.model})"))
+        if model is not None:
+            dev = _deviation(model, env, spec)
+            print(describe_deviation(dev, args.model))
+            if env.kinematic_margin_m < dev["suggested_margin_m"]:
+                print(
+                    f"  margin {1e3 * env.kinematic_margin_m:g} mm is below the suggested "
+                    f"{1e3 * dev['suggested_margin_m']:g} mm: raise kinematic_margin_m to "
+                    f"{dev['suggested_margin_m']:g}"
+                )
+                return 1
+            print(f"  margin {1e3 * env.kinematic_margin_m:g} mm covers it")
         return 0
     env = default_envelope(spec)
+    if model is not None:
+        dev = _deviation(model, env, spec)
+        if dev["suggested_margin_m"] > 0.1:
+            raise UserError(
+                f"the model is {1e3 * dev['max_m']:.1f} mm from the nominal kinematics; a margin "
+                "above 100 mm is not an envelope, it is a wrong nominal model: check the robot "
+                "model and the model's recording"
+            )
+        print(describe_deviation(dev, args.model))
+        env.kinematic_margin_m = max(dev["suggested_margin_m"], 0.001)
     text = json.dumps(env.to_dict(), indent=2)
     if args.out:
         p = check_output_path(args.out, "envelope file")
@@ -42,13 +70,49 @@ def run(args: argparse.Namespace) -> int:
             raise UserError(f"{p} already exists; choose a new file")
         p.parent.mkdir(parents=True, exist_ok=True)
         p.write_text(text + "\n")
+        what = f"with the margin from {args.model}" if model is not None else ""
         print(
-            f"wrote {p}: the default envelope of the {spec.model}; edit it, then check it with "
-            f"`workcell envelope --robot {args.robot} --check {p}`"
+            f"wrote {p}: the default envelope of the {spec.model}{' ' + what if what else ''}; "
+            f"edit it, then check it with `workcell envelope --robot {args.robot} --check {p}`"
         )
     else:
         print(text)
     return 0
+
+
+def _load_model_for(path: str, spec):
+    from workcell.estimation.models import load_model
+
+    model = load_model(path)
+    robot = getattr(model, "robot_model", None) or (getattr(model, "info", {}) or {}).get("robot")
+    if robot and str(robot).lower() != spec.model.lower():
+        raise UserError(f"{path} is a model of a {robot}, not a {spec.model}; give --robot {robot}")
+    return model
+
+
+def _deviation(model, env, spec) -> dict:
+    from workcell.export.margin import model_deviation
+
+    try:
+        return model_deviation(model, env, spec)
+    except ValueError as e:
+        raise UserError(f"envelope: {e}") from None
+
+
+def describe_deviation(dev: dict, source: str) -> str:
+    rms = dev["model_heldout_rms_m"]
+    lines = [
+        f"model {source}: how far its SMR is from the nominal kinematics the checks use, over "
+        f"{dev['configurations']} configurations the envelope allows"
+        + (f" (the model's own held-out RMS: {1e3 * rms:.3f} mm)" if rms else "")
+    ]
+    for name, f in dev["frames"].items():
+        lines.append(
+            f"  in the {name} base frame: up to {1e3 * f['max_m']:.2f} mm (99 % within "
+            f"{1e3 * f['p99_m']:.2f} mm, RMS {1e3 * f['rms_m']:.2f} mm)"
+        )
+    lines.append(f"  suggested margin {1e3 * dev['suggested_margin_m']:g} mm: {dev['basis']}")
+    return "\n".join(lines)
 
 
 def describe(env, spec, title: str) -> str:

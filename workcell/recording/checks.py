@@ -24,7 +24,11 @@ from workcell.kinematics.robots import DH, RobotSpec, robot_from_session
 JOINT_LIMIT_MARGIN_RAD = 0.1  # measured joints may pass a limit by noise and overshoot only
 TRACKER_RANGE_M = 200.0  # longest-range laser trackers measure to ~160 m
 SMR_OFFSET_MAX_M = 1.0  # an SMR mounted a metre from the flange is not a calibration tool
-SIGMA_MAX_M = 1e-3  # standard deviation of a mean of tracker readings: micrometres, not mm
+# standard deviation of a mean of tracker readings: micrometres. One pose may have a large one (two
+# readings, one disturbed), so the unit check is on the file's median; a single sigma above
+# SIGMA_CORRUPT_M is no measurement at all
+SIGMA_MAX_M = 1e-3
+SIGMA_CORRUPT_M = 0.1
 JOINT_TEMP_RANGE_C = (-40.0, 150.0)  # motor/gear temperature in service
 AMBIENT_TEMP_RANGE_C = (-40.0, 80.0)
 PAYLOAD_FACTOR = 3.0  # payloads beyond 3x the rated payload are not carried
@@ -216,11 +220,11 @@ def sample_problems(smp: dict, k: int, robot: RobotSpec) -> list[str]:
             s = np.asarray(v, dtype=float)
             if np.any(s < 0):
                 out.append(f"{where}: tracker_sigma_m has a negative standard deviation")
-            elif np.max(s) > SIGMA_MAX_M:
+            elif np.max(s) > SIGMA_CORRUPT_M:
                 out.append(
-                    f"{where}: tracker_sigma_m is {_fmt(float(np.max(s)))}; a tracker's standard "
-                    f"deviation of a mean is micrometres (limit {SIGMA_MAX_M:g} m): it looks like "
-                    "millimetres; the format wants metres"
+                    f"{where}: tracker_sigma_m is {_fmt(float(np.max(s)))} m; a tracker's standard "
+                    f"deviation of a mean is micrometres (no measurement has more than "
+                    f"{SIGMA_CORRUPT_M:g} m): repair or drop that sample"
                 )
         elif key == "approach_sign" and any(abs(x) > 1 for x in v):
             out.append(f"{where}: approach_sign values must be -1, 0 or +1")
@@ -303,6 +307,22 @@ def millimetre_hint(length: float, expected_m: float, otherwise: str) -> str:
     return otherwise
 
 
+def sigma_problems(sigmas: Sequence) -> list[str]:
+    """The file's typical tracker sigma must be micrometres: a median above SIGMA_MAX_M is a unit
+    mistake (millimetres). A few large ones are disturbed poses, which the fit down-weights."""
+    worst = [max(v) for v in sigmas if isinstance(v, list) and v and all(_number(x) for x in v)]
+    if not worst:
+        return []
+    med = float(np.median(worst))
+    if med <= SIGMA_MAX_M:
+        return []
+    return [
+        f"tracker_sigma_m: the median sample's is {_fmt(med)}; a tracker's standard deviation "
+        f"of a mean is micrometres (limit {SIGMA_MAX_M:g} m): it looks like millimetres; the "
+        "format wants metres"
+    ]
+
+
 def timing_problems(elapsed_s: Sequence[float], log_time_ns: Sequence[int]) -> list[str]:
     """elapsed_s must run at the pace of the recording's log times (seconds, not ms)."""
     e = np.asarray(elapsed_s, dtype=float)
@@ -334,6 +354,7 @@ def recording_problems(session: dict, samples: Sequence[dict], robot: RobotSpec)
     for k, smp in enumerate(samples):
         out += sample_problems(smp, k, robot)
     if not out and samples:
+        out += sigma_problems([x.get("tracker_sigma_m") for x in samples])
         out += scale_problems(
             [x["tracker_position_m"] for x in samples], robot, session["tool"]["smr_offset_m"]
         )
