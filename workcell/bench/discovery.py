@@ -474,13 +474,24 @@ def score(res: dict) -> dict:
             "rms_after_m": c["rms_after_m"],
         }
     return {
-        "single": {"cases": len(single_ok), "accuracy": _mean(single_ok)},
+        "single": {
+            "cases": len(single_ok),
+            "accuracy": _mean(single_ok),
+            "accuracy_ci95": _ci(single_ok),
+        },
         "pairs": {
             "cases": len(pair_ok),
             "accuracy": _mean(pair_both),
+            "accuracy_ci95": _ci(pair_both),
             "exact_accuracy": _mean(pair_ok),
+            "exact_accuracy_ci95": _ci(pair_ok),
         },
-        "clean": {"cases": len(fa), "false_alarm_rate": _mean(fa)},
+        "clean": {
+            "cases": len(fa),
+            "false_alarm_rate": _mean(fa),
+            "false_alarm_rate_ci95": _ci(fa),
+        },
+        "rate_interval_basis": "Wilson score interval, 95 %, over the cases",
         "rms_after_over_floor": {
             "median": float(np.median(ratios)) if ratios else float("nan"),
             "max": float(np.max(ratios)) if ratios else float("nan"),
@@ -495,15 +506,35 @@ def _mean(x) -> float:
     return float(np.mean(x)) if len(x) else float("nan")
 
 
+def _ci(x) -> list[float] | None:
+    """95 % Wilson interval of a rate over len(x) yes/no cases (None without cases)."""
+    from scipy.stats import binomtest
+
+    if not len(x):
+        return None
+    ci = binomtest(int(np.sum(x)), len(x)).proportion_ci(0.95, method="wilson")
+    return [float(ci.low), float(ci.high)]
+
+
+def _pct(rate: float, ci) -> str:
+    return f"{rate:.0%}" + (f" (95 % CI {ci[0]:.0%}-{ci[1]:.0%})" if ci else "")
+
+
 def print_table(s: dict) -> None:
     print()
-    print(f"single effects: {s['single']['cases']} cases, accuracy {s['single']['accuracy']:.0%}")
+    si, pa, cl = s["single"], s["pairs"], s["clean"]
     print(
-        f"pairs:          {s['pairs']['cases']} cases, both named {s['pairs']['accuracy']:.0%} "
-        f"(exactly: {s['pairs']['exact_accuracy']:.0%})"
+        f"single effects: {si['cases']} cases, accuracy "
+        f"{_pct(si['accuracy'], si.get('accuracy_ci95'))}"
     )
     print(
-        f"clean:          {s['clean']['cases']} cases, false alarms {s['clean']['false_alarm_rate']:.0%}"
+        f"pairs:          {pa['cases']} cases, both named "
+        f"{_pct(pa['accuracy'], pa.get('accuracy_ci95'))} (exactly: "
+        f"{_pct(pa['exact_accuracy'], pa.get('exact_accuracy_ci95'))})"
+    )
+    print(
+        f"clean:          {cl['cases']} cases, false alarms "
+        f"{_pct(cl['false_alarm_rate'], cl.get('false_alarm_rate_ci95'))}"
     )
     r = s["rms_after_over_floor"]
     print(
