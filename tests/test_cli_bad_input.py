@@ -423,3 +423,22 @@ def test_a_moved_model_still_finds_its_recording(cell, capsys, tmp_path, monkeyp
     rc = main(["validate", str(moved / "m.json"), "--targets", "2"])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and "was not found beside the model" in err[0], err
+
+
+def test_replay_save_twice_replaces_its_own_model(tmp_path, capsys):
+    """`replay --save` records its recording in the model, so saving again is a re-fit of the
+    same recording (replaced, said), not "a model of another recording"."""
+    from workcell.campaign.executor import CampaignConfig
+    from workcell.campaign.run import run_campaign, sim_cell
+
+    rec = tmp_path / "r32.mcap"
+    _, robot, tracker, c = sim_cell("ur5e", "none", seed=4)
+    cfg = CampaignConfig(readings_per_pose=2, settle_s=0.2)
+    run_campaign(robot, tracker, c, rec, plan="random", poses=32, seed=4, config=cfg)
+    m = tmp_path / "e.json"
+    argv = ["replay", str(rec), "--online", "ekf-ann", "--save", str(m), "--json"]
+    assert main(argv) == 0
+    assert json.loads(m.read_text())["info"]["recording_sha256"] == digest(rec)
+    capsys.readouterr()
+    assert main(argv) == 0
+    assert "an earlier ekf-ann model of this recording" in capsys.readouterr().err

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import textwrap
 import time
@@ -83,9 +84,13 @@ def run(args: argparse.Namespace) -> int:
     est["samples_per_s"] = len(rec.samples) / dt if dt > 0 else float("inf")
     if args.save:
         from workcell.estimation.models import save_model
+        from workcell.recording.dataset import file_sha256
 
         try:
-            save_model(lf.model(), args.save)
+            model = lf.model()
+            model.info.setdefault("recording", os.path.abspath(args.recording))
+            model.info.setdefault("recording_sha256", file_sha256(args.recording))
+            save_model(model, args.save)
         except ValueError as e:
             raise UserError(str(e)) from None
     if args.json:
