@@ -181,29 +181,33 @@ class Envelope:
         )
         within = f" less the {1e3 * margin:g} mm kinematic margin" if margin > 0 else ""
         clear[~finite] = -np.inf
-        for i in range(len(q)):
+        # the message of each refused row; rows that pass (most of a sampled path) cost nothing
+        q0 = np.where(finite[:, None], q, 0.0)
+        joint_bad = (q0 < lim[:, 0]) | (q0 > lim[:, 1])
+        box_bad = np.any(smr < self.box_min_m + margin, axis=1) | np.any(
+            smr > self.box_max_m - margin, axis=1
+        )
+        zmins = T[:, 2:, 2, 3].min(axis=1)
+        floor_bad = zmins < self.floor_z_m + margin
+        refused = ~finite | joint_bad.any(axis=1) | box_bad | floor_bad
+        for i in np.flatnonzero(refused):
             if not finite[i]:
                 out[i] = "target has non-finite joint values"
-                continue
-            bad = np.where((q[i] < lim[:, 0]) | (q[i] > lim[:, 1]))[0]
-            if len(bad):
-                j = bad[0]
+            elif joint_bad[i].any():
+                j = int(np.flatnonzero(joint_bad[i])[0])
                 out[i] = (
                     f"joint {j + 1} target {q[i, j]:.4f} rad outside the envelope "
                     f"[{lim[j, 0]:.4f}, {lim[j, 1]:.4f}] rad"
                 )
-                continue
-            if np.any(smr[i] < self.box_min_m + margin) or np.any(smr[i] > self.box_max_m - margin):
+            elif box_bad[i]:
                 out[i] = (
                     f"SMR at {np.round(smr[i], 3).tolist()} m (base) outside the workspace box "
                     f"{np.round(self.box_min_m, 3).tolist()}..{np.round(self.box_max_m, 3).tolist()}"
                     + within
                 )
-                continue
-            zmin = T[i, 2:, 2, 3].min()
-            if zmin < self.floor_z_m + margin:
+            else:
                 out[i] = (
-                    f"a link frame would go down to z = {zmin:.3f} m, below the floor "
+                    f"a link frame would go down to z = {zmins[i]:.3f} m, below the floor "
                     f"{self.floor_z_m} m{within}"
                 )
         return out, clear
