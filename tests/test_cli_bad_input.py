@@ -422,7 +422,13 @@ def test_a_moved_model_still_finds_its_recording(cell, capsys, tmp_path, monkeyp
     capsys.readouterr()
     rc = main(["validate", str(moved / "m.json"), "--targets", "2"])
     err = capsys.readouterr().err.strip().splitlines()
-    assert rc == 2 and len(err) == 1 and "was not found beside the model" in err[0], err
+    assert rc == 2 and len(err) == 1 and "was not found where it was fitted" in err[0], err
+    # another recording under the same name is not the model's: its sha256 differs
+    (moved / rec.name).write_bytes(_other_recording(tmp_path).read_bytes())
+    assert load_model(moved / "m.json").info["recording"] is None
+    rc = main(["validate", str(moved / "m.json"), "--targets", "2"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "has changed since the fit" in err[0], err
 
 
 def test_replay_save_twice_replaces_its_own_model(tmp_path, capsys):
@@ -442,3 +448,19 @@ def test_replay_save_twice_replaces_its_own_model(tmp_path, capsys):
     capsys.readouterr()
     assert main(argv) == 0
     assert "an earlier ekf-ann model of this recording" in capsys.readouterr().err
+
+
+def test_diagnose_report_files_never_go_over_a_recording(cell, capsys, tmp_path):
+    """Every file `diagnose --report DIR` writes is checked, --force or not (audit 2: a recording
+    named summary.txt or heldout_rms_steps.png in DIR was overwritten)."""
+    _, rec, _ = cell
+    for name in ("summary.txt", "heldout_rms_steps.png", "augmented.model.np.json"):
+        rep = tmp_path / name.replace(".", "_")
+        rep.mkdir()
+        (rep / name).write_bytes(rec.read_bytes())
+        before = digest(rep / name)
+        for extra in ([], ["--force"]):
+            one_line_refusal(
+                capsys, ["diagnose", str(rec), "--report", str(rep), *extra], "existing recording"
+            )
+        assert digest(rep / name) == before

@@ -245,6 +245,10 @@ def test_one_disturbed_pose_is_not_a_unit_mistake(base, tmp_path):
     sa[3]["tracker_sigma_m"] = [2e-4, 1.1e-3, 3e-4]
     ds = Dataset.from_recording(write_raw(tmp_path / "one.mcap", session, sa, times))
     assert ds.sigma_m[3, 1] == pytest.approx(1.1e-3)
+    big = copy.deepcopy(sa)  # a few large, the rest unknown (null): not "most are millimetres"
+    for k, smp in enumerate(big):
+        smp["tracker_sigma_m"] = [2e-3, 2e-3, 2e-3] if k < 3 else None
+    Dataset.from_recording(write_raw(tmp_path / "nulls.mcap", session, big, times))
     sa[5]["tracker_sigma_m"] = [0.2, 0.0, 0.0]  # no tracker: corrupt, refused with the sample
     with pytest.raises(RecordingError, match=r"sample 5 .* \(no measurement has more than 0.1 m\)"):
         Dataset.from_recording(write_raw(tmp_path / "corrupt.mcap", session, sa, times))

@@ -9,13 +9,41 @@ printed as one line `workcell <cmd>: error: ...` with exit code 2, never a trace
 
 from __future__ import annotations
 
-import argparse
-import importlib
 import os
+import signal
 import sys
+import threading
 
-from workcell.drivers.protocols import DeviceError
-from workcell.errors import OneLineParser, UserError
+# Ctrl-C is noted here as well as raised: a KeyboardInterrupt raised inside a garbage-collector
+# callback (JAX has one) is printed and dropped by Python, so commands check this flag at their
+# last safe moment before anything moves (`workcell.commands.campaign`).
+# While modules load, Ctrl-C is only noted (raised there, inside jaxlib's start-up, it can abort
+# or crash the process) and acted on once they are loaded.
+INTERRUPTED = threading.Event()
+_RAISE = False
+
+
+def _on_sigint(signum, frame) -> None:
+    INTERRUPTED.set()
+    if _RAISE:
+        raise KeyboardInterrupt
+
+
+def _unraisable(u) -> None:
+    """The Ctrl-C that Python drops in a callback is noted in INTERRUPTED: no traceback for it."""
+    if not isinstance(u.exc_value, KeyboardInterrupt):
+        sys.__unraisablehook__(u)
+
+
+if os.path.basename(sys.argv[0]) == "workcell" or __name__ == "__main__":
+    signal.signal(signal.SIGINT, _on_sigint)  # the console command only, not when imported
+    sys.unraisablehook = _unraisable
+
+import argparse  # noqa: E402
+import importlib  # noqa: E402
+
+from workcell.drivers.protocols import DeviceError  # noqa: E402
+from workcell.errors import OneLineParser, UserError  # noqa: E402
 
 # name -> (module, one-line help). Modules are imported lazily (JAX start-up is slow).
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -54,6 +82,25 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run one command; returns its exit code. As the console entry point (argv None), a Ctrl-C
+    at any moment (loading modules included) is one line and exit 130: the process ends at once
+    (`os._exit`), as a half-finished JAX call can crash the interpreter's shutdown."""
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:
+        name = next((a for a in (argv or sys.argv[1:]) if not a.startswith("-")), "")
+        print(f"workcell {name}: interrupted".replace("  ", " "), file=sys.stderr)
+        if argv is None:
+            for f in (sys.stdout, sys.stderr):
+                try:
+                    f.flush()
+                except (OSError, ValueError):
+                    pass
+            os._exit(130)
+        return 130
+
+
+def _main(argv: list[str] | None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser, sub = build_parser()
     # Only import the module of the command asked for (keeps `workcell --help` fast).
@@ -68,6 +115,10 @@ def main(argv: list[str] | None = None) -> int:
             mod.add_arguments(p)
             p.set_defaults(_run=mod.run)
     args = parser.parse_args(argv)
+    global _RAISE
+    _RAISE = True  # modules loaded: from here a Ctrl-C raises where it lands
+    if INTERRUPTED.is_set():
+        raise KeyboardInterrupt
     if not getattr(args, "command", None):
         parser.print_help()
         return 2
@@ -79,9 +130,6 @@ def main(argv: list[str] | None = None) -> int:
     except DeviceError as e:
         print(f"workcell {args.command}: error: {e}", file=sys.stderr)
         return 3
-    except KeyboardInterrupt:
-        print(f"workcell {args.command}: interrupted", file=sys.stderr)
-        return 130
     except BrokenPipeError:
         # whoever read our output went away (`workcell info X | head`): nothing to report;
         # stdout goes to /dev/null so the interpreter's final flush does not fail again

@@ -116,9 +116,9 @@ class CampaignControl:
     def on_sigint(self, *_) -> None:
         """SIGINT handler for a command line: abort at once before the campaign starts (a plan
         of many poses takes minutes), cleanly (robot stopped, recording closed) once it runs."""
+        self.abort.set()  # also before the run: a dropped KeyboardInterrupt still stops it
         if not self.running.is_set():
             raise KeyboardInterrupt
-        self.abort.set()
 
 
 @dataclass

@@ -154,6 +154,10 @@ def resume_campaign(args: argparse.Namespace) -> int:
     )
     control = CampaignControl()
     signal.signal(signal.SIGINT, control.on_sigint)
+    from workcell.cli import INTERRUPTED
+
+    if INTERRUPTED.is_set():  # a Ctrl-C while loading that Python dropped (see cli.py)
+        raise KeyboardInterrupt
     chained = {"path": str(old), "sha256": file_sha256(old), "samples": info["n_samples"]}
     print(
         f"resuming {old}: {len(info['done'])} poses measured, {remaining} to go -> {out}",

@@ -95,6 +95,8 @@ def run_campaign(
     session = cell.session(campaign)
     if chained_from:
         session["chained_from"] = chained_from
+    if control is not None and control.abort.is_set():
+        raise KeyboardInterrupt  # Ctrl-C while planning: nothing connected, nothing recorded
     robot.connect()
     tracker.connect()
     ex = None

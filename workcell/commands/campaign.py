@@ -58,7 +58,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def _say_planning(args: argparse.Namespace) -> None:
     """A long plan is not a hang: say so before checking thousands of paths."""
-    if args.poses >= 1000:
+    if args.poses >= 1000 and args.plan in ("random", "grid"):  # adaptive plans choose later
         print(
             f"planning {args.poses} poses and checking every path against the envelope "
             "(minutes for this many; Ctrl-C stops)",
@@ -102,6 +102,10 @@ def run(args: argparse.Namespace) -> int:
     check_output_path(args.out, "recording")
     control = CampaignControl()
     signal.signal(signal.SIGINT, control.on_sigint)
+    from workcell.cli import INTERRUPTED
+
+    if INTERRUPTED.is_set():  # a Ctrl-C while loading that Python dropped (see cli.py)
+        raise KeyboardInterrupt
     mode = args.on_protective_stop or ("ask" if sys.stdin.isatty() else "resume")
     if mode == "ask":
         control.auto_resume_protective_stop = False

@@ -58,6 +58,14 @@ def _json_default(o):
     raise TypeError(type(o))
 
 
+REPORT_FILES = (
+    "summary.txt",
+    "report.json",
+    "residuals_before_after.png",
+    "heldout_rms_steps.png",
+)
+
+
 def _np_path(model_path: Path) -> Path:
     """Where the non-parametric residual model goes beside the augmented one."""
     p_np = model_path.with_name(model_path.name.replace(".json", ".np.json"))
@@ -83,15 +91,18 @@ def run(args: argparse.Namespace) -> int:
     )
     if args.report:
         check_output_path(args.report, "report folder", folder=True)
-    if args.out:
-        check_output_path(args.out, "model file", inputs=[args.recording])
     outdir = Path(args.report) if args.report else None
     model_path = (
         Path(args.out) if args.out else (outdir / "augmented.model.json" if outdir else None)
     )
+    # every file this run writes: never the recording, never any MCAP (even with --force); a
+    # model only over an earlier model of this recording (or with --force)
     if model_path:
         for p in (model_path, _np_path(model_path)):
+            check_output_path(p, "model file", inputs=[args.recording])
             check_model_output(p, args.recording, force=args.force, say=log)
+    for name in REPORT_FILES if outdir else ():
+        check_output_path(outdir / name, "report file", inputs=[args.recording])
     diag = diagnose(ds, cfg, progress=log)
     rep = diag.report
     rep["recording_problems"] = list(ds.read_problems)
@@ -106,8 +117,8 @@ def run(args: argparse.Namespace) -> int:
             )
     if outdir:
         rep["plots"] = write_plots(diag, outdir)
-        (outdir / "summary.txt").write_text(rep["summary"] + "\n")
-        (outdir / "report.json").write_text(json.dumps(rep, indent=1, default=_json_default))
+        (outdir / REPORT_FILES[0]).write_text(rep["summary"] + "\n")
+        (outdir / REPORT_FILES[1]).write_text(json.dumps(rep, indent=1, default=_json_default))
     if args.json:
         print(json.dumps(rep, default=_json_default))
     else:
@@ -187,7 +198,7 @@ def write_plots(diag, outdir: Path) -> dict:
         ax.legend(fontsize=8)
     fig.suptitle(Path(rep["recording"]).name)
     fig.tight_layout()
-    out = outdir / "residuals_before_after.png"
+    out = outdir / REPORT_FILES[2]
     fig.savefig(out, dpi=110)
     plt.close(fig)
     # per-step bar chart
@@ -200,7 +211,7 @@ def write_plots(diag, outdir: Path) -> dict:
     ax.set_ylabel("held-out RMS (um)")
     ax.legend(fontsize=8)
     fig.tight_layout()
-    out2 = outdir / "heldout_rms_steps.png"
+    out2 = outdir / REPORT_FILES[3]
     fig.savefig(out2, dpi=110)
     plt.close(fig)
     return {"residuals": str(out), "steps": str(out2)}

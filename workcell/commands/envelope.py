@@ -82,9 +82,10 @@ def run(args: argparse.Namespace) -> int:
 
 def _load_model_for(path: str, spec):
     from workcell.estimation.models import load_model
+    from workcell.export.build import nominal_for_model
 
     model = load_model(path)
-    robot = getattr(model, "robot_model", None) or (getattr(model, "info", {}) or {}).get("robot")
+    robot = nominal_for_model(model).robot  # wrapped models (augmented) name it through theirs
     if robot and str(robot).lower() != spec.model.lower():
         raise UserError(f"{path} is a model of a {robot}, not a {spec.model}; give --robot {robot}")
     return model

@@ -147,7 +147,8 @@ def _check_reach(src: Path, P: np.ndarray, nom, lines: list[int]) -> None:
     from workcell.recording.checks import millimetre_hint
 
     r = reach_of(nom)
-    dist = np.linalg.norm(P, axis=1)
+    with np.errstate(over="ignore"):  # 1e308: inf, still "beyond reach"
+        dist = np.linalg.norm(P, axis=1)
     i = int(np.argmax(dist))
     if dist[i] > r:
         raise UserError(
@@ -186,7 +187,11 @@ def _targets(args, model, cond, summary) -> int:
     try:
         with open(src, newline="", encoding="utf-8-sig") as f:  # spreadsheets write a BOM
             reader = csv.reader(f)
-            header = [h.strip().lower() for h in next(reader, [])]
+            header: list[str] = []
+            for r in reader:  # the first non-blank row is the header
+                if any(x.strip() for x in r):
+                    header = [h.strip().lower() for h in r]
+                    break
             rows, lines = [], []  # lines: each row's line number in the file, for messages
             for r in reader:
                 if any(x.strip() for x in r):
@@ -199,6 +204,14 @@ def _targets(args, model, cond, summary) -> int:
     qcols = [f"q{i}" for i in range(1, 7)]
     known = ["x", "y", "z", "rx", "ry", "rz", *qcols]
     cols = {c for c in header if c in known}
+    for group in (["rx", "ry", "rz"], qcols, ["x", "y", "z"]):
+        given = [c for c in group if c in cols]
+        if given and len(given) < len(group):
+            raise UserError(
+                f"{src}: columns {','.join(given)} without "
+                f"{','.join(c for c in group if c not in cols)}; give all of "
+                f"{','.join(group)} or none"
+            )
     num = {c: np.empty(len(rows)) for c in cols}
     for i, r in enumerate(rows):
         for c in cols:
@@ -234,6 +247,8 @@ def _targets(args, model, cond, summary) -> int:
             R = np.broadcast_to(rotvec_to_matrix([0.0, np.pi, 0.0])[0], (len(P), 3, 3))
         seeds = np.stack([num[c] for c in qcols], 1) if set(qcols) <= cols else Q_REF
         seeds = np.broadcast_to(seeds, (len(P), 6))
+        if set(qcols) <= cols:
+            _check_joints(src, seeds, nom, lines)  # seeds in degrees would command far off
     elif set(qcols) <= cols:
         seeds = np.stack([num[c] for c in qcols], 1)
         _check_joints(src, seeds, nom, lines)
@@ -244,7 +259,17 @@ def _targets(args, model, cond, summary) -> int:
             f"has {','.join(header)[:80]!r}"
         )
     c, q, _ = corr.correct_positions(P, R, seeds)
-    check_corrections(c - P, P, args.max_correction, where="target")
+    bad = ~np.all(np.isfinite(c), axis=1)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise UserError(
+            f"{src}: line {lines[i]}: no correction for the target at "
+            f"{np.round(P[i], 4).tolist()} m with its orientation (IK did not converge: out of "
+            f"reach or at a singularity){f'; and {bad.sum() - 1} more' if bad.sum() > 1 else ''}"
+        )
+    check_corrections(
+        c - P, P, args.max_correction, where="target", remedy="check the targets' positions"
+    )
     rv = matrix_to_rotvec(R)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

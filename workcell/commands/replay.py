@@ -52,7 +52,8 @@ def run(args: argparse.Namespace) -> int:
         )
     rec = read_recording(args.recording, streams=False)
     if not rec.samples:
-        raise UserError(f"{args.recording}: no /campaign/sample messages; nothing to replay")
+        why = f" ({rec.problems[0]})" if rec.problems else ""
+        raise UserError(f"{args.recording}: no /campaign/sample messages{why}; nothing to replay")
     problems = checks.problems_of(rec.session, rec.samples)
     if problems:
         raise UserError(f"{args.recording}: {checks.first_problem(problems)}")

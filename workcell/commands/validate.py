@@ -6,7 +6,6 @@ from __future__ import annotations
 import argparse
 import json
 import textwrap
-from pathlib import Path
 
 import numpy as np
 
@@ -81,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
     log = (lambda m: None) if args.json else print
     rec, _ = model_recording(model)
     session = {}
-    missing = ""
+    missing = (getattr(model, "info", {}) or {}).get("recording_unusable", "")
     if rec:
         try:
             from workcell.recording.reader import read_recording
@@ -89,11 +88,7 @@ def run(args: argparse.Namespace) -> int:
             session = read_recording(rec).session
         except Exception as e:  # noqa: BLE001 - the recording is optional here
             session = {}
-            missing = (
-                f"the model's recording {rec} was not found beside the model or where it was fitted"
-                if not Path(rec).is_file()
-                else f"the model's recording {rec} is unreadable ({str(e)[:80]})"
-            )
+            missing = f"the model's recording {rec} is unreadable: {e}"[:300]
     camp = session.get("campaign", {}) or {}
     if args.robot == "sim" and args.tracker == "sim":
         from workcell.campaign.run import sim_cell

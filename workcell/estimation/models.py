@@ -71,6 +71,11 @@ def check_model_output(
         return  # nothing to replace, or the command refuses the missing recording itself
     try:
         d = json.loads(p.read_text(encoding="utf-8-sig"))
+    except PermissionError:
+        raise UserError(
+            f"model file {p} exists and cannot be read (permissions), so it cannot be checked "
+            "before writing over it; choose another name"
+        ) from None
     except (OSError, ValueError, UnicodeDecodeError):
         d = None
     is_model = isinstance(d, dict) and d.get("format") == MODEL_FORMAT
@@ -113,24 +118,37 @@ def load_model(path: str | os.PathLike) -> FittedModel:
 
 
 def _find_recording(model: FittedModel, model_path: Path) -> None:
-    """Point the model's `info["recording"]` at a file that exists: as stored (fit stores
+    """Point the model's `info["recording"]` at the file it was fitted on: as stored (fit stores
     it absolute; older models stored it as typed, relative to wherever fit ran), else relative to
-    the model's folder, else the same file name beside the model. A candidate whose sha256 differs
-    from the stored one is not taken. Left as stored when none is found (the caller says so)."""
+    the model's folder, else the same file name beside the model; a candidate whose sha256
+    differs from the stored one is not it. When none is, `info["recording"]` becomes None and
+    `info["recording_unusable"]` says why, for the commands that need it."""
     info = getattr(model, "info", None)
     rec = info.get("recording") if isinstance(info, dict) else None
-    if not rec or Path(rec).is_file():
+    if not rec:
         return
+    from workcell.recording.dataset import file_sha256
+
     sha = info.get("recording_sha256")
     here = model_path.parent
-    for cand in (here / rec, here / Path(rec).name):
-        if cand.is_file():
-            from workcell.recording.dataset import file_sha256
-
-            if sha and file_sha256(cand) != sha:
+    seen = []
+    for cand in (Path(rec), here / rec, here / Path(rec).name):
+        if cand.is_file() and cand.resolve() not in seen:
+            seen.append(cand.resolve())
+            try:
+                same = not sha or file_sha256(cand) == sha
+            except OSError:
                 continue
-            info["recording"] = str(cand)
-            return
+            if same:
+                info["recording"] = str(cand)
+                return
+    info["recording"] = None
+    info["recording_unusable"] = f"the model's recording {rec} " + (
+        "has changed since the fit (its sha256 differs; so does any same-named file beside "
+        "the model)"
+        if seen
+        else "was not found where it was fitted or beside the model"
+    )
 
 
 # joints inside every catalogue arm's range: a loaded model must predict finite positions there

@@ -30,9 +30,21 @@ def nominal_for_model(model, recording: str | None = None) -> Nominal:
         return nominal_for(model)
     except UserError:
         rec = recording or model_recording(model)[0]
+        unusable = (getattr(model, "info", {}) or {}).get("recording_unusable")
+        if not rec and unusable:
+            raise UserError(
+                f"{unusable}; this model needs it for its nominal chain: give it with --recording"
+            ) from None
         if not rec:
             raise
-    from workcell.recording.dataset import Dataset
+    from workcell.recording.dataset import Dataset, file_sha256
+
+    sha = model_recording(model)[1]
+    if recording and sha and file_sha256(recording) != sha:
+        raise UserError(
+            f"{recording} is not the model's recording (its sha256 differs from the one the "
+            "model was fitted on); give that one"
+        )
 
     ds = Dataset.from_recording(rec)
     train, _ = ds.holdout_split(0.25)

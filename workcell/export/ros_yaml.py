@@ -182,7 +182,7 @@ def to_yaml(
     if hash_ is None:
         h = hashlib.sha256(repr([[kin[n][k] for k in KEYS] for n in LINKS]).encode()).digest()
         hash_ = f"calib_{int.from_bytes(h[:8], 'big')}"
-    lines = [f"# {c}" for c in (comments or [])]
+    lines = [f"# {' '.join(str(c).split())}" for c in (comments or [])]  # one line each
     lines.append("kinematics:")
     for n in LINKS:
         lines.append(f"  {n}:")
@@ -306,7 +306,10 @@ def export_ros_yaml(model, path, meta: dict | None = None) -> tuple[Path, dict]:
             "basis) propagated to first order"
         )
     else:
-        comments.append("no uncertainty: the model carries no parameter covariance")
+        comments.append(
+            f"no uncertainty beside the values: a {getattr(model, 'method', '?')} model's "
+            "covariance is not propagated to these values (its own report gives its stds)"
+        )
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     p.write_text(to_yaml(kin, comments=comments, std=std))

@@ -280,7 +280,12 @@ def _solve_grid(corr: Corrector, X: np.ndarray, R: np.ndarray) -> tuple[np.ndarr
 
 
 def check_corrections(
-    delta: np.ndarray, X: np.ndarray, bound_m: float, orientation: int = 0, where: str = "node"
+    delta: np.ndarray,
+    X: np.ndarray,
+    bound_m: float,
+    orientation: int = 0,
+    where: str = "node",
+    remedy: str = "shrink the volume (--volume)",
 ) -> None:
     """Refuse non-finite or oversized corrections, naming where (one clear line)."""
     delta = delta.reshape(-1, 3)
@@ -291,7 +296,7 @@ def check_corrections(
         raise CorrectionRefused(
             f"refused: no finite correction at {bad.sum()} {where}(s), first at "
             f"{np.round(X[i], 4).tolist()} m (base), orientation {orientation} "
-            "(IK or the model did not converge there); shrink the volume (--volume)"
+            f"(IK or the model did not converge there); {remedy}"
         )
     mag = np.linalg.norm(delta, axis=1)
     i = int(np.argmax(mag))

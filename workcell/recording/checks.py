@@ -310,7 +310,10 @@ def millimetre_hint(length: float, expected_m: float, otherwise: str) -> str:
 def sigma_problems(sigmas: Sequence) -> list[str]:
     """The file's typical tracker sigma must be micrometres: a median above SIGMA_MAX_M is a unit
     mistake (millimetres). A few large ones are disturbed poses, which the fit down-weights."""
-    worst = [max(v) for v in sigmas if isinstance(v, list) and v and all(_number(x) for x in v)]
+    # a sample without sigmas counts as small: 5 large of 40 is not "most are millimetres"
+    worst = [
+        max(v) if isinstance(v, list) and v and all(_number(x) for x in v) else 0.0 for v in sigmas
+    ]
     if not worst:
         return []
     med = float(np.median(worst))

@@ -107,7 +107,8 @@ class Dataset:
             raise RecordingError(f"{rec.path}: {e}") from None
         rows = list(rec.samples)
         if not rows:
-            raise RecordingError(f"{rec.path}: no /campaign/sample messages; nothing to fit")
+            why = f" ({rec.problems[0]})" if rec.problems else ""
+            raise RecordingError(f"{rec.path}: no /campaign/sample messages{why}; nothing to fit")
         problems = checks.recording_problems(s, rows, robot)
         if problems:
             raise RecordingError(f"{rec.path}: {checks.first_problem(problems)}")
