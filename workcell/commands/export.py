@@ -267,9 +267,7 @@ def _targets(args, model, cond, summary) -> int:
             f"{np.round(P[i], 4).tolist()} m with its orientation (IK did not converge: out of "
             f"reach or at a singularity){f'; and {bad.sum() - 1} more' if bad.sum() > 1 else ''}"
         )
-    check_corrections(
-        c - P, P, args.max_correction, where="target", remedy="check the targets' positions"
-    )
+    check_corrections(c - P, P, args.max_correction, where="target")  # finite: checked above
     rv = matrix_to_rotvec(R)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

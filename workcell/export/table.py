@@ -285,7 +285,6 @@ def check_corrections(
     bound_m: float,
     orientation: int = 0,
     where: str = "node",
-    remedy: str = "shrink the volume (--volume)",
 ) -> None:
     """Refuse non-finite or oversized corrections, naming where (one clear line)."""
     delta = delta.reshape(-1, 3)
@@ -296,7 +295,7 @@ def check_corrections(
         raise CorrectionRefused(
             f"refused: no finite correction at {bad.sum()} {where}(s), first at "
             f"{np.round(X[i], 4).tolist()} m (base), orientation {orientation} "
-            f"(IK or the model did not converge there); {remedy}"
+            "(IK or the model did not converge there); shrink the volume (--volume)"
         )
     mag = np.linalg.norm(delta, axis=1)
     i = int(np.argmax(mag))
