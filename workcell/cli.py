@@ -12,14 +12,12 @@ from __future__ import annotations
 import os
 import signal
 import sys
-import threading
 
-# Ctrl-C is noted here as well as raised: a KeyboardInterrupt raised inside a garbage-collector
-# callback (JAX has one) is printed and dropped by Python, so commands check this flag at their
-# last safe moment before anything moves (`workcell.commands.campaign`).
-# While modules load, Ctrl-C is only noted (raised there, inside jaxlib's start-up, it can abort
-# or crash the process) and acted on once they are loaded.
-INTERRUPTED = threading.Event()
+from workcell.errors import INTERRUPTED
+
+# Ctrl-C is noted in INTERRUPTED as well as raised (see there). While modules load it is only
+# noted (raised there, inside jaxlib's start-up, it can abort or crash the process) and acted on
+# once they are loaded.
 _RAISE = False
 
 

@@ -1,6 +1,12 @@
 """Errors meant for a person: one line, what is wrong and what to do."""
 
 import argparse
+import threading
+
+# Set by the console command's SIGINT handler (`workcell.cli`) on every Ctrl-C. Python drops a
+# KeyboardInterrupt raised inside a garbage-collector callback (JAX has one), so code that is
+# about to start something long or physical checks this flag too.
+INTERRUPTED = threading.Event()
 
 
 class UserError(Exception):

@@ -14,6 +14,7 @@ motion; speed and acceleration are capped by the envelope.
 
 from __future__ import annotations
 
+import signal
 import threading
 import time
 from collections.abc import Callable
@@ -30,7 +31,7 @@ from workcell.drivers.protocols import (
     Robot,
     Tracker,
 )
-from workcell.errors import UserError
+from workcell.errors import INTERRUPTED, UserError
 from workcell.kinematics.robots import RobotSpec
 
 
@@ -112,6 +113,13 @@ class CampaignControl:
     # set while an executor runs: before it (planning, connecting) nothing moves and nothing is
     # recorded, so Ctrl-C may stop at once; while it runs, Ctrl-C stops after the current step
     running: threading.Event = field(default_factory=threading.Event)
+
+    def install_sigint(self) -> None:
+        """Make Ctrl-C this campaign's `on_sigint`; a Ctrl-C that came earlier and that Python
+        dropped (`errors.INTERRUPTED`) stops here, before anything connects or moves."""
+        signal.signal(signal.SIGINT, self.on_sigint)
+        if INTERRUPTED.is_set():
+            raise KeyboardInterrupt
 
     def on_sigint(self, *_) -> None:
         """SIGINT handler for a command line: abort at once before the campaign starts (a plan

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import copy
-import signal
 import sys
 from pathlib import Path
 
@@ -153,11 +152,7 @@ def resume_campaign(args: argparse.Namespace) -> int:
         payload_kg=cell.payload_kg,
     )
     control = CampaignControl()
-    signal.signal(signal.SIGINT, control.on_sigint)
-    from workcell.cli import INTERRUPTED
-
-    if INTERRUPTED.is_set():  # a Ctrl-C while loading that Python dropped (see cli.py)
-        raise KeyboardInterrupt
+    control.install_sigint()
     chained = {"path": str(old), "sha256": file_sha256(old), "samples": info["n_samples"]}
     print(
         f"resuming {old}: {len(info['done'])} poses measured, {remaining} to go -> {out}",

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import signal
 import sys
 from pathlib import Path
 
@@ -101,11 +100,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"{args.out} already exists; choose a new file or use --resume")
     check_output_path(args.out, "recording")
     control = CampaignControl()
-    signal.signal(signal.SIGINT, control.on_sigint)
-    from workcell.cli import INTERRUPTED
-
-    if INTERRUPTED.is_set():  # a Ctrl-C while loading that Python dropped (see cli.py)
-        raise KeyboardInterrupt
+    control.install_sigint()
     mode = args.on_protective_stop or ("ask" if sys.stdin.isatty() else "resume")
     if mode == "ask":
         control.auto_resume_protective_stop = False

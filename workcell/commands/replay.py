@@ -37,6 +37,7 @@ def run(args: argparse.Namespace) -> int:
     from workcell.commands.options import display_unit
     from workcell.estimation.ekf_ann.live import LiveFilter
     from workcell.recording import checks
+    from workcell.recording.dataset import read_warnings
     from workcell.recording.reader import read_recording
 
     if not (args.rate >= 0 and args.rate != float("inf")):
@@ -57,12 +58,8 @@ def run(args: argparse.Namespace) -> int:
     problems = checks.problems_of(rec.session, rec.samples)
     if problems:
         raise UserError(f"{args.recording}: {checks.first_problem(problems)}")
-    for p in rec.problems:
-        print(
-            f"warning: {args.recording}: {p}; replaying the {len(rec.samples)} samples that "
-            "could be read",
-            file=sys.stderr,
-        )
+    for line in read_warnings(rec):
+        print(line, file=sys.stderr)
     lf = LiveFilter.from_session(rec.session)
     out = sys.stderr if args.json else sys.stdout
     t_wall0 = time.perf_counter()

@@ -55,8 +55,8 @@ def model_deviation(model, env, spec, *, samples: int = SAMPLES, seed: int = 0) 
     try:
         _, B, _, _ = model_geometry(model)
     except UserError:
-        B = None  # no geometric part: no fitted base offset
-    if B is not None:
+        pass  # no geometric part: no fitted base offset
+    else:
         Bi = np.linalg.inv(B)
         frames["calibrated"] = p_reg @ Bi[:3, :3].T + Bi[:3, 3]
     out_frames = {}

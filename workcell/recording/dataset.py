@@ -156,12 +156,13 @@ class Dataset:
         )
 
 
-def read_warnings(ds: Dataset) -> list[str]:
+def read_warnings(ds: Dataset | Recording) -> list[str]:
     """One warning line per reader problem: data may be missing and the fit would not show it."""
-    return [
-        f"warning: {ds.source}: {p}; using the {len(ds)} samples that could be read"
-        for p in ds.read_problems
-    ]
+    if isinstance(ds, Recording):
+        source, problems, n = ds.path, ds.problems, len(ds.samples)
+    else:
+        source, problems, n = ds.source, ds.read_problems, len(ds)
+    return [f"warning: {source}: {p}; using the {n} samples that could be read" for p in problems]
 
 
 def file_sha256(path: str | os.PathLike) -> str:
