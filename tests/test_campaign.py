@@ -431,3 +431,23 @@ def test_a_path_the_check_passes_is_inside_all_along(seed, shrink_m):
     if tight.path_violation(UR5E, a, b, tool, max_step_rad=10.0) is None:
         s = np.linspace(0, 1, 4096)
         assert tight.clearance(UR5E, a + s[:, None] * (b - a), tool).min() >= -PATH_TOL_M / 2
+
+
+def test_an_abort_before_the_first_pose_is_an_aborted_recording_not_an_exception(tmp_path):
+    """A UI's abort while the campaign is still planning runs through the executor as before
+    (robot stopped, abort event, recording closed); only a command-line Ctrl-C that Python
+    dropped (`errors.INTERRUPTED`) stops run_campaign before it connects."""
+    from workcell.campaign.executor import CampaignConfig, CampaignControl
+    from workcell.campaign.run import run_campaign, sim_cell
+    from workcell.recording.reader import read_recording
+
+    _, robot, tracker, cell = sim_cell("ur5e", "none", seed=1)
+    control = CampaignControl()
+    control.abort.set()
+    path, res = run_campaign(
+        robot, tracker, cell, tmp_path / "a.mcap", poses=5, seed=1, control=control,
+        config=CampaignConfig(readings_per_pose=2, settle_s=0.2),
+    )  # fmt: skip
+    assert res.aborted and res.measured == 0
+    rec = read_recording(path)
+    assert rec.closed_cleanly and any(e["kind"] == "abort" for e in rec.events)

@@ -124,7 +124,8 @@ class CampaignControl:
     def on_sigint(self, *_) -> None:
         """SIGINT handler for a command line: abort at once before the campaign starts (a plan
         of many poses takes minutes), cleanly (robot stopped, recording closed) once it runs."""
-        self.abort.set()  # also before the run: a dropped KeyboardInterrupt still stops it
+        INTERRUPTED.set()  # also before the run: a dropped KeyboardInterrupt still stops it
+        self.abort.set()
         if not self.running.is_set():
             raise KeyboardInterrupt
 

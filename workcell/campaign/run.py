@@ -19,6 +19,7 @@ from workcell.campaign.executor import (
 )
 from workcell.campaign.plans import make_plan
 from workcell.drivers.protocols import close_quietly
+from workcell.errors import INTERRUPTED
 from workcell.kinematics.robots import RobotSpec
 from workcell.recording.writer import RecordingWriter
 
@@ -95,8 +96,10 @@ def run_campaign(
     session = cell.session(campaign)
     if chained_from:
         session["chained_from"] = chained_from
-    if control is not None and control.abort.is_set():
-        raise KeyboardInterrupt  # Ctrl-C while planning: nothing connected, nothing recorded
+    if INTERRUPTED.is_set():
+        # a Ctrl-C at the command line that Python dropped while planning (`errors.INTERRUPTED`):
+        # stop here, nothing connected, nothing recorded. (A UI's abort runs through the executor.)
+        raise KeyboardInterrupt
     robot.connect()
     tracker.connect()
     ex = None
