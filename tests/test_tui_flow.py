@@ -23,6 +23,12 @@ async def until(pilot, cond, timeout_s: float = 180.0, what: str = "") -> None:
             raise AssertionError(f"timed out waiting for {what or cond}")
 
 
+async def until_confirm(app, pilot, what: str) -> None:
+    """The key's confirmation screen is up. A loaded machine may need a few more event-loop
+    turns than `pilot.press` waits for before the pushed screen is current."""
+    await until(pilot, lambda: type(app.screen).__name__ == "ConfirmScreen", 10, f"{what} confirm")
+
+
 def app_for(poses: int):
     return make_app(
         plan=PlanConfig(poses=poses, readings_per_pose=3, settle_s=0.5, out="run.mcap"),
@@ -46,7 +52,7 @@ async def set_input(pilot, screen, wid: str, value: str) -> None:
 async def run_campaign(app, pilot, n_finished: int) -> None:
     await pilot.press("f3")
     await pilot.press("s")  # asks first
-    assert type(app.screen).__name__ == "ConfirmScreen"
+    await until_confirm(app, pilot, "start")
     await pilot.press("y")
     await until(pilot, lambda: len(app.finished) >= n_finished, 120, "campaign end")
 
@@ -150,7 +156,7 @@ def test_abort_leaves_valid_recording_then_resume(tmp_path, monkeypatch):
             await until(pilot, lambda: scr.done >= 3, 60, "3 poses")
             await pilot.press("p")  # pause between poses, then abort with confirmation
             await pilot.press("a")
-            assert type(app.screen).__name__ == "ConfirmScreen"
+            await until_confirm(app, pilot, "abort")
             await pilot.press("y")
             await until(pilot, lambda: app.finished, 60, "abort")
             fin = app.finished[-1]
