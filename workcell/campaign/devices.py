@@ -8,6 +8,7 @@ from workcell.campaign.envelope import default_envelope, load_envelope
 from workcell.campaign.run import CellSetup, sim_cell
 from workcell.errors import UserError
 from workcell.kinematics.robots import robot_by_name
+from workcell.recording.checks import SMR_OFFSET_MAX_M
 
 
 def envelope_from_args(args, spec):
@@ -18,11 +19,37 @@ def envelope_from_args(args, spec):
     return load_envelope(path, spec)
 
 
+DEFAULT_SMR_OFFSET_M = (0.0, 0.0, 0.06)
+
+
+def parse_smr_offset(text, what: str = "--smr-offset") -> np.ndarray:
+    """'X,Y,Z' in metres on the flange -> (3,); None or '' -> the default. Refuses a length
+    over `SMR_OFFSET_MAX_M` (millimetres typed as metres) and anything not three finite
+    numbers."""
+    if text is None or str(text).strip() == "":
+        return np.array(DEFAULT_SMR_OFFSET_M)
+    try:
+        v = np.array([float(x) for x in str(text).split(",")])
+    except ValueError:
+        v = np.array([])
+    if v.shape != (3,) or not np.all(np.isfinite(v)):
+        raise UserError(f"{what} must be three numbers X,Y,Z in metres on the flange, got {text!r}")
+    if np.linalg.norm(v) > SMR_OFFSET_MAX_M:
+        raise UserError(
+            f"{what} {text!r} is {np.linalg.norm(v):g} m from the flange: the offset is in "
+            "metres (109 mm is 0,0,0.109)"
+        )
+    return v
+
+
 def open_cell(args):
     """-> (CellSetup, robot, tracker, envelope) from parsed CLI args (`envelope`: optional
-    FILE; default: the arm's default envelope)."""
+    FILE; default: the arm's default envelope; `smr_offset`: optional 'X,Y,Z' m, the SMR on the
+    flange as the operator declares it; a simulated cell keeps its own true SMR)."""
+    tool_m = parse_smr_offset(getattr(args, "smr_offset", None))
     if args.robot == "sim" and args.tracker == "sim":
         _, robot, tracker, cell = sim_cell(args.model, args.effects, args.seed)
+        cell.tool_m = tool_m
         return cell, robot, tracker, envelope_from_args(args, cell.spec)
     if args.robot == "sim" or args.tracker == "sim":
         raise UserError(
@@ -44,7 +71,7 @@ def open_cell(args):
     tracker = SerialTracker(args.tracker[len("serial://") :])
     cell = CellSetup(
         spec=spec,
-        tool_m=np.array([0.0, 0.0, 0.06]),
+        tool_m=tool_m,
         base_in_tracker={"translation_m": [0.0, 0.0, 0.0], "quaternion_wxyz": [1.0, 0.0, 0.0, 0.0]},
         tracker_model="GeoCOM tracker",
     )

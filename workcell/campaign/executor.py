@@ -7,7 +7,9 @@ MCAP. Faults become `/campaign/event` records and are handled by a small policy:
 - tracker I/O error: the driver resyncs; the executor retries, then skips the pose;
 - robot connection lost: reconnect with exponential back-off (if the driver can), then continue;
 - protective stop: pause, event, and resume when `resume_protective_stop()` says so;
-- Ctrl-C / abort: stop the robot, record an `abort` event; the caller closes the recording.
+- Ctrl-C / abort: stop the robot, record an `abort` event; the caller closes the recording;
+- the kinematic margin does not hold (`watch.MarginWatch`, when given): stop the robot, record
+  a `margin` event saying why, end the campaign (`CampaignResult.stopped_by == "margin"`).
 Safety: every target (and its approach pre-pose) is checked against the envelope before any
 motion; speed and acceleration are capped by the envelope.
 """
@@ -137,6 +139,12 @@ class CampaignResult:
     aborted: bool = False
     events: int = 0
     skipped_ids: list[int] = field(default_factory=list)
+    stopped_by: str = ""  # "operator" (abort, Ctrl-C) or "margin" (the margin watch)
+    stop_reason: str = ""
+
+
+class _MarginStop(Exception):
+    """Raised after a sample when the margin watch finds the kinematic margin does not hold."""
 
 
 class Executor:
@@ -156,6 +164,7 @@ class Executor:
         index0: int = 0,
         t_wall0_ns: int | None = None,
         elapsed0_s: float = 0.0,
+        watch=None,
     ) -> None:
         self.robot, self.tracker, self.spec, self.env, self.sink = (
             robot,
@@ -175,6 +184,7 @@ class Executor:
         self._last_cmd: np.ndarray | None = None  # the last target the arm arrived at
         self._elapsed0 = elapsed0_s
         self._last_js = -1e9
+        self.watch = watch  # a watch.MarginWatch, or None
 
     # ------------------------------------------------------------------ time and records
     def elapsed(self) -> float:
@@ -489,6 +499,12 @@ class Executor:
         self.result.measured += 1
         if self.on_sample:
             self.on_sample(sample)
+        if self.watch is not None:
+            verdict = self.watch.update(sample)
+            if verdict is not None and verdict.stop:
+                self.result.stop_reason = verdict.stop
+                self.event("error", "margin", verdict.stop)
+                raise _MarginStop
         return sample
 
     def warm_up(self, q_centre: np.ndarray) -> None:
@@ -530,16 +546,28 @@ class Executor:
                 sample = self.run_pose(t)
                 t = plan.send(sample)
         except StopIteration:
-            pass
+            self._margin_summary()
         except KeyboardInterrupt:
-            self.result.aborted = True
-            try:
-                self.robot.stop()
-            except Exception:  # noqa: BLE001 - stopping is best effort while aborting
-                pass
+            self.result.aborted, self.result.stopped_by = True, "operator"
+            self._stop_robot()
+            self._margin_summary()
             self.event("warning", "abort", "campaign aborted by the operator; recording closed")
+        except _MarginStop:
+            self.result.aborted, self.result.stopped_by = True, "margin"
+            self._stop_robot()
         # `running` stays set: a late Ctrl-C must not cut the recording's closing short
         return self.result
+
+    def _margin_summary(self) -> None:
+        """The margin watch's one line on what it checked (an info event), if it ran."""
+        if self.watch is not None:
+            self.event("info", "margin", self.watch.summary())
+
+    def _stop_robot(self) -> None:
+        try:
+            self.robot.stop()
+        except Exception:  # noqa: BLE001 - stopping is best effort while ending a campaign
+            pass
 
 
 def _pop_faults(tracker) -> list[tuple[str, str]]:

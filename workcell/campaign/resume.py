@@ -17,7 +17,7 @@ from pathlib import Path
 from workcell.campaign.devices import open_cell
 from workcell.campaign.envelope import envelope_of_session
 from workcell.campaign.executor import CampaignConfig, CampaignControl
-from workcell.campaign.run import run_campaign
+from workcell.campaign.run import margin_stop, run_campaign
 from workcell.errors import UserError
 from workcell.recording import checks
 from workcell.recording.dataset import file_sha256
@@ -109,6 +109,12 @@ def recorded_envelope(camp: dict, spec, source: str, default, say=None):
     return env
 
 
+def recorded_tool(session: dict) -> list[float]:
+    """The SMR offset (m) the old campaign declared (checked by `resume_plan`); its poses were
+    planned with it."""
+    return [float(v) for v in session["tool"]["smr_offset_m"]]
+
+
 def default_out(old: Path) -> Path:
     k = 1
     while True:
@@ -129,6 +135,10 @@ def resume_campaign(args: argparse.Namespace) -> int:
     if remaining <= 0:
         print(f"{old}: all {camp['poses']} poses already measured; nothing to resume")
         return 0
+    if getattr(args, "smr_offset", None):
+        raise UserError(
+            "--resume keeps the SMR offset the campaign was recorded with; leave --smr-offset out"
+        )
     if getattr(args, "envelope", None) not in (None, "", "default"):
         raise UserError(
             "--resume keeps the envelope the campaign was recorded with (its poses were planned "
@@ -142,6 +152,7 @@ def resume_campaign(args: argparse.Namespace) -> int:
     ns.seed = int(camp["seed"])
     ns.model = info["recording"].session.get("robot", {}).get("model", args.model)
     ns.envelope = None
+    ns.smr_offset = ",".join(f"{v!r}" for v in recorded_tool(info["recording"].session))
     cell, robot, tracker, env = open_cell(ns)
     env = recorded_envelope(camp, cell.spec, str(old), default=env)
     check_same_plan(info, cell.spec, env, cell.tool_m, str(old))
@@ -188,7 +199,9 @@ def resume_campaign(args: argparse.Namespace) -> int:
         index0=info["n_samples"],
         chained_from=chained,
         elapsed0_s=info["last_elapsed"],
+        watch_history=info["recording"].samples,
         on_event=lambda e: print(f"  [{e['level']}] {e['kind']}: {e['message']}", file=sys.stderr),
     )
     print(f"recorded {res.measured} more poses, skipped {res.skipped} -> {out}")
+    margin_stop(res, out)
     return 130 if res.aborted else 0

@@ -18,8 +18,9 @@ from workcell.campaign.executor import (
     Executor,
 )
 from workcell.campaign.plans import make_plan
+from workcell.campaign.watch import MarginWatch
 from workcell.drivers.protocols import close_quietly
-from workcell.errors import INTERRUPTED
+from workcell.errors import INTERRUPTED, UserError
 from workcell.kinematics.robots import RobotSpec
 from workcell.recording.writer import RecordingWriter
 
@@ -69,7 +70,13 @@ def run_campaign(
     chained_from: dict | None = None,
     elapsed0_s: float = 0.0,
     plan_kwargs: dict | None = None,
+    margin_watch: bool = True,
+    watch_history: list[dict] | None = None,
 ) -> tuple[Path, CampaignResult]:
+    """Plan, connect, record. With `margin_watch` (and a non-zero kinematic margin) every sample
+    also checks that the real SMR stays within the margin of the nominal one (`watch.MarginWatch`;
+    `watch_history`: samples of the recording a resume continues) and the campaign stops when it
+    does not."""
     env = envelope or default_envelope(cell.spec)
     cfg = config or CampaignConfig(payload_kg=cell.payload_kg)
     gen, _ = make_plan(
@@ -100,6 +107,17 @@ def run_campaign(
         # a Ctrl-C at the command line that Python dropped while planning (`errors.INTERRUPTED`):
         # stop here, nothing connected, nothing recorded. (A UI's abort runs through the executor.)
         raise KeyboardInterrupt
+    watch = None
+    if margin_watch and env.kinematic_margin_m > 0:
+        watch = MarginWatch(cell.spec, cell.tool_m, env.kinematic_margin_m)
+        for old in watch_history or []:
+            watch.update(old)
+        if watch.last is not None and watch.last.stop:
+            raise UserError(
+                f"the recording this continues already fails the margin check ({watch.last.stop}); "
+                "a resume keeps its SMR offset and envelope, so start a new campaign instead "
+                "(nothing moved)"
+            )
     robot.connect()
     tracker.connect()
     ex = None
@@ -119,6 +137,7 @@ def run_campaign(
                 index0=index0,
                 t_wall0_ns=time.time_ns(),
                 elapsed0_s=elapsed0_s,
+                watch=watch,
             )
             if chained_from:
                 ex.event(
@@ -141,6 +160,16 @@ def run_campaign(
     finally:
         close_quietly(robot, tracker)
     return Path(out), result
+
+
+def margin_stop(res: CampaignResult, path: str | Path) -> None:
+    """A campaign the margin watch stopped is a user error (one line, non-zero exit), raised
+    after its recording was closed with what it measured."""
+    if res.stopped_by == "margin":
+        raise UserError(
+            f"the campaign stopped after {res.measured} poses: the envelope's kinematic margin "
+            f"does not hold (the margin event above says why); {path} is closed and keeps them"
+        )
 
 
 def sim_cell(

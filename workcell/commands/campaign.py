@@ -9,7 +9,7 @@ from pathlib import Path
 
 from workcell.campaign.devices import open_cell
 from workcell.campaign.executor import CampaignConfig, CampaignControl
-from workcell.campaign.run import run_campaign
+from workcell.campaign.run import margin_stop, run_campaign
 from workcell.errors import UserError, check_output_path
 
 MAX_POSES = 100_000  # ~10 s a pose: eleven days at the tracker
@@ -28,6 +28,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="simulated truth: none, realistic, all, or a comma list of effect kinds",
     )
     p.add_argument("--model", default="ur5e", help="robot model when not given by the device")
+    p.add_argument(
+        "--smr-offset",
+        metavar="X,Y,Z",
+        help="the SMR's position on the flange in metres (default 0,0,0.06); the envelope and "
+        "the margin watch use it",
+    )
     p.add_argument("--readings", type=int, default=5, help="tracker readings per pose")
     p.add_argument("--settle", type=float, default=1.0, help="settle time in seconds")
     p.add_argument(
@@ -150,6 +156,7 @@ def run(args: argparse.Namespace) -> int:
         },
     )
     print(f"recorded {res.measured} poses, skipped {res.skipped}, events {res.events} -> {path}")
+    margin_stop(res, path)
     return 130 if res.aborted else 0
 
 

@@ -29,6 +29,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="simulators run this many times faster (default 10 with --sim, else 1)",
     )
     p.add_argument("--sim-host", default="127.0.0.2", help="loopback address for --sim")
+    p.add_argument(
+        "--smr-offset",
+        metavar="X,Y,Z",
+        default="",
+        help="the SMR's position on the flange in metres (default 0,0,0.06)",
+    )
     p.add_argument("--poses", type=int, default=50, help="default number of poses in the plan")
     p.add_argument("--out", default="campaign.mcap", help="default recording path")
 
@@ -52,6 +58,7 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         time_scale=scale,
         sim_host=args.sim_host,
+        smr_offset=getattr(args, "smr_offset", ""),
         plan=PlanConfig(poses=args.poses, seed=args.seed, out=args.out),
     )
     app.run()
@@ -66,6 +73,9 @@ def check_args(args: argparse.Namespace) -> None:
 
     if args.seed < 0:
         raise UserError(f"--seed must be >= 0, got {args.seed}")
+    from workcell.campaign.devices import parse_smr_offset
+
+    parse_smr_offset(getattr(args, "smr_offset", ""))
     if args.robot != "sim" and not args.robot.startswith("ur://"):
         raise UserError(f"--robot {args.robot!r}: expected sim or ur://HOST")
     if args.tracker != "sim" and not args.tracker.startswith("serial://"):

@@ -41,6 +41,7 @@ NOTIFY_KINDS = {
     "pause": "warning",
     "resume": "information",
     "abort": "warning",
+    "margin": "information",  # the watch's summary; its stop is an error event
 }
 
 
@@ -475,6 +476,8 @@ class WorkcellApp(App):
         if kind == "reconnect":
             self._awaiting_recovery = True
         sev = NOTIFY_KINDS.get(kind)
+        if sev and ev.get("level") == "error":
+            sev = "error"
         if sev:
             self.notify(
                 f"{kind}: {ev.get('message')}",
@@ -524,8 +527,13 @@ class WorkcellApp(App):
         else:
             state = "aborted" if res.aborted else "finished"
             ok = "closed cleanly" if rec.get("closed_cleanly") else "NOT closed cleanly"
+            why = (
+                "stopped: the kinematic margin does not hold; "
+                if res.stopped_by == "margin"
+                else ""
+            )
             summary = (
-                f"{res.measured} measured, {res.skipped} skipped, {res.events} events; "
+                f"{why}{res.measured} measured, {res.skipped} skipped, {res.events} events; "
                 f"{Path(msg.path).name}: {rec.get('samples', '?')} samples, {ok}"
             )
         scr.finish(state, summary)
@@ -676,6 +684,7 @@ def make_app(
     sim_host: str = "127.0.0.2",
     sim_faults: dict | None = None,
     sim_tracker_faults: dict | None = None,
+    smr_offset: str = "",
     plan: PlanConfig | None = None,
     clock: Callable[[], float] = time.monotonic,
     status_poll_s: float = 2.0,
@@ -701,6 +710,7 @@ def make_app(
         sim_host=sim_host,
         sim_faults=sim_faults,
         sim_tracker_faults=sim_tracker_faults,
+        smr_offset=smr_offset,
     )
     return WorkcellApp(
         cfg,

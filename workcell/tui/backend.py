@@ -37,6 +37,7 @@ class DeviceConfig:
     sim_host: str = "127.0.0.2"
     sim_faults: dict | None = None  # robot faults for the simulated controller
     sim_tracker_faults: dict | None = None
+    smr_offset: str = ""  # 'X,Y,Z' m on the flange; '' = the default (0, 0, 0.06)
 
 
 @dataclass
@@ -72,6 +73,7 @@ def _namespace(cfg: DeviceConfig, robot: str, tracker: str) -> argparse.Namespac
         effects=cfg.effects,
         seed=cfg.seed,
         time_scale=cfg.time_scale,
+        smr_offset=cfg.smr_offset,
     )
 
 
@@ -402,6 +404,7 @@ def start_campaign(
                 "samples": info["n_samples"],
             },
             elapsed0_s=info["last_elapsed"],
+            watch_history=info["recording"].samples,
         )
     if out.exists():
         raise UserError(f"{out} already exists; choose a new recording path or resume it")

@@ -8,6 +8,7 @@ from textual.binding import Binding
 from textual.containers import Horizontal, Vertical
 from textual.widgets import Button, Checkbox, Input, Label
 
+from workcell.campaign.devices import parse_smr_offset
 from workcell.errors import UserError
 from workcell.tui.backend import DeviceConfig
 from workcell.tui.messages import ConnectRequested, DisconnectRequested, StatusRequested
@@ -51,6 +52,11 @@ class DevicesScreen(WorkcellScreen):
                 yield Label("Model / scale")
                 yield Input(c.model, id="model", placeholder="ur5e")
                 yield Input(f"{c.time_scale:g}", id="time-scale", placeholder="time scale")
+            with Horizontal(classes="row"):
+                yield Label("SMR offset (m)")
+                yield Input(
+                    c.smr_offset, id="smr-offset", placeholder="X,Y,Z on the flange; 0,0,0.06"
+                )
         with Horizontal(id="buttons"):
             yield Button("Connect", id="connect", variant="primary")
             yield Button("Disconnect", id="disconnect")
@@ -62,6 +68,8 @@ class DevicesScreen(WorkcellScreen):
         if not scale > 0:
             raise UserError(f"time scale must be > 0, got {scale}")
         c = self.config
+        smr = self.text("smr-offset")
+        parse_smr_offset(smr, "SMR offset")  # refused here, before connecting
         return DeviceConfig(
             robot=self.text("robot") or "sim",
             tracker=self.text("tracker") or "sim",
@@ -73,6 +81,7 @@ class DevicesScreen(WorkcellScreen):
             sim_host=c.sim_host,
             sim_faults=c.sim_faults,
             sim_tracker_faults=c.sim_tracker_faults,
+            smr_offset=smr,
         )
 
     def action_connect(self) -> None:

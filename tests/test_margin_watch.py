@@ -1,0 +1,142 @@
+"""The kinematic-margin watch (workcell.campaign.watch): a campaign stops when the real SMR is
+demonstrably farther from the nominal one than the envelope's margin, on real and simulated data."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from workcell.campaign.envelope import default_envelope
+from workcell.campaign.executor import CampaignConfig
+from workcell.campaign.run import run_campaign, sim_cell
+from workcell.campaign.watch import MIN_POSES, MarginWatch
+from workcell.cli import main
+from workcell.kinematics.robots import UR5E, robot_from_session
+from workcell.recording.reader import read_recording
+
+DATA = Path(__file__).resolve().parents[2] / "shared/data/ur10-leica"
+REAL_B = DATA / "series_B_joint_configurations.mcap"
+REAL_D = DATA / "series_D_iso_cubes.mcap"
+FAST = CampaignConfig(readings_per_pose=2, settle_s=0.2)
+
+
+def replay(path: Path, margin_m: float, limit: int):
+    rec = read_recording(path)
+    w = MarginWatch(
+        robot_from_session(rec.session["robot"]), rec.session["tool"]["smr_offset_m"], margin_m
+    )
+    for i, s in enumerate(rec.samples[:limit]):
+        v = w.update(s)
+        if v is not None and v.stop:
+            return w, i + 1
+    return w, None
+
+
+@pytest.mark.skipif(not REAL_B.exists(), reason="shared real data not present")
+def test_real_ur10_smr_offset_error_stops_a_10mm_margin_not_a_20mm_one():
+    """Series B declares smr_offset_m (0, 0, 109) mm; the full DH fit puts the SMR at 93.3 mm.
+    The watch must see the 16 mm within a few tens of poses with a 10 mm margin, and never stop
+    a 20 mm one."""
+    w, n = replay(REAL_B, 0.010, 60)
+    assert n is not None and MIN_POSES <= n <= 40, n
+    v = w.last
+    assert "smr_offset_m" in v.stop and "10 mm" in v.stop
+    assert 0.010 < v.offset_norm_m < 0.022
+    fitted_z = 0.109 + v.offset_m[2]
+    assert abs(fitted_z - 0.0933) < 0.004, fitted_z
+    w, n = replay(REAL_B, 0.020, 300)
+    assert n is None
+    assert "checked on 300 poses" in w.summary()
+
+
+@pytest.mark.skipif(not REAL_D.exists(), reason="shared real data not present")
+def test_real_ur10_iso_cube_cannot_verify_the_smr_offset_and_says_so():
+    """Series D measures at one flange orientation: the SMR offset is not observable, so no stop
+    from it and a summary that says the margin was only partly checked."""
+    w, n = replay(REAL_D, 0.010, 200)
+    assert n is None
+    assert "only partly checked" in w.summary() and "smr_offset_m" in w.summary()
+
+
+def _campaign(tmp_path, cell, robot, tracker, poses=20, envelope=None):
+    p = tmp_path / "c.mcap"
+    _, res = run_campaign(
+        robot, tracker, cell, p, poses=poses, seed=2, config=FAST, envelope=envelope
+    )
+    return read_recording(p), res
+
+
+def test_sim_campaign_with_the_right_smr_runs_through_and_reports_the_check(tmp_path):
+    _, robot, tracker, cell = sim_cell("ur5e", "realistic", seed=2, beam_break_prob=0.0)
+    rec, res = _campaign(tmp_path, cell, robot, tracker)
+    assert not res.aborted and res.measured == 20
+    margin = [e for e in rec.events if e["kind"] == "margin"]
+    assert len(margin) == 1 and margin[0]["level"] == "info"
+    assert "checked on 20 poses" in margin[0]["message"]
+
+
+def test_sim_campaign_with_a_wrong_smr_offset_stops_and_keeps_what_it_measured(tmp_path):
+    """The operator declares the SMR 15 mm too far out: the campaign stops soon, the robot is
+    stopped, the recording is closed cleanly with a `margin` error event and the poses so far."""
+    _, robot, tracker, cell = sim_cell("ur5e", "realistic", seed=2, beam_break_prob=0.0)
+    cell.tool_m = cell.tool_m + np.array([0.0, 0.0, 0.015])
+    rec, res = _campaign(tmp_path, cell, robot, tracker)
+    assert res.aborted and res.stopped_by == "margin"
+    assert MIN_POSES <= res.measured < 20 and len(rec.samples) == res.measured
+    assert rec.closed_cleanly and not rec.problems
+    ev = [e for e in rec.events if e["kind"] == "margin"]
+    assert len(ev) == 1 and ev[0]["level"] == "error" and "smr_offset_m" in ev[0]["message"]
+
+
+def test_sim_campaign_with_the_wrong_robot_model_stops(tmp_path):
+    """A UR10 declared as a UR5e: after fitting registration and SMR the measured poses are far
+    from the nominal chain, so the envelope check means nothing and the campaign stops."""
+    _, robot, tracker, cell = sim_cell("ur10", "realistic", seed=2, beam_break_prob=0.0)
+    cell.spec = UR5E
+    rec, res = _campaign(tmp_path, cell, robot, tracker, envelope=default_envelope(UR5E))
+    assert res.stopped_by == "margin" and res.measured < 20
+    msg = [e for e in rec.events if e["kind"] == "margin"][0]["message"]
+    assert "is the robot model right" in msg and "ur5e" in msg
+
+
+def test_a_zero_margin_has_nothing_to_watch(tmp_path):
+    _, robot, tracker, cell = sim_cell("ur5e", "realistic", seed=2, beam_break_prob=0.0)
+    cell.tool_m = cell.tool_m + np.array([0.0, 0.0, 0.015])
+    env = default_envelope(cell.spec)
+    env.kinematic_margin_m = 0.0
+    rec, res = _campaign(tmp_path, cell, robot, tracker, poses=8, envelope=env)
+    assert not res.aborted and not [e for e in rec.events if e["kind"] == "margin"]
+
+
+def test_cli_stop_is_one_line_nonzero_and_resume_is_refused(tmp_path, capsys):
+    out = tmp_path / "r.mcap"
+    common = ["campaign", "--poses", "20", "--readings", "2", "--settle", "0.2", "--seed", "2"]
+    rc = main([*common, "--smr-offset", "0,0,0.075", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert rc != 0
+    last = err.strip().splitlines()[-1]
+    assert "kinematic margin does not hold" in last and "keeps them" in last
+    assert "Traceback" not in err
+    n = len(read_recording(out).samples)
+    assert MIN_POSES <= n < 20
+    rc = main(["campaign", "--resume", str(out), "--out", str(tmp_path / "r2.mcap")])
+    err = capsys.readouterr().err
+    assert rc != 0 and "start a new campaign" in err and "nothing moved" in err
+    assert not (tmp_path / "r2.mcap").exists()
+    assert len(read_recording(out).samples) == n  # the old file is untouched
+
+
+@pytest.mark.parametrize(
+    "bad,what",
+    [
+        ("0,0,60", "in metres"),
+        ("0,0", "three numbers"),
+        ("a,b,c", "three numbers"),
+        ("0,0,nan", "three numbers"),
+    ],
+)
+def test_cli_refuses_a_bad_smr_offset(tmp_path, capsys, bad, what):
+    rc = main(["campaign", "--poses", "3", "--smr-offset", bad, "--out", str(tmp_path / "x.mcap")])
+    err = capsys.readouterr().err
+    assert rc == 2 and what in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "x.mcap").exists()
