@@ -140,3 +140,27 @@ def test_cli_refuses_a_bad_smr_offset(tmp_path, capsys, bad, what):
     err = capsys.readouterr().err
     assert rc == 2 and what in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "x.mcap").exists()
+
+
+@pytest.mark.parametrize("at", [0, 2, 5, 12])
+def test_one_bumped_pose_is_named_not_a_stop_two_are_a_stop(tmp_path, at):
+    """A single reading 100 mm off (a bumped SMR) must not stop the campaign, wherever it comes,
+    even among the first MIN_POSES; the end line names it. Two such poses stop it."""
+    _, robot, tracker, cell = sim_cell("ur5e", "realistic", seed=3, beam_break_prob=0.0)
+    rec, _ = _campaign(tmp_path, cell, robot, tracker, poses=16)
+
+    def run(bumped: set[int]):
+        w = MarginWatch(cell.spec, cell.tool_m, 0.010)
+        for i, s in enumerate(rec.samples):
+            if i in bumped:
+                s = {**s, "tracker_position_m": list(np.add(s["tracker_position_m"], [0.1, 0, 0]))}
+            v = w.update(s)
+            if v is not None and v.stop:
+                return w, v.stop
+        return w, None
+
+    w, stop = run({at})
+    assert stop is None
+    assert f"except pose {rec.samples[at]['pose_id']}" in w.summary()
+    w, stop = run({at, at + 3})
+    assert stop is not None and "2 of" in stop

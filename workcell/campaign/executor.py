@@ -561,7 +561,9 @@ class Executor:
     def _margin_summary(self) -> None:
         """The margin watch's one line on what it checked (an info event), if it ran."""
         if self.watch is not None:
-            self.event("info", "margin", self.watch.summary())
+            text = self.watch.summary()
+            stop = self.watch.last is not None and self.watch.last.stop
+            self.event("error" if stop else "info", "margin", text)
 
     def _stop_robot(self) -> None:
         try:

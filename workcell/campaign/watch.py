@@ -34,6 +34,17 @@ BAD_POSES_TO_STOP = 2
 # a weak prior that keeps the fitted offset near the declared one when the data cannot place it
 # (a flange at one orientation): 1 m of offset costs as much as a 10 mm residual on one coordinate
 PRIOR_WEIGHT = 1e-2
+ROBUST_M = 1e-3  # Cauchy loss scale of the robust fit
+EVERY_POSE_UP_TO = 200  # poses; beyond, every (n // 200)-th pose, so a long campaign's cost
+# stays linear in its poses
+LEAVE_ONE_OUT_UP_TO = 20  # poses; beyond, the robust fit alone sets one bad pose aside
+
+
+def _mm(value_m: float, sigma_m: float) -> str:
+    """'15.9 +- 0.1' in mm, with the sigma's two significant digits below 0.1 mm."""
+    v, e = 1e3 * value_m, 1e3 * sigma_m
+    dec = 1 if not (np.isfinite(e) and 0 < e < 0.1) else min(3, int(-np.floor(np.log10(e))) + 1)
+    return f"{v:.{dec}f} +- {e:.{dec}f}"
 
 
 @dataclass
@@ -43,8 +54,9 @@ class MarginVerdict:
     offset_sigma_m: float  # standard error of |offset| (along it)
     offset_sigma_max_m: float  # largest standard error of the offset in any direction
     k: float  # coverage factor used
-    residual_max_m: float
+    residual_max_m: float  # largest distance from the nominal chain, poses within the margin
     bad_poses: list[int]  # pose ids more than the margin from the nominal chain, after the fit
+    bad_dist_m: list[float]  # and their distances
     stop: str | None  # the reason to stop, one line, or None
 
     @property
@@ -87,14 +99,17 @@ class MarginWatch:
         self.t.append(T[:3, 3])
         self.p.append(p)
         self.ids.append(int(sample.get("pose_id", len(self.ids))))
-        if len(self.p) < MIN_POSES:
+        n = len(self.p)
+        if n < MIN_POSES or (n > EVERY_POSE_UP_TO and n % (n // EVERY_POSE_UP_TO) != 0):
             return None
-        self.last = self._verdict()
-        return self.last
+        verdict = self._verdict()
+        if verdict is not None:
+            self.last = verdict
+        return verdict
 
-    def _verdict(self) -> MarginVerdict:
-        from scipy import stats
+    def _verdict(self) -> MarginVerdict | None:
         from scipy.optimize import least_squares
+        from scipy.special import stdtrit
 
         from workcell.kinematics.frames import kabsch, matrix_from_rotvec, rotvec_from_matrix
 
@@ -104,22 +119,56 @@ class MarginWatch:
         T0 = kabsch(np.einsum("nij,j->ni", R, tool0) + t, P)
         x0 = np.concatenate([rotvec_from_matrix(T0[:3, :3]), T0[:3, 3], tool0])
 
-        def residual(x: np.ndarray) -> np.ndarray:
-            p_base = np.einsum("nij,j->ni", R, x[6:]) + t
-            r = (p_base @ matrix_from_rotvec(x[:3]).T + x[3:6] - P).ravel()
+        def residual(x: np.ndarray, rows: np.ndarray) -> np.ndarray:
+            p_base = np.einsum("nij,j->ni", R[rows], x[6:]) + t[rows]
+            r = (p_base @ matrix_from_rotvec(x[:3]).T + x[3:6] - P[rows]).ravel()
             return np.concatenate([r, PRIOR_WEIGHT * (x[6:] - tool0)])
 
-        fit = least_squares(residual, x0, x_scale=np.full(9, 0.1))
-        r = fit.fun[:-3].reshape(-1, 3)
-        dist = np.linalg.norm(r, axis=1)
-        dof = 3 * n - 9
-        s2 = float(r.ravel() @ r.ravel()) / dof
-        JtJ = fit.jac.T @ fit.jac
-        d = fit.x[6:] - tool0
+        def distances(x: np.ndarray) -> np.ndarray:
+            return np.linalg.norm(residual(x, np.arange(n))[:-3].reshape(-1, 3), axis=1)
+
+        # one bumped pose must not drag the others off: among a robust (Cauchy) fit of all poses
+        # and, while there are few and one is off, the fits that leave one pose out, take the one
+        # with the most poses within the margin; then least squares on those. Fewer than
+        # MIN_POSES within the margin of every fit: two or more poses are off (stop) or one is
+        # (wait for the next pose)
+        scale = np.full(9, 0.1)
+        everything = np.arange(n)
+        starts = [
+            least_squares(
+                residual, x0, args=(everything,), x_scale=scale, loss="cauchy", f_scale=ROBUST_M
+            ).x
+        ]
+        if n <= LEAVE_ONE_OUT_UP_TO and np.any(distances(starts[0]) > self.margin_m):
+            for j in range(n):
+                keep = np.delete(everything, j)
+                starts.append(
+                    least_squares(residual, x0, args=(keep,), x_scale=scale, max_nfev=30).x
+                )
+        best = None
+        for x in starts:
+            dd = distances(x)
+            inside = dd <= self.margin_m
+            key = (int(inside.sum()), -float(np.sum(dd[inside] ** 2)))
+            if best is None or key > best[0]:
+                best = (key, x, np.flatnonzero(inside))
+        _, x, rows = best
+        if len(rows) >= MIN_POSES:
+            fit = least_squares(residual, x, args=(rows,), x_scale=scale)
+            x, dof = fit.x, 3 * len(rows) - 9
+            r = fit.fun[:-3]
+            s2 = float(r @ r) / dof
+            JtJ = fit.jac.T @ fit.jac
+        elif n - len(rows) >= BAD_POSES_TO_STOP:  # no MIN_POSES poses agree on any fit
+            dof, s2, JtJ = 3 * n - 9, float("inf"), None
+        else:  # one pose off among MIN_POSES: wait for the next pose to tell which
+            return None
+        dist = distances(x)
+        d = x[6:] - tool0
         # standard error of |d| along d; infinite when the offset is not observable (the flange
         # orientation hardly changed), so no verdict is drawn from it
         try:
-            cov = np.linalg.inv(JtJ)[6:, 6:] * s2
+            cov = np.linalg.inv(JtJ)[6:, 6:] * s2 if JtJ is not None else np.full((3, 3), np.inf)
         except np.linalg.LinAlgError:
             cov = np.full((3, 3), np.inf)
         if np.all(np.isfinite(cov)):
@@ -129,18 +178,19 @@ class MarginWatch:
             sigma_max = float(np.sqrt(max(np.linalg.eigvalsh(cov).max(), 0.0)))
         else:
             sigma = sigma_max = float("inf")
-        k = float(stats.t.ppf(1 - 0.0027 / 2, dof))
-        bad = [self.ids[i] for i in np.flatnonzero(dist > self.margin_m)]
+        k = float(stdtrit(dof, 1 - 0.0027 / 2))
+        beyond = dist > self.margin_m
+        bad = [self.ids[i] for i in np.flatnonzero(beyond)]
         margin_mm = 1e3 * self.margin_m
         stop = None
         norm = float(np.linalg.norm(d))
         resolved = k * sigma_max < self.margin_m  # in every direction, not only along d
         if resolved and norm - k * sigma > self.margin_m:
-            fitted = ", ".join(f"{1e3 * v:.1f}" for v in fit.x[6:])
+            fitted = ", ".join(f"{1e3 * v:.1f}" for v in x[6:])
             declared = ", ".join(f"{1e3 * v:.1f}" for v in tool0)
             stop = (
-                f"the SMR sits {1e3 * norm:.1f} +- {1e3 * sigma:.1f} mm from the declared "
-                f"smr_offset_m (fitted on {n} poses: [{fitted}] mm on the flange, declared "
+                f"the SMR sits {_mm(norm, sigma)} mm from the declared "
+                f"smr_offset_m (fitted on {len(rows)} poses: [{fitted}] mm on the flange, declared "
                 f"[{declared}] mm), more than the envelope's {margin_mm:g} mm kinematic margin: "
                 "poses may come closer to the envelope's faces than it allows. Check the SMR "
                 "nest and extension and correct the tool offset, or widen kinematic_margin_m in "
@@ -161,23 +211,38 @@ class MarginWatch:
             offset_sigma_m=sigma,
             offset_sigma_max_m=sigma_max,
             k=k,
-            residual_max_m=float(dist.max()),
+            residual_max_m=float(dist[~beyond].max()) if (~beyond).any() else float("nan"),
             bad_poses=bad,
+            bad_dist_m=[float(x) for x in dist[beyond]],
             stop=stop,
         )
 
-    def summary(self) -> str | None:
-        """One line for the end of a campaign: how well the margin was verified."""
+    def summary(self) -> str:
+        """One line for the end of a campaign: how well the margin was verified (on all poses:
+        a long campaign's last poses may not have been checked yet)."""
+        n = len(self.p)
+        if n >= MIN_POSES and (self.last is None or self.last.n != n):
+            self.last = self._verdict() or self.last
         v = self.last
         margin_mm = 1e3 * self.margin_m
-        if v is None:
+        if v is None and n < MIN_POSES:
             return (
                 f"kinematic margin {margin_mm:g} mm not checked: fewer than {MIN_POSES} poses "
                 "were measured"
             )
+        if v is None:
+            return (
+                f"kinematic margin {margin_mm:g} mm not checked: one of the {n} poses is more "
+                "than the margin from the fit of the others, too few to tell which is wrong"
+            )
         if v.stop:
-            return None
+            return f"at the end of the campaign, {v.stop}"
         chain = f"measured poses within {1e3 * v.residual_max_m:.1f} mm of the nominal chain"
+        if v.bad_poses:  # one (two would have stopped the campaign)
+            chain += (
+                f" except pose {v.bad_poses[0]}, {1e3 * v.bad_dist_m[0]:.1f} mm off (a bumped SMR "
+                "or a bad reading? check that pose)"
+            )
         if not v.resolves(self.margin_m):
             known = (
                 f"known only to +- {1e3 * v.k * v.offset_sigma_max_m:.0f} mm"
@@ -191,6 +256,5 @@ class MarginWatch:
             )
         return (
             f"kinematic margin {margin_mm:g} mm checked on {v.n} poses: SMR offset "
-            f"{1e3 * v.offset_norm_m:.1f} +- {1e3 * v.offset_sigma_m:.1f} mm from the declared "
-            f"one, {chain}"
+            f"{_mm(v.offset_norm_m, v.offset_sigma_m)} mm from the declared one, {chain}"
         )

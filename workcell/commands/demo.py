@@ -44,7 +44,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from workcell.campaign.run import run_campaign, sim_cell
+    from workcell.campaign.run import margin_stop, run_campaign, sim_cell
     from workcell.estimation.fitting import fit_dataset
     from workcell.estimation.models import save_model
     from workcell.recording.dataset import Dataset
@@ -86,7 +86,9 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         config=cfg,
         extra_campaign={"effects": args.effects, "warmup_s": args.warmup},
+        on_event=lambda e: log(f"  {e['kind']}: {e['message']}") if e["kind"] == "margin" else None,
     )
+    margin_stop(res, rec_path)
     camp_s = time.perf_counter() - t0
     log(
         f"  measured {res.measured}, skipped {res.skipped}, {res.events} events "
