@@ -110,11 +110,9 @@ def run_campaign(
     watch = None
     if margin_watch and env.kinematic_margin_m > 0:
         watch = MarginWatch(cell.spec, cell.tool_m, env.kinematic_margin_m)
-        for old in watch_history or []:
-            watch.update(old)
-        if watch.last is not None and watch.last.stop:
+        if watch_history and (v := watch.extend(watch_history)) is not None and v.stop:
             raise UserError(
-                f"the recording this continues already fails the margin check ({watch.last.stop}); "
+                f"the recording this continues already fails the margin check ({v.stop}); "
                 "a resume keeps its SMR offset and envelope, so start a new campaign instead "
                 "(nothing moved)"
             )

@@ -85,20 +85,33 @@ class MarginWatch:
         self.ids: list[int] = []
         self.last: MarginVerdict | None = None
 
-    def update(self, sample: dict) -> MarginVerdict | None:
+    def _add(self, sample: dict) -> bool:
         from workcell.kinematics.chain import base_T_flange
 
         q = np.asarray(sample["q_measured_rad"], float)
         p = np.asarray(sample["tracker_position_m"], float)
         if q.shape != (self.spec.dh.n_joints,) or p.shape != (3,):
-            return self.last
+            return False
         if not (np.all(np.isfinite(q)) and np.all(np.isfinite(p))):
-            return self.last
+            return False
         T = np.asarray(base_T_flange(self.theta, q[None, :]))[0]
         self.R.append(T[:3, :3])
         self.t.append(T[:3, 3])
         self.p.append(p)
         self.ids.append(int(sample.get("pose_id", len(self.ids))))
+        return True
+
+    def extend(self, samples: list[dict]) -> MarginVerdict | None:
+        """Samples recorded earlier (a resumed recording's), then one verdict on all of them."""
+        for s in samples:
+            self._add(s)
+        if len(self.p) >= MIN_POSES:
+            self.last = self._verdict() or self.last
+        return self.last
+
+    def update(self, sample: dict) -> MarginVerdict | None:
+        if not self._add(sample):
+            return None
         n = len(self.p)
         if n < MIN_POSES or (n > EVERY_POSE_UP_TO and n % (n // EVERY_POSE_UP_TO) != 0):
             return None
