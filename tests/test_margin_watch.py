@@ -164,3 +164,24 @@ def test_one_bumped_pose_is_named_not_a_stop_two_are_a_stop(tmp_path, at):
     assert f"except pose {rec.samples[at]['pose_id']}" in w.summary()
     w, stop = run({at, at + 3})
     assert stop is not None and "2 of" in stop
+
+
+def test_validate_guards_with_the_smr_offset_the_campaign_declared(tmp_path, capsys, monkeypatch):
+    """`validate` checks its moves against the envelope with the recording's declared SMR
+    offset (it used the default 0,0,0.06 whatever the campaign declared)."""
+    import workcell.campaign.envelope as envelope
+
+    rec, model = tmp_path / "c.mcap", tmp_path / "m.json"
+    argv = ["campaign", "--effects", "none", "--seed", "3", "--poses", "16", "--readings", "2"]
+    assert main([*argv, "--smr-offset", "0,0,0.062", "--out", str(rec)]) == 0
+    assert main(["fit", str(rec), "--holdout", "0", "--out", str(model)]) == 0
+    tools = []
+    real = envelope.Guard
+
+    def spy(env, spec, tool_m):
+        tools.append(np.asarray(tool_m, float))
+        return real(env, spec, tool_m)
+
+    monkeypatch.setattr(envelope, "Guard", spy)
+    assert main(["validate", str(model), "--targets", "2", "--json"]) == 0, capsys.readouterr().err
+    assert tools and np.allclose(tools[-1], [0, 0, 0.062])

@@ -108,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
         # the recording's robot was warm: warm-up plus the campaign
         world.clock.advance(float(camp.get("warmup_s", 0.0)) + 3600.0)
         measure = sim_measure(world)
-        spec, tool = cell.spec, cell.tool_m
+        spec = cell.spec
         temps = world.joint_temperatures_c()
     else:
         from workcell.campaign.devices import open_cell
@@ -122,7 +122,7 @@ def run(args: argparse.Namespace) -> int:
         )
         cell, robot, tracker, _ = open_cell(ns)
         measure = tracker_measure(tracker, args.readings or 5)
-        spec, tool = cell.spec, cell.tool_m
+        spec = cell.spec
         temps = None
     env = envelope_from_args(args, spec)  # before connecting
     robot.connect()
@@ -149,7 +149,7 @@ def run(args: argparse.Namespace) -> int:
             measure,
             n=args.targets,
             seed=args.seed,
-            guard=Guard(env, spec, tool),
+            guard=Guard(env, spec, nominal.tool_m),  # the SMR the campaign declared
             q_start=np.asarray(robot.state().q_rad, float),
             log=log,
         )
