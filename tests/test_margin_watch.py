@@ -185,3 +185,55 @@ def test_validate_guards_with_the_smr_offset_the_campaign_declared(tmp_path, cap
     monkeypatch.setattr(envelope, "Guard", spy)
     assert main(["validate", str(model), "--targets", "2", "--json"]) == 0, capsys.readouterr().err
     assert tools and np.allclose(tools[-1], [0, 0, 0.062])
+
+
+def test_tui_resume_keeps_the_recorded_smr_offset(tmp_path, monkeypatch):
+    """The TUI's resume refuses when its Devices screen declares another SMR offset than the
+    recording (as `campaign --resume` does), and continues when it is the same."""
+    from workcell.campaign.executor import CampaignControl
+    from workcell.errors import UserError
+    from workcell.tui import backend
+
+    monkeypatch.chdir(tmp_path)
+    plan = backend.PlanConfig(poses=12, seed=2, readings_per_pose=2, out="a.mcap")
+    dev = backend.open_devices(backend.DeviceConfig(effects="none", seed=2, smr_offset="0,0,0.061"))
+    try:
+        control = CampaignControl()
+
+        def stop_after_6(s: dict) -> None:
+            if s["index"] >= 5:
+                control.abort.set()
+
+        backend.start_campaign(
+            dev, plan, control=control, on_sample=stop_after_6, on_event=lambda e: None
+        )
+    finally:
+        dev.close()
+    other = backend.open_devices(backend.DeviceConfig(effects="none", seed=2))
+    try:
+        with pytest.raises(UserError, match="a resume keeps the recorded one"):
+            backend.start_campaign(
+                other,
+                plan,
+                control=CampaignControl(),
+                on_sample=lambda s: None,
+                on_event=lambda e: None,
+                resume_from="a.mcap",
+            )
+    finally:
+        other.close()
+    same = backend.open_devices(
+        backend.DeviceConfig(effects="none", seed=2, smr_offset="0,0,0.061")
+    )
+    try:
+        path, res = backend.start_campaign(
+            same,
+            plan,
+            control=CampaignControl(),
+            on_sample=lambda s: None,
+            on_event=lambda e: None,
+            resume_from="a.mcap",
+        )
+    finally:
+        same.close()
+    assert not res.aborted and read_recording(path).session["tool"]["smr_offset_m"] == [0, 0, 0.061]

@@ -368,6 +368,7 @@ def start_campaign(
             default_out,
             plan_continuation,
             recorded_envelope,
+            recorded_tool,
             resume_plan,
         )
         from workcell.recording.dataset import file_sha256
@@ -385,6 +386,13 @@ def start_campaign(
             default=dev.envelope,
             say=lambda m: on_event({"level": "warning", "kind": "envelope", "message": m}),
         )
+        recorded = np.asarray(recorded_tool(info["recording"].session))
+        if not np.allclose(recorded, dev.cell.tool_m, rtol=0.0, atol=1e-9):
+            raise UserError(
+                f"{old} was recorded with the SMR offset {recorded.tolist()} m, the Devices screen "
+                f"declares {np.asarray(dev.cell.tool_m).tolist()} m: a resume keeps the recorded "
+                "one; set it on the Devices screen and reconnect, or start a new campaign"
+            )
         check_same_plan(info, dev.cell.spec, env, dev.cell.tool_m, str(old))
         plan = PlanConfig(
             kind=camp["plan"],
