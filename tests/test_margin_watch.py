@@ -196,44 +196,24 @@ def test_tui_resume_keeps_the_recorded_smr_offset(tmp_path, monkeypatch):
 
     monkeypatch.chdir(tmp_path)
     plan = backend.PlanConfig(poses=12, seed=2, readings_per_pose=2, out="a.mcap")
-    dev = backend.open_devices(backend.DeviceConfig(effects="none", seed=2, smr_offset="0,0,0.061"))
-    try:
-        control = CampaignControl()
 
-        def stop_after_6(s: dict) -> None:
-            if s["index"] >= 5:
-                control.abort.set()
-
-        backend.start_campaign(
-            dev, plan, control=control, on_sample=stop_after_6, on_event=lambda e: None
-        )
-    finally:
-        dev.close()
-    other = backend.open_devices(backend.DeviceConfig(effects="none", seed=2))
-    try:
-        with pytest.raises(UserError, match="a resume keeps the recorded one"):
-            backend.start_campaign(
-                other,
+    def start(smr: str, control=None, resume_from=None, on_sample=lambda s: None):
+        dev = backend.open_devices(backend.DeviceConfig(effects="none", seed=2, smr_offset=smr))
+        try:
+            return backend.start_campaign(
+                dev,
                 plan,
-                control=CampaignControl(),
-                on_sample=lambda s: None,
+                control=control or CampaignControl(),
+                on_sample=on_sample,
                 on_event=lambda e: None,
-                resume_from="a.mcap",
+                resume_from=resume_from,
             )
-    finally:
-        other.close()
-    same = backend.open_devices(
-        backend.DeviceConfig(effects="none", seed=2, smr_offset="0,0,0.061")
-    )
-    try:
-        path, res = backend.start_campaign(
-            same,
-            plan,
-            control=CampaignControl(),
-            on_sample=lambda s: None,
-            on_event=lambda e: None,
-            resume_from="a.mcap",
-        )
-    finally:
-        same.close()
+        finally:
+            dev.close()
+
+    control = CampaignControl()
+    start("0,0,0.061", control, on_sample=lambda s: s["index"] >= 5 and control.abort.set())
+    with pytest.raises(UserError, match="a resume keeps the recorded one"):
+        start("", resume_from="a.mcap")
+    path, res = start("0,0,0.061", resume_from="a.mcap")
     assert not res.aborted and read_recording(path).session["tool"]["smr_offset_m"] == [0, 0, 0.061]
