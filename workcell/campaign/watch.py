@@ -6,10 +6,12 @@ is within the margin of the nominal one. Before a first fit nobody knows; this w
 while the campaign runs, from the samples themselves:
 
 - it fits, on the samples so far, the tracker registration (6) and the SMR offset on the flange
-  (3) with the nominal chain (a 9-parameter least-squares problem, milliseconds);
+  (3) with the nominal chain (a 9-parameter least-squares problem, 5-25 ms), robustly: a Cauchy
+  fit, and while there are few poses and one is off, the fits that leave one pose out;
 - **SMR offset**: the real SMR sits |d| from the declared one, the same distance in every pose.
   If |d| - k sigma_d > margin (k: Student-t 99.73 % two-sided quantile for the fit's degrees of
-  freedom; sigma_d: the fit's standard error along d), the margin does not cover it;
+  freedom; sigma_d: the fit's standard error along d) and the offset is resolved to better than
+  the margin in every direction, the margin does not cover it;
 - **the chain**: after that fit, a measured pose more than the margin from the nominal chain's
   prediction means the arm is not where its nominal model says (a wrong robot model, a large
   kinematic error). Two such poses are needed (one may be a bumped SMR).
