@@ -46,10 +46,12 @@ def open_cell(args):
     """-> (CellSetup, robot, tracker, envelope) from parsed CLI args (`envelope`: optional
     FILE; default: the arm's default envelope; `smr_offset`: optional 'X,Y,Z' m, the SMR on the
     flange as the operator declares it; a simulated cell keeps its own true SMR)."""
-    tool_m = parse_smr_offset(getattr(args, "smr_offset", None))
+    declared = getattr(args, "smr_offset", None)
+    tool_m = parse_smr_offset(declared)
     if args.robot == "sim" and args.tracker == "sim":
         _, robot, tracker, cell = sim_cell(args.model, args.effects, args.seed)
-        cell.tool_m = tool_m
+        if declared:  # else the simulated cell's own nominal SMR
+            cell.tool_m = tool_m
         return cell, robot, tracker, envelope_from_args(args, cell.spec)
     if args.robot == "sim" or args.tracker == "sim":
         raise UserError(
