@@ -140,7 +140,6 @@ class CampaignResult:
     events: int = 0
     skipped_ids: list[int] = field(default_factory=list)
     stopped_by: str = ""  # "operator" (abort, Ctrl-C) or "margin" (the margin watch)
-    stop_reason: str = ""
 
 
 class _MarginStop(Exception):
@@ -502,7 +501,6 @@ class Executor:
         if self.watch is not None:
             verdict = self.watch.update(sample)
             if verdict is not None and verdict.stop:
-                self.result.stop_reason = verdict.stop
                 self.event("error", "margin", verdict.stop)
                 raise _MarginStop
         return sample

@@ -14,6 +14,8 @@ import copy
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from workcell.campaign.devices import open_cell
 from workcell.campaign.envelope import envelope_of_session
 from workcell.campaign.executor import CampaignConfig, CampaignControl
@@ -152,8 +154,8 @@ def resume_campaign(args: argparse.Namespace) -> int:
     ns.seed = int(camp["seed"])
     ns.model = info["recording"].session.get("robot", {}).get("model", args.model)
     ns.envelope = None
-    ns.smr_offset = ",".join(f"{v!r}" for v in recorded_tool(info["recording"].session))
     cell, robot, tracker, env = open_cell(ns)
+    cell.tool_m = np.asarray(recorded_tool(info["recording"].session))
     env = recorded_envelope(camp, cell.spec, str(old), default=env)
     check_same_plan(info, cell.spec, env, cell.tool_m, str(old))
     cfg = CampaignConfig(

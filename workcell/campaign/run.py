@@ -70,10 +70,9 @@ def run_campaign(
     chained_from: dict | None = None,
     elapsed0_s: float = 0.0,
     plan_kwargs: dict | None = None,
-    margin_watch: bool = True,
     watch_history: list[dict] | None = None,
 ) -> tuple[Path, CampaignResult]:
-    """Plan, connect, record. With `margin_watch` (and a non-zero kinematic margin) every sample
+    """Plan, connect, record. With a non-zero kinematic margin, every sample
     also checks that the real SMR stays within the margin of the nominal one (`watch.MarginWatch`;
     `watch_history`: samples of the recording a resume continues) and the campaign stops when it
     does not."""
@@ -108,7 +107,7 @@ def run_campaign(
         # stop here, nothing connected, nothing recorded. (A UI's abort runs through the executor.)
         raise KeyboardInterrupt
     watch = None
-    if margin_watch and env.kinematic_margin_m > 0:
+    if env.kinematic_margin_m > 0:
         watch = MarginWatch(cell.spec, cell.tool_m, env.kinematic_margin_m)
         if watch_history and (v := watch.extend(watch_history)) is not None and v.stop:
             raise UserError(
