@@ -231,3 +231,28 @@ def test_measurement_noise_is_floored_by_the_tracker_mpe():
     assert np.allclose(lf._sigma(y, np.full(3, 40e-6)), 40e-6)  # a larger recorded sigma wins
     raw = LiveFilter(robot_by_name("ur5e"), np.array([0.0, 0.0, 0.06]), tracker_mpe=None)
     assert np.allclose(raw._sigma(y, np.full(3, 2e-6)), 2e-6)
+
+
+def test_model_carries_the_geometric_covariance_to_the_ros_yaml(campaign, tmp_path):
+    """The model keeps the filter's covariance of its geometric states (scaled by the variance
+    factor, as the estimate's std), through save/load, and the ROS YAML writes its +-."""
+    from workcell.export.ros_yaml import export_ros_yaml
+    from workcell.kinematics.chain import PARAM_NAMES
+
+    _, live, _ = campaign
+    f = live.filter
+    m = load_model(save_model(live.model(), tmp_path / "m.json"))
+    est = live.estimate()
+    C = m.theta_cov()
+    K = f.n_weights
+    idx = [PARAM_NAMES.index(n) for n in f.cfg.geometric]
+    k2 = max(est["variance_factor"], 1.0)
+    np.testing.assert_allclose(C[np.ix_(idx, idx)], f.P[K:, K:] * k2, rtol=1e-12)
+    assert np.count_nonzero(C) == len(idx) ** 2 > 0
+    for n, g in est["geometric"].items():
+        assert m.parameters()[n]["std"] == pytest.approx(g["std"], rel=1e-12)
+        assert np.sqrt(C[PARAM_NAMES.index(n)][PARAM_NAMES.index(n)]) == pytest.approx(g["std"])
+    path, info = export_ros_yaml(m, tmp_path / "cal.yaml")
+    assert info["kinematics_std"] is not None
+    assert "filter's final state covariance" in path.read_text()
+    assert max(v for d in info["kinematics_std"].values() for v in d.values()) > 0

@@ -162,3 +162,72 @@ def _geometry(m):
 
     th, B, _, _ = model_geometry(m)
     return th, B
+
+
+def _yaml_values(theta, like):
+    """The YAML values (flattened) of `like`'s geometry with `theta` put in."""
+    from workcell.export.ros_yaml import KEYS as K
+
+    m2 = _calibrated_model(3)
+    m2.theta, m2.base_ref = np.asarray(theta, float), like.base_ref
+    k = ros_kinematics(*_geometry(m2))
+    return np.array([k[n][x] for n in LINKS for x in K])
+
+
+def _monte_carlo_std(theta_draws, like):
+    vals = np.array([_yaml_values(th, like) for th in theta_draws])
+    ang = np.tile([False] * 3 + [True] * 3, len(LINKS))
+    ref = vals[0]
+    vals[:, ang] = ref[ang] + (vals[:, ang] - ref[ang] + np.pi) % (2 * np.pi) - np.pi
+    return vals.std(axis=0)
+
+
+def test_augmented_model_yaml_std_is_its_geometry_marginal(tmp_path):
+    """An augmented model's covariance is over [theta[free], effects]: the YAML's +- is the
+    geometry's marginal, checked against draws of the joint vector (effects correlated with
+    the geometry), and does not move when only an effect's variance does."""
+    from workcell.estimation.effects import N_EFF, AugmentedModel, FeatureSpec, library
+    from workcell.export.ros_yaml import KEYS as K
+    from workcell.export.ros_yaml import kinematics_std
+
+    dh = _calibrated_model(3)
+    rng = np.random.default_rng(11)
+    free = np.ones(39, bool)
+    free[[24, 27, 28, 29]] = False  # as a fit fixes some: the embedding must respect `free`
+    acc = [c for c in library() if c.key in ("joint_compliance/joint2", "backlash/joint3")]
+    nf, ne = int(free.sum()), 2
+    A = rng.normal(size=(nf + ne, nf + ne)) * 2e-5
+    cov = A @ A.T
+    m = AugmentedModel(
+        features_spec=FeatureSpec(
+            spec=UR5E,
+            payload_com_m=np.zeros(3),
+            thermal_source="time",
+            thermal_ref=np.zeros(6),
+            payload_kg_default=0.0,
+        ),
+        theta=dh.theta,
+        base_ref=dh.base_ref,
+        eff=np.zeros(N_EFF),
+        accepted=acc,
+        free=free,
+        cov=cov,
+        nominal_tool_m=np.array([0, 0, 0.06]),
+    )
+    path, info = export_ros_yaml(m, tmp_path / "aug.yaml")
+    std = info["kinematics_std"]
+    assert std is not None and "effects fitted with it marginalised out" in path.read_text()
+    z = rng.multivariate_normal(np.zeros(nf + ne), cov, size=3000)
+    draws = np.tile(dh.theta, (len(z), 1))
+    draws[:, free] += z[:, :nf]
+    mc = _monte_carlo_std(draws, dh)
+    lin = np.array([std[n][x] for n in LINKS for x in K])
+    big = lin > 1e-7
+    assert big.sum() >= 20
+    np.testing.assert_allclose(lin[big], mc[big], rtol=0.1)
+    # an effect's own variance is not the geometry's
+    cov2 = cov.copy()
+    cov2[nf, nf] *= 100.0
+    m.cov = cov2
+    std2 = kinematics_std(m)
+    assert all(std2[n][x] == pytest.approx(std[n][x], rel=1e-12) for n in LINKS for x in K)

@@ -72,6 +72,10 @@ class DHModel:
     def std(self) -> np.ndarray:
         return np.sqrt(np.clip(np.diag(self.cov), 0.0, None))
 
+    def theta_cov(self) -> np.ndarray:
+        """Covariance (39, 39) of `theta`; zero rows/columns for fixed parameters."""
+        return self.cov
+
     @property
     def tracker_T_base(self) -> np.ndarray:
         return np.asarray(tracker_T_base(self.theta, self.base_ref))

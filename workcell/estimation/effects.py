@@ -427,6 +427,14 @@ class AugmentedModel:
     def std(self) -> np.ndarray:
         return np.sqrt(np.clip(np.diag(self.cov), 0.0, None))
 
+    def theta_cov(self) -> np.ndarray:
+        """Marginal covariance (39, 39) of the geometric `theta` (the effects estimated with it
+        are marginalised out); zero rows/columns for fixed parameters."""
+        idx = np.flatnonzero(self.free)
+        out = np.zeros((len(self.theta), len(self.theta)))
+        out[np.ix_(idx, idx)] = self.cov[: len(idx), : len(idx)]
+        return out
+
     def _std_of(self) -> tuple[np.ndarray, np.ndarray]:
         s = self.std
         nf = int(self.free.sum())

@@ -259,8 +259,9 @@ def kinematics_std(model, step: float = 1e-7) -> dict | None:
     cov = None
     for attr in (None, "base", "base_model", "dh_model", "geometric"):
         m = model if attr is None else getattr(model, attr, None)
-        if m is not None and hasattr(m, "theta") and getattr(m, "cov", None) is not None:
-            cov = np.asarray(m.cov, float)
+        if m is not None and hasattr(m, "theta") and hasattr(m, "theta_cov"):
+            c = m.theta_cov()
+            cov = None if c is None else np.asarray(c, float)
             break
     if cov is None or cov.shape != (len(th), len(th)) or not np.all(np.isfinite(cov)):
         return None
@@ -300,15 +301,19 @@ def export_ros_yaml(model, path, meta: dict | None = None) -> tuple[Path, dict]:
         "not carried: non-geometric effects (compliance, backlash, thermal, data-driven residuals)",
     ]
     std = kinematics_std(model)
+    method = getattr(model, "method", "?")
     if std is not None:
-        comments.append(
-            "+- beside a value: 1 sigma, the fit's parameter covariance (see `workcell fit` for its "
-            "basis) propagated to first order"
-        )
+        basis = {
+            "augmented": "the fit's covariance of the geometry, the effects fitted with it "
+            "marginalised out",
+            "ekf-ann": "the filter's final state covariance of the geometric states it estimated "
+            "times max(1, s0^2), s0^2 its innovation variance factor",
+        }.get(method, "the fit's parameter covariance (see `workcell fit` for its basis)")
+        comments.append(f"+- beside a value: 1 sigma, {basis}, propagated to first order")
     else:
         comments.append(
-            f"no uncertainty beside the values: a {getattr(model, 'method', '?')} model's "
-            "covariance is not propagated to these values (its own report gives its stds)"
+            f"no uncertainty beside the values: this {method} model carries no covariance of its "
+            "geometry (an ekf-ann model in paper mode does not estimate it)"
         )
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)

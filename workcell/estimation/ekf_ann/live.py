@@ -272,4 +272,10 @@ class LiveFilter:
     def model(self) -> EkfAnnModel:
         if self.filter is None:
             raise ValueError(f"not initialised yet: {self.n} of {self.n_init} samples seen")
-        return EkfAnnModel.from_filter(self.filter, self.robot.model, self.robot.dh)
+        s0, _ = self.variance_test()
+        return EkfAnnModel.from_filter(
+            self.filter,
+            self.robot.model,
+            self.robot.dh,
+            info={"variance_factor": s0} if np.isfinite(s0) else {},
+        )
