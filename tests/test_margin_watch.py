@@ -217,3 +217,54 @@ def test_tui_resume_keeps_the_recorded_smr_offset(tmp_path, monkeypatch):
         start("", resume_from="a.mcap")
     path, res = start("0,0,0.061", resume_from="a.mcap")
     assert not res.aborted and read_recording(path).session["tool"]["smr_offset_m"] == [0, 0, 0.061]
+
+
+def _base_sweep(offset_base_m, n=12, seed=0):
+    """Samples of a sweep of joint 1 alone (the flange turns about the base z axis only): the
+    SMR offset is resolved radially, not vertically nor tangentially. The true SMR sits
+    `offset_base_m` (base frame, at q1 = 0) from the declared one; 20 um tracker noise."""
+    from workcell.kinematics.chain import base_T_flange, pack
+
+    rng = np.random.default_rng(seed)
+    declared = np.array([0.0, 0.0, 0.06])
+    q = np.tile(np.deg2rad([0.0, -70.0, 80.0, -100.0, -90.0, 0.0]), (n, 1))
+    q[:, 0] = np.deg2rad(np.linspace(-90.0, 90.0, n))
+    T = np.asarray(base_T_flange(pack(UR5E.dh, tool=np.zeros(3)), q))
+    true_tool = declared + T[n // 2, :3, :3].T @ np.asarray(offset_base_m, float)
+    p = np.einsum("nij,j->ni", T[:, :3, :3], true_tool) + T[:, :3, 3] + rng.normal(0, 2e-5, (n, 3))
+    samples = [
+        {"pose_id": i, "q_measured_rad": q[i].tolist(), "tracker_position_m": p[i].tolist()}
+        for i in range(n)
+    ]
+    radial = T[n // 2, :3, 3] + T[n // 2, :3, :3] @ declared
+    radial[2] = 0.0
+    return samples, declared, radial / np.linalg.norm(radial)
+
+
+@pytest.mark.parametrize(
+    ("size_m", "direction", "stops"),
+    [(0.015, "radial", True), (0.008, "radial", False), (0.015, "vertical", False)],
+)
+def test_an_offset_resolved_in_one_direction_only_stops_on_that_part(size_m, direction, stops):
+    """The part of the offset the poses resolve is a lower bound on the whole: 15 mm along the
+    one resolved direction stops a 10 mm margin although the others are unknown; 8 mm there, or
+    15 mm where the poses cannot see it (vertical), does not."""
+    _, _, radial = _base_sweep([0.0, 0.0, 0.0])
+    along = radial if direction == "radial" else np.array([0.0, 0.0, 1.0])
+    samples, declared, _ = _base_sweep(size_m * along)
+    w = MarginWatch(UR5E, declared, 0.010)
+    stop = None
+    for s in samples:
+        v = w.update(s)
+        if v is not None and v.stop:
+            stop = v.stop
+            break
+    # resolved in the radial direction only, whatever the prior that holds the fit elsewhere
+    assert w.last.resolved_directions == 1 and not w.last.resolves(0.010)
+    assert (stop is not None) == stops, stop or w.summary()
+    if stops:
+        assert "at least 15.0" in stop and "smr_offset_m" in stop
+    else:
+        assert "resolved in 1 of 3 directions only" in w.summary()
+        seen = size_m if direction == "radial" else 0.0
+        assert abs(w.last.offset_resolved_m - seen) < 1e-4, w.last.offset_resolved_m

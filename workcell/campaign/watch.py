@@ -9,17 +9,21 @@ while the campaign runs, from the samples themselves:
   (3) with the nominal chain (a 9-parameter least-squares problem, 5-25 ms), robustly: a Cauchy
   fit, and while there are few poses and one is off, the fits that leave one pose out;
 - **SMR offset**: the real SMR sits |d| from the declared one, the same distance in every pose.
-  If |d| - k sigma_d > margin (k: Student-t 99.73 % two-sided quantile for the fit's degrees of
-  freedom; sigma_d: the fit's standard error along d) and the offset is resolved to better than
-  the margin in every direction, the margin does not cover it;
+  The offset's covariance comes from the data alone (registration marginalised out; the fit's
+  weak prior is not a measurement); a principal direction is resolved when k sigma < margin there
+  (k: Student-t 99.73 % two-sided quantile for the fit's degrees of freedom). If the part of d
+  in the resolved directions, d_r, has |d_r| - k sigma > margin (sigma: the standard error along
+  d_r), the margin does not cover it: |d| >= |d_r|, so this holds before every direction is
+  resolved;
 - **the chain**: after that fit, a measured pose more than the margin from the nominal chain's
   prediction means the arm is not where its nominal model says (a wrong robot model, a large
   kinematic error). Two such poses are needed (one may be a bumped SMR).
 
 Either stops the campaign (robot stopped, recording closed, `margin` event). When neither does,
-one `margin` info event says how well the margin was verified; the offset is unobservable while
-the flange orientation hardly changes (an ISO cube at one orientation): the watch says so rather
-than passing it.
+one `margin` info event says how well the margin was verified; the offset is unobservable in
+the directions the flange orientation hardly changes (along the axis it only turns about, at an
+ISO cube's one orientation in all three): the watch says in how many of 3 directions it was
+resolved rather than passing it.
 
 What it cannot see: kinematic errors that registration absorbs at the measured poses but that grow
 elsewhere in the envelope (`workcell envelope --model` measures those after a fit).
@@ -55,6 +59,9 @@ class MarginVerdict:
     offset_m: np.ndarray  # fitted SMR offset minus the declared one, flange frame (3,)
     offset_sigma_m: float  # standard error of |offset| (along it)
     offset_sigma_max_m: float  # largest standard error of the offset in any direction
+    resolved_directions: int  # principal directions of the offset known to k sigma < margin
+    offset_resolved_m: float  # length of the offset's part in those directions
+    offset_resolved_sigma_m: float  # and its standard error
     k: float  # coverage factor used
     residual_max_m: float  # largest distance from the nominal chain, poses within the margin
     bad_poses: list[int]  # pose ids more than the margin from the nominal chain, after the fit
@@ -173,38 +180,56 @@ class MarginWatch:
             x, dof = fit.x, 3 * len(rows) - 9
             r = fit.fun[:-3]
             s2 = float(r @ r) / dof
-            JtJ = fit.jac.T @ fit.jac
+            A = fit.jac[:-3].T @ fit.jac[:-3]  # the data's information (the prior is no datum)
         elif n - len(rows) >= BAD_POSES_TO_STOP:  # no MIN_POSES poses agree on any fit
-            dof, s2, JtJ = 3 * n - 9, float("inf"), None
+            dof, s2, A = 3 * n - 9, float("inf"), None
         else:  # one pose off among MIN_POSES: wait for the next pose to tell which
             return None
         dist = distances(x)
         d = x[6:] - tool0
-        # standard error of |d| along d; infinite when the offset is not observable (the flange
-        # orientation hardly changed), so no verdict is drawn from it
-        try:
-            cov = np.linalg.inv(JtJ)[6:, 6:] * s2 if JtJ is not None else np.full((3, 3), np.inf)
-        except np.linalg.LinAlgError:
-            cov = np.full((3, 3), np.inf)
-        if np.all(np.isfinite(cov)):
-            u = d / max(np.linalg.norm(d), 1e-12)
-            sigma = float(np.sqrt(max(u @ cov @ u, 0.0)))
-            # the largest standard error in any direction: what an unseen offset could be
-            sigma_max = float(np.sqrt(max(np.linalg.eigvalsh(cov).max(), 0.0)))
-        else:
-            sigma = sigma_max = float("inf")
         k = float(stdtrit(dof, 1 - 0.0027 / 2))
+        # the offset's variance along each principal direction, from the data alone (the
+        # registration marginalised out: a Schur complement); infinite where the poses do not
+        # see it (the flange orientation hardly changed in that sense), so no verdict is drawn
+        # from the prior there
+        var, V = np.full(3, np.inf), np.eye(3)
+        if A is not None and np.isfinite(s2):
+            try:
+                S = A[6:, 6:] - A[6:, :6] @ np.linalg.solve(A[:6, :6], A[:6, 6:])
+                lam, V = np.linalg.eigh(0.5 * (S + S.T))
+                var = np.full(3, np.inf)
+                var[lam > 0] = s2 / lam[lam > 0]
+            except np.linalg.LinAlgError:
+                pass
+
+        def sigma_along(v: np.ndarray, among: np.ndarray) -> float:
+            """Standard error along the unit vector v, which lies in the directions `among`."""
+            w = (V[:, among].T @ v) ** 2
+            return float(np.sqrt(np.sum(np.where(w > 0, w * var[among], 0.0))))
+
+        # the largest standard error in any direction: what an unseen offset could be
+        sigma_max = float(np.sqrt(var.max()))
+        sigma = sigma_along(d / max(np.linalg.norm(d), 1e-12), np.arange(3))
+        # the part of d in the directions the poses resolve (k sigma < margin there): the true
+        # offset is at least that long, so it alone may stop the campaign before the offset is
+        # resolved in every direction
+        among = np.flatnonzero(k * np.sqrt(var) < self.margin_m)
+        d_res = V[:, among] @ (V[:, among].T @ d)
+        norm_res = float(np.linalg.norm(d_res))
+        sigma_res = sigma_along(d_res / norm_res, among) if norm_res > 0 else float("inf")
         beyond = dist > self.margin_m
         bad = [self.ids[i] for i in np.flatnonzero(beyond)]
         margin_mm = 1e3 * self.margin_m
         stop = None
-        norm = float(np.linalg.norm(d))
-        resolved = k * sigma_max < self.margin_m  # in every direction, not only along d
-        if resolved and norm - k * sigma > self.margin_m:
+        # resolved in every direction, d_r is d: the test is then on |d| itself
+        if norm_res - k * sigma_res > self.margin_m:
             fitted = ", ".join(f"{1e3 * v:.1f}" for v in x[6:])
             declared = ", ".join(f"{1e3 * v:.1f}" for v in tool0)
+            where = f"{_mm(norm_res, sigma_res)} mm"
+            if len(among) < 3:
+                where = f"at least {where} (in the directions the poses so far resolve)"
             stop = (
-                f"the SMR sits {_mm(norm, sigma)} mm from the declared "
+                f"the SMR sits {where} from the declared "
                 f"smr_offset_m (fitted on {len(rows)} poses: [{fitted}] mm on the flange, declared "
                 f"[{declared}] mm), more than the envelope's {margin_mm:g} mm kinematic margin: "
                 "poses may come closer to the envelope's faces than it allows. Check the SMR "
@@ -225,6 +250,9 @@ class MarginWatch:
             offset_m=d,
             offset_sigma_m=sigma,
             offset_sigma_max_m=sigma_max,
+            resolved_directions=len(among),
+            offset_resolved_m=norm_res,
+            offset_resolved_sigma_m=sigma_res,
             k=k,
             residual_max_m=float(dist[~beyond].max()) if (~beyond).any() else float("nan"),
             bad_poses=bad,
@@ -259,15 +287,20 @@ class MarginWatch:
                 "or a bad reading? check that pose)"
             )
         if not v.resolves(self.margin_m):
-            known = (
-                f"known only to +- {1e3 * v.k * v.offset_sigma_max_m:.0f} mm"
-                if np.isfinite(v.offset_sigma_max_m)
-                else "not observable"
-            )
+            if v.resolved_directions == 0:
+                what = "not resolved in any direction"
+                unseen = "an error in smr_offset_m would go unseen"
+            else:
+                what = (
+                    f"resolved in {v.resolved_directions} of 3 directions only "
+                    f"({_mm(v.offset_resolved_m, v.offset_resolved_sigma_m)} mm from the declared "
+                    "one there)"
+                )
+                unseen = "an error in smr_offset_m in the other directions would go unseen"
             return (
                 f"kinematic margin {margin_mm:g} mm only partly checked on {v.n} poses: {chain}, "
-                f"but the SMR offset is {known} (the flange orientation changed too little); "
-                "an error in smr_offset_m would go unseen"
+                f"but the SMR offset is {what}: the flange orientation changed too little; "
+                f"{unseen}"
             )
         return (
             f"kinematic margin {margin_mm:g} mm checked on {v.n} poses: SMR offset "
