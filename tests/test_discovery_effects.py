@@ -153,3 +153,41 @@ def test_augmented_model_saves_and_replays(tmp_path, poses):
     assert ps["backlash/joint3:backlash_width"]["unit"] == "rad"
     assert ps["joint_compliance/joint2:compliance"]["unit"] == "rad/(N m)"
     assert ps["backlash/joint3:backlash_width"]["std"] == pytest.approx(1e-7)
+
+
+def test_augmented_prediction_cov_is_the_spread_over_its_covariance(poses):
+    """prediction_cov (used for the correction table's 1-sigma) agrees with the spread of the
+    predictions over [theta[free], eff[active]] drawn from the model's covariance."""
+    q, sg, t = poses
+    tr = make_truth("ur5e", "all", 4)
+    acc = [c for c in library() if c.key in ("backlash/joint3", "joint_compliance/joint2")]
+    free = np.zeros(39, bool)
+    free[[0, 1, 7, 13, 20]] = True
+    eff = np.zeros(N_EFF)
+    m = AugmentedModel(
+        features_spec=FeatureSpec(spec=tr.nominal, payload_com_m=np.array([0, 0, 0.03])),
+        theta=_truth_theta(tr),
+        base_ref=tr.tracker_T_base,
+        eff=eff,
+        accepted=acc,
+        free=free,
+        cov=np.diag([1e-8] * 5 + [1e-10, 1e-10]),
+        nominal_tool_m=np.array([0, 0, 0.06]),
+    )
+    rng = np.random.default_rng(3)
+    B = rng.normal(size=(7, 7))
+    m.cov = (B @ B.T) * np.outer(np.sqrt(np.diag(m.cov)), np.sqrt(np.diag(m.cov))) / 7
+    aux = {"approach_sign": sg[:5], "payload_kg": np.full(5, 0.5)}
+    C = m.prediction_cov(q[:5], **aux)
+    act = m.active
+    draws = []
+    for z in rng.multivariate_normal(np.zeros(7), m.cov, size=2000):
+        m2 = AugmentedModel(**{**m.__dict__, "theta": m.theta.copy(), "eff": m.eff.copy()})
+        m2.theta[free] += z[:5]
+        m2.eff[act] += z[5:]
+        draws.append(m2.predict(q[:5], **aux))
+    mc = np.std(np.array(draws), axis=0)
+    np.testing.assert_allclose(np.sqrt(np.einsum("nii->ni", C)), mc, rtol=0.1)
+    assert mc.max() > 1e-5
+    m.residual = {"kind": "gp"}  # a non-parametric part: no propagated covariance
+    assert m.prediction_cov(q[:5], **aux) is None

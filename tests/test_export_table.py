@@ -254,3 +254,84 @@ def test_a_malformed_table_file_is_refused_in_one_line(saved_table, tmp_path_fac
         tab.check()
         P = np.random.default_rng(0).uniform(tab.lo_m, tab.hi_m, (5, 3))
         assert np.all(np.isfinite(tab.interpolate(P, 0)))
+
+
+def test_node_std_is_the_spread_of_the_corrections_over_the_parameter_covariance(tmp_path):
+    """Each node's 1-sigma (base axes) agrees with the spread of the exact correction over
+    parameters drawn from the model's covariance (a rotated registration, so the tracker-to-base
+    rotation must be right), and goes through the JSON and CSV files."""
+    from workcell.export.table import load_table, node_std
+
+    m = make_model(4)
+    c, s = np.cos(0.9), np.sin(0.9)
+    m.base_ref[:3, :3] = [[1, 0, 0], [0, c, -s], [0, s, c]]
+    rng = np.random.default_rng(7)
+    A = rng.normal(size=(39, 39)) * 5e-6
+    A[:, 30:36] = 0.0  # keep the base offsets fixed (as a fit with the registration does)
+    m.cov = A @ A.T
+    m.cov[6, 6] += 1e-4**2  # d1: moves every SMR along base z, so the axes must be right
+    corr = Corrector(m, nominal_for(m))
+    tab = build_table(corr, LO, HI, np.array([DOWN]), spacing_m=0.1)
+    assert tab.std_m is not None and tab.std_m.shape == tab.delta_m.shape
+    assert "std_basis" in tab.meta and tab.meta["max_std_m"] > 0
+    R = rotvec_to_matrix(DOWN)[0]
+    X = tab.node_positions().reshape(-1, 3)[[0, 5, -1]]
+    Q = tab.q_nodes[0].reshape(-1, 6)[[0, 5, -1]]
+    want = node_std(corr, Q)
+    draws = []
+    for th in rng.multivariate_normal(m.theta, m.cov, size=400):
+        m2 = make_model(4)
+        m2.theta, m2.base_ref = th, m.base_ref
+        cc, _, _ = Corrector(m2, corr.nominal).correct_positions(X, R, Q)
+        draws.append(cc - X)
+    mc = np.std(np.array(draws), axis=0)
+    np.testing.assert_allclose(want, mc, rtol=0.15)
+    assert want.max() > 1e-5  # tens of micrometres: the test can fail
+    # zero covariance: zero std, not None
+    m.cov = np.zeros((39, 39))
+    assert np.all(node_std(corr, Q) == 0)
+    # the files
+    tab.save(tmp_path / "t")
+    back = load_table(tmp_path / "t.json")
+    np.testing.assert_array_equal(back.std_m, tab.std_m)
+    rows = [r for r in (tmp_path / "t.csv").read_text().splitlines() if not r.startswith("#")]
+    assert rows[0].endswith("dx_m,dy_m,dz_m,sx_m,sy_m,sz_m")
+    assert float(rows[1].split(",")[-3]) == tab.std_m[0, 0, 0, 0, 0]
+
+
+def test_a_model_without_covariance_writes_no_std_and_says_so():
+    class Blob:
+        method = "lddmm"
+
+        def __init__(self, m):
+            self.m = m
+
+        def predict(self, q, **aux):
+            return self.m.predict(q)
+
+    m = make_model(5)
+    corr = Corrector(Blob(m), nominal_for(m))
+    tab = build_table(corr, LO, HI, np.array([DOWN]), spacing_m=0.1)
+    assert tab.std_m is None and tab.to_dict()["std_m"] is None
+    assert tab.meta["std_basis"].startswith("none")
+    assert tab.interpolate_std(np.array([[0.0, -0.4, 0.3]])) is None
+
+
+@pytest.mark.parametrize("bad", ["shape", "negative", "nan"])
+def test_a_table_with_a_bad_std_is_refused(bad):
+    from workcell.export.table import CorrectionTable
+
+    m = make_model(6)
+    m.cov = np.eye(39) * 1e-12
+    tab = build_table(Corrector(m, nominal_for(m)), LO, HI, np.array([DOWN]), spacing_m=0.1)
+    d = tab.to_dict()
+    s = np.asarray(d["std_m"])
+    if bad == "shape":
+        s = s[..., :2]
+    elif bad == "negative":
+        s[0, 0, 0, 0, 0] = -1e-6
+    else:
+        s[0, 0, 0, 0, 0] = np.nan
+    d["std_m"] = s.tolist()
+    with pytest.raises(ValueError, match="std_m"):
+        CorrectionTable.from_dict(d)

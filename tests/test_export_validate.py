@@ -2,6 +2,8 @@
 interpolation error; the nominal-only 'correction' does nothing."""
 
 import dataclasses
+import tempfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -130,3 +132,28 @@ def test_validation_refuses_to_start_outside_the_envelope():
             q_start=q_out,
         )
     assert moved == []
+
+
+def test_the_tables_stated_uncertainty_matches_the_corrected_error():
+    """In a DH-only world, a DH fit from a 40-pose campaign is the right model: what it leaves
+    after correction is its estimation error plus the table's interpolation error. The table's
+    own 1-sigma (from the fit's covariance) must be of that size, pooled over the first four
+    truth seeds (single seeds scatter: one realisation of the parameter error each)."""
+    from workcell.campaign.executor import CampaignConfig
+    from workcell.campaign.run import run_campaign
+    from workcell.estimation.dh import fit_dh
+    from workcell.recording.dataset import Dataset
+
+    ratios = []
+    for seed in range(4):
+        world, robot, tracker, cell = sim_cell("ur5e", "none", seed, beam_break_prob=0.0)
+        path = Path(tempfile.mkdtemp()) / "c.mcap"
+        cfg = CampaignConfig(readings_per_pose=2, settle_s=0.2)
+        run_campaign(robot, tracker, cell, path, poses=40, seed=seed, config=cfg)
+        table, corr = make_table(fit_dh(Dataset.from_recording(path)), target_error_m=2e-6)
+        res, _ = _validate(world, cell, table, corr, default_envelope(cell.spec), n=20, seed=seed)
+        pred = res["after"]["predicted_rms_std_m"]
+        assert 1e-6 < pred < 1e-4
+        ratios.append(res["after"]["rms_m"] / pred)
+    pooled = float(np.sqrt(np.mean(np.square(ratios))))
+    assert 0.4 < pooled < 2.5, ratios

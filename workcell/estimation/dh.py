@@ -76,6 +76,13 @@ class DHModel:
         """Covariance (39, 39) of `theta`; zero rows/columns for fixed parameters."""
         return self.cov
 
+    def prediction_cov(self, q: np.ndarray, **aux) -> np.ndarray:
+        """Covariance (N, 3, 3) of `predict(q)` (tracker frame) from the parameter covariance,
+        to first order: J cov J^T with J = d p / d theta."""
+        q = np.atleast_2d(np.asarray(q, dtype=float))
+        J = np.asarray(jac_params(self.theta, self.base_ref, q))
+        return np.einsum("nip,pq,njq->nij", J, self.cov, J)
+
     @property
     def tracker_T_base(self) -> np.ndarray:
         return np.asarray(tracker_T_base(self.theta, self.base_ref))

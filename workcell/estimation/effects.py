@@ -435,6 +435,17 @@ class AugmentedModel:
         out[np.ix_(idx, idx)] = self.cov[: len(idx), : len(idx)]
         return out
 
+    def prediction_cov(self, q: np.ndarray, **aux) -> np.ndarray | None:
+        """Covariance (N, 3, 3) of `predict(q, **aux)` (tracker frame) from the covariance of the
+        geometry and the accepted effects, to first order (features held at their values); None
+        with a non-parametric residual model, whose own uncertainty is not propagated."""
+        if self.residual is not None:
+            return None
+        q = np.atleast_2d(np.asarray(q, float))
+        Jt, Je = jac_aug(self.theta, self.eff, self.base_ref, q, self.features(q, **aux))
+        J = np.concatenate([Jt[:, :, self.free], Je[:, :, self.active]], axis=2)
+        return np.einsum("nip,pq,njq->nij", J, self.cov, J)
+
     def _std_of(self) -> tuple[np.ndarray, np.ndarray]:
         s = self.std
         nf = int(self.free.sum())

@@ -54,6 +54,9 @@ class CorrectionTable:
     orientations_rotvec: np.ndarray  # (K, 3)
     delta_m: np.ndarray  # (K, nx, ny, nz, 3): commanded - desired
     q_nodes: np.ndarray | None = None  # (K, nx, ny, nz, 6) corrected joints (seeds), not saved
+    # (K, nx, ny, nz, 3) 1-sigma of each correction component (base axes) from the model's
+    # parameter covariance; None when the model carries none (`node_std`)
+    std_m: np.ndarray | None = None
     meta: dict = field(default_factory=dict)
     orientation_tol_rad: float = DEFAULT_ORIENTATION_TOL_RAD
 
@@ -88,8 +91,9 @@ class CorrectionTable:
             out[n] = self._interp_one(x, k)
         return out
 
-    def _interp_one(self, x: np.ndarray, k: int) -> np.ndarray:
-        # Written operation for operation as the URScript function (see urscript.py).
+    def _interp_one(self, x: np.ndarray, k: int, D: np.ndarray | None = None) -> np.ndarray:
+        # Written operation for operation as the URScript function (see urscript.py); D: the
+        # node values (nx, ny, nz, 3), the corrections of orientation k unless given.
         if np.any(x < self.lo_m - OUTSIDE_TOL_M) or np.any(x > self.hi_m + OUTSIDE_TOL_M):
             raise UserError(
                 f"target {np.round(x, 4).tolist()} m (base) is outside the correction volume "
@@ -103,7 +107,7 @@ class CorrectionTable:
             i = min(max(i, 0), self.shape[a] - 2)
             idx.append(i)
             t.append(f - i)
-        D = self.delta_m[k]
+        D = self.delta_m[k] if D is None else D
         i, j, l = idx
         tx, ty, tz = t
         c00 = D[i, j, l] * (1 - tx) + D[i + 1, j, l] * tx
@@ -113,6 +117,14 @@ class CorrectionTable:
         c0 = c00 * (1 - ty) + c10 * ty
         c1 = c01 * (1 - ty) + c11 * ty
         return c0 * (1 - tz) + c1 * tz
+
+    def interpolate_std(self, p: np.ndarray, k: int = 0) -> np.ndarray | None:
+        """Trilinear 1-sigma (N, 3) of the correction at positions p (an upper bound of the
+        interpolated correction's std: `STD_BASIS`); None when the table carries none."""
+        if self.std_m is None:
+            return None
+        p = np.atleast_2d(np.asarray(p, float))
+        return np.array([self._interp_one(x, k, self.std_m[k]) for x in p]).reshape(-1, 3)
 
     def correct(self, p: np.ndarray, rotvec: np.ndarray | None = None) -> np.ndarray:
         """Commanded positions for desired positions p (N, 3) at one tool orientation."""
@@ -146,6 +158,7 @@ class CorrectionTable:
             "orientations_rotvec": np.asarray(self.orientations_rotvec).tolist(),
             "orientation_tol_rad": self.orientation_tol_rad,
             "delta_m": self.delta_m.tolist(),
+            "std_m": None if self.std_m is None else self.std_m.tolist(),
         }
 
     @classmethod
@@ -161,6 +174,7 @@ class CorrectionTable:
             shape=tuple(int(x) for x in g["shape"]),
             orientations_rotvec=np.asarray(d["orientations_rotvec"], float).reshape(-1, 3),
             delta_m=np.asarray(d["delta_m"], float),
+            std_m=None if d.get("std_m") is None else np.asarray(d["std_m"], float),
             meta=d.get("meta", {}),
             orientation_tol_rad=float(d.get("orientation_tol_rad", DEFAULT_ORIENTATION_TOL_RAD)),
         )
@@ -184,6 +198,13 @@ class CorrectionTable:
             )
         if not np.all(np.isfinite(self.delta_m)):
             raise ValueError("delta_m has non-finite corrections")
+        if self.std_m is not None:
+            if self.std_m.shape != self.delta_m.shape:
+                raise ValueError(
+                    f"std_m has shape {self.std_m.shape}, the grid needs {self.delta_m.shape}"
+                )
+            if not (np.all(np.isfinite(self.std_m)) and np.all(self.std_m >= 0)):
+                raise ValueError("std_m must be finite and non-negative")
         if not (np.isfinite(self.orientation_tol_rad) and self.orientation_tol_rad > 0):
             raise ValueError("orientation_tol_rad must be a positive number")
 
@@ -202,9 +223,12 @@ class CorrectionTable:
             f.write(f"# grid: lo {self.lo_m.tolist()} hi {self.hi_m.tolist()} shape {self.shape}\n")
             f.write(f"# max_interp_error_m: {self.meta.get('max_interp_error_m')}\n")
             w = csv.writer(f)
+            if self.std_m is not None and "std_basis" in self.meta:
+                f.write(f"# sx_m, sy_m, sz_m: {self.meta['std_basis']}\n")
             w.writerow(
                 ["orientation", "rx", "ry", "rz", "i", "j", "k", "x_m", "y_m", "z_m"]
                 + ["dx_m", "dy_m", "dz_m"]
+                + ([] if self.std_m is None else ["sx_m", "sy_m", "sz_m"])
             )
             for o, rv in enumerate(self.orientations_rotvec):
                 for i in range(self.shape[0]):
@@ -214,6 +238,11 @@ class CorrectionTable:
                                 [o, *(repr(float(v)) for v in rv), i, j, k]
                                 + [repr(float(v)) for v in X[i, j, k]]
                                 + [repr(float(v)) for v in self.delta_m[o, i, j, k]]
+                                + (
+                                    []
+                                    if self.std_m is None
+                                    else [repr(float(v)) for v in self.std_m[o, i, j, k]]
+                                )
                             )
         return pj, pc
 
@@ -307,6 +336,36 @@ def check_corrections(
         )
 
 
+STD_BASIS = (
+    "1 sigma of each correction component (base axes) from the model's parameter covariance "
+    "(geometry, and for an augmented model its accepted effects), propagated to first order: "
+    "the covariance of the model's predicted SMR position at the corrected joints, which is the "
+    "correction's to first order (the commanded position moves opposite to the prediction); the "
+    "model's own basis for that covariance holds (see `workcell fit`). Between nodes, trilinear "
+    "interpolation of these stds bounds the interpolated correction's std from above"
+)
+
+
+def node_std(corr: Corrector, q_nodes: np.ndarray) -> np.ndarray | None:
+    """1-sigma (..., 3) of the corrections at corrected joints q_nodes (..., 6), base axes
+    (`STD_BASIS`); None when the model has no `prediction_cov` or returns None."""
+    from workcell.export.correction import _pad
+
+    f = getattr(corr.model, "prediction_cov", None)
+    if f is None:
+        return None
+    q = np.asarray(q_nodes, float).reshape(-1, 6)
+    qp = _pad(q)
+    C = f(qp, **corr.conditions.aux(len(qp)))
+    if C is None:
+        return None
+    C = np.asarray(C, float)[: len(q)]
+    R = np.asarray(corr.nominal.base_ref, float)[:3, :3]  # base axes -> tracker axes
+    C = np.einsum("ji,njk,kl->nil", R, C, R)
+    sd = np.sqrt(np.clip(np.einsum("nii->ni", C), 0.0, None))
+    return sd.reshape(*np.shape(q_nodes)[:-1], 3)
+
+
 def build_table(
     corr: Corrector,
     lo_m: np.ndarray,
@@ -394,6 +453,22 @@ def build_table(
             break
         h /= 1.5
     mags = np.linalg.norm(tab.delta_m.reshape(-1, 3), axis=1)
+    tab.std_m = node_std(corr, tab.q_nodes)
+    std_meta: dict = {"std_basis": "none: the model carries no covariance of its prediction"}
+    if tab.std_m is not None:
+        s3 = np.linalg.norm(tab.std_m.reshape(-1, 3), axis=1)
+        std_meta = {
+            "std_basis": STD_BASIS,
+            "median_std_m": float(np.median(s3)),
+            "max_std_m": float(s3.max()),
+        }
+        i = int(np.argmax(s3))
+        log(
+            f"  correction 1-sigma (model uncertainty, 3-D): median {np.median(s3) * 1e6:.1f} um, "
+            f"max {s3.max() * 1e6:.1f} um at {np.round(X.reshape(-1, 3)[i % X[..., 0].size], 3).tolist()} m"
+        )
+    else:
+        log("  correction 1-sigma: not given (the model carries no covariance of its prediction)")
     tab.meta = {
         **(meta or {}),
         "frame": "base = model's registered nominal base (tracker_T_base = base_ref); "
@@ -409,6 +484,7 @@ def build_table(
         "interp_error_points": int(len(err)),
         "interp_error_target_met": bool(err.max() <= target_error_m),
         "max_correction_m": float(mags.max()),
+        **std_meta,
         "correction_bound_m": float(max_correction_m),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
     }

@@ -163,6 +163,13 @@ def run_validation(
         ev = np.asarray(meas[key]) - p_goal[keep]
         st = accuracy_stats(ev)
         out[key] = st
+    # the table's own 1-sigma at the targets (model uncertainty only): in simulation, scored
+    # against the truth, the corrected error should be of that size plus the interpolation error
+    # and what the model leaves out; much larger means the stated uncertainty is optimistic
+    sd = [table.interpolate_std(P[i][None], int(k[i])) for i in np.where(keep)[0]]
+    if sd and sd[0] is not None:
+        s3 = np.linalg.norm(np.concatenate(sd), axis=1)
+        out["after"]["predicted_rms_std_m"] = float(np.sqrt(np.mean(s3**2)))
     out["before_rms_m"] = out["before"]["rms_m"]
     out["after_rms_m"] = out["after"]["rms_m"]
     out["improvement"] = out["before_rms_m"] / max(out["after_rms_m"], 1e-15)
@@ -174,6 +181,12 @@ def run_validation(
         f"{out['before']['max_m'] * 1e6:.1f} -> {out['after']['max_m'] * 1e6:.1f} um"
         + (f"; after: {ci}" if (ci := interval_um(out["after"]["rms_ci95_m"])) else "")
     )
+    if "predicted_rms_std_m" in out["after"]:
+        log(
+            f"  the table's own 1-sigma at these targets (model uncertainty): RMS "
+            f"{out['after']['predicted_rms_std_m'] * 1e6:.1f} um; max interpolation error "
+            f"{table.meta.get('max_interp_error_m', float('nan')) * 1e6:.1f} um"
+        )
     return out
 
 
