@@ -335,3 +335,98 @@ def test_a_table_with_a_bad_std_is_refused(bad):
     d["std_m"] = s.tolist()
     with pytest.raises(ValueError, match="std_m"):
         CorrectionTable.from_dict(d)
+
+
+def _thermal_model(source: str):
+    """An augmented model with joint-2 compliance and thermal drift driven by `source`."""
+    from workcell.estimation import effects as E
+    from workcell.estimation.effects import AugmentedModel, FeatureSpec, library
+
+    dh = make_model(8)
+    acc = [c for c in library() if c.key in ("joint_compliance/joint2", "thermal_drift")]
+    eff = np.zeros(E.N_EFF)
+    for c in acc:
+        eff[c.idx[0]] = 20e-6  # rad/(N m) and 1/K (or 1/h)
+    return AugmentedModel(
+        features_spec=FeatureSpec(
+            spec=UR5E,
+            payload_com_m=np.array([0, 0, 0.03]),
+            thermal_source=source,
+            thermal_ref=np.full(6, 25.0 if source == "joint" else 0.5),
+            payload_kg_default=1.0,
+        ),
+        theta=dh.theta,
+        base_ref=dh.base_ref,
+        eff=eff,
+        accepted=acc,
+        free=np.ones(39, bool),
+        cov=np.eye(41) * 1e-14,
+        nominal_tool_m=np.array([0, 0, 0.06]),
+        info={"nominal_tool_m": [0, 0, 0.06]},
+    )
+
+
+def test_export_conditions_are_stated_applied_and_checked(tmp_path, capsys):
+    """The table says which payload and thermal state it is for; a given condition changes the
+    correction; a condition that does not drive the model's effect, or in the wrong unit, is
+    refused in one line."""
+    from workcell.cli import main
+    from workcell.export.build import conditions_note, parse_conditions
+
+    m = _thermal_model("joint")
+    notes = conditions_note(m, parse_conditions("1,1,1,1,1,1"))
+    assert "payload 1 kg, the recording's" in notes[0]
+    assert "the recording's mean, link temperatures [25.0" in notes[1]
+    notes = conditions_note(m, parse_conditions("1,1,1,1,1,1", "2.5", "35,35,35,35,35,35"))
+    assert "payload 2.5 kg (given)" in notes[0] and "[35.0, 35.0" in notes[1]
+    with pytest.raises(UserError, match="--elapsed does not set .* joint temperatures"):
+        conditions_note(m, parse_conditions("1,1,1,1,1,1", elapsed="3600"))
+    with pytest.raises(UserError, match="--joint-temperature does not set .* time"):
+        conditions_note(
+            _thermal_model("time"), parse_conditions("1,1,1,1,1,1", None, "30," * 5 + "30")
+        )
+    assert (
+        "changes nothing" in conditions_note(make_model(1), parse_conditions("1,1,1,1,1,1", "2"))[0]
+    )
+    # applied: a warmer arm, another correction (the model's nominal chain is the DH model's)
+    from workcell.export.correction import Conditions
+
+    nom = nominal_for(make_model(8))
+    deltas = {}
+    for name, t in (("ref", None), ("warm", np.full(6, 45.0))):
+        corr = Corrector(m, nom, Conditions(joint_temperature_c=t))
+        deltas[name] = build_table(corr, LO, HI, np.array([DOWN]), spacing_m=0.1).delta_m
+    # 20 K x 20e-6/K over the arm: tens of micrometres
+    assert np.abs(deltas["warm"] - deltas["ref"]).max() > 1e-5
+    # the command line states the conditions and refuses one that does not drive the drift
+    path = save_model(m, tmp_path / "aug.json")
+    # (this bare model has no recording to register its nominal chain on: exit 2 after that)
+    assert main(["export", str(path), "--format", "table", "--out", str(tmp_path / "t")]) == 2
+    out, err = capsys.readouterr()
+    assert "--recording" in err
+    assert "conditions: payload 1 kg, the recording's" in out
+    assert "conditions: thermal state: the recording's mean" in out
+    argv = ["export", str(path), "--format", "table", "--out", str(tmp_path / "t")]
+    assert main([*argv, "--elapsed", "60"]) == 2
+    err = capsys.readouterr().err
+    assert "driven by the joint temperatures" in err and len(err.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize(
+    ("opt", "value", "what"),
+    [
+        ("--payload", "3000", "give kilograms"),
+        ("--payload", "nan", "expected 1"),
+        ("--joint-temperature", "300,300,300,300,300,300", "kelvin or Fahrenheit"),
+        ("--joint-temperature", "30,30", "expected 6"),
+        ("--elapsed", "-5", "give seconds"),
+    ],
+)
+def test_export_conditions_in_wrong_units_are_refused(tmp_path, capsys, opt, value, what):
+    from workcell.cli import main
+
+    path = save_model(_thermal_model("joint"), tmp_path / "aug.json")
+    rc = main(["export", str(path), "--format", "table", "--out", str(tmp_path / "t"), opt, value])
+    err = capsys.readouterr().err
+    assert rc == 2 and what in err and len(err.strip().splitlines()) == 1
+    assert not list(tmp_path.glob("t.*"))

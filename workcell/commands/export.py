@@ -38,6 +38,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--approach", default="1,1,1,1,1,1", help="approach sign per joint (the table's conditions)"
     )
+    p.add_argument(
+        "--payload",
+        help="payload in kg the correction is for (models with compliance; default: the "
+        "recording's)",
+    )
+    p.add_argument(
+        "--joint-temperature",
+        help="joint temperatures T1,..,T6 in degC the correction is for (models whose thermal "
+        "drift follows the joint temperatures; default: the recording's mean)",
+    )
+    p.add_argument(
+        "--elapsed",
+        help="seconds after the campaign's start the correction is for (models whose thermal "
+        "drift follows time; default: the recording's mean)",
+    )
     p.add_argument("--recording", help="the model's recording (models without a nominal chain)")
     p.add_argument(
         "--in",
@@ -49,8 +64,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from workcell.estimation.models import load_model
-    from workcell.export.build import make_table, parse_vec
-    from workcell.export.correction import Conditions
+    from workcell.export.build import conditions_note, make_table, parse_conditions, parse_vec
 
     for opt, path in (("--recording", args.recording), ("--in", args.targets_in)):
         if path is not None and not Path(path).is_file():
@@ -59,10 +73,26 @@ def run(args: argparse.Namespace) -> int:
     refuse_overwrite(
         _output_files(args.format, out), [args.model, args.recording, args.targets_in], "output"
     )
+    cond = parse_conditions(args.approach, args.payload, args.joint_temperature, args.elapsed)
     model = load_model(args.model)
     summary: dict = {"format": args.format, "model": args.model}
     if args.format == "ros-yaml":
         from workcell.export.build import model_recording
+
+        given = [
+            o
+            for o, v in (
+                ("--payload", args.payload),
+                ("--joint-temperature", args.joint_temperature),
+                ("--elapsed", args.elapsed),
+            )
+            if v is not None
+        ]
+        if given:
+            raise UserError(
+                f"{', '.join(given)}: ros-yaml carries the geometry only, which no condition "
+                "changes; leave them out (or export a table)"
+            )
         from workcell.export.ros_yaml import export_ros_yaml
 
         rec, sha = model_recording(model)
@@ -71,7 +101,10 @@ def run(args: argparse.Namespace) -> int:
         )
         summary["files"] = [str(path)]
         return _report(args, summary)
-    cond = Conditions(approach_sign=np.sign(parse_vec(args.approach, 6, "--approach")))
+    summary["conditions"] = conditions_note(model, cond)
+    if not args.json:
+        for line in summary["conditions"]:
+            print(f"conditions: {line}")
     if args.format == "targets":
         return _targets(args, model, cond, summary)
     volume = parse_vec(args.volume, 6, "--volume") if args.volume else None

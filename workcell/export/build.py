@@ -61,6 +61,108 @@ def parse_vec(text: str, n: int, what: str) -> np.ndarray:
     return v
 
 
+COMPLIANCE_KINDS = ("joint_compliance", "link_deflection")
+PAYLOAD_MAX_KG = 50.0  # the largest UR arm carries 30 kg
+JOINT_TEMPERATURE_RANGE_C = (-30.0, 100.0)
+ELAPSED_MAX_S = 30 * 24 * 3600.0
+
+
+def parse_conditions(
+    approach: str,
+    payload: str | None = None,
+    joint_temperature: str | None = None,
+    elapsed: str | None = None,
+) -> Conditions:
+    """The export's operating conditions from the command-line strings, checked for units."""
+    cond = Conditions(approach_sign=np.sign(parse_vec(approach, 6, "--approach")))
+    if payload is not None:
+        (kg,) = parse_vec(payload, 1, "--payload")
+        if not 0.0 <= kg <= PAYLOAD_MAX_KG:
+            raise UserError(
+                f"--payload {kg:g} kg is outside 0..{PAYLOAD_MAX_KG:g} kg; give kilograms"
+            )
+        cond.payload_kg = float(kg)
+    if joint_temperature is not None:
+        t = parse_vec(joint_temperature, 6, "--joint-temperature")
+        lo, hi = JOINT_TEMPERATURE_RANGE_C
+        if np.any(t < lo) or np.any(t > hi):
+            raise UserError(
+                f"--joint-temperature {np.round(t, 1).tolist()}: outside {lo:g}..{hi:g} degC "
+                "(kelvin or Fahrenheit?); give degrees Celsius, as the recording does"
+            )
+        cond.joint_temperature_c = t
+    if elapsed is not None:
+        (sec,) = parse_vec(elapsed, 1, "--elapsed")
+        if not 0.0 <= sec <= ELAPSED_MAX_S:
+            raise UserError(f"--elapsed {sec:g} s is outside 0..{ELAPSED_MAX_S:g} s; give seconds")
+        cond.elapsed_s = float(sec)
+    return cond
+
+
+def conditions_note(model, cond: Conditions) -> list[str]:
+    """What the table assumes about the conditions the model's accepted effects depend on, one
+    line each; refuses a given condition that does not drive the model's effect."""
+    accepted = getattr(model, "accepted", None)
+    fs = getattr(model, "features_spec", None)
+    kinds = {c.kind for c in accepted} if accepted is not None and fs is not None else set()
+    lines = []
+    if kinds & set(COMPLIANCE_KINDS):
+        if cond.payload_kg is not None:
+            lines.append(f"payload {cond.payload_kg:g} kg (given), for the compliance terms")
+        else:
+            lines.append(
+                f"payload {fs.payload_kg_default:g} kg, the recording's, for the compliance terms "
+                "(--payload KG for another)"
+            )
+    elif cond.payload_kg is not None:
+        lines.append("--payload changes nothing: the model has no payload-dependent effect")
+    src = fs.thermal_source if fs is not None and "thermal_drift" in kinds else None
+    if src is None:
+        if cond.joint_temperature_c is not None or cond.elapsed_s is not None:
+            lines.append(
+                "--joint-temperature/--elapsed change nothing: the model has no thermal drift"
+            )
+        return lines
+    wrong = {
+        "joint": ("--elapsed", cond.elapsed_s, "the joint temperatures; give --joint-temperature"),
+        "time": (
+            "--joint-temperature",
+            cond.joint_temperature_c,
+            "the time since the campaign's start; give --elapsed",
+        ),
+        "ambient": (
+            "--joint-temperature/--elapsed",
+            cond.elapsed_s if cond.elapsed_s is not None else cond.joint_temperature_c,
+            "the ambient temperature, which export cannot set (the table is for the "
+            "recording's mean); leave the option out",
+        ),
+    }.get(src)
+    if wrong is not None and wrong[1] is not None:
+        raise UserError(
+            f"{wrong[0]} does not set the model's thermal drift: it is driven by {wrong[2]}"
+        )
+    ref = np.asarray(fs.thermal_ref, float)
+    if src == "joint" and cond.joint_temperature_c is not None:
+        lines.append(
+            f"thermal state: joint temperatures {np.round(cond.joint_temperature_c, 1).tolist()} "
+            "degC (given)"
+        )
+    elif src == "time" and cond.elapsed_s is not None:
+        lines.append(f"thermal state: {cond.elapsed_s:g} s after the campaign's start (given)")
+    else:
+        mean = {
+            "joint": f"link temperatures {np.round(ref, 1).tolist()} degC",
+            "time": f"{ref[0] * 3600:.0f} s after the campaign's start",
+            "ambient": f"ambient {ref[0]:.1f} degC",
+        }.get(src, "")
+        how = {"joint": " (--joint-temperature T1,..,T6 for another)", "time": " (--elapsed S)"}
+        lines.append(
+            f"thermal state: the recording's mean, {mean}{how.get(src, '')}: the thermal "
+            "drift term is zero there"
+        )
+    return lines
+
+
 def make_table(
     model,
     *,
@@ -95,6 +197,7 @@ def make_table(
         "recording": rec,
         "recording_sha256": sha,
         "robot": nominal.robot,
+        "conditions_note": conditions_note(model, corr.conditions),
     }
     tab = build_table(
         corr,
