@@ -380,14 +380,21 @@ def test_export_conditions_are_stated_applied_and_checked(tmp_path, capsys):
     notes = conditions_note(m, parse_conditions("1,1,1,1,1,1", "2.5", "35,35,35,35,35,35"))
     assert "payload 2.5 kg (given)" in notes[0] and "[35.0, 35.0" in notes[1]
     with pytest.raises(UserError, match="--elapsed does not set .* joint temperatures"):
-        conditions_note(m, parse_conditions("1,1,1,1,1,1", elapsed="3600"))
+        conditions_note(m, parse_conditions("1,1,1,1,1,1", elapsed="3600"), strict=True)
     with pytest.raises(UserError, match="--joint-temperature does not set .* time"):
         conditions_note(
-            _thermal_model("time"), parse_conditions("1,1,1,1,1,1", None, "30," * 5 + "30")
+            _thermal_model("time"),
+            parse_conditions("1,1,1,1,1,1", None, "30," * 5 + "30"),
+            strict=True,
         )
     assert (
         "changes nothing" in conditions_note(make_model(1), parse_conditions("1,1,1,1,1,1", "2"))[0]
     )
+    # what validate passes (the cell's joint temperatures) is described, not refused
+    notes = conditions_note(
+        _thermal_model("time"), parse_conditions("1,1,1,1,1,1", None, "30," * 5 + "30")
+    )
+    assert "the recording's mean, 1800 s after" in notes[1]
     # applied: a warmer arm, another correction (the model's nominal chain is the DH model's)
     from workcell.export.correction import Conditions
 

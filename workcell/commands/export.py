@@ -101,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
         )
         summary["files"] = [str(path)]
         return _report(args, summary)
-    summary["conditions"] = conditions_note(model, cond)
+    summary["conditions"] = conditions_note(model, cond, strict=True)
     if not args.json:
         for line in summary["conditions"]:
             print(f"conditions: {line}")

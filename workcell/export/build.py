@@ -99,9 +99,10 @@ def parse_conditions(
     return cond
 
 
-def conditions_note(model, cond: Conditions) -> list[str]:
+def conditions_note(model, cond: Conditions, strict: bool = False) -> list[str]:
     """What the table assumes about the conditions the model's accepted effects depend on, one
-    line each; refuses a given condition that does not drive the model's effect."""
+    line each; `strict` (a user's options): refuses a given condition that does not drive the
+    model's thermal drift."""
     accepted = getattr(model, "accepted", None)
     fs = getattr(model, "features_spec", None)
     kinds = {c.kind for c in accepted} if accepted is not None and fs is not None else set()
@@ -137,7 +138,7 @@ def conditions_note(model, cond: Conditions) -> list[str]:
             "recording's mean); leave the option out",
         ),
     }.get(src)
-    if wrong is not None and wrong[1] is not None:
+    if strict and wrong is not None and wrong[1] is not None:
         raise UserError(
             f"{wrong[0]} does not set the model's thermal drift: it is driven by {wrong[2]}"
         )
