@@ -437,3 +437,22 @@ def test_export_conditions_in_wrong_units_are_refused(tmp_path, capsys, opt, val
     err = capsys.readouterr().err
     assert rc == 2 and what in err and len(err.strip().splitlines()) == 1
     assert not list(tmp_path.glob("t.*"))
+
+
+def test_validate_warns_when_a_table_is_for_another_thermal_state():
+    """A table exported for the recording's mean thermal state, validated on a warmer arm, gets
+    one warning line with the export option that fixes it; within 2 K, none."""
+    from workcell.commands.validate import thermal_mismatch
+    from workcell.export.table import CorrectionTable
+
+    m = _thermal_model("joint")  # thermal_ref: links at 25 degC
+    tab = CorrectionTable(LO, HI, (2, 2, 2), np.array([DOWN]), np.zeros((1, 2, 2, 2, 3)))
+    tab.meta = {"conditions": {"joint_temperature_c": None}}
+    assert thermal_mismatch(m, tab, np.full(6, 26.0)) is None
+    w = thermal_mismatch(m, tab, np.full(6, 31.0))
+    assert "the recording's mean" in w and "6.0 K apart" in w
+    assert "--joint-temperature 31.0,31.0" in w
+    tab.meta = {"conditions": {"joint_temperature_c": [31.0] * 6}}
+    assert thermal_mismatch(m, tab, np.full(6, 31.0)) is None
+    assert thermal_mismatch(m, tab, None) is None  # a controller without temperatures
+    assert thermal_mismatch(_thermal_model("time"), tab, np.full(6, 50.0)) is None

@@ -60,6 +60,43 @@ def check_options(args: argparse.Namespace) -> None:
         )
 
 
+THERMAL_MISMATCH_K = 2.0
+
+
+def thermal_mismatch(model, table, temps_c) -> str | None:
+    """One line when a given table was built for another thermal state than the arm's now (a
+    model whose thermal drift follows the joint temperatures), else None."""
+    from workcell.estimation.effects import thermal_signal
+
+    fs = getattr(model, "features_spec", None)
+    accepted = getattr(model, "accepted", None) or []
+    if fs is None or fs.thermal_source != "joint" or temps_c is None:
+        return None
+    if not any(c.kind == "thermal_drift" for c in accepted):
+        return None
+    now = np.asarray(temps_c, float).reshape(1, 6)
+    if not np.all(np.isfinite(now)):
+        return None
+    t_table = (table.meta.get("conditions") or {}).get("joint_temperature_c")
+    if t_table is None:
+        link_table, what = np.asarray(fs.thermal_ref, float), "the recording's mean"
+    else:
+        link_table = thermal_signal(
+            "joint", np.asarray(t_table, float).reshape(1, 6), None, None, 1
+        )[0]
+        what = "the temperatures it was exported for"
+    link_now = thermal_signal("joint", now, None, None, 1)[0]
+    d = float(np.abs(link_now - link_table).max())
+    if d <= THERMAL_MISMATCH_K:
+        return None
+    return (
+        f"the table is for {what} (link temperatures {np.round(link_table, 1).tolist()} degC); "
+        f"the arm is now at {np.round(link_now, 1).tolist()} degC ({d:.1f} K apart), and the "
+        "model's thermal drift differs by that: export the table again with --joint-temperature "
+        f"{','.join(f'{t:.1f}' for t in now[0])}, or leave --table out to build it for now"
+    )
+
+
 def run(args: argparse.Namespace) -> int:
     from workcell.campaign.devices import envelope_from_args
     from workcell.campaign.envelope import Guard
@@ -109,7 +146,6 @@ def run(args: argparse.Namespace) -> int:
         world.clock.advance(float(camp.get("warmup_s", 0.0)) + 3600.0)
         measure = sim_measure(world)
         spec = cell.spec
-        temps = world.joint_temperatures_c()
     else:
         from workcell.campaign.devices import open_cell
 
@@ -123,14 +159,19 @@ def run(args: argparse.Namespace) -> int:
         cell, robot, tracker, _ = open_cell(ns)
         measure = tracker_measure(tracker, args.readings or 5)
         spec = cell.spec
-        temps = None
     env = envelope_from_args(args, spec)  # before connecting
     robot.connect()
     tracker.connect()
     try:
+        warnings: list[str] = []
+        # the arm's joint temperatures now (the controller reports them; None if it does not)
+        temps = robot.state().temperature_c
         if args.table:
             table = load_table(args.table)
             nominal = nominal_for_model(model)
+            if (w := thermal_mismatch(model, table, temps)) is not None:
+                log(f"warning: {w}")
+                warnings.append(w)
         else:
             vol = parse_vec(args.volume, 6, "--volume") if args.volume else None
             cond = Conditions(
@@ -156,6 +197,7 @@ def run(args: argparse.Namespace) -> int:
     finally:
         close_quietly(robot, tracker)
     res["truth"] = "simulated robot" if args.robot == "sim" else "tracker"
+    res["warnings"] = warnings
     res["rms_interval_basis"] = RMS_INTERVAL_BASIS
     if args.json:
         print(json.dumps(res))
