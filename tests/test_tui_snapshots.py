@@ -183,7 +183,12 @@ class TestExportScreen:
             "truth": "tracker",
             "skipped": ["target 7: SMR at [0.1, -0.4, 0.46] m (base) outside the workspace box"],
             "before": {"rms_m": 412.3e-6, "max_m": 590.1e-6},
-            "after": {"rms_m": 11.8e-6, "max_m": 19.6e-6, "rms_ci95_m": [10.4e-6, 13.5e-6]},
+            "after": {
+                "rms_m": 11.8e-6,
+                "max_m": 19.6e-6,
+                "rms_ci95_m": [10.4e-6, 13.5e-6],
+                "predicted_rms_std_m": 6.1e-6,
+            },
             "improvement": 34.9,
         }
 

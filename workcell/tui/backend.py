@@ -656,8 +656,11 @@ def export(cfg: ExportConfig, log: Callable[[str], None] | None = None) -> dict:
             "interp_error_points",
             "max_correction_m",
             "correction_bound_m",
+            "median_std_m",
+            "max_std_m",
         )
     }
+    summary["conditions"] = list(table.meta.get("conditions_note") or [])
     if cfg.format == "table":
         summary["files"] = [str(p) for p in table.save(out)]
     else:

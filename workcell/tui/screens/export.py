@@ -191,6 +191,17 @@ class ExportScreen(WorkcellScreen):
                     f"(bound {float(v.get('correction_bound_m') or 0) * 1e3:g} mm)",
                 )
             )
+        if v.get("max_std_m") is not None:
+            rows.append(
+                (
+                    "Uncertainty",
+                    f"1-sigma of the corrections (model): median {um(v.get('median_std_m'))}, "
+                    f"max {um(v['max_std_m'])}",
+                )
+            )
+        elif "grid" in s:
+            rows.append(("Uncertainty", "not given: the model carries no covariance"))
+        rows += [("Conditions", escape(line)) for line in s.get("conditions", [])]
         self.result_rows = rows
         self.status = f"[green]exported[/green] {len(s.get('files', []))} file(s)"
         self.update_view()
@@ -215,6 +226,13 @@ class ExportScreen(WorkcellScreen):
                     + f", max {um(a['max_m'])}: {r['improvement']:.1f}x better",
                 ),
             ]
+            if a.get("predicted_rms_std_m") is not None:
+                rows.append(
+                    (
+                        "Closed loop stated",
+                        f"the table's 1-sigma at these targets: RMS {um(a['predicted_rms_std_m'])}",
+                    )
+                )
             if r.get("skipped"):
                 rows.append(("Closed loop skipped", f"{len(r['skipped'])}: {r['skipped'][0]}"))
             self.status = f"[green]closed-loop check done[/green] on {r['targets']} targets"
