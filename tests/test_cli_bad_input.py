@@ -101,13 +101,13 @@ def test_export_volume_in_millimetres(cell, capsys):
     one_line_refusal(
         capsys,
         ["export", str(model), "--format", "table", "--volume=-500,-500,0,500,500,800", "--out",
-         str(model.parent / "t")],
+         str(model.parent / "tab")],
         "looks like millimetres",
     )  # fmt: skip
     one_line_refusal(
         capsys,
         ["export", str(model), "--format", "table", "--recording", "nope.mcap", "--out",
-         str(model.parent / "t")],
+         str(model.parent / "tab")],
         "--recording nope.mcap does not exist",
     )  # fmt: skip
 
@@ -464,3 +464,51 @@ def test_diagnose_report_files_never_go_over_a_recording(cell, capsys, tmp_path)
                 capsys, ["diagnose", str(rec), "--report", str(rep), *extra], "existing recording"
             )
         assert digest(rep / name) == before
+
+
+def test_export_replaces_an_earlier_export_but_no_other_file(cell, tmp_path, capsys):
+    """An export may write over an earlier export (its model re-creates it) and says so; over
+    any other file (an envelope, a model, a targets list, notes) it is refused in one line
+    unless --force, nothing written."""
+    _, _, model = cell
+    base = ["export", str(model), "--volume=-0.15,-0.5,0.2,0.15,-0.3,0.4", "--spacing", "0.1"]
+    for fmt, out in (("table", "c"), ("urscript", "c.script"), ("ros-yaml", "c.yaml")):
+        argv = [*base, "--format", fmt, "--out", str(tmp_path / out)]
+        assert main(argv) == 0
+        capsys.readouterr()
+        assert main(argv) == 0  # again: replaces its own earlier output
+        assert "replacing" in capsys.readouterr().out
+    notes = tmp_path / "notes.json"
+    notes.write_text('{"envelope": "mine"}')
+    before = digest(notes)
+    for fmt in ("table", "urscript", "ros-yaml"):
+        one_line_refusal(
+            capsys,
+            [*base, "--format", fmt, "--out", str(notes)],
+            "exists and is not a workcell export",
+        )
+    # a table's CSV beside someone's JSON: the JSON is checked too
+    one_line_refusal(
+        capsys, [*base, "--format", "table", "--out", str(tmp_path / "notes")], "notes.json"
+    )
+    assert digest(notes) == before and not (tmp_path / "notes.csv").exists()
+    assert main([*base, "--format", "ros-yaml", "--out", str(notes), "--force"]) == 0
+    assert "replacing" in capsys.readouterr().out and digest(notes) != before
+
+
+def test_tui_export_refuses_to_write_over_a_file_that_is_not_an_export(cell, tmp_path):
+    from workcell.errors import UserError
+    from workcell.tui import backend
+
+    _, _, model = cell
+    notes = tmp_path / "notes.json"
+    notes.write_text('{"envelope": "mine"}')
+    before = digest(notes)
+    for fmt in ("table", "ros-yaml"):
+        cfg = backend.ExportConfig(model=str(model), format=fmt, out=str(notes), spacing_m=0.12)
+        with pytest.raises(UserError, match="not a workcell export"):
+            backend.export(cfg)
+    cfg = backend.ExportConfig(model=str(model), format="ros-yaml", out=str(model))
+    with pytest.raises(UserError, match="is the input"):
+        backend.export(cfg)
+    assert digest(notes) == before

@@ -60,18 +60,28 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="targets: CSV with x,y,z[,rx,ry,rz][,q1..q6 seeds] (m, rad, base) or q1..q6 only",
     )
     p.add_argument("--json", action="store_true", help="print a JSON summary")
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace an existing output file that is not an earlier workcell export "
+        "(never a recording or the command's inputs)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
     from workcell.estimation.models import load_model
     from workcell.export.build import conditions_note, make_table, parse_conditions, parse_vec
+    from workcell.export.files import check_export_outputs, output_files
 
     for opt, path in (("--recording", args.recording), ("--in", args.targets_in)):
         if path is not None and not Path(path).is_file():
             raise UserError(f"{opt} {path} does not exist (or is not a file)")
     out = check_output_path(args.out, "output")
     refuse_overwrite(
-        _output_files(args.format, out), [args.model, args.recording, args.targets_in], "output"
+        output_files(args.format, out), [args.model, args.recording, args.targets_in], "output"
+    )
+    check_export_outputs(
+        output_files(args.format, out), args.force, (lambda m: None) if args.json else print
     )
     cond = parse_conditions(args.approach, args.payload, args.joint_temperature, args.elapsed)
     model = load_model(args.model)
@@ -139,17 +149,6 @@ def run(args: argparse.Namespace) -> int:
         files += [str(p) for p in table.save(script.with_suffix(""))]
         summary["files"] = files
     return _report(args, summary)
-
-
-def _output_files(fmt: str, out: Path) -> list[Path]:
-    """The files `export --format fmt --out out` writes (a table is PATH.json + PATH.csv)."""
-    if fmt in ("ros-yaml", "targets"):
-        return [out]
-    if fmt == "table":
-        base = out.with_suffix("") if out.suffix.lower() in (".json", ".csv") else out
-        return [base.with_suffix(".json"), base.with_suffix(".csv")]
-    script = out if out.suffix else out.with_suffix(".script")
-    return [script, script.with_suffix(".json"), script.with_suffix(".csv")]
 
 
 def _report(args, summary: dict) -> int:

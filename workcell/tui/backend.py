@@ -620,8 +620,15 @@ def export(cfg: ExportConfig, log: Callable[[str], None] | None = None) -> dict:
         raise UserError("choose a fitted model first (fit a recording on the Fit screen)")
     if not Path(cfg.model).exists():
         raise UserError(f"model file {cfg.model} does not exist")
+    from workcell.errors import check_output_path, refuse_overwrite
+    from workcell.export.files import check_export_outputs, output_files
+
+    out = check_output_path(cfg.out, "output")
+    outputs = output_files(cfg.format, out)
+    # never over the model or a recording; over another file only if it is an earlier export
+    refuse_overwrite(outputs, [cfg.model], "output")
+    check_export_outputs(outputs, False, log or (lambda m: None))
     model = load_model(cfg.model)
-    out = Path(cfg.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     summary: dict = {"format": cfg.format, "model": cfg.model}
     t0 = time.perf_counter()
