@@ -275,6 +275,11 @@ def parse_effects(spec: str | None) -> dict:
         kinds = tuple(k.strip() for k in s.split(",") if k.strip())
     out = {}
     for k in kinds:
+        if k in ("none", "dh", "geometry", "realistic", "all"):
+            raise ValueError(
+                f"effect set {k!r} cannot be combined with others in a comma list; give it alone, "
+                f"or a list of effect kinds ({', '.join(EFFECT_KINDS)})"
+            )
         if k not in DEFAULT_MAGNITUDES:
             raise ValueError(
                 f"unknown effect {k!r}; known: none, realistic, all, {', '.join(EFFECT_KINDS)}"

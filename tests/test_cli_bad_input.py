@@ -59,7 +59,8 @@ def one_line_refusal(capsys, argv: list[str], match: str) -> None:
         (["diagnose", "{rec}", "--out", "{rec}"], "is the input"),
         (["replay", "{rec}", "--online", "ekf-ann", "--save", "{rec}"], "is the input"),
         (["export", "{model}", "--format", "table", "--out", "{dir}/m"], "is the input"),
-        (["export", "{model}", "--format", "urscript", "--out", "{model}"], "is the input"),
+        (["export", "{model}", "--format", "urscript", "--out", "{dir}/m"], "is the input"),
+        (["export", "{model}", "--format", "urscript", "--out", "{model}"], "replace the script"),
         (["export", "{model}", "--format", "ros-yaml", "--out", "{other}"], "existing recording"),
         (
             ["export", "{model}", "--format", "targets", "--in", "{t}", "--out", "{t}"],
@@ -481,12 +482,16 @@ def test_export_replaces_an_earlier_export_but_no_other_file(cell, tmp_path, cap
     notes = tmp_path / "notes.json"
     notes.write_text('{"envelope": "mine"}')
     before = digest(notes)
-    for fmt in ("table", "urscript", "ros-yaml"):
+    for fmt, out in (("table", notes), ("urscript", tmp_path / "notes"), ("ros-yaml", notes)):
         one_line_refusal(
             capsys,
-            [*base, "--format", fmt, "--out", str(notes)],
+            [*base, "--format", fmt, "--out", str(out)],
             "exists and is not a workcell export",
         )
+    # a URScript named .json would be replaced by its own table
+    one_line_refusal(
+        capsys, [*base, "--format", "urscript", "--out", str(tmp_path / "p.json")], "p.script"
+    )
     # a table's CSV beside someone's JSON: the JSON is checked too
     one_line_refusal(
         capsys, [*base, "--format", "table", "--out", str(tmp_path / "notes")], "notes.json"
@@ -512,3 +517,102 @@ def test_tui_export_refuses_to_write_over_a_file_that_is_not_an_export(cell, tmp
     with pytest.raises(UserError, match="is the input"):
         backend.export(cfg)
     assert digest(notes) == before
+
+
+# ---- third round of the audit (2026-11-23): each case failed before its fix
+def test_a_model_output_spares_a_tmp_file_and_a_pipe(cell, capsys, tmp_path):
+    """The model writer's temporary file never has a name that exists (a `<out>.tmp` beside it
+    was silently destroyed); a device or pipe as --out is refused (it was replaced by a file)."""
+    import os
+
+    _, rec, _ = cell
+    keep = tmp_path / "new.json.tmp"
+    keep.write_bytes(rec.read_bytes())
+    before = digest(keep)
+    assert main(["fit", str(rec), "--method", "dh", "--out", str(tmp_path / "new.json")]) == 0
+    assert digest(keep) == before and not list(tmp_path.glob(".new.json.*"))
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    for argv in (
+        ["fit", str(rec), "--method", "dh", "--out", str(fifo)],
+        ["diagnose", str(rec), "--no-np", "--out", str(fifo)],
+    ):
+        one_line_refusal(capsys, argv, "not a regular file")
+    assert fifo.is_fifo()
+
+
+def test_a_diagnose_report_folder_with_someone_elses_files(cell, capsys, tmp_path):
+    _, rec, _ = cell
+    rep = tmp_path / "rep"
+    rep.mkdir()
+    (rep / "summary.txt").write_text("my notes\n")
+    one_line_refusal(
+        capsys, ["diagnose", str(rec), "--no-np", "--report", str(rep)], "pass --force"
+    )
+    assert (rep / "summary.txt").read_text() == "my notes\n"
+    (rep / "summary.txt").unlink()
+    # an earlier report of its own is replaced (diagnose needs 40 poses)
+    from workcell.campaign.executor import CampaignConfig
+    from workcell.campaign.run import run_campaign, sim_cell
+
+    _, robot, tracker, c = sim_cell("ur5e", "realistic", seed=4)
+    rec = tmp_path / "r40.mcap"
+    cfg = CampaignConfig(readings_per_pose=2, settle_s=0.2)
+    run_campaign(robot, tracker, c, rec, plan="random", poses=40, seed=4, config=cfg)
+    assert main(["diagnose", str(rec), "--no-np", "--report", str(rep)]) == 0
+    capsys.readouterr()
+    assert main(["diagnose", str(rec), "--no-np", "--report", str(rep)]) == 0  # its own: replaced
+    assert "an earlier report" in capsys.readouterr().err
+
+
+def test_a_model_file_out_of_range_or_with_a_negative_variance(cell, capsys, tmp_path):
+    _, _, model = cell
+    d = json.loads(model.read_text())
+    for name, change, match in (
+        ("huge", lambda d: d["theta"].__setitem__(1, 1e308), "out of range"),
+        ("negvar", lambda d: d["cov"][0].__setitem__(0, -1e-6), "negative variance"),
+    ):
+        bad = json.loads(json.dumps(d))
+        change(bad)
+        p = tmp_path / f"{name}.json"
+        p.write_text(json.dumps(bad))
+        one_line_refusal(
+            capsys, ["export", str(p), "--format", "ros-yaml", "--out", str(tmp_path / "y")], match
+        )
+
+
+@pytest.mark.parametrize(
+    "argv, match",
+    [
+        (["replay", "{rec}", "--online", "ekf-ann", "--rate", "1e-9"], "0.001..1e6"),
+        (["export", "{model}", "--format", "table", "--out", "{dir}/a", "--approach",
+          "2,0,0,0,0,0"], "-1, 0 or 1"),
+        (["export", "{model}", "--format", "table", "--out", "{dir}/a", "--interp-error", "10"],
+         "give metres"),
+        (["export", "{model}", "--format", "table", "--out", "{dir}/a", "--volume",
+          "-0.5,-0.5,0,0.5,0.5,1"], "goes after '='"),
+        (["campaign", "--robot", "ur://127.0.0.1:1", "--tracker", "serial:///dev/x", "--out",
+          "{dir}/c.mcap"], "no port"),
+        (["campaign", "--robot", "sim", "--tracker", "sim", "--effects", "none,backlash",
+          "--out", "{dir}/c.mcap"], "cannot be combined"),
+    ],
+)  # fmt: skip
+def test_third_round_option_mistakes(cell, capsys, argv, match):
+    d, rec, model = cell
+    capsys.readouterr()
+    try:
+        rc = main([a.format(rec=rec, model=model, dir=d) for a in argv])
+    except SystemExit as e:  # argparse's own mistakes
+        rc = e.code
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and match in err[0], (rc, err)
+    assert not (d / "c.mcap").exists() and not (d / "a.json").exists()
+
+
+def test_an_envelope_limit_too_big_for_a_float(tmp_path, capsys):
+    path = tmp_path / "env.json"
+    assert main(["envelope", "--out", str(path)]) == 0
+    d = json.loads(path.read_text())
+    d["floor_z_m"] = 12345.0
+    path.write_text(json.dumps(d).replace("12345.0", "1" + "0" * 400))
+    one_line_refusal(capsys, ["envelope", "--check", str(path)], "finite")

@@ -29,6 +29,12 @@ def refuse_overwrite(outputs, inputs=(), what: str = "output") -> None:
 
     for o in outputs:
         o = Path(o)
+        if o.exists() and not o.is_file() and not o.is_dir():
+            # a device, pipe or socket: writing a file there would replace it
+            raise UserError(
+                f"{what} {o} exists and is not a regular file (a device or pipe); writing there "
+                "would replace it; choose a file name"
+            )
         if not o.is_file():
             continue
         for i in inputs:
@@ -78,4 +84,7 @@ class OneLineParser(argparse.ArgumentParser):
     """An option mistake is one line (what is wrong, where the help is), not the usage block."""
 
     def error(self, message: str):  # type: ignore[override]
+        if message.endswith("expected one argument"):
+            # argparse reads "-0.5,..." as an option
+            message += " (a value that starts with '-' goes after '=': --volume=-0.5,...)"
         self.exit(2, f"{self.prog}: error: {message} (see `{self.prog} --help`)\n")

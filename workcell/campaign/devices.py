@@ -60,6 +60,12 @@ def open_cell(args):
         )
     if not args.robot.startswith("ur://"):
         raise UserError(f"--robot {args.robot!r}: expected sim or ur://HOST")
+    host = args.robot[len("ur://") :]
+    if not host or "/" in host or (host.count(":") == 1 and not host.startswith("[")):
+        raise UserError(
+            f"--robot {args.robot!r}: expected ur://HOST (a name or an IP address, no port or "
+            "path: the controller's RTDE and dashboard ports are fixed)"
+        )
     if not args.tracker.startswith("serial://"):
         raise UserError(f"--tracker {args.tracker!r}: expected sim or serial:///dev/ttyX")
     try:

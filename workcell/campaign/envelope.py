@@ -55,8 +55,8 @@ class Envelope:
                 float(self.max_accel_rad_s2),
                 float(self.kinematic_margin_m),
             ]
-        except (TypeError, ValueError):
-            raise ValueError("envelope: every limit must be a number") from None
+        except (TypeError, ValueError, OverflowError):
+            raise ValueError("envelope: every limit must be a (finite) number") from None
         if lim.ndim != 2 or lim.shape[1] != 2 or lim.shape[0] < 1:
             raise ValueError(
                 f"envelope joint_limits_rad: expected (n, 2) [lo, hi] pairs, got {lim.shape}"

@@ -103,6 +103,8 @@ def run(args: argparse.Namespace) -> int:
             check_model_output(p, args.recording, force=args.force, say=log)
     for name in REPORT_FILES if outdir else ():
         check_output_path(outdir / name, "report file", inputs=[args.recording])
+    if outdir:
+        check_report_folder(outdir, force=args.force, say=log)
     diag = diagnose(ds, cfg, progress=log)
     rep = diag.report
     rep["recording_problems"] = list(ds.read_problems)
@@ -124,6 +126,26 @@ def run(args: argparse.Namespace) -> int:
     else:
         print_report(rep)
     return 0
+
+
+def check_report_folder(outdir: Path, *, force: bool, say) -> None:
+    """Write the report files over existing ones only when they are an earlier diagnose report
+    (its report.json is one), else refuse unless `force`."""
+    existing = [outdir / n for n in REPORT_FILES if (outdir / n).is_file()]
+    if not existing:
+        return
+    try:
+        d = json.loads((outdir / REPORT_FILES[1]).read_text(encoding="utf-8-sig"))
+    except (OSError, ValueError, UnicodeDecodeError):
+        d = None
+    ours = isinstance(d, dict) and {"summary", "train_poses", "heldout_poses"} <= set(d)
+    if not (ours or force):
+        raise UserError(
+            f"report folder {outdir} holds {', '.join(p.name for p in existing)} that are not an "
+            "earlier workcell diagnose report; writing there would destroy them; choose another "
+            "folder, or pass --force to replace them"
+        )
+    say(f"replacing the report in {outdir}: " + ("an earlier report" if ours else "(--force)"))
 
 
 def um(x) -> str:

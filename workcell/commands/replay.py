@@ -40,8 +40,10 @@ def run(args: argparse.Namespace) -> int:
     from workcell.recording.dataset import read_warnings
     from workcell.recording.reader import read_recording
 
-    if not (args.rate >= 0 and args.rate != float("inf")):
-        raise UserError(f"--rate must be a finite number >= 0, got {args.rate}")
+    if not (args.rate == 0 or 1e-3 <= args.rate <= 1e6):
+        raise UserError(
+            f"--rate must be 0 (as fast as possible) or 0.001..1e6 times real time, got {args.rate}"
+        )
     if args.every < 1:
         raise UserError(f"--every must be >= 1, got {args.every}")
     if args.save:

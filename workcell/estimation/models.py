@@ -9,6 +9,7 @@ from __future__ import annotations
 import importlib
 import json
 import os
+import tempfile
 import warnings
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
@@ -96,9 +97,16 @@ def save_model(model: FittedModel, path: str | os.PathLike) -> Path:
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     d = {"format": MODEL_FORMAT, **model.to_dict()}
-    tmp = p.with_suffix(p.suffix + ".tmp")
-    tmp.write_text(json.dumps(d, indent=1, allow_nan=False))
-    tmp.replace(p)
+    text = json.dumps(d, indent=1, allow_nan=False)
+    # a fresh temporary name beside the output (never an existing file), then an atomic rename
+    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.replace(tmp, p)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
     return p
 
 
@@ -192,7 +200,30 @@ def model_from_dict(d: dict, source: str = "model") -> FittedModel:
             f"{source}: the {method} model does not predict finite positions (shape {p.shape}); "
             "fit it again with `workcell fit`"
         )
+    if np.abs(p).max() > MAX_PREDICTED_M:
+        raise UserError(
+            f"{source}: the {method} model puts the SMR {np.abs(p).max():.3g} m from the tracker "
+            "(a parameter of the file is out of range); fit it again with `workcell fit`"
+        )
+    # a std may be "not given" (None/NaN: a hyperparameter at its bound, a CV-chosen one), but
+    # a covariance with a negative variance is malformed
+    bad = []
+    for attr in ("cov", "geometric_cov"):
+        c = getattr(model, attr, None)
+        if c is None:
+            continue
+        c = np.asarray(c, dtype=float)
+        if c.ndim != 2 or not np.all(np.isfinite(c)) or np.any(np.diag(c) < 0):
+            bad.append(f"its {attr} (a negative variance)")
+    if bad:
+        raise UserError(
+            f"{source}: the {method} model's {bad[0][4:]} is malformed; fit it again with "
+            "`workcell fit`"
+        )
     return model
+
+
+MAX_PREDICTED_M = 1e3  # a laser tracker measures within ~100 m
 
 
 def rms(e: np.ndarray) -> float:

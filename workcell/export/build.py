@@ -74,7 +74,13 @@ def parse_conditions(
     elapsed: str | None = None,
 ) -> Conditions:
     """The export's operating conditions from the command-line strings, checked for units."""
-    cond = Conditions(approach_sign=np.sign(parse_vec(approach, 6, "--approach")))
+    sign = parse_vec(approach, 6, "--approach")
+    if not np.all(np.isin(sign, (-1.0, 0.0, 1.0))):
+        raise UserError(
+            f"--approach {approach}: each joint's approach sign is -1, 0 or 1 (the direction the "
+            "joint moves into its target from)"
+        )
+    cond = Conditions(approach_sign=sign)
     if payload is not None:
         (kg,) = parse_vec(payload, 1, "--payload")
         if not 0.0 <= kg <= PAYLOAD_MAX_KG:

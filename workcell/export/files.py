@@ -54,4 +54,10 @@ def output_files(fmt: str, out: Path) -> list[Path]:
         base = out.with_suffix("") if out.suffix.lower() in (".json", ".csv") else out
         return [base.with_suffix(".json"), base.with_suffix(".csv")]
     script = out if out.suffix else out.with_suffix(".script")
+    if script.suffix.lower() in (".json", ".csv"):
+        raise UserError(
+            f"--out {out}: a URScript writes its table beside it as {script.stem}.json and "
+            f"{script.stem}.csv, which would replace the script; give --out "
+            f"{script.with_suffix('.script')}"
+        )
     return [script, script.with_suffix(".json"), script.with_suffix(".csv")]

@@ -73,6 +73,11 @@ def model_deviation(model, env, spec, *, samples: int = SAMPLES, seed: int = 0) 
     rms_model = float(rms_model) if isinstance(rms_model, (int, float)) else None
     unexplained = UNEXPLAINED_SIGMAS * rms_model if rms_model else 0.0
     suggested = SAFETY_FACTOR * (worst + unexplained)
+    if not math.isfinite(suggested):
+        raise UserError(
+            "the model's deviation from the nominal chain is not finite anywhere in the envelope "
+            "(a parameter of the model file is out of range); refit it"
+        )
     return {
         "configurations": int(len(q)),
         "frames": out_frames,

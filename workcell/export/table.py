@@ -392,6 +392,11 @@ def build_table(
     ):
         if not (np.isfinite(v) and v > 0):
             raise UserError(f"{name} must be a positive number of metres, got {v}")
+    if target_error_m > 1e-3:
+        raise UserError(
+            f"interpolation error target {target_error_m:g} m is beyond any calibration (they "
+            "are micrometres); give metres (5e-6 for 5 um)"
+        )
     if max_correction_m > 0.1:
         raise UserError(
             f"max correction {max_correction_m:g} m is beyond any calibration (they are mm); "
