@@ -570,7 +570,7 @@ def test_a_model_file_out_of_range_or_with_a_negative_variance(cell, capsys, tmp
     d = json.loads(model.read_text())
     for name, change, match in (
         ("huge", lambda d: d["theta"].__setitem__(1, 1e308), "out of range"),
-        ("negvar", lambda d: d["cov"][0].__setitem__(0, -1e-6), "negative variance"),
+        ("negvar", lambda d: d["cov"][0].__setitem__(0, -1e-6), "negative or non-finite"),
     ):
         bad = json.loads(json.dumps(d))
         change(bad)

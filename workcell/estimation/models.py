@@ -103,6 +103,9 @@ def save_model(model: FittedModel, path: str | os.PathLike) -> Path:
     try:
         with os.fdopen(fd, "w") as f:
             f.write(text)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # as an ordinary new file (mkstemp makes it 0600)
         os.replace(tmp, p)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -206,20 +209,18 @@ def model_from_dict(d: dict, source: str = "model") -> FittedModel:
             "(a parameter of the file is out of range); fit it again with `workcell fit`"
         )
     # a std may be "not given" (None/NaN: a hyperparameter at its bound, a CV-chosen one), but
-    # a covariance with a negative variance is malformed
-    bad = []
+    # a covariance with a negative variance (beyond rounding) is malformed
     for attr in ("cov", "geometric_cov"):
         c = getattr(model, attr, None)
         if c is None:
             continue
         c = np.asarray(c, dtype=float)
-        if c.ndim != 2 or not np.all(np.isfinite(c)) or np.any(np.diag(c) < 0):
-            bad.append(f"its {attr} (a negative variance)")
-    if bad:
-        raise UserError(
-            f"{source}: the {method} model's {bad[0][4:]} is malformed; fit it again with "
-            "`workcell fit`"
-        )
+        v = np.diag(c) if c.ndim == 2 else np.array([np.nan])
+        if not np.all(np.isfinite(c)) or np.any(v < -1e-9 * np.abs(v).max()):
+            raise UserError(
+                f"{source}: the {method} model's {attr} has a negative or non-finite variance; "
+                "fit it again with `workcell fit`"
+            )
     return model
 
 
