@@ -55,6 +55,19 @@ def refuse_overwrite(outputs, inputs=(), what: str = "output") -> None:
             )
 
 
+def replace_or_refuse(what: str, path, earlier: str | None, not_what: str, *, force: bool, say):
+    """The one policy for writing over an existing output file: an earlier output of the same
+    kind (`earlier` says which, e.g. "an earlier correction table") is replaced, and `say(line)`
+    is told; anything else (`not_what`: what it is instead) is refused unless `force`."""
+    if earlier is None and not force:
+        raise UserError(
+            f"{what} {path} exists and is {not_what}; writing there would destroy it; choose "
+            "another name, or pass --force to replace it"
+        )
+    if say is not None:
+        say(f"replacing {path}: {earlier or '(--force)'}")
+
+
 def check_output_path(path, what: str = "output", *, folder: bool = False, inputs=()):
     """Refuse, before any work, an output path that cannot be written: a file where a folder
     is needed (or the reverse), or a read-only folder, or one of the command's `inputs` or an

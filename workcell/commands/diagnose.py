@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from workcell.commands.options import add_tracker_mpe, parse_tracker_mpe
-from workcell.errors import UserError, check_output_path
+from workcell.errors import UserError, check_output_path, replace_or_refuse
 from workcell.estimation.models import interval_um
 
 
@@ -139,13 +139,15 @@ def check_report_folder(outdir: Path, *, force: bool, say) -> None:
     except (OSError, ValueError, UnicodeDecodeError):
         d = None
     ours = isinstance(d, dict) and {"summary", "train_poses", "heldout_poses"} <= set(d)
-    if not (ours or force):
-        raise UserError(
-            f"report folder {outdir} holds {', '.join(p.name for p in existing)} that are not an "
-            "earlier workcell diagnose report; writing there would destroy them; choose another "
-            "folder, or pass --force to replace them"
+    for p in existing:
+        replace_or_refuse(
+            "report file",
+            p,
+            "an earlier report" if ours else None,
+            "not part of an earlier workcell diagnose report",
+            force=force,
+            say=say,
         )
-    say(f"replacing the report in {outdir}: " + ("an earlier report" if ours else "(--force)"))
 
 
 def um(x) -> str:

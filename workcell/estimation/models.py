@@ -16,7 +16,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from workcell.errors import UserError
+from workcell.errors import UserError, replace_or_refuse
 
 MODEL_FORMAT = "workcell-model/1"
 
@@ -82,15 +82,14 @@ def check_model_output(
     is_model = isinstance(d, dict) and d.get("format") == MODEL_FORMAT
     info = d.get("info") if is_model and isinstance(d.get("info"), dict) else {}
     same = is_model and info.get("recording_sha256") == file_sha256(recording)
-    if not (same or force):
-        what = "a model of another recording" if is_model else "not a workcell model"
-        raise UserError(
-            f"model file {p} exists and is {what}; writing there would destroy it; choose "
-            "another name, or pass --force to replace it"
-        )
-    if say is not None:
-        kind = f"an earlier {d.get('method')} model of this recording" if same else "(--force)"
-        say(f"replacing {p}: {kind}")
+    replace_or_refuse(
+        "model file",
+        p,
+        f"an earlier {d.get('method')} model of this recording" if same else None,
+        "a model of another recording" if is_model else "not a workcell model",
+        force=force,
+        say=say,
+    )
 
 
 def save_model(model: FittedModel, path: str | os.PathLike) -> Path:

@@ -130,24 +130,27 @@ def conditions_note(model, cond: Conditions, strict: bool = False) -> list[str]:
                 "--joint-temperature/--elapsed change nothing: the model has no thermal drift"
             )
         return lines
-    wrong = {
-        "joint": ("--elapsed", cond.elapsed_s, "the joint temperatures; give --joint-temperature"),
-        "time": (
-            "--joint-temperature",
-            cond.joint_temperature_c,
-            "the time since the campaign's start; give --elapsed",
-        ),
-        "ambient": (
-            "--joint-temperature/--elapsed",
-            cond.elapsed_s if cond.elapsed_s is not None else cond.joint_temperature_c,
+    # a given condition that does not drive this drift would be silently ignored: refuse it
+    drives = {
+        "joint": ("--joint-temperature", "the joint temperatures; give --joint-temperature"),
+        "time": ("--elapsed", "the time since the campaign's start; give --elapsed"),
+    }
+    settable, driven_by = drives.get(
+        src,
+        (
+            None,
             "the ambient temperature, which export cannot set (the table is for the "
             "recording's mean); leave the option out",
         ),
-    }.get(src)
-    if strict and wrong is not None and wrong[1] is not None:
-        raise UserError(
-            f"{wrong[0]} does not set the model's thermal drift: it is driven by {wrong[2]}"
-        )
+    )
+    for opt, value in (
+        ("--joint-temperature", cond.joint_temperature_c),
+        ("--elapsed", cond.elapsed_s),
+    ):
+        if strict and value is not None and opt != settable:
+            raise UserError(
+                f"{opt} does not set the model's thermal drift: it is driven by {driven_by}"
+            )
     ref = np.asarray(fs.thermal_ref, float)
     if src == "joint" and cond.joint_temperature_c is not None:
         lines.append(

@@ -217,10 +217,23 @@ class Corrector:
     def real_base(self, q: np.ndarray) -> np.ndarray:
         """The model's SMR position (N, 3) in base for joints q (N, 6) under the conditions."""
         q = np.atleast_2d(np.asarray(q, float))
-        n = len(q)
-        qp = np.asarray(_pad(q))
-        p = np.asarray(self.model.predict(qp, **self.conditions.aux(len(qp))), float)[:n]
+        qp = _pad(q)
+        p = np.asarray(self.model.predict(qp, **self.conditions.aux(len(qp))), float)[: len(q)]
         return self.nominal.to_base(p)
+
+    def real_base_cov(self, q: np.ndarray) -> np.ndarray | None:
+        """Covariance (N, 3, 3), base axes, of `real_base(q)` from the model's parameter
+        covariance (`prediction_cov`); None when the model carries none."""
+        f = getattr(self.model, "prediction_cov", None)
+        if f is None:
+            return None
+        q = np.atleast_2d(np.asarray(q, float))
+        qp = _pad(q)
+        C = f(qp, **self.conditions.aux(len(qp)))
+        if C is None:
+            return None
+        R = self.nominal.base_ref[:3, :3]  # base axes -> tracker axes
+        return np.einsum("ji,njk,kl->nil", R, np.asarray(C, float)[: len(q)], R)
 
     def correct_positions(
         self,

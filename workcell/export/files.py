@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from workcell.errors import UserError
+from workcell.errors import UserError, replace_or_refuse
 
 # how each workcell export starts (its first 4 kB), to tell an earlier export (re-created from
 # its model: replacing it loses nothing) from any other file
@@ -38,12 +38,8 @@ def check_export_outputs(outputs, force: bool, say) -> None:
         if not o.is_file():
             continue
         kind = export_kind(o)
-        if kind is None and not force:
-            raise UserError(
-                f"output {o} exists and is not a workcell export; writing there would destroy "
-                "it; choose another name, or pass --force to replace it"
-            )
-        say(f"replacing {o}: " + (f"an earlier {kind}" if kind else "(--force)"))
+        earlier = f"an earlier {kind}" if kind else None
+        replace_or_refuse("output", o, earlier, "not a workcell export", force=force, say=say)
 
 
 def output_files(fmt: str, out: Path) -> list[Path]:

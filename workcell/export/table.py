@@ -83,12 +83,13 @@ class CorrectionTable:
             )
         return k
 
-    def interpolate(self, p: np.ndarray, k: int = 0) -> np.ndarray:
-        """Trilinear delta (N, 3) at positions p (N, 3); raises outside the box."""
+    def interpolate(self, p: np.ndarray, k: int = 0, D: np.ndarray | None = None) -> np.ndarray:
+        """Trilinear delta (N, 3) at positions p (N, 3) (of the node values D (nx, ny, nz, 3)
+        if given); raises outside the box."""
         p = np.atleast_2d(np.asarray(p, float))
         out = np.empty_like(p)
         for n, x in enumerate(p):
-            out[n] = self._interp_one(x, k)
+            out[n] = self._interp_one(x, k, D)
         return out
 
     def _interp_one(self, x: np.ndarray, k: int, D: np.ndarray | None = None) -> np.ndarray:
@@ -123,8 +124,7 @@ class CorrectionTable:
         interpolated correction's std: `STD_BASIS`); None when the table carries none."""
         if self.std_m is None:
             return None
-        p = np.atleast_2d(np.asarray(p, float))
-        return np.array([self._interp_one(x, k, self.std_m[k]) for x in p]).reshape(-1, 3)
+        return self.interpolate(p, k, self.std_m[k])
 
     def correct(self, p: np.ndarray, rotvec: np.ndarray | None = None) -> np.ndarray:
         """Commanded positions for desired positions p (N, 3) at one tool orientation."""
@@ -348,20 +348,10 @@ STD_BASIS = (
 
 def node_std(corr: Corrector, q_nodes: np.ndarray) -> np.ndarray | None:
     """1-sigma (..., 3) of the corrections at corrected joints q_nodes (..., 6), base axes
-    (`STD_BASIS`); None when the model has no `prediction_cov` or returns None."""
-    from workcell.export.correction import _pad
-
-    f = getattr(corr.model, "prediction_cov", None)
-    if f is None:
-        return None
-    q = np.asarray(q_nodes, float).reshape(-1, 6)
-    qp = _pad(q)
-    C = f(qp, **corr.conditions.aux(len(qp)))
+    (`STD_BASIS`); None when the model carries no covariance of its prediction."""
+    C = corr.real_base_cov(np.asarray(q_nodes, float).reshape(-1, 6))
     if C is None:
         return None
-    C = np.asarray(C, float)[: len(q)]
-    R = np.asarray(corr.nominal.base_ref, float)[:3, :3]  # base axes -> tracker axes
-    C = np.einsum("ji,njk,kl->nil", R, C, R)
     sd = np.sqrt(np.clip(np.einsum("nii->ni", C), 0.0, None))
     return sd.reshape(*np.shape(q_nodes)[:-1], 3)
 
