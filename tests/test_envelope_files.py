@@ -111,8 +111,21 @@ def test_campaign_stays_inside_and_resume_reuses_the_recorded_envelope(tmp_path,
     # --envelope with --resume is refused: the plan was made inside the recorded one
     assert main(["campaign", "--resume", str(cut), "--envelope", str(tight)]) == 2
     assert "keeps the envelope" in capsys.readouterr().err
+    # options a resume would ignore are refused, each in one line, before anything moves
+    for extra, words in (
+        (["--poses", "100", "--plan", "dopt"], "--plan, --poses: --resume continues the campaign"),
+        (["--seed", "3"], "--seed: --resume continues"),
+        (["--robot", "ur://10.0.0.2"], "was recorded with --robot sim"),
+        (["--online", "ekf-ann"], "filter's state is not recorded"),
+        (["--dry-run"], "`workcell info REC` shows what was measured"),
+    ):
+        assert main(["campaign", "--resume", str(cut), *extra]) == 2, extra
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and words in err[0], err
+        assert not (tmp_path / "cut.resumed1.mcap").exists()
     # --resume re-plans inside the recorded envelope: the same poses as the uninterrupted run
-    assert main(["campaign", "--resume", str(cut)]) == 0
+    # (--robot naming the recorded cell is no contradiction)
+    assert main(["campaign", "--resume", str(cut), "--robot", "sim"]) == 0
     rest = q_commanded(tmp_path / "cut.resumed1.mcap")
     assert set(first) | set(rest) == set(planned) and not set(first) & set(rest)
     for pid, q in {**first, **rest}.items():

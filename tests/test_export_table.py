@@ -439,6 +439,32 @@ def test_export_conditions_in_wrong_units_are_refused(tmp_path, capsys, opt, val
     assert not list(tmp_path.glob("t.*"))
 
 
+@pytest.mark.parametrize(
+    ("fmt", "extra", "what"),
+    [
+        ("ros-yaml", ["--payload", "2", "--elapsed", "60"], "--payload, --elapsed: not used"),
+        ("ros-yaml", ["--volume=0,0,0,1,1,1"], "carries the geometry only"),
+        ("ros-yaml", ["--approach=-1,1,1,1,1,1"], "--approach: not used"),
+        ("table", ["--in", "TARGETS"], "--in: not used by --format table"),
+        ("urscript", ["--in", "TARGETS"], "--in is for --format targets"),
+        ("targets", ["--in", "TARGETS", "--spacing", "0.1"], "--spacing: not used"),
+        ("targets", ["--in", "TARGETS", "--interp-error", "1e-6"], "corrects the --in targets"),
+    ],
+)
+def test_export_refuses_options_its_format_would_ignore(tmp_path, capsys, fmt, extra, what):
+    from workcell.cli import main
+
+    path = save_model(make_model(1), tmp_path / "dh.json")
+    targets = tmp_path / "targets.csv"
+    targets.write_text("x,y,z\n0.4,0.1,0.3\n")
+    extra = [str(targets) if x == "TARGETS" else x for x in extra]
+    out = tmp_path / "o.json"
+    rc = main(["export", str(path), "--format", fmt, "--out", str(out), *extra])
+    err = capsys.readouterr().err
+    assert rc == 2 and what in err and len(err.strip().splitlines()) == 1, err
+    assert not out.exists()
+
+
 def test_validate_warns_when_a_table_is_for_another_thermal_state():
     """A table exported for the recording's mean thermal state, validated on a warmer arm, gets
     one warning line with the export option that fixes it; within 2 K, none."""

@@ -183,6 +183,22 @@ def test_info_reports_closed_state(tmp_path):
     d = json.loads(r.stdout)
     assert d["poses"] == 5 and d["closed_cleanly"] and d["robot"] == "ur5e"
     assert d["events"] == {"beam_broken": 1}
+    assert d["trailing_bytes"] == 0 and not d["problems"]
+
+
+def test_bytes_appended_after_a_clean_close_are_reported(tmp_path):
+    p = tmp_path / "r.mcap"
+    samples = write(p, n=5)
+    size = p.stat().st_size
+    with open(p, "ab") as f:
+        f.write(b"appended by another tool")
+    rec = read_recording(p)
+    assert [s["pose_id"] for s in rec.samples] == [s["pose_id"] for s in samples]
+    assert rec.closed_cleanly and rec.trailing_bytes == 24
+    assert any(f"byte {size}" in x and "appended" in x for x in rec.problems)
+    r = run_cli("info", str(p))
+    assert r.returncode == 0, r.stderr
+    assert "cleanly, then 24 bytes appended" in r.stdout
 
 
 def test_unreachable_devices_give_one_clear_line(tmp_path):

@@ -126,7 +126,9 @@ def default_out(old: Path) -> Path:
         k += 1
 
 
-def resume_campaign(args: argparse.Namespace) -> int:
+def resume_campaign(args: argparse.Namespace, control: CampaignControl) -> int:
+    """Continue `args.resume` in a new chained file. `--robot`/`--tracker` are needed only for
+    recordings that do not name their devices; given otherwise, they must name the same ones."""
     old = Path(args.resume)
     info = resume_plan(str(old))
     camp = info["campaign"]
@@ -147,8 +149,14 @@ def resume_campaign(args: argparse.Namespace) -> int:
             "inside it); leave --envelope out"
         )
     ns = copy.copy(args)
-    ns.robot = camp.get("robot_url", args.robot)
-    ns.tracker = camp.get("tracker_url", args.tracker)
+    for opt in ("robot", "tracker"):
+        given, recorded = getattr(args, opt), camp.get(f"{opt}_url")
+        if given is not None and recorded is not None and given != recorded:
+            raise UserError(
+                f"--{opt} {given}: {old} was recorded with --{opt} {recorded}, and a resume "
+                f"continues on the same cell; leave --{opt} out"
+            )
+        setattr(ns, opt, recorded or given or "sim")
     if camp.get("effects") is not None:
         ns.effects = camp["effects"]
     ns.seed = int(camp["seed"])
@@ -164,8 +172,6 @@ def resume_campaign(args: argparse.Namespace) -> int:
         approach_rad=float(camp.get("approach_rad", 0.02)),
         payload_kg=cell.payload_kg,
     )
-    control = CampaignControl()
-    control.install_sigint()
     chained = {"path": str(old), "sha256": file_sha256(old), "samples": info["n_samples"]}
     print(
         f"resuming {old}: {len(info['done'])} poses measured, {remaining} to go -> {out}",

@@ -15,32 +15,46 @@ from workcell.errors import UserError, check_output_path
 MAX_POSES = 100_000  # ~10 s a pose: eleven days at the tracker
 
 
+# Defaults of the options a resumed campaign takes from its recording instead. They default to
+# None so that a resume can tell an option given from one left out, and refuse the former.
+DEFAULTS = {
+    "robot": "sim",
+    "tracker": "sim",
+    "plan": "random",
+    "poses": 50,
+    "seed": 0,
+    "effects": "realistic",
+    "model": "ur5e",
+    "readings": 5,
+    "settle": 1.0,
+    "warmup": 0.0,
+}
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--robot", default="sim", help="sim or ur://HOST")
-    p.add_argument("--tracker", default="sim", help="sim or serial:///dev/ttyX")
-    p.add_argument("--plan", default="random", help="grid, random, bo, dopt or vopt")
-    p.add_argument("--poses", type=int, default=50, help="number of poses to measure")
+    p.add_argument("--robot", help="sim or ur://HOST (default sim)")
+    p.add_argument("--tracker", help="sim or serial:///dev/ttyX (default sim)")
+    p.add_argument("--plan", help="grid, random, bo, dopt or vopt (default random)")
+    p.add_argument("--poses", type=int, help="number of poses to measure (default 50)")
     p.add_argument("--out", help="recording to write (.mcap); must not exist")
-    p.add_argument("--seed", type=int, default=0, help="plan seed (and simulated truth seed)")
+    p.add_argument("--seed", type=int, help="plan seed (and simulated truth seed; default 0)")
     p.add_argument(
         "--effects",
-        default="realistic",
-        help="simulated truth: none, realistic, all, or a comma list of effect kinds",
+        help="simulated truth: none, realistic (default), all, or a comma list of effect kinds",
     )
-    p.add_argument("--model", default="ur5e", help="robot model when not given by the device")
+    p.add_argument("--model", help="robot model when not given by the device (default ur5e)")
     p.add_argument(
         "--smr-offset",
         metavar="X,Y,Z",
         help="the SMR's position on the flange in metres (default 0,0,0.06); the envelope and "
         "the margin watch use it",
     )
-    p.add_argument("--readings", type=int, default=5, help="tracker readings per pose")
-    p.add_argument("--settle", type=float, default=1.0, help="settle time in seconds")
+    p.add_argument("--readings", type=int, help="tracker readings per pose (default 5)")
+    p.add_argument("--settle", type=float, help="settle time in seconds (default 1)")
     p.add_argument(
         "--warmup",
         type=float,
-        default=0.0,
-        help="exercise the arm this many seconds before measuring",
+        help="exercise the arm this many seconds before measuring (default 0)",
     )
     p.add_argument("--time-scale", type=float, default=1.0, help="simulators: time scale")
     p.add_argument(
@@ -72,11 +86,54 @@ def _say_planning(args: argparse.Namespace) -> None:
         )
 
 
+def _check_resume_options(args: argparse.Namespace) -> None:
+    """A resume continues the recorded campaign: refuse options it would ignore, in one line."""
+    given = [
+        "--" + k
+        for k in ("plan", "poses", "seed", "effects", "model", "readings", "settle", "warmup")
+        if getattr(args, k) is not None
+    ]
+    if given:
+        raise UserError(
+            f"{', '.join(given)}: --resume continues the campaign as it was recorded (plan, "
+            "poses, seed, simulated truth, arm, readings, settle, warm-up); leave "
+            f"{'it' if len(given) == 1 else 'them'} out, or start a new campaign"
+        )
+    if args.dry_run:
+        raise UserError(
+            "--dry-run with --resume: `workcell info REC` shows what was measured; a resume "
+            "checks every remaining pose against the recorded envelope before it moves"
+        )
+    if args.online:
+        raise UserError(
+            "--online with --resume: the filter's state is not recorded, so it cannot continue; "
+            "replay the recordings through it with `workcell replay`"
+        )
+
+
+def _control(args: argparse.Namespace) -> CampaignControl:
+    """Ctrl-C aborts cleanly; after a protective stop, ask on the terminal (default when
+    interactive) or resume at once."""
+    control = CampaignControl()
+    control.install_sigint()
+    mode = args.on_protective_stop or ("ask" if sys.stdin.isatty() else "resume")
+    if mode == "ask":
+        control.auto_resume_protective_stop = False
+        _ask_on_protective_stop(control)
+    return control
+
+
 def run(args: argparse.Namespace) -> int:
     if args.resume:
         from workcell.campaign.resume import resume_campaign
 
-        return resume_campaign(args)
+        _check_resume_options(args)
+        for k in ("readings", "settle", "effects", "model"):
+            setattr(args, k, DEFAULTS[k])  # for recordings that do not say (older ones)
+        return resume_campaign(args, _control(args))
+    for k, v in DEFAULTS.items():
+        if getattr(args, k) is None:
+            setattr(args, k, v)
     if args.poses <= 0:
         raise UserError(f"--poses must be positive, got {args.poses}")
     if args.poses > MAX_POSES:
@@ -105,12 +162,7 @@ def run(args: argparse.Namespace) -> int:
     if Path(args.out).exists():
         raise UserError(f"{args.out} already exists; choose a new file or use --resume")
     check_output_path(args.out, "recording")
-    control = CampaignControl()
-    control.install_sigint()
-    mode = args.on_protective_stop or ("ask" if sys.stdin.isatty() else "resume")
-    if mode == "ask":
-        control.auto_resume_protective_stop = False
-        _ask_on_protective_stop(control)
+    control = _control(args)
     n = [0]
 
     def on_sample(s: dict) -> None:

@@ -29,14 +29,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="tool orientation rx,ry,rz (UR rotation vector, rad); repeatable; default 0,pi,0",
     )
     p.add_argument(
-        "--interp-error", type=float, default=5e-6, help="target max interpolation error, m"
+        "--interp-error", type=float, help="target max interpolation error, m (default 5e-6)"
     )
     p.add_argument("--spacing", type=float, help="fixed grid spacing in m (skips refinement)")
     p.add_argument(
-        "--max-correction", type=float, default=5e-3, help="refuse corrections above this, m"
+        "--max-correction", type=float, help="refuse corrections above this, m (default 5e-3)"
     )
     p.add_argument(
-        "--approach", default="1,1,1,1,1,1", help="approach sign per joint (the table's conditions)"
+        "--approach",
+        help="approach sign per joint (the table's conditions; default 1,1,1,1,1,1)",
     )
     p.add_argument(
         "--payload",
@@ -68,10 +69,55 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
+# The options each format uses; any other given is refused rather than silently ignored.
+_CONDITIONS = ("--approach", "--payload", "--joint-temperature", "--elapsed")
+_GRID = ("--volume", "--orientation", "--interp-error", "--spacing", "--max-correction")
+_USES = {
+    "table": {*_GRID, *_CONDITIONS, "--recording"},
+    "urscript": {*_GRID, *_CONDITIONS, "--recording"},
+    "targets": {"--in", "--max-correction", *_CONDITIONS, "--recording"},
+    "ros-yaml": set(),
+}
+_WHY = {
+    "table": "which builds a grid over --volume (--in is for --format targets)",
+    "urscript": "which builds a grid over --volume (--in is for --format targets)",
+    "targets": "which corrects the --in targets one by one (no grid)",
+    "ros-yaml": "which carries the geometry only: no grid, no targets, and no condition changes it",
+}
+
+
+def check_unused_options(args: argparse.Namespace) -> None:
+    """Refuse, in one line, options the chosen format would ignore."""
+    given = [
+        a
+        for a in (*_GRID, *_CONDITIONS, "--recording", "--in")
+        if getattr(args, "targets_in" if a == "--in" else a[2:].replace("-", "_")) is not None
+        and a not in _USES[args.format]
+    ]
+    if given:
+        raise UserError(
+            f"{', '.join(given)}: not used by --format {args.format}, {_WHY[args.format]}; "
+            f"leave {'it' if len(given) == 1 else 'them'} out"
+        )
+
+
 def run(args: argparse.Namespace) -> int:
     from workcell.estimation.models import load_model
-    from workcell.export.build import conditions_note, make_table, parse_conditions, parse_vec
+    from workcell.export.build import (
+        DEFAULT_INTERP_ERROR_M,
+        DEFAULT_MAX_CORRECTION_M,
+        conditions_note,
+        make_table,
+        parse_conditions,
+        parse_vec,
+    )
     from workcell.export.files import check_export_outputs, output_files
+
+    check_unused_options(args)
+    if args.interp_error is None:
+        args.interp_error = DEFAULT_INTERP_ERROR_M
+    if args.max_correction is None:
+        args.max_correction = DEFAULT_MAX_CORRECTION_M
 
     for opt, path in (("--recording", args.recording), ("--in", args.targets_in)):
         if path is not None and not Path(path).is_file():
@@ -83,26 +129,13 @@ def run(args: argparse.Namespace) -> int:
     check_export_outputs(
         output_files(args.format, out), args.force, (lambda m: None) if args.json else print
     )
-    cond = parse_conditions(args.approach, args.payload, args.joint_temperature, args.elapsed)
+    cond = parse_conditions(
+        args.approach or "1,1,1,1,1,1", args.payload, args.joint_temperature, args.elapsed
+    )
     model = load_model(args.model)
     summary: dict = {"format": args.format, "model": args.model}
     if args.format == "ros-yaml":
         from workcell.export.build import model_recording
-
-        given = [
-            o
-            for o, v in (
-                ("--payload", args.payload),
-                ("--joint-temperature", args.joint_temperature),
-                ("--elapsed", args.elapsed),
-            )
-            if v is not None
-        ]
-        if given:
-            raise UserError(
-                f"{', '.join(given)}: ros-yaml carries the geometry only, which no condition "
-                "changes; leave them out (or export a table)"
-            )
         from workcell.export.ros_yaml import export_ros_yaml
 
         rec, sha = model_recording(model)

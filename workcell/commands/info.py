@@ -44,6 +44,7 @@ def summary(path: str) -> dict:
         "channels": rec.channel_counts,
         "events": kinds,
         "closed_cleanly": rec.closed_cleanly,
+        "trailing_bytes": rec.trailing_bytes,
         "problems": rec.problems,
         "value_problems": value_problems(rec),
         "plan": _get(s.get("campaign"), "plan"),
@@ -65,9 +66,10 @@ def run(args: argparse.Namespace) -> int:
     print(f"duration    {d['duration_s']:.1f} s")
     print("channels    " + ", ".join(f"{k}: {v}" for k, v in d["channels"].items()))
     print("events      " + (", ".join(f"{k}: {v}" for k, v in d["events"].items()) or "none"))
-    print(
-        f"closed      {'cleanly' if d['closed_cleanly'] else 'NOT cleanly (crash or still open)'}"
-    )
+    closed = "cleanly" if d["closed_cleanly"] else "NOT cleanly (crash or still open)"
+    if d["trailing_bytes"]:
+        closed += f", then {d['trailing_bytes']} bytes appended after its end (ignored)"
+    print(f"closed      {closed}")
     if d["envelope"] is not None:
         print(f"envelope    {envelope_line(d['envelope'])}")
     if d["chained_from"]:

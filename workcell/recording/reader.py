@@ -34,6 +34,7 @@ class Recording:
     tracker_measurements: list[dict] = field(default_factory=list)
     channel_counts: dict[str, int] = field(default_factory=dict)
     closed_cleanly: bool = False
+    trailing_bytes: int = 0  # bytes after the closing magic (appended later; ignored)
     problems: list[str] = field(default_factory=list)
     first_ns: int | None = None
     last_ns: int | None = None
@@ -90,6 +91,13 @@ def read_recording(path: str | os.PathLike, *, streams: bool = True) -> Recordin
                     rec.closed_cleanly = True
                 else:
                     handle(r)
+            if rec.closed_cleanly and f.tell() < rec.size_bytes:
+                rec.trailing_bytes = rec.size_bytes - f.tell()
+                rec.problems.append(
+                    f"{rec.trailing_bytes} bytes after the recording's end (byte {f.tell()}) "
+                    "were ignored: something was appended to the file after it was closed; "
+                    "the recording itself is intact"
+                )
         except (McapError, EOFError, ValueError, OSError, MemoryError, KeyError) as e:
             rec.closed_cleanly = False
             where = f.tell()
