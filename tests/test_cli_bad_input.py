@@ -6,6 +6,7 @@ every subcommand with malformed and mistyped input (2026-11-23); each failed bef
 from __future__ import annotations
 
 import hashlib
+import os
 import json
 
 import pytest
@@ -472,9 +473,15 @@ def test_export_replaces_an_earlier_export_but_no_other_file(cell, tmp_path, cap
     any other file (an envelope, a model, a targets list, notes) it is refused in one line
     unless --force, nothing written."""
     _, _, model = cell
-    base = ["export", str(model), "--volume=-0.15,-0.5,0.2,0.15,-0.3,0.4", "--spacing", "0.1"]
+    grid = ["--volume=-0.15,-0.5,0.2,0.15,-0.3,0.4", "--spacing", "0.1"]
+
+    def export(fmt, out, *extra):  # ros-yaml has no grid: its options would be refused
+        return ["export", str(model), "--format", fmt, "--out", str(out), *extra] + (
+            [] if fmt == "ros-yaml" else grid
+        )
+
     for fmt, out in (("table", "c"), ("urscript", "c.script"), ("ros-yaml", "c.yaml")):
-        argv = [*base, "--format", fmt, "--out", str(tmp_path / out)]
+        argv = export(fmt, tmp_path / out)
         assert main(argv) == 0
         capsys.readouterr()
         assert main(argv) == 0  # again: replaces its own earlier output
@@ -483,21 +490,13 @@ def test_export_replaces_an_earlier_export_but_no_other_file(cell, tmp_path, cap
     notes.write_text('{"envelope": "mine"}')
     before = digest(notes)
     for fmt, out in (("table", notes), ("urscript", tmp_path / "notes"), ("ros-yaml", notes)):
-        one_line_refusal(
-            capsys,
-            [*base, "--format", fmt, "--out", str(out)],
-            "exists and is not a workcell export",
-        )
+        one_line_refusal(capsys, export(fmt, out), "exists and is not a workcell export")
     # a URScript named .json would be replaced by its own table
-    one_line_refusal(
-        capsys, [*base, "--format", "urscript", "--out", str(tmp_path / "p.json")], "p.script"
-    )
+    one_line_refusal(capsys, export("urscript", tmp_path / "p.json"), "p.script")
     # a table's CSV beside someone's JSON: the JSON is checked too
-    one_line_refusal(
-        capsys, [*base, "--format", "table", "--out", str(tmp_path / "notes")], "notes.json"
-    )
+    one_line_refusal(capsys, export("table", tmp_path / "notes"), "notes.json")
     assert digest(notes) == before and not (tmp_path / "notes.csv").exists()
-    assert main([*base, "--format", "ros-yaml", "--out", str(notes), "--force"]) == 0
+    assert main(export("ros-yaml", notes, "--force")) == 0
     assert "replacing" in capsys.readouterr().out and digest(notes) != before
 
 
@@ -616,3 +615,19 @@ def test_an_envelope_limit_too_big_for_a_float(tmp_path, capsys):
     d["floor_z_m"] = 12345.0
     path.write_text(json.dumps(d).replace("12345.0", "1" + "0" * 400))
     one_line_refusal(capsys, ["envelope", "--check", str(path)], "finite")
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs Linux /proc")
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["fit", "{rec}", "--out", "/proc/m.json"],
+        ["diagnose", "{rec}", "--report", "/proc/report"],
+        ["export", "{model}", "--format", "table", "--out", "/proc/t"],
+        ["campaign", "--poses", "3", "--out", "/proc/c.mcap"],
+    ],
+)
+def test_an_unwritable_output_folder_is_found_before_any_work(cell, capsys, argv):
+    """/proc refuses new files even to root, for whom os.access says yes to everything."""
+    d, rec, model = cell
+    one_line_refusal(capsys, [a.format(rec=rec, model=model) for a in argv], "is not writable")

@@ -74,6 +74,7 @@ def check_output_path(path, what: str = "output", *, folder: bool = False, input
     existing recording (`refuse_overwrite`). Missing folders are fine (created). Returns the
     path as a `pathlib.Path`."""
     import os
+    import tempfile
     from pathlib import Path
 
     p = Path(path)
@@ -90,6 +91,12 @@ def check_output_path(path, what: str = "output", *, folder: bool = False, input
         raise UserError(f"cannot write {what} {p}: {anc} is a file, not a folder")
     if not os.access(anc, os.W_OK):
         raise UserError(f"cannot write {what} {p}: {anc} is not writable")
+    try:  # os.access says yes to root everywhere, and /proc or a read-only mount still refuse
+        tempfile.TemporaryFile(dir=anc).close()
+    except OSError:
+        raise UserError(
+            f"cannot write {what} {p}: {anc} is not writable (a test file could not be made there)"
+        ) from None
     return p
 
 

@@ -20,7 +20,7 @@ from workcell.campaign.devices import open_cell
 from workcell.campaign.envelope import envelope_of_session
 from workcell.campaign.executor import CampaignConfig, CampaignControl
 from workcell.campaign.run import margin_stop, run_campaign
-from workcell.errors import UserError
+from workcell.errors import UserError, check_output_path
 from workcell.recording import checks
 from workcell.recording.dataset import file_sha256
 from workcell.recording.reader import read_recording
@@ -136,6 +136,7 @@ def resume_campaign(args: argparse.Namespace, control: CampaignControl) -> int:
     out = Path(args.out) if args.out else default_out(old)
     if out.exists():
         raise UserError(f"{out} already exists; choose a new file with --out")
+    check_output_path(out, "recording", inputs=[old])
     if remaining <= 0:
         print(f"{old}: all {camp['poses']} poses already measured; nothing to resume")
         return 0
