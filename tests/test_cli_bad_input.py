@@ -6,8 +6,8 @@ every subcommand with malformed and mistyped input (2026-11-23); each failed bef
 from __future__ import annotations
 
 import hashlib
-import os
 import json
+import os
 
 import pytest
 
