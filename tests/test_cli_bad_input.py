@@ -570,6 +570,19 @@ def test_a_model_file_out_of_range_or_with_a_negative_variance(cell, capsys, tmp
     for name, change, match in (
         ("huge", lambda d: d["theta"].__setitem__(1, 1e308), "out of range"),
         ("negvar", lambda d: d["cov"][0].__setitem__(0, -1e-6), "negative or non-finite"),
+        # derived fields, written for reading: an edit would change nothing while seeming to
+        ("names", lambda d: d["parameter_names"].reverse(), "parameter_names do not match"),
+        (
+            "quat",
+            lambda d: d["tracker_T_base"].__setitem__("quaternion_wxyz", [0.0, 1.0, 0.0, 0.0]),
+            "tracker_T_base does not match",
+        ),
+        (
+            "move",
+            lambda d: d["tracker_T_base"]["translation_m"].__setitem__(0, 2.0),
+            "tracker_T_base does not match",
+        ),
+        ("nopose", lambda d: d["tracker_T_base"].pop("quaternion_wxyz"), "does not match"),
     ):
         bad = json.loads(json.dumps(d))
         change(bad)
@@ -578,6 +591,12 @@ def test_a_model_file_out_of_range_or_with_a_negative_variance(cell, capsys, tmp
         one_line_refusal(
             capsys, ["export", str(p), "--format", "ros-yaml", "--out", str(tmp_path / "y")], match
         )
+    # the same quaternion with the other sign is the same rotation: accepted
+    same = json.loads(json.dumps(d))
+    same["tracker_T_base"]["quaternion_wxyz"] = [-x for x in d["tracker_T_base"]["quaternion_wxyz"]]
+    p = tmp_path / "same.json"
+    p.write_text(json.dumps(same))
+    assert main(["export", str(p), "--format", "ros-yaml", "--out", str(tmp_path / "y")]) == 0
 
 
 @pytest.mark.parametrize(

@@ -207,6 +207,7 @@ def model_from_dict(d: dict, source: str = "model") -> FittedModel:
             f"{source}: the {method} model puts the SMR {np.abs(p).max():.3g} m from the tracker "
             "(a parameter of the file is out of range); fit it again with `workcell fit`"
         )
+    _check_derived_fields(d, model, source, method)
     # a std may be "not given" (None/NaN: a hyperparameter at its bound, a CV-chosen one), but
     # a covariance with a negative variance (beyond rounding) is malformed
     for attr in ("cov", "geometric_cov"):
@@ -224,6 +225,39 @@ def model_from_dict(d: dict, source: str = "model") -> FittedModel:
 
 
 MAX_PREDICTED_M = 1e3  # a laser tracker measures within ~100 m
+
+
+def _check_derived_fields(d: dict, model: FittedModel, source: str, method: str) -> None:
+    """A model file also writes fields derived from its parameters, for people to read (the
+    parameter names, the tracker_T_base pose). Loading ignores them, so an edit of one would
+    change nothing while seeming to: refuse a file where they no longer match."""
+    ref = model.to_dict()
+    edit = "edited by hand? it is written for reading and derived from the parameters"
+    names = d.get("parameter_names")
+    if names is not None and names != ref.get("parameter_names", names):
+        raise UserError(
+            f"{source}: the {method} model's parameter_names do not match its parameters ({edit}); "
+            "restore the file or fit it again with `workcell fit`"
+        )
+    pose, want = d.get("tracker_T_base"), ref.get("tracker_T_base")
+    if pose is None or want is None:
+        return
+    try:
+        t = np.asarray(pose["translation_m"], dtype=float)
+        q = np.asarray(pose["quaternion_wxyz"], dtype=float)
+        ok = (
+            t.shape == (3,)
+            and q.shape == (4,)
+            and np.allclose(t, want["translation_m"], rtol=0, atol=1e-9)
+            and abs(abs(float(q @ np.asarray(want["quaternion_wxyz"]))) - 1.0) < 1e-9
+        )
+    except (KeyError, TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise UserError(
+            f"{source}: the {method} model's tracker_T_base does not match its parameters ({edit}); "
+            "restore the file or fit it again with `workcell fit`"
+        )
 
 
 def rms(e: np.ndarray) -> float:
