@@ -8,6 +8,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import tempfile
 
 import pytest
 
@@ -636,17 +637,55 @@ def test_an_envelope_limit_too_big_for_a_float(tmp_path, capsys):
     one_line_refusal(capsys, ["envelope", "--check", str(path)], "finite")
 
 
+def _refuses_new_files(folder: str) -> bool:
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            return False
+    except OSError:
+        return os.path.isdir(folder)
+
+
 @pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs Linux /proc")
 @pytest.mark.parametrize(
-    "argv",
+    "argv, match",
     [
-        ["fit", "{rec}", "--out", "/proc/m.json"],
-        ["diagnose", "{rec}", "--report", "/proc/report"],
-        ["export", "{model}", "--format", "table", "--out", "/proc/t"],
-        ["campaign", "--poses", "3", "--out", "/proc/c.mcap"],
+        (["fit", "{rec}", "--out", "/proc/m.json"], "/proc is read-only"),
+        (["diagnose", "{rec}", "--report", "/proc/report"], "/proc is read-only"),
+        (["export", "{model}", "--format", "table", "--out", "/proc/t"], "/proc is read-only"),
+        (["campaign", "--poses", "3", "--out", "/proc/c.mcap"], "/proc is read-only"),
+        # marked writable, yet no file can be made there (sysfs): found by trying, before work
+        (["fit", "{rec}", "--out", "/sys/kernel/m.json"], "test file could not be made"),
     ],
 )
-def test_an_unwritable_output_folder_is_found_before_any_work(cell, capsys, argv):
-    """/proc refuses new files even to root, for whom os.access says yes to everything."""
+def test_an_unwritable_output_folder_is_found_before_any_work(cell, capsys, argv, match):
+    """/proc and /sys refuse new files even to root, for whom os.access says yes to all."""
     d, rec, model = cell
-    one_line_refusal(capsys, [a.format(rec=rec, model=model) for a in argv], "is not writable")
+    if "/sys/kernel" in argv[-1] and not _refuses_new_files("/sys/kernel"):
+        pytest.skip("/sys/kernel takes new files here")
+    one_line_refusal(capsys, [a.format(rec=rec, model=model) for a in argv], match)
+
+
+def test_a_folder_marked_read_only_is_not_written_even_by_root(cell, capsys, tmp_path, monkeypatch):
+    """An archive of recordings marked read-only stays as it is: `fit` without --out puts the
+    model in the current folder and says so; an explicit output there is refused in one line."""
+    import shutil
+
+    _, rec, _ = cell
+    archive = tmp_path / "archive"
+    archive.mkdir()
+    shutil.copy(rec, archive / "r.mcap")
+    archive.chmod(0o555)
+    here = tmp_path / "here"
+    here.mkdir()
+    monkeypatch.chdir(here)
+    try:
+        assert main(["fit", str(archive / "r.mcap"), "--method", "dh"]) == 0
+        assert "is read-only: the model file goes to r.dh.json here" in capsys.readouterr().err
+        assert (here / "r.dh.json").is_file() and sorted(os.listdir(archive)) == ["r.mcap"]
+        one_line_refusal(
+            capsys,
+            ["fit", str(archive / "r.mcap"), "--out", str(archive / "m.json")],
+            "is read-only (mode dr-xr-xr-x)",
+        )
+    finally:
+        archive.chmod(0o755)

@@ -74,6 +74,7 @@ def check_output_path(path, what: str = "output", *, folder: bool = False, input
     existing recording (`refuse_overwrite`). Missing folders are fine (created). Returns the
     path as a `pathlib.Path`."""
     import os
+    import stat
     import tempfile
     from pathlib import Path
 
@@ -91,6 +92,11 @@ def check_output_path(path, what: str = "output", *, folder: bool = False, input
         raise UserError(f"cannot write {what} {p}: {anc} is a file, not a folder")
     if not os.access(anc, os.W_OK):
         raise UserError(f"cannot write {what} {p}: {anc} is not writable")
+    if not anc.stat().st_mode & 0o222:  # root may write anyway: a folder marked read-only stays so
+        raise UserError(
+            f"cannot write {what} {p}: {anc} is read-only (mode {stat.filemode(anc.stat().st_mode)})"
+            "; choose another folder"
+        )
     try:  # os.access says yes to root everywhere, and /proc or a read-only mount still refuse
         tempfile.TemporaryFile(dir=anc).close()
     except OSError:

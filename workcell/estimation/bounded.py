@@ -48,7 +48,7 @@ from workcell.errors import UserError
 from workcell.estimation.dh import (
     DHModel,
     nominal_theta,
-    pose_sigma,
+    pose_sigma_model,
     register_base,
     robust_keep,
     weighted_covariance,
@@ -227,7 +227,7 @@ def fit_dh_bounded(
     if theta.shape != (n_par,):
         raise ValueError(f"theta0: expected shape ({n_par},), got {theta.shape}")
     base_ref = register_base(ds, theta) if base_ref is None else np.asarray(base_ref, float)
-    w = 1.0 / pose_sigma(ds)
+    w = 1.0 / pose_sigma_model(ds)  # as fit_dh
     ident: Identifiability | None = None
     if free is None:
         J0 = jacobian_padded(theta, base_ref, ds.q) * w[:, None, None]

@@ -6,8 +6,12 @@ Steps (all on the training poses):
 2. Identifiability: the weighted identification Jacobian at the nominal parameters is analysed;
    parameters that are not separately identifiable are fixed at nominal and reported by group.
 3. Weighted nonlinear least squares (scipy least_squares, Levenberg-Marquardt/TRF) over the
-   identifiable parameters. Per-pose isotropic weights 1/sigma_i with
-   sigma_i = RMS of the recording's per-axis sigmas of that pose.
+   identifiable parameters. Per-pose isotropic weights 1/sigma_i with sigma_i the larger of
+   the RMS of the recording's per-axis sigmas of that pose and the tracker's error model
+   (MPE / 4, `pose_sigma_model`): a recorded sigma comes from the scatter of a few readings at
+   the pose, which leaves out the per-pose systematic error and, from 2-5 readings, scatters
+   itself (in simulation, weights from it made the estimates noisier and the covariance below
+   about 1.2x too small).
 4. Robust pass: poses whose residual exceeds `outlier_k` robust standard deviations are set
    aside (reported) and the fit is repeated once.
 5. Uncertainty: Cov = s0^2 (J^T W J)^-1 with the a-posteriori variance factor s0^2 = chi2/dof,
@@ -190,7 +194,7 @@ def fit_dh(
     th_nom = nominal_theta(ds)
     theta = th_nom.copy() if theta0 is None else np.asarray(theta0, float).copy()
     base_ref = register_base(ds, theta) if base_ref is None else base_ref
-    w = 1.0 / pose_sigma(ds)
+    w = 1.0 / pose_sigma_model(ds)
     J0 = np.asarray(jac_params(theta, base_ref, ds.q)) * w[:, None, None]
     betas = set(parallel_beta_names(ds.robot.dh))
     cand = [

@@ -53,10 +53,10 @@ def parameter_std_basis(model: object) -> str:
     vf = info.get("variance_factor")
     parts = [
         "geometry (DH, offsets, base, SMR): 1 sigma, s0^2 (J^T W J)^-1 at the fit, W from the "
-        "recorded per-pose sigmas"
+        "per-pose sigmas max(recorded, tracker MPE / 4)"
         + (
             f", s0^2 = {vf:.3g} the a posteriori variance factor (weighted residual variance; "
-            "above 1 when the recorded sigmas or the model leave scatter unexplained, which this "
+            "above 1 when the tracker or the model leave more scatter than those sigmas, which this "
             "std then carries)"
             if isinstance(vf, (int, float)) and np.isfinite(vf)
             else ""
