@@ -202,9 +202,9 @@ def run(args: argparse.Namespace) -> int:
     if diagnosis is not None:
         print("\ndiagnosis: " + diagnosis.report["summary"].split("\n")[0])
         print(
-            "  (diagnose's own fit and floor, from the recording alone: per-pose sigma max(recorded,"
-            " tracker MPE/4), plus its geometry's estimation uncertainty; the table above uses the"
-            " recorded sigmas and scores against the simulator's noise)"
+            "  (diagnose's floor comes from the recording alone: per-pose sigma max(recorded, "
+            "tracker MPE/4), plus its geometry's estimation uncertainty; the table's floor is the "
+            "simulator's own noise)"
         )
     if "correction" in summary:
         c = summary["correction"]
