@@ -63,3 +63,52 @@ def test_sim_start_device_drop_notifies_and_recovers(tmp_path, monkeypatch):
     texts = [t for _, _, t in app.notices]
     assert any(t.startswith("reconnect:") for t in texts), texts
     assert any("campaign recovered" in t for t in texts), texts
+
+
+def test_a_protective_stop_waits_for_the_operator(tmp_path, monkeypatch):
+    """A protective stop mid-campaign pauses it: the operator is told to check the cell and
+    press p; the arm is not unlocked and no pose is measured until then; after p it finishes."""
+    monkeypatch.chdir(tmp_path)
+    app = make_app(
+        sim=True,
+        sim_host="127.0.0.72",
+        seed=3,
+        time_scale=TIME_SCALE,
+        sim_faults={"protective_stop_at_move": [6]},
+        plan=PlanConfig(poses=6, readings_per_pose=2, settle_s=0.3, seed=3, out="ps.mcap"),
+        status_poll_s=0,
+        clock=lambda: 0.0,
+        online=False,
+        cursor_blink=False,
+    )
+
+    async def flow():
+        async with app.run_test(size=(100, 30)) as pilot:
+            try:
+                await until(pilot, lambda: app.devices is not None, 90, "--sim start + connect")
+                await pilot.press("f3", "s", "y")
+                scr = app.views["campaign"]
+                await until(pilot, lambda: app.control.waiting_for_resume.is_set(), 120, "stop")
+                await until(pilot, lambda: scr.state == "protective stop", 10, "state")
+                done = scr.done
+                t0 = time.monotonic()
+                while time.monotonic() - t0 < 2.0:  # 40 s of the cell's time
+                    await pilot.pause(0.1)
+                assert scr.done == done and not app.finished
+                assert app.control.waiting_for_resume.is_set()
+                await pilot.press("p")
+                await until(pilot, lambda: app.finished, 180, "campaign end")
+            finally:
+                if app.devices is not None:
+                    app.devices.close()
+
+    asyncio.run(flow())
+    fin = app.finished[-1]
+    assert fin.result is not None and not fin.result.aborted, app.notices
+    rec = read_recording(tmp_path / "ps.mcap")
+    kinds = [e["kind"] for e in rec.events]
+    assert "protective_stop" in kinds and "resume" in kinds, kinds
+    assert len({s["pose_id"] for s in rec.samples}) + fin.result.skipped == 6
+    texts = [t for _, _, t in app.notices]
+    assert any("check the cell, then press p to resume" in t for t in texts), texts
+    assert any("resuming after the protective stop" in t for t in texts), texts

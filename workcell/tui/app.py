@@ -361,6 +361,9 @@ class WorkcellApp(App):
 
         plan = msg.plan
         self.control = control = CampaignControl()
+        # after a protective stop the operator checks the cell and presses p to resume, as the
+        # command line asks on its terminal; the campaign never unlocks the arm by itself
+        control.auto_resume_protective_stop = False
         self.campaign_running = True
         self.campaign_log = []
         self._awaiting_recovery = False
@@ -475,6 +478,13 @@ class WorkcellApp(App):
         kind = ev.get("kind")
         if kind == "reconnect":
             self._awaiting_recovery = True
+        if kind == "pause" and "protective stop" in str(ev.get("message")):
+            self.views["campaign"].set_state("protective stop")
+            ev = {
+                **ev,
+                "message": f"{ev.get('message')}: check the cell, then press p to resume "
+                "(a aborts)",
+            }
         sev = NOTIFY_KINDS.get(kind)
         if sev and ev.get("level") == "error":
             sev = "error"
@@ -492,7 +502,15 @@ class WorkcellApp(App):
         if c is None or not self.campaign_running:
             return
         scr = self.views["campaign"]
-        if c.pause.is_set():
+        if c.waiting_for_resume.is_set():  # the operator has checked the cell
+            c.resume.set()
+            scr.set_state("running")
+            self.notify(
+                "resuming after the protective stop",
+                title="Campaign",
+                timeout=self.notify_timeout_s,
+            )
+        elif c.pause.is_set():
             c.pause.clear()
             scr.set_state("running")
             self.notify("resumed", title="Campaign", timeout=self.notify_timeout_s)

@@ -26,6 +26,10 @@ def fmt_duration(s: float | None) -> str:
     return f"{h}:{m:02d}:{sec:02d}" if h else f"{m:02d}:{sec:02d}"
 
 
+# a campaign is under way in these states ("protective stop": waiting for the operator)
+ACTIVE = ("running", "paused", "starting", "protective stop")
+
+
 class CampaignScreen(WorkcellScreen):
     TITLE_TEXT = "Campaign"
     DEFAULT_CSS = """
@@ -79,7 +83,7 @@ class CampaignScreen(WorkcellScreen):
 
     # ---------------------------------------------------------------- actions (requests up)
     def action_start(self) -> None:
-        if self.state in ("running", "paused", "starting"):
+        if self.state in ACTIVE:
             self.notify("a campaign is already running", severity="warning")
             return
         if not self.connected:
@@ -102,13 +106,13 @@ class CampaignScreen(WorkcellScreen):
         self.app.push_screen(ConfirmScreen(q, yes="Start"), answer)
 
     def action_pause(self) -> None:
-        if self.state not in ("running", "paused"):
+        if self.state not in ("running", "paused", "protective stop"):
             self.notify("no campaign is running", severity="warning")
             return
         self.post_message(PauseRequested())
 
     def action_abort(self) -> None:
-        if self.state not in ("running", "paused", "starting"):
+        if self.state not in ACTIVE:
             self.notify("no campaign is running", severity="warning")
             return
 
@@ -126,7 +130,7 @@ class CampaignScreen(WorkcellScreen):
         )
 
     def action_resume_recording(self) -> None:
-        if self.state in ("running", "paused", "starting"):
+        if self.state in ACTIVE:
             self.notify("a campaign is already running", severity="warning")
             return
         if not self.connected or self.plan is None:
