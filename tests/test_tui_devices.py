@@ -20,20 +20,26 @@ async def until(pilot, cond, timeout_s: float, what: str) -> None:
             raise AssertionError(f"timed out waiting for {what}")
 
 
-def test_sim_start_device_drop_notifies_and_recovers(tmp_path, monkeypatch):
-    monkeypatch.chdir(tmp_path)
-    app = make_app(
+def sim_app(host: str, faults: dict, out: str):
+    """The TUI on the protocol simulators (6 poses, time-scaled) with the given robot faults."""
+    return make_app(
         sim=True,
-        sim_host="127.0.0.71",
+        sim_host=host,
         seed=3,
         time_scale=TIME_SCALE,
-        sim_faults={"rtde_drop_at_move": [6]},  # the robot's connection drops at pose 3
-        plan=PlanConfig(poses=6, readings_per_pose=2, settle_s=0.3, seed=3, out="drop.mcap"),
+        sim_faults=faults,
+        plan=PlanConfig(poses=6, readings_per_pose=2, settle_s=0.3, seed=3, out=out),
         status_poll_s=0,
         clock=lambda: 0.0,
         online=False,
         cursor_blink=False,
     )
+
+
+def test_sim_start_device_drop_notifies_and_recovers(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    # the robot's connection drops at pose 3
+    app = sim_app("127.0.0.71", {"rtde_drop_at_move": [6]}, "drop.mcap")
 
     async def flow():
         async with app.run_test(size=(100, 30)) as pilot:
@@ -69,18 +75,7 @@ def test_a_protective_stop_waits_for_the_operator(tmp_path, monkeypatch):
     """A protective stop mid-campaign pauses it: the operator is told to check the cell and
     press p; the arm is not unlocked and no pose is measured until then; after p it finishes."""
     monkeypatch.chdir(tmp_path)
-    app = make_app(
-        sim=True,
-        sim_host="127.0.0.72",
-        seed=3,
-        time_scale=TIME_SCALE,
-        sim_faults={"protective_stop_at_move": [6]},
-        plan=PlanConfig(poses=6, readings_per_pose=2, settle_s=0.3, seed=3, out="ps.mcap"),
-        status_poll_s=0,
-        clock=lambda: 0.0,
-        online=False,
-        cursor_blink=False,
-    )
+    app = sim_app("127.0.0.72", {"protective_stop_at_move": [6]}, "ps.mcap")
 
     async def flow():
         async with app.run_test(size=(100, 30)) as pilot:
