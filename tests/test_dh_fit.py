@@ -203,3 +203,14 @@ def test_stated_prediction_uncertainty_is_calibrated_against_the_truth(tmp_path)
         tr.append(np.mean(np.trace(model.prediction_cov(q), axis1=1, axis2=2)))
     ratio = float(np.sqrt(np.mean(e2) / np.mean(tr)))
     assert 0.8 < ratio < 1.2, (ratio, np.sqrt(np.array(e2) / np.array(tr)))
+
+
+def test_tracker_mpe_sets_the_weights_floor(dh_only):
+    """`fit --tracker-mpe A,B` is the floor of the per-pose sigmas that weight the fit, not only
+    of the reported noise floor: with a 200 um MPE every sigma is 50 um, ten times the simulated
+    tracker's, and the a posteriori variance factor says so (about 1/100)."""
+    _, ds = dh_only
+    model, _ = fit_dataset(ds, method="dh")
+    coarse, _ = fit_dataset(ds, method="dh", tracker_mpe=(200e-6, 0.0))
+    assert 0.3 < model.info["variance_factor"] < 3.0
+    assert coarse.info["variance_factor"] < 0.05

@@ -46,6 +46,7 @@ from scipy.optimize import lsq_linear
 
 from workcell.errors import UserError
 from workcell.estimation.dh import (
+    TRACKER_MPE_M,
     DHModel,
     nominal_theta,
     pose_sigma_model,
@@ -204,6 +205,7 @@ def fit_dh_bounded(
     max_iter: int = 50,
     xtol: float = 1e-11,
     min_poses: int = 12,
+    tracker_mpe: tuple[float, float] = TRACKER_MPE_M,
 ) -> DHModel:
     """Fit the geometric model to all poses of `ds` by the iterated bounded QP (eq. 11).
 
@@ -227,7 +229,7 @@ def fit_dh_bounded(
     if theta.shape != (n_par,):
         raise ValueError(f"theta0: expected shape ({n_par},), got {theta.shape}")
     base_ref = register_base(ds, theta) if base_ref is None else np.asarray(base_ref, float)
-    w = 1.0 / pose_sigma_model(ds)  # as fit_dh
+    w = 1.0 / pose_sigma_model(ds, tracker_mpe)  # as fit_dh
     ident: Identifiability | None = None
     if free is None:
         J0 = jacobian_padded(theta, base_ref, ds.q) * w[:, None, None]

@@ -186,15 +186,17 @@ def fit_dh(
     max_nfev: int = 200,
     theta0: np.ndarray | None = None,
     base_ref: np.ndarray | None = None,
+    tracker_mpe: tuple[float, float] = TRACKER_MPE_M,
 ) -> DHModel:
-    """Fit the geometric model to all poses of `ds` (split before calling)."""
+    """Fit the geometric model to all poses of `ds` (split before calling). `tracker_mpe`
+    (A [m], B [m/m]) sets the floor of the per-pose sigmas that weight the poses."""
     t0 = time.perf_counter()
     if len(ds) < 12:
         raise ValueError(f"too few poses to fit the geometry: {len(ds)} (need at least 12)")
     th_nom = nominal_theta(ds)
     theta = th_nom.copy() if theta0 is None else np.asarray(theta0, float).copy()
     base_ref = register_base(ds, theta) if base_ref is None else base_ref
-    w = 1.0 / pose_sigma_model(ds)
+    w = 1.0 / pose_sigma_model(ds, tracker_mpe)
     J0 = np.asarray(jac_params(theta, base_ref, ds.q)) * w[:, None, None]
     betas = set(parallel_beta_names(ds.robot.dh))
     cand = [

@@ -536,7 +536,7 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
     log(f"{len(ds)} poses: {len(train)} train, {len(test)} held out")
 
     # ---- 2. geometry
-    dh = fit_dh(dtr)
+    dh = fit_dh(dtr, tracker_mpe=cfg.tracker_mpe)
     theta, base_ref, free = dh.theta.copy(), dh.base_ref.copy(), dh.free.copy()
     e_tr = np.linalg.norm(padded_call(dh.predict, dtr.q) - dtr.p_tracker, axis=1) / sig[train]
     med = np.median(e_tr)

@@ -38,12 +38,14 @@ FIT_METHODS: dict[str, str] = {
 }
 
 
-def _fit_dh(ds: Dataset, *, bounds=None, progress=None, **_) -> tuple[DHModel, dict]:
+def _fit_dh(
+    ds: Dataset, *, bounds=None, progress=None, tracker_mpe=TRACKER_MPE_M, **_
+) -> tuple[DHModel, dict]:
     if bounds:
         from workcell.estimation.bounded import fit_dh_bounded  # experiment-design issue
 
-        return fit_dh_bounded(ds, bounds=bounds), {}
-    return fit_dh(ds), {}
+        return fit_dh_bounded(ds, bounds=bounds, tracker_mpe=tracker_mpe), {}
+    return fit_dh(ds, tracker_mpe=tracker_mpe), {}
 
 
 def parameter_std_basis(model: object) -> str:
@@ -119,7 +121,7 @@ def fit_dataset(
     except ModuleNotFoundError:
         raise UserError(f"method {method!r} is not available in this build") from None
     t0 = time.perf_counter()
-    model, extra = fit_fn(dtr, on=on, bounds=bounds, progress=progress)
+    model, extra = fit_fn(dtr, on=on, bounds=bounds, progress=progress, tracker_mpe=tracker_mpe)
     fit_s = time.perf_counter() - t0
     th_nom, base_nom = nominal_registered(dtr)
     ev = dte if len(dte) else dtr

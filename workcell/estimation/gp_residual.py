@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from workcell.estimation.dh import DHModel, fit_dh
+from workcell.estimation.dh import TRACKER_MPE_M, DHModel, fit_dh
 from workcell.estimation.models import model_from_dict
 
 
@@ -245,9 +245,11 @@ def laplace_log_std(gpr, rel_bound: float = 1e-2) -> np.ndarray:
     return out
 
 
-def fit_method(ds, *, on: str = "auto", progress=None, **_) -> tuple[GPResidualModel, dict]:
+def fit_method(
+    ds, *, on: str = "auto", progress=None, tracker_mpe=TRACKER_MPE_M, **_
+) -> tuple[GPResidualModel, dict]:
     """`workcell fit --method gp`: DH fit, then a GP on its residual (training poses only)."""
-    base = fit_dh(ds)
+    base = fit_dh(ds, tracker_mpe=tracker_mpe)
     model = fit_gp_residual(base, ds.q, ds.p_tracker, sigma_m=ds.sigma_m)
     extra = {
         "on": "dh",

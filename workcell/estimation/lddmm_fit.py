@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from workcell.estimation.dh import DHModel, fit_dh, nominal_registered
+from workcell.estimation.dh import TRACKER_MPE_M, DHModel, fit_dh, nominal_registered
 from workcell.estimation.lddmm import LddmmModel, fit_lddmm, linear_cv_scores
 from workcell.estimation.models import model_from_dict
 from workcell.kinematics.chain import p_tracker_and_jacobian_single, p_tracker_single
@@ -137,7 +137,9 @@ def cv_scores_on(base: DHModel, ds, *, k_folds: int = 5, seed: int = 0) -> dict:
     )
 
 
-def fit_method(ds, *, on: str = "auto", progress=None, **_) -> tuple[LddmmCalibration, dict]:
+def fit_method(
+    ds, *, on: str = "auto", progress=None, tracker_mpe=TRACKER_MPE_M, **_
+) -> tuple[LddmmCalibration, dict]:
     """`workcell fit --method lddmm [--on dh|nominal|auto]` on the training poses.
 
     Everything is chosen on the training poses: kernel widths and sigma by 5-fold linearised CV
@@ -150,7 +152,7 @@ def fit_method(ds, *, on: str = "auto", progress=None, **_) -> tuple[LddmmCalibr
         raise ValueError(f"--on must be dh, nominal or auto, got {on!r}")
     bases = {}
     if on in ("auto", "dh"):
-        bases["dh"] = fit_dh(ds)
+        bases["dh"] = fit_dh(ds, tracker_mpe=tracker_mpe)
     if on in ("auto", "nominal"):
         bases["nominal"] = _nominal_as_model(ds)
     scores = {}
