@@ -68,14 +68,33 @@ def replace_or_refuse(what: str, path, earlier: str | None, not_what: str, *, fo
         say(f"replacing {path}: {earlier or '(--force)'}")
 
 
-def check_output_path(path, what: str = "output", *, folder: bool = False, inputs=()):
-    """Refuse, before any work, an output path that cannot be written: a file where a folder
-    is needed (or the reverse), or a read-only folder, or one of the command's `inputs` or an
-    existing recording (`refuse_overwrite`). Missing folders are fine (created). Returns the
-    path as a `pathlib.Path`."""
+def folder_problem(folder) -> str | None:
+    """Why no file can be written in the existing `folder` (None: it can): not writable, marked
+    read-only (no write bit; root could write anyway, and should not), or refusing a test file
+    (/proc, /sys, a read-only mount, where os.access says yes to root)."""
     import os
     import stat
     import tempfile
+    from pathlib import Path
+
+    folder = Path(folder)
+    try:
+        if not os.access(folder, os.W_OK):
+            return f"{folder} is not writable"
+        mode = folder.stat().st_mode
+        if not mode & 0o222:
+            return f"{folder} is read-only (mode {stat.filemode(mode)})"
+        tempfile.TemporaryFile(dir=folder).close()
+    except OSError:
+        return f"{folder} is not writable (a test file could not be made there)"
+    return None
+
+
+def check_output_path(path, what: str = "output", *, folder: bool = False, inputs=()):
+    """Refuse, before any work, an output path that cannot be written: a file where a folder
+    is needed (or the reverse), a folder that takes no new file (`folder_problem`), or one of the
+    command's `inputs` or an existing recording (`refuse_overwrite`). Missing folders are fine
+    (created). Returns the path as a `pathlib.Path`."""
     from pathlib import Path
 
     p = Path(path)
@@ -90,19 +109,9 @@ def check_output_path(path, what: str = "output", *, folder: bool = False, input
         anc = anc.parent
     if not anc.is_dir():
         raise UserError(f"cannot write {what} {p}: {anc} is a file, not a folder")
-    if not os.access(anc, os.W_OK):
-        raise UserError(f"cannot write {what} {p}: {anc} is not writable")
-    if not anc.stat().st_mode & 0o222:  # root may write anyway: a folder marked read-only stays so
-        raise UserError(
-            f"cannot write {what} {p}: {anc} is read-only (mode {stat.filemode(anc.stat().st_mode)})"
-            "; choose another folder"
-        )
-    try:  # os.access says yes to root everywhere, and /proc or a read-only mount still refuse
-        tempfile.TemporaryFile(dir=anc).close()
-    except OSError:
-        raise UserError(
-            f"cannot write {what} {p}: {anc} is not writable (a test file could not be made there)"
-        ) from None
+    why = folder_problem(anc)
+    if why is not None:
+        raise UserError(f"cannot write {what} {p}: {why}; choose another folder")
     return p
 
 

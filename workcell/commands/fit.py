@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from workcell.commands.options import add_tracker_mpe, display_unit, parse_tracker_mpe
-from workcell.errors import UserError, check_output_path
+from workcell.errors import UserError, check_output_path, folder_problem
 from workcell.estimation.fitting import FIT_METHODS, fit_recording
 from workcell.estimation.models import check_model_output, interval_um
 
@@ -55,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("--on chooses the base model of lddmm and gp; --method dh has none")
     mpe = parse_tracker_mpe(args.tracker_mpe)
     out = Path(args.out) if args.out else Path(args.recording).with_suffix(f".{args.method}.json")
-    if not args.out and not _writable(out.parent):  # an archive of recordings: keep it as it is
+    if not args.out and folder_problem(out.parent):  # an archive of recordings: keep it as it is
         print(
             f"the recording's folder {out.parent} is read-only: the model file goes to "
             f"{out.name} here (--out chooses)",
@@ -167,13 +167,3 @@ def print_report(r: dict) -> None:
             continue  # the GP's hyperparameters: in the table above, with their std
         print(f"{k:>16} {v}")
     print(f"model           {r['model']}")
-
-
-def _writable(folder: Path) -> bool:
-    """Writable, and not marked read-only (root may write anywhere; it should not here)."""
-    import os
-
-    try:
-        return os.access(folder, os.W_OK) and bool(folder.stat().st_mode & 0o222)
-    except OSError:
-        return False
