@@ -112,7 +112,7 @@ def test_cli_writes_report_plots_and_a_replayable_model(clean, tmp_path, capsys)
         "summary",
     ):
         assert key in out
-    assert set(out["unexplained"]) >= {"rms_m", "where"}
+    assert set(out["unexplained"]) >= {"rms_m", "where", "excess_over_floor_upper_m"}
     rep = tmp_path / "rep"
     assert (rep / "residuals_before_after.png").stat().st_size > 1000
     assert (rep / "report.json").exists() and (rep / "summary.txt").exists()
@@ -124,6 +124,12 @@ def test_cli_writes_report_plots_and_a_replayable_model(clean, tmp_path, capsys)
     )
     rms = float(np.sqrt(np.mean(np.sum((p - t.p_tracker) ** 2, axis=1))))
     assert rms == pytest.approx(out["rms_after_m"], rel=1e-6)
+    # the model file carries the held-out figures export states beside the table's 1-sigma
+    assert m.info["heldout_rms_m"] == pytest.approx(out["rms_after_m"])
+    u = out["unexplained"]
+    assert m.info["unexplained"]["rms_m"] == pytest.approx(u["excess_over_floor_m"])
+    assert m.info["unexplained"]["upper_m"] == pytest.approx(u["excess_over_floor_upper_m"])
+    assert u["excess_over_floor_upper_m"] >= u["excess_over_floor_m"]
 
 
 @pytest.mark.slow

@@ -13,7 +13,7 @@ import numpy as np
 from workcell.commands.options import add_tracker_mpe, display_unit, parse_tracker_mpe
 from workcell.errors import UserError, check_output_path, folder_problem
 from workcell.estimation.fitting import FIT_METHODS, fit_recording
-from workcell.estimation.models import check_model_output, interval_um
+from workcell.estimation.models import check_model_output, interval_um, unexplained_text
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -123,6 +123,11 @@ def print_report(r: dict) -> None:
             f"(MPE {r['tracker_mpe']['a_m'] * 1e6:g} um + {r['tracker_mpe']['b_m_per_m'] * 1e6:g} "
             "um/m, "
             "sigma = MPE/4)"
+        )
+    if r.get("unexplained"):
+        print(
+            f"unexplained     {unexplained_text(r['unexplained'])}: what the model leaves out "
+            "beyond the tracker's noise, not in the parameters' std"
         )
     print(f"fit time        {r['fit_seconds']:.2f} s")
     if r.get("unidentifiable"):

@@ -80,6 +80,8 @@ from workcell.estimation.models import (
     error_stats,
     interval_um,
     rms_gain_interval,
+    unexplained_error,
+    unexplained_text,
 )
 from workcell.kinematics.chain import PARAM_NAMES, PARAMETER_FRAMES, jac_joints
 from workcell.recording.dataset import Dataset, distinct_poses
@@ -716,12 +718,19 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
     # ---- 7. unexplained structure
     res_tr = dfit.p_tracker - model.predict_parametric(dfit.q, **aux(dfit))
     res_te = dte.p_tracker - pred_te
+    excess = unexplained_error(after["rms_m"], after["rms_ci95_m"], floor)
     unexplained = {
         "rms_m": after["rms_m"],
-        "excess_over_floor_m": float(np.sqrt(max(after["rms_m"] ** 2 - floor**2, 0.0))),
+        "excess_over_floor_m": excess["rms_m"] if excess else float("nan"),
+        "excess_over_floor_upper_m": excess["upper_m"] if excess else None,
+        "excess_basis": excess["basis"] if excess else None,
         "structured": False,
         "where": [],
     }
+    # the model file carries its held-out figures, for `export` to state beside its 1-sigma
+    model.info.update(
+        heldout_rms_m=after["rms_m"], heldout_rms_ci95_m=after["rms_ci95_m"], unexplained=excess
+    )
     unexplained["serial_correlation"] = _serial_correlation(res_tr, dfit.elapsed_s)
     model_np = None
     if cfg.nonparametric:
@@ -1099,9 +1108,12 @@ def summary_text(r: dict) -> str:
         sc = u.get("serial_correlation", {})
         big = r["rms_after_m"] > 1.5 * r["noise_floor_m"]
         txt = (
-            f"What is not explained: {um(u['excess_over_floor_m'])} above the noise floor; a "
-            f"non-parametric model over the joint angles finds no further structure on the "
-            f"held-out poses"
+            "What is not explained: "
+            + unexplained_text(
+                {"rms_m": u["excess_over_floor_m"], "upper_m": u.get("excess_over_floor_upper_m")}
+            )
+            + "; a non-parametric model over the joint angles finds no further structure on the "
+            "held-out poses"
         )
         if sc.get("significant"):
             txt += (

@@ -26,6 +26,7 @@ from workcell.estimation.models import (
     aux_from_dataset,
     error_stats,
     save_model,
+    unexplained_error,
 )
 from workcell.kinematics.chain import PARAMETER_FRAMES, p_tracker
 from workcell.recording.dataset import HOLDOUT_SEED, Dataset, distinct_poses, read_warnings
@@ -152,7 +153,10 @@ def fit_dataset(
         "heldout_median_m": held["median_m"],
         "train_rms_m": train_stats["rms_m"],
         "stated_noise_floor_m": stated_noise_floor(ev),
-        "tracker_noise_floor_m": tracker_noise_floor(ev, tracker_mpe),
+        "tracker_noise_floor_m": (floor := tracker_noise_floor(ev, tracker_mpe)),
+        "unexplained": unexplained_error(held["rms_m"], held["rms_ci95_m"], floor)
+        if len(dte)
+        else None,
         "tracker_mpe": {"a_m": float(tracker_mpe[0]), "b_m_per_m": float(tracker_mpe[1])},
         "tracker_noise_floor_basis": (
             f"per-pose sigma = max(recorded, tracker MPE ({tracker_mpe[0] * 1e6:g} um + "
@@ -203,6 +207,8 @@ def fit_recording(
             info.setdefault("recording", ds.source)
             info.setdefault("recording_sha256", ds.source_sha256)
             info["heldout_rms_m"] = report["heldout_rms_m"]
+            info["heldout_rms_ci95_m"] = report["heldout_rms_ci95_m"]
+            info["unexplained"] = report["unexplained"]
         report["model"] = str(save_model(model, out))
     else:
         report["model"] = None

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from workcell.errors import UserError
+from workcell.estimation.models import unexplained_text
 from workcell.export.correction import Conditions, Corrector, Nominal, nominal_for
 from workcell.export.table import (
     DEFAULT_INTERP_ERROR_M,
@@ -220,7 +221,32 @@ def make_table(
         meta=meta,
         log=log,
     )
+    u = model_unexplained(model)
+    if u is not None:
+        tab.meta["model_unexplained"] = u
+        if log:
+            log(
+                f"  not in that 1-sigma: the model leaves {unexplained_text(u)} on its held-out "
+                "poses"
+            )
     return tab, corr
+
+
+def model_unexplained(model) -> dict | None:
+    """The model file's held-out figure of what it leaves unexplained (`fit` and `diagnose`
+    store it), recomputed from the stored RMS, interval and floor so a hand-edited entry cannot
+    put a wrong figure in a table; None when the model has none or it does not parse."""
+    from workcell.estimation.models import unexplained_error
+
+    info = getattr(model, "info", None)
+    if not isinstance(info, dict) or not isinstance(info.get("unexplained"), dict):
+        return None
+    ci = info.get("heldout_rms_ci95_m")
+    try:
+        ci = [float(c) for c in ci] if ci is not None else None
+    except (TypeError, ValueError):
+        ci = None
+    return unexplained_error(info.get("heldout_rms_m"), ci, info["unexplained"].get("floor_m"))
 
 
 def reach_of(nominal: Nominal) -> float:
