@@ -202,22 +202,30 @@ def fit_recording(
     )
     report["recording_problems"] = list(ds.read_problems)
     if out is not None:
-        info = getattr(model, "info", None)
-        if isinstance(info, dict):
-            info.setdefault("recording", ds.source)
-            info.setdefault("recording_sha256", ds.source_sha256)
-            info["heldout_rms_m"] = report["heldout_rms_m"]
-            info["heldout_rms_ci95_m"] = report["heldout_rms_ci95_m"]
-            info["unexplained"] = report["unexplained"]
+        keep_in_model(model, ds, report)
         report["model"] = str(save_model(model, out))
     else:
         report["model"] = None
     return report
 
 
+def keep_in_model(model, ds: Dataset, report: dict) -> None:
+    """Put what the model file should carry into the model's `info`: its recording (path and
+    sha256) and the held-out figures of `report` (RMS, its interval, what it leaves unexplained),
+    which `export` states beside a table's 1-sigma."""
+    info = getattr(model, "info", None)
+    if isinstance(info, dict):
+        info.setdefault("recording", ds.source)
+        info.setdefault("recording_sha256", ds.source_sha256)
+        info["heldout_rms_m"] = report["heldout_rms_m"]
+        info["heldout_rms_ci95_m"] = report["heldout_rms_ci95_m"]
+        info["unexplained"] = report["unexplained"]
+
+
 __all__ = [
     "fit_dataset",
     "fit_recording",
+    "keep_in_model",
     "stated_noise_floor",
     "tracker_noise_floor",
     "pose_sigma",

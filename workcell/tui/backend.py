@@ -471,7 +471,7 @@ def fit(
     Returns the `fit_dataset` report plus `model` (path) and `residuals` (held-out per-pose
     error before/after, m) for the plot. `ekf-ann` replays the recording through the online
     filter (`workcell.commands.replay`) when that module exists."""
-    from workcell.estimation.fitting import fit_dataset
+    from workcell.estimation.fitting import fit_dataset, keep_in_model
     from workcell.estimation.models import aux_from_dataset, save_model
     from workcell.recording.dataset import Dataset
 
@@ -480,11 +480,7 @@ def fit(
     ds = Dataset.from_recording(recording)
     model, report = fit_dataset(ds, method=method, holdout=holdout, progress=progress)
     out = Path(model_out) if model_out else Path(recording).with_suffix(f".{method}.model.json")
-    info = getattr(model, "info", None)
-    if isinstance(info, dict):
-        info.setdefault("recording", ds.source)
-        info.setdefault("recording_sha256", ds.source_sha256)
-        info["heldout_rms_m"] = report["heldout_rms_m"]
+    keep_in_model(model, ds, report)
     report["model"] = str(save_model(model, out))
     _, test = ds.holdout_split(holdout)
     ev = ds.subset(test) if len(test) else ds

@@ -137,6 +137,12 @@ class FitScreen(WorkcellScreen):
             t.add_row("floor: repeatability", um(r["stated_noise_floor_m"]), "")
         if r.get("tracker_noise_floor_m") is not None:
             t.add_row("floor: tracker accuracy", um(r["tracker_noise_floor_m"]), "")
+        u = r.get("unexplained")
+        if u:
+            up = u.get("upper_m")
+            t.add_row(
+                "unexplained above it", um(u["rms_m"]), f"up to {um(up)}" if up is not None else ""
+            )
         t.add_row(
             "poses", f"{r.get('train_poses', '-')} train", f"{r.get('heldout_poses', '-')} held out"
         )
