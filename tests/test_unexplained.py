@@ -24,6 +24,10 @@ def test_quadrature_difference_and_its_upper_end():
     for bad in (float("nan"), "x", None, -1e-6):
         assert unexplained_error(bad, [1e-6, 2e-6], 3e-6) is None
         assert unexplained_error(5e-6, [1e-6, 2e-6], bad) is None
+    # a hand-edited model file's extremes: no overflow, no figure that is not finite
+    assert unexplained_error(1e308, [1e308, 1e308], 1e308)["rms_m"] == 0.0
+    assert unexplained_error(1e308, [1e308, 1e308], 0.0) is None
+    assert unexplained_error(1e-6, [1e-6, 1e308], 0.0)["upper_m"] is None
     assert unexplained_text(None) == ""
     assert unexplained_text(u) == (
         "4.0 um above the noise floor (up to 5.2 um at the upper end of the 95 % interval)"

@@ -361,11 +361,19 @@ def unexplained_error(rms_m: float, rms_ci95_m, floor_m: float) -> dict | None:
         return None
     if not (np.isfinite(rms) and np.isfinite(floor) and rms >= 0.0 and floor >= 0.0):
         return None
+
+    def above(x: float) -> float:  # sqrt(max(x^2 - floor^2, 0)), without overflow
+        return float(np.sqrt(max((x - floor) * (x / 2.0 + floor / 2.0), 0.0)) * np.sqrt(2.0))
+
     upper = None
     if rms_ci95_m is not None and len(rms_ci95_m) == 2 and np.isfinite(rms_ci95_m[1]):
-        upper = float(np.sqrt(max(float(rms_ci95_m[1]) ** 2 - floor**2, 0.0)))
+        upper = above(float(rms_ci95_m[1]))
+        upper = upper if np.isfinite(upper) else None
+    excess = above(rms)
+    if not np.isfinite(excess):
+        return None
     return {
-        "rms_m": float(np.sqrt(max(rms**2 - floor**2, 0.0))),
+        "rms_m": excess,
         "upper_m": upper,
         "floor_m": floor,
         "basis": UNEXPLAINED_BASIS,
