@@ -89,3 +89,32 @@ def test_the_figure_matches_the_models_true_error_at_the_heldout_poses(effects, 
     t2, _ = make_table(model, target_error_m=20e-6)
     assert t2.meta["model_unexplained"]["rms_m"] == pytest.approx(u["rms_m"])
     assert t2.meta["model_unexplained"]["upper_m"] is None
+
+
+def test_any_stored_value_gives_a_finite_figure_or_none():
+    """Whatever a hand-edited model file holds in its held-out fields, `export` states a finite
+    figure or none: never an exception."""
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+    from jsonfuzz import JSON
+
+    from workcell.export.build import model_unexplained
+
+    big = st.floats(allow_nan=True, allow_infinity=True)
+
+    @settings(max_examples=300, deadline=None, suppress_health_check=list(HealthCheck))
+    @given(
+        rms=JSON | big,
+        ci=JSON | st.lists(big, min_size=2, max_size=2),
+        floor=JSON | big,
+        u=st.one_of(st.just("dict"), JSON),
+    )
+    def check(rms, ci, floor, u):
+        info = {"heldout_rms_m": rms, "heldout_rms_ci95_m": ci}
+        info["unexplained"] = {"floor_m": floor} if u == "dict" else u
+        out = model_unexplained(type("M", (), {"info": info})())
+        if out is not None:
+            assert np.isfinite(out["rms_m"]) and out["rms_m"] >= 0.0
+            assert out["upper_m"] is None or (np.isfinite(out["upper_m"]) and out["upper_m"] >= 0)
+
+    check()
