@@ -3,12 +3,14 @@ flow (connect, plan 10 poses, run to the end, fit dh, diagnose, export a table),
 leaving a valid recording, then resuming it."""
 
 import asyncio
+import threading
 import time
 
 import numpy as np
 import pytest
 
 from workcell.recording.reader import read_recording
+from workcell.tui import backend
 from workcell.tui.app import make_app
 from workcell.tui.backend import PlanConfig
 
@@ -20,7 +22,13 @@ async def until(pilot, cond, timeout_s: float = 180.0, what: str = "") -> None:
     while not cond():
         await pilot.pause(0.05)
         if time.monotonic() - t0 > timeout_s:
-            raise AssertionError(f"timed out waiting for {what or cond}")
+            app = pilot.app
+            camp = getattr(app, "views", {}).get("campaign")
+            raise AssertionError(
+                f"timed out waiting for {what or cond}: screen {type(app.screen).__name__}, "
+                f"campaign {getattr(camp, 'state', None)} after {getattr(camp, 'done', None)} "
+                f"poses, last notices {getattr(app, 'notices', [])[-3:]}"
+            )
 
 
 async def until_confirm(app, pilot, what: str) -> None:
@@ -145,7 +153,25 @@ def test_whole_flow(tmp_path, monkeypatch):
 
 def test_abort_leaves_valid_recording_then_resume(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    app = app_for(60)  # long enough that the abort lands mid-campaign
+    app = app_for(60)
+    # The campaign runs in a worker thread and may outrun the event loop on a loaded machine
+    # (all 60 poses measured before the pause key is handled). Hold the worker after its third
+    # sample until the pause request has landed, so the abort always lands mid-campaign.
+    gate = threading.Event()
+    real_start = backend.start_campaign
+
+    def held_start(dev, plan, *, on_sample, **kw):
+        n = [0]
+
+        def sample(s):
+            on_sample(s)
+            n[0] += 1
+            if n[0] == 3:
+                assert gate.wait(60), "the test never released the campaign"
+
+        return real_start(dev, plan, on_sample=sample, **kw)
+
+    monkeypatch.setattr(backend, "start_campaign", held_start)
 
     async def flow():
         async with app.run_test(size=SIZE) as pilot:
@@ -155,6 +181,8 @@ def test_abort_leaves_valid_recording_then_resume(tmp_path, monkeypatch):
             await pilot.press("s", "y")
             await until(pilot, lambda: scr.done >= 3, 60, "3 poses")
             await pilot.press("p")  # pause between poses, then abort with confirmation
+            await until(pilot, lambda: scr.state == "paused", 10, "pause")
+            gate.set()
             await pilot.press("a")
             await until_confirm(app, pilot, "abort")
             await pilot.press("y")
