@@ -2,8 +2,6 @@
 interpolation error; the nominal-only 'correction' does nothing."""
 
 import dataclasses
-import tempfile
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -134,7 +132,7 @@ def test_validation_refuses_to_start_outside_the_envelope():
     assert moved == []
 
 
-def test_the_tables_stated_uncertainty_matches_the_corrected_error():
+def test_the_tables_stated_uncertainty_matches_the_corrected_error(tmp_path):
     """In a DH-only world, a DH fit from a 40-pose campaign is the right model: what it leaves
     after correction is its estimation error plus the table's interpolation error. The table's
     own 1-sigma (from the fit's covariance) must be of that size, pooled over the first four
@@ -147,7 +145,7 @@ def test_the_tables_stated_uncertainty_matches_the_corrected_error():
     ratios = []
     for seed in range(4):
         world, robot, tracker, cell = sim_cell("ur5e", "none", seed, beam_break_prob=0.0)
-        path = Path(tempfile.mkdtemp()) / "c.mcap"
+        path = tmp_path / f"c{seed}.mcap"
         cfg = CampaignConfig(readings_per_pose=2, settle_s=0.2)
         run_campaign(robot, tracker, cell, path, poses=40, seed=seed, config=cfg)
         table, corr = make_table(fit_dh(Dataset.from_recording(path)), target_error_m=2e-6)

@@ -3,9 +3,6 @@
 
 from __future__ import annotations
 
-import tempfile
-from pathlib import Path
-
 import numpy as np
 import pytest
 
@@ -47,7 +44,7 @@ def _truth_scored_heldout_rms(model, ds, truth) -> float:
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 @pytest.mark.parametrize("effects", ["joint_compliance", "none"])
-def test_the_figure_matches_the_models_true_error_at_the_heldout_poses(effects, seed):
+def test_the_figure_matches_the_models_true_error_at_the_heldout_poses(effects, seed, tmp_path):
     """A DH fit of a cell with gravity compliance leaves tens of um unexplained; of a DH-only
     cell, only its estimation error. The stated figure must track the model's true error at the
     held-out poses (scored against the simulator's truth), and the upper end must cover it."""
@@ -63,7 +60,7 @@ def test_the_figure_matches_the_models_true_error_at_the_heldout_poses(effects, 
     world, robot, tracker, cell = sim_cell(
         "ur5e", effects, seed, beam_break_prob=0.0, outlier_prob=0.0
     )
-    folder = Path(tempfile.mkdtemp())
+    folder = tmp_path
     path = folder / "c.mcap"
     cfg = CampaignConfig(readings_per_pose=2, settle_s=0.2)
     run_campaign(robot, tracker, cell, path, poses=80, seed=seed, config=cfg)
