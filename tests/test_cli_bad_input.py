@@ -665,6 +665,38 @@ def test_an_unwritable_output_folder_is_found_before_any_work(cell, capsys, argv
     one_line_refusal(capsys, [a.format(rec=rec, model=model) for a in argv], match)
 
 
+def test_the_tui_fit_keeps_a_read_only_archive_and_foreign_files(tmp_path, monkeypatch):
+    """The TUI's Fit screen (backend.fit) follows the command line: a recording in a read-only
+    archive gets its model in the current folder, with a note; fitting again replaces the
+    earlier model of the same recording (ekf-ann too); a file that is not one is refused."""
+    from workcell.campaign.executor import CampaignConfig
+    from workcell.campaign.run import run_campaign, sim_cell
+    from workcell.errors import UserError
+    from workcell.tui import backend
+
+    archive = tmp_path / "archive"
+    archive.mkdir()
+    _, robot, tracker, c = sim_cell("ur5e", "none", seed=3)
+    cfg = CampaignConfig(readings_per_pose=2, settle_s=0.2)
+    run_campaign(robot, tracker, c, archive / "r.mcap", poses=48, seed=3, config=cfg)
+    archive.chmod(0o555)
+    here = tmp_path / "here"
+    here.mkdir()
+    monkeypatch.chdir(here)
+    try:
+        for method in ("dh", "dh", "ekf-ann", "ekf-ann"):
+            r = backend.fit(archive / "r.mcap", method)
+            assert r["model"] == f"r.{method}.model.json"
+            assert "is read-only: the model file goes to" in r["model_note"]
+        assert sorted(os.listdir(archive)) == ["r.mcap"]
+        (here / "r.dh.model.json").write_text("my notes")
+        with pytest.raises(UserError, match="is not an earlier model of this recording"):
+            backend.fit(archive / "r.mcap", "dh")
+        assert (here / "r.dh.model.json").read_text() == "my notes"
+    finally:
+        archive.chmod(0o755)
+
+
 def test_a_folder_marked_read_only_is_not_written_even_by_root(cell, capsys, tmp_path, monkeypatch):
     """An archive of recordings marked read-only stays as it is: `fit` without --out puts the
     model in the current folder and says so; an explicit output there is refused in one line."""

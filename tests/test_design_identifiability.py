@@ -3,6 +3,8 @@ condition, dependent groups, O1 and minimum singular value."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -118,3 +120,58 @@ def test_more_spread_poses_are_more_observable(ur5e_jacobian):
 def test_analyse_rejects_bad_shape():
     with pytest.raises(ValueError, match="expected shape"):
         analyse(np.zeros((6, 5)))
+
+
+def test_a_near_dependency_is_named_with_its_std_inflation():
+    """Two columns at a small angle eps (the others orthogonal): the rank test keeps both, but
+    each estimate's std is 1/sin(eps) times what it would be with the other known, and the two
+    estimates are correlated -cos(eps). `weak_directions` must find that pair, and only it."""
+    from workcell.estimation.identifiability import weak_directions
+
+    rng = np.random.default_rng(0)
+    Q, _ = np.linalg.qr(rng.normal(size=(60, 6)))
+    names = [f"p{i}" for i in range(6)]
+    for eps in (1e-3, 3e-3):
+        J = Q * np.array([1.0, 2.0, 0.5, 1.0, 3.0, 1.0])
+        J[:, 4] = 3.0 * (np.cos(eps) * Q[:, 1] + np.sin(eps) * Q[:, 4])
+        assert analyse(J, names, priority=names).rank == 6
+        cov = 4e-6 * np.linalg.inv(J.T @ J)
+        weak = weak_directions(cov, names)
+        assert [g["parameters"] for g in weak] == [["p1", "p4"]]
+        assert weak[0]["std_inflation"] == pytest.approx(1.0 / np.sin(eps), rel=1e-6)
+        assert weak[0]["correlation"] == pytest.approx(-np.cos(eps), abs=1e-9)
+    # a fixed parameter (zero variance) is skipped; well-separated columns give nothing
+    cov = np.diag([1e-6, 2e-6, 0.0, 1e-6, 3e-6, 1e-6])
+    assert weak_directions(cov, names) == []
+    assert weak_directions(np.full((6, 6), np.nan), names) == []
+    with pytest.raises(ValueError, match=r"\(6, 6\)"):
+        weak_directions(np.eye(5), names)
+
+
+REAL = Path(__file__).resolve().parents[2] / "shared/data/ur10-leica"
+
+
+@pytest.mark.skipif(not REAL.exists(), reason="shared real data not present")
+def test_the_real_iso_cube_series_barely_separates_base_y_from_the_smr_offset(capsys, tmp_path):
+    """Series D measures an iso cube with one tool orientation: the SMR's offset along the tool
+    z axis and the base's y translation move the measured point alike. The rank test keeps both;
+    the fit must say they are weakly identified (their std tens of mm). Series B varies the
+    joints freely: nothing is flagged."""
+    from workcell.cli import main
+    from workcell.estimation.fitting import fit_recording
+
+    d = fit_recording(REAL / "series_D_iso_cubes.mcap", method="dh")
+    weak = d["identifiability"]["weakly_identified"]
+    assert [sorted(g["parameters"]) for g in weak] == [["base_ty", "tool_z"]]
+    assert weak[0]["std_inflation"] > 1000 and abs(weak[0]["correlation"]) > 0.9999
+    assert d["parameters"]["tool_z"]["std"] > 1e-3  # what the inflation means: mm, not um
+    b = fit_recording(REAL / "series_B_joint_configurations.mcap", method="dh")
+    assert b["identifiability"]["weakly_identified"] == []
+    # the command line says it in words
+    capsys.readouterr()
+    rc = main(["fit", str(REAL / "series_D_iso_cubes.mcap"), "--out", str(tmp_path / "d.json")])
+    out = capsys.readouterr().out
+    assert rc == 0
+    assert "weakly identified" in out
+    line = next(ln for ln in out.splitlines() if ln.strip().startswith("{base_ty, tool_z}"))
+    assert "x what it would be with the others known, correlation +1.0000" in line

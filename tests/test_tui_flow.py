@@ -5,6 +5,7 @@ leaving a valid recording, then resuming it."""
 import asyncio
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -266,5 +267,36 @@ def test_online_ekf_ann_estimate_reaches_the_campaign_view(tmp_path, monkeypatch
             view.render_view()
             info = str(view.query_one("#info").rows)
             assert f"EKF-ANN innovation RMS {ekf[-1]:.1f} um" in info, info
+
+    asyncio.run(flow())
+
+
+REAL_D = Path(__file__).resolve().parents[2] / "shared/data/ur10-leica/series_D_iso_cubes.mcap"
+
+
+@pytest.mark.skipif(not REAL_D.exists(), reason="shared real data not present")
+def test_the_fit_screen_names_weakly_identified_parameters(tmp_path, monkeypatch):
+    """The real iso-cube series barely separates base_ty from the SMR's tool_z: the Fit screen's
+    table says so, with the std inflation."""
+    from textual.widgets import DataTable
+
+    monkeypatch.chdir(tmp_path)
+    rep = backend.fit(REAL_D, "dh", model_out=tmp_path / "d.json")
+    app = app_for(10)
+
+    async def flow():
+        async with app.run_test(size=(120, 40)) as pilot:
+            await pilot.press("f4")
+            fit = app.views["fit"]
+            fit.show_report(rep)
+            await pilot.pause()
+            t = fit.query_one("#table", DataTable)
+            rows = {
+                str(t.get_row_at(i)[0]): [str(c) for c in t.get_row_at(i)[1:]]
+                for i in range(t.row_count)
+            }
+            assert "weakly identified" in rows, rows
+            assert rows["weakly identified"][0] == "1 group"
+            assert rows["weakly identified"][1].startswith("base_ty/tool_z (std ")
 
     asyncio.run(flow())

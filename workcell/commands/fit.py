@@ -11,9 +11,14 @@ from pathlib import Path
 import numpy as np
 
 from workcell.commands.options import add_tracker_mpe, display_unit, parse_tracker_mpe
-from workcell.errors import UserError, check_output_path, folder_problem
+from workcell.errors import UserError, check_output_path
 from workcell.estimation.fitting import FIT_METHODS, fit_recording
-from workcell.estimation.models import check_model_output, interval_um, unexplained_text
+from workcell.estimation.models import (
+    check_model_output,
+    default_model_out,
+    interval_um,
+    unexplained_text,
+)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -54,14 +59,12 @@ def run(args: argparse.Namespace) -> int:
     if args.on != "auto" and args.method == "dh":
         raise UserError("--on chooses the base model of lddmm and gp; --method dh has none")
     mpe = parse_tracker_mpe(args.tracker_mpe)
-    out = Path(args.out) if args.out else Path(args.recording).with_suffix(f".{args.method}.json")
-    if not args.out and folder_problem(out.parent):  # an archive of recordings: keep it as it is
-        print(
-            f"the recording's folder {out.parent} is read-only: the model file goes to "
-            f"{out.name} here (--out chooses)",
-            file=sys.stderr,
-        )
-        out = Path(out.name)
+    if args.out:
+        out = Path(args.out)
+    else:
+        out, moved = default_model_out(args.recording, f".{args.method}.json")
+        if moved:
+            print(f"{moved} (--out chooses)", file=sys.stderr)
     check_output_path(out, "model file", inputs=[args.recording, args.bounds])
     check_model_output(
         out, args.recording, force=args.force, say=lambda m: print(m, file=sys.stderr)
@@ -139,6 +142,19 @@ def print_report(r: dict) -> None:
         print(
             f"identification  rank {i['rank']}/{i['n_parameters']}, condition {i['condition']:.3g}"
         )
+        weak = i.get("weakly_identified") or []
+        if weak:
+            print(
+                "weakly identified: the poses barely tell each group's parameters apart (only "
+                "their combination is meaningful; add poses that separate them):"
+            )
+            for g in weak:
+                rho = g.get("correlation")
+                corr = f", correlation {rho:+.4f}" if rho is not None else ""
+                print(
+                    "   {" + ", ".join(g["parameters"]) + "}: std "
+                    f"{g['std_inflation']:.0f}x what it would be with the others known{corr}"
+                )
     params = r.get("parameters") or {}
     shown = [(k, v) for k, v in params.items() if v.get("estimated", True)]
     if shown:

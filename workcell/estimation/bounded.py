@@ -286,7 +286,7 @@ def fit_dh_bounded(
         "outliers_rejected": n_rejected,
         "variance_factor": s0_2,
         "train_rms_m": stats["rms_m"],
-        "identifiability": ident.to_dict() if ident is not None else None,
+        "identifiability": ident.to_dict(cov) if ident is not None else None,
         "fit_seconds": time.perf_counter() - t0,
         "solver": "iterated bounded linear least squares (QP, eq. 11 of seed 002)",
         "qp_iterations": iters,

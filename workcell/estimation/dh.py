@@ -224,7 +224,7 @@ def fit_dh(
         "outliers_rejected": n_rejected,
         "variance_factor": s0_2,
         "train_rms_m": stats["rms_m"],
-        "identifiability": ident.to_dict(),
+        "identifiability": ident.to_dict(cov),
         "fit_seconds": time.perf_counter() - t0,
         "nfev": int(res.nfev),
         "recording": ds.source,

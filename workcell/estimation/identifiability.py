@@ -53,7 +53,15 @@ class Identifiability:
     dependent: dict[str, list[str]]  # dependent param -> kept params it combines
     groups: list[list[str]]
 
-    def to_dict(self) -> dict:
+    def to_dict(self, cov: np.ndarray | None = None) -> dict:
+        """The analysis as a report; with the fit's covariance `cov` (over `names`), also the
+        groups the poses barely tell apart (`weakly_identified`, see `weak_directions`)."""
+        weak = {}
+        if cov is not None:
+            weak = {
+                "weakly_identified": weak_directions(cov, self.names),
+                "weakly_identified_basis": WEAK_BASIS,
+            }
         return {
             "rank": self.rank,
             "n_parameters": len(self.names),
@@ -63,7 +71,7 @@ class Identifiability:
             "singular_values": self.singular_values.tolist(),
             "identifiable": self.identifiable,
             "unidentifiable": self.groups,
-        }
+        } | weak
 
 
 def observability(Js: np.ndarray) -> dict:
@@ -152,3 +160,50 @@ def analyse(
         dependent=dependent,
         groups=groups,
     )
+
+
+WEAK_BASIS = (
+    "near-null directions of the estimated parameters' correlation matrix: a group is the "
+    "parameters loading a direction (|component| >= 0.2) whose eigenvalue lambda gives "
+    "1/sqrt(lambda) >= the threshold; std_inflation is the largest of the group's "
+    "sqrt(variance inflation factors), a parameter's std over its std were every other "
+    "estimated parameter known. The rank test keeps these parameters; the poses barely tell "
+    "them apart, so their values are not separately meaningful, only their combination"
+)
+
+
+def weak_directions(cov: np.ndarray, names: list[str], inflation: float = 100.0) -> list[dict]:
+    """Groups of estimated parameters the poses barely tell apart: the near-dependencies the rank
+    test (exact ones) lets through, from the fit's covariance `cov` (P, P; fixed parameters have
+    zero variance and are skipped). Each group: `{"parameters": [names], "std_inflation": x,
+    "correlation": r}` (r for a pair, else None), most inflated first; [] when none reaches
+    `inflation` or the covariance is not usable. See `WEAK_BASIS`."""
+    cov = np.asarray(cov, float)
+    if cov.ndim != 2 or cov.shape != (len(names), len(names)):
+        raise ValueError(
+            f"covariance: expected shape ({len(names)}, {len(names)}), got {cov.shape}"
+        )
+    if not np.all(np.isfinite(cov)):
+        return []
+    d = np.diag(cov)
+    est = np.flatnonzero(d > 0.0)
+    if len(est) < 2:
+        return []
+    s = np.sqrt(d[est])
+    C = cov[np.ix_(est, est)] / np.outer(s, s)
+    lam, V = np.linalg.eigh((C + C.T) / 2.0)
+    lam = np.maximum(lam, np.finfo(float).tiny)
+    vif = (V**2 / lam) @ np.ones(len(lam))  # diag(C^-1)
+    out = []
+    for k in np.flatnonzero(lam <= 1.0 / inflation**2):
+        members = np.flatnonzero(np.abs(V[:, k]) >= 0.2)
+        if len(members) < 2:
+            continue
+        out.append(
+            {
+                "parameters": [names[est[i]] for i in members],
+                "std_inflation": float(np.sqrt(vif[members].max())),
+                "correlation": float(C[members[0], members[1]]) if len(members) == 2 else None,
+            }
+        )
+    return sorted(out, key=lambda g: -g["std_inflation"])

@@ -16,7 +16,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from workcell.errors import UserError, replace_or_refuse
+from workcell.errors import UserError, folder_problem, replace_or_refuse
 
 MODEL_FORMAT = "workcell-model/1"
 
@@ -56,6 +56,19 @@ def aux_from_dataset(ds) -> dict:
         "elapsed_s": ds.elapsed_s,
         "payload_kg": ds.payload_kg,
     }
+
+
+def default_model_out(recording: str | os.PathLike, suffix: str) -> tuple[Path, str | None]:
+    """Where a model of `recording` goes when no output is named: beside it, with `suffix`; or,
+    when that folder takes no new file (an archive of recordings: kept as it is), under the same
+    name in the current folder, with the line that says so (else None)."""
+    out = Path(recording).with_suffix(suffix)
+    if folder_problem(out.parent):
+        return Path(out.name), (
+            f"the recording's folder {out.parent} is read-only: the model file goes to "
+            f"{out.name} here"
+        )
+    return out, None
 
 
 def check_model_output(

@@ -608,6 +608,13 @@ class WorkcellApp(App):
             title="Fit done",
             timeout=self.notify_timeout_s,
         )
+        if msg.report.get("model_note"):
+            self.notify(
+                msg.report["model_note"],
+                title="Model file",
+                severity="warning",
+                timeout=self.notify_timeout_s,
+            )
 
     @guarded
     def on_diagnose_requested(self, msg: m.DiagnoseRequested) -> None:

@@ -471,16 +471,39 @@ def fit(
     Returns the `fit_dataset` report plus `model` (path) and `residuals` (held-out per-pose
     error before/after, m) for the plot. `ekf-ann` replays the recording through the online
     filter (`workcell.commands.replay`) when that module exists."""
+    from workcell.errors import check_output_path
     from workcell.estimation.fitting import fit_dataset, keep_in_model
-    from workcell.estimation.models import aux_from_dataset, save_model
+    from workcell.estimation.models import (
+        aux_from_dataset,
+        check_model_output,
+        default_model_out,
+        save_model,
+    )
     from workcell.recording.dataset import Dataset
 
+    moved = None
+    if model_out:
+        out = Path(model_out)
+    else:  # beside the recording, unless its folder is read-only (an archive: kept as it is)
+        out, moved = default_model_out(recording, f".{method}.model.json")
+    check_output_path(out, "model file", inputs=[recording])
+    try:  # over an earlier model of this recording only
+        check_model_output(out, recording)
+    except UserError:
+        raise UserError(
+            f"{out} exists and is not an earlier model of this recording; the Fit screen writes "
+            "its model there: move that file away, or fit on the command line with --out"
+        ) from None
     if method == "ekf-ann":
-        return _replay(recording, progress, holdout, model_out)
+        report = _replay(recording, progress, holdout, out)
+        if moved:
+            report["model_note"] = moved
+        return report
     ds = Dataset.from_recording(recording)
     model, report = fit_dataset(ds, method=method, holdout=holdout, progress=progress)
-    out = Path(model_out) if model_out else Path(recording).with_suffix(f".{method}.model.json")
     keep_in_model(model, ds, report)
+    if moved:
+        report["model_note"] = moved
     report["model"] = str(save_model(model, out))
     _, test = ds.holdout_split(holdout)
     ev = ds.subset(test) if len(test) else ds
@@ -495,7 +518,7 @@ def fit(
     return report
 
 
-def _replay(recording, progress, holdout: float = 0.25, model_out=None) -> dict:
+def _replay(recording, progress, holdout: float, out: Path) -> dict:
     """EKF-ANN replay (what `workcell replay --online ekf-ann` does): the training samples in
     recording order through `LiveFilter`, then the final model on the held-out poses."""
     try:
@@ -536,7 +559,8 @@ def _replay(recording, progress, holdout: float = 0.25, model_out=None) -> dict:
     held = error_stats(pred, ev.p_tracker, interval=True)
     nom_pred = np.asarray(p_tracker(th, base, ev.q))
     nominal = error_stats(nom_pred, ev.p_tracker)
-    out = Path(model_out) if model_out else Path(recording).with_suffix(".ekf-ann.model.json")
+    model.info.setdefault("recording", ds.source)  # for the next fit to know it as its own
+    model.info.setdefault("recording_sha256", ds.source_sha256)
     report = {
         "method": "ekf-ann",
         "recording": ds.source,

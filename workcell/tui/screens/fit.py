@@ -150,6 +150,15 @@ class FitScreen(WorkcellScreen):
         if unid:
             groups = ["/".join(g) if isinstance(g, list | tuple) else str(g) for g in unid]
             t.add_row("fixed (not identifiable)", f"{len(groups)} groups", ", ".join(groups[:2]))
+        weak = (r.get("identifiability") or {}).get("weakly_identified") or []
+        if weak:
+            t.add_row(
+                "weakly identified",
+                f"{len(weak)} group{'s' if len(weak) > 1 else ''}",
+                ", ".join(
+                    f"{'/'.join(g['parameters'])} (std {g['std_inflation']:.0f}x)" for g in weak[:2]
+                ),
+            )
         res = r.get("residuals") or {}
         if res:
             before = [x * 1e6 for x in res.get("before_m", [])]
