@@ -690,7 +690,7 @@ def test_the_tui_fit_keeps_a_read_only_archive_and_foreign_files(tmp_path, monke
             assert "is read-only: the model file goes to" in r["model_note"]
         assert sorted(os.listdir(archive)) == ["r.mcap"]
         (here / "r.dh.model.json").write_text("my notes")
-        with pytest.raises(UserError, match="is not an earlier model of this recording"):
+        with pytest.raises(UserError, match="exists and is not a workcell model; .*Fit screen"):
             backend.fit(archive / "r.mcap", "dh")
         assert (here / "r.dh.model.json").read_text() == "my notes"
     finally:

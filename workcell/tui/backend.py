@@ -489,10 +489,11 @@ def fit(
     check_output_path(out, "model file", inputs=[recording])
     try:  # over an earlier model of this recording only
         check_model_output(out, recording)
-    except UserError:
+    except UserError as e:  # the same refusal, with what to do here (no --force on this screen)
+        why = str(e).split("; choose another name")[0]
         raise UserError(
-            f"{out} exists and is not an earlier model of this recording; the Fit screen writes "
-            "its model there: move that file away, or fit on the command line with --out"
+            f"{why}; the Fit screen writes its model there: move that file away, or fit on the "
+            "command line with --out"
         ) from None
     if method == "ekf-ann":
         report = _replay(recording, progress, holdout, out)
