@@ -451,3 +451,23 @@ def test_an_abort_before_the_first_pose_is_an_aborted_recording_not_an_exception
     assert res.aborted and res.measured == 0
     rec = read_recording(path)
     assert rec.closed_cleanly and any(e["kind"] == "abort" for e in rec.events)
+
+
+def test_the_dry_run_says_what_the_planned_poses_can_identify(capsys):
+    """Before anything moves: 5 poses give 15 equations for the 25 parameters well-spread poses
+    identify, so the dry run warns which stay dependent and that 9 poses are the minimum, and
+    that a fit needs more; 30 random poses identify all 25 and draw no warning."""
+    from workcell.cli import main
+
+    argv = ["campaign", "--robot", "sim", "--tracker", "sim", "--dry-run", "--poses"]
+    assert main([*argv, "5"]) == 0
+    out = capsys.readouterr().out
+    assert "rank 15 of the 25 that well-spread poses give" in out
+    dep = next(ln for ln in out.splitlines() if "parameter(s) dependent" in ln)
+    assert dep.startswith("warning: these poses leave 10 parameter(s) dependent")
+    assert "a point tracker needs at least 9 poses" in dep
+    assert "warning: 5 poses are too few to fit" in out and "16 poses" in out
+    assert main([*argv, "30"]) == 0
+    out = capsys.readouterr().out
+    assert "rank 25 of the 25 that well-spread poses give" in out
+    assert "warning" not in out

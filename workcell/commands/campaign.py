@@ -7,6 +7,8 @@ import math
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from workcell.campaign.devices import open_cell
 from workcell.campaign.executor import CampaignConfig, CampaignControl
 from workcell.campaign.run import margin_stop, run_campaign
@@ -252,4 +254,9 @@ def dry_run(args, cell, env, cfg) -> int:
     print(f"dry run: {len(targets)} poses, {len(problems)} problems; nothing moved")
     for p in problems:
         print("  " + p)
+    if targets:
+        from workcell.campaign.identification import identification_lines
+
+        q = np.array([t.q_rad for t in targets])
+        print("\n".join(identification_lines(cell.spec, env, q, cell.tool_m)))
     return 1 if problems else 0

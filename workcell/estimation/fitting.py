@@ -32,6 +32,17 @@ from workcell.kinematics.chain import PARAMETER_FRAMES, p_tracker
 from workcell.recording.dataset import HOLDOUT_SEED, Dataset, distinct_poses, read_warnings
 
 # method -> "module:function(ds_train, *, on, bounds, progress) -> (model, extra dict)"
+MIN_TRAIN_POSES = 12  # a fit refuses fewer training poses (or distinct configurations)
+
+
+def min_poses_for_fit(holdout: float = 0.25) -> int:
+    """Fewest poses whose training part (after the held-out `holdout` fraction) a fit accepts."""
+    n = MIN_TRAIN_POSES
+    while n - int(round(holdout * n)) < MIN_TRAIN_POSES:
+        n += 1
+    return n
+
+
 FIT_METHODS: dict[str, str] = {
     "dh": "workcell.estimation.fitting:_fit_dh",
     "lddmm": "workcell.estimation.lddmm_fit:fit_method",
@@ -106,13 +117,13 @@ def fit_dataset(
     if method not in FIT_METHODS:
         raise UserError(f"unknown method {method!r}; choose from {', '.join(FIT_METHODS)}")
     train, test = ds.holdout_split(holdout)
-    if len(train) < 12:
-        raise UserError(f"only {len(train)} training poses; a fit needs at least 12")
+    if len(train) < MIN_TRAIN_POSES:
+        raise UserError(f"only {len(train)} training poses; a fit needs at least {MIN_TRAIN_POSES}")
     n_distinct = distinct_poses(ds.q[train])
-    if n_distinct < 12:
+    if n_distinct < MIN_TRAIN_POSES:
         raise UserError(
             f"only {n_distinct} distinct joint configurations among the {len(train)} training "
-            "poses; a fit needs at least 12 different poses (the same pose measured again adds "
+            f"poses; a fit needs at least {MIN_TRAIN_POSES} different poses (the same pose measured again adds "
             "no geometry)"
         )
     dtr, dte = ds.subset(train), ds.subset(test)
@@ -226,6 +237,8 @@ __all__ = [
     "fit_dataset",
     "fit_recording",
     "keep_in_model",
+    "MIN_TRAIN_POSES",
+    "min_poses_for_fit",
     "stated_noise_floor",
     "tracker_noise_floor",
     "pose_sigma",

@@ -165,10 +165,11 @@ def analyse(
 WEAK_BASIS = (
     "near-null directions of the estimated parameters' correlation matrix: a group is the "
     "parameters loading a direction (|component| >= 0.2) whose eigenvalue lambda gives "
-    "1/sqrt(lambda) >= the threshold; std_inflation is the largest of the group's "
-    "sqrt(variance inflation factors), a parameter's std over its std were every other "
-    "estimated parameter known. The rank test keeps these parameters; the poses barely tell "
-    "them apart, so their values are not separately meaningful, only their combination"
+    "1/sqrt(lambda) >= the threshold (100), kept when its std_inflation reaches the threshold "
+    "too: the largest of the group's sqrt(variance inflation factors), a parameter's std over "
+    "its std were every other estimated parameter known. The rank test keeps these parameters; "
+    "the poses barely tell them apart, so their values are not separately meaningful, only "
+    "their combination"
 )
 
 
@@ -197,7 +198,7 @@ def weak_directions(cov: np.ndarray, names: list[str], inflation: float = 100.0)
     out = []
     for k in np.flatnonzero(lam <= 1.0 / inflation**2):
         members = np.flatnonzero(np.abs(V[:, k]) >= 0.2)
-        if len(members) < 2:
+        if len(members) < 2 or np.sqrt(vif[members].max()) < inflation:
             continue
         out.append(
             {
@@ -207,3 +208,41 @@ def weak_directions(cov: np.ndarray, names: list[str], inflation: float = 100.0)
             }
         )
     return sorted(out, key=lambda g: -g["std_inflation"])
+
+
+def pose_set_report(dh, q: np.ndarray, tool_m, reference_q: np.ndarray | None = None) -> dict:
+    """What measuring the SMR (`tool_m` on the flange) at joint angles `q` (N, n) can identify,
+    at the nominal chain, before anything moves: rank, condition and O1 of the identification
+    Jacobian (Theorem 1), and the weakly identified groups (`weak_directions` of the unit-weight
+    covariance). With `reference_q`, a rich pose set, also `rank_reference` and `missing`: what
+    the reference identifies that `q` leaves dependent (too few or too alike poses)."""
+    from workcell.kinematics.chain import jac_params, pack, parallel_beta_names
+
+    q = np.atleast_2d(np.asarray(q, float))
+    n_j = len(dh.a)
+    names = param_names(n_j)
+    betas = set(parallel_beta_names(dh))
+    cand = [n for n in names if not n.startswith("beta") or n in betas]
+    theta = pack(dh, tool=np.asarray(tool_m, float))
+
+    def analysed(qs):
+        J = np.asarray(jac_params(theta, np.eye(4), qs)).reshape(-1, len(names))
+        return J, analyse(J, names, priority=priority_for(n_j), candidates=cand)
+
+    J, ident = analysed(q)
+    keep = [names.index(n) for n in ident.identifiable]
+    Js = J[:, keep] / np.linalg.norm(J[:, keep], axis=0)
+    cov = np.zeros((len(names), len(names)))
+    cov[np.ix_(keep, keep)] = np.linalg.pinv(Js.T @ Js)
+    out = {
+        "poses": int(len(q)),
+        "rank": ident.rank,
+        "condition": ident.condition,
+        "o1": ident.o1,
+        "weakly_identified": weak_directions(cov, names),
+    }
+    if reference_q is not None:
+        _, ref = analysed(np.atleast_2d(np.asarray(reference_q, float)))
+        out["rank_reference"] = ref.rank
+        out["missing"] = [n for n in ref.identifiable if n not in ident.identifiable]
+    return out

@@ -208,12 +208,19 @@ def dry_run(plan: PlanConfig, dev: Devices) -> dict:
     )
     if targets is None:
         return {"adaptive": True, "targets": plan.poses, "problems": [], "ok": True}
+    ident = []
+    if targets:
+        from workcell.campaign.identification import identification_lines
+
+        q = np.array([t.q_rad for t in targets])
+        ident = identification_lines(cell.spec, env, q, cell.tool_m)
     return {
         "adaptive": False,
         "targets": len(targets),
         "problems": problems,
         "ok": not problems and len(targets) > 0,
         "first_q_rad": [np.asarray(t.q_rad).tolist() for t in targets[:3]],
+        "identification": ident,
     }
 
 

@@ -154,4 +154,7 @@ class PlanScreen(WorkcellScreen):
                 f"[green]dry run OK[/green]: {result['targets']} poses and their approach "
                 f"pre-poses inside the envelope; nothing moved. Recording: {plan.out}"
             )
+        for line in result.get("identification") or []:
+            warn = line.startswith("warning:")
+            text += "\n" + (f"[yellow]{escape(line)}[/yellow]" if warn else escape(line))
         self.show_result(text)
