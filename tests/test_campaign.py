@@ -466,7 +466,7 @@ def test_the_dry_run_says_what_the_planned_poses_can_identify(capsys):
     dep = next(ln for ln in out.splitlines() if "parameter(s) dependent" in ln)
     assert dep.startswith("warning: these poses leave 10 parameter(s) dependent")
     assert "a point tracker needs at least 9 poses" in dep
-    assert "warning: 5 poses are too few to fit" in out and "16 poses" in out
+    assert "warning: too few poses to fit (5)" in out and "16 poses" in out
     assert main([*argv, "30"]) == 0
     out = capsys.readouterr().out
     assert "rank 25 of the 25 that well-spread poses give" in out

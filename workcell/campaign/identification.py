@@ -43,7 +43,7 @@ def identification_lines(
     n_fit = min_poses_for_fit()
     if r["poses"] < n_fit:
         lines.append(
-            f"warning: {r['poses']} poses are too few to fit: a fit needs at least "
+            f"warning: too few poses to fit ({r['poses']}): a fit needs at least "
             f"{MIN_TRAIN_POSES} training poses, {n_fit} poses with the default 25 % held out"
         )
     weak = r["weakly_identified"]
