@@ -3,6 +3,7 @@ flow (connect, plan 10 poses, run to the end, fit dh, diagnose, export a table),
 leaving a valid recording, then resuming it."""
 
 import asyncio
+import re
 import threading
 import time
 from pathlib import Path
@@ -298,5 +299,44 @@ def test_the_fit_screen_names_weakly_identified_parameters(tmp_path, monkeypatch
             assert "weakly identified" in rows, rows
             assert rows["weakly identified"][0] == "1 group"
             assert rows["weakly identified"][1].startswith("base_ty/tool_z (std ")
+
+    asyncio.run(flow())
+
+
+def test_the_fit_screen_names_heldout_outliers(tmp_path, monkeypatch):
+    """A fit report with a held-out outlier (a planted 0.46 mm reading) shows it on the Fit
+    screen, with the held-out RMS without it."""
+    from textual.widgets import DataTable
+
+    from workcell.campaign.executor import CampaignConfig
+    from workcell.campaign.run import run_campaign, sim_cell
+    from workcell.estimation.fitting import fit_dataset
+    from workcell.recording.dataset import Dataset
+
+    monkeypatch.chdir(tmp_path)
+    _, robot, tracker, cell = sim_cell("ur5e", "none", 1, beam_break_prob=0.0, outlier_prob=0.0)
+    cfg = CampaignConfig(readings_per_pose=2, settle_s=0.2)
+    run_campaign(robot, tracker, cell, tmp_path / "c.mcap", poses=60, seed=1, config=cfg)
+    ds = Dataset.from_recording(tmp_path / "c.mcap")
+    k = int(ds.holdout_split(0.25)[1][0])
+    ds.p_tracker = ds.p_tracker.copy()
+    ds.p_tracker[k] += np.array([0.0004, -0.0001, 0.0002])
+    _, rep = fit_dataset(ds, method="dh")
+    assert rep["heldout_outliers"] is not None
+    app = app_for(10)
+
+    async def flow():
+        async with app.run_test(size=(120, 40)) as pilot:
+            await pilot.press("f4")
+            fit = app.views["fit"]
+            fit.show_report(rep)
+            await pilot.pause()
+            t = fit.query_one("#table", DataTable)
+            rows = {
+                str(t.get_row_at(i)[0]): [str(c) for c in t.get_row_at(i)[1:]]
+                for i in range(t.row_count)
+            }
+            assert re.fullmatch(r"1 \(max 4\d\d\.\d um\)", rows["held-out outliers"][0]), rows
+            assert rows["held-out outliers"][1].startswith("without: ")
 
     asyncio.run(flow())

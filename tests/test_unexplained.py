@@ -115,3 +115,40 @@ def test_any_stored_value_gives_a_finite_figure_or_none():
             assert out["upper_m"] is None or (np.isfinite(out["upper_m"]) and out["upper_m"] >= 0)
 
     check()
+
+
+def test_an_outlier_reading_among_the_heldout_poses_is_named_and_set_aside(tmp_path):
+    """One bad reading at a held-out pose (0.46 mm off, its recorded sigma inflated as a
+    disagreeing reading does) makes the held-out RMS several times the model's error. `fit`
+    names that pose and gives the figures without it: with the training poses untouched the
+    model is the same, so they must equal the clean recording's figures over the other poses."""
+    from workcell.campaign.executor import CampaignConfig
+    from workcell.campaign.run import run_campaign, sim_cell
+    from workcell.estimation.fitting import fit_dataset
+    from workcell.estimation.models import error_stats
+    from workcell.recording.dataset import Dataset
+
+    _, robot, tracker, cell = sim_cell("ur5e", "none", 1, beam_break_prob=0.0, outlier_prob=0.0)
+    path = tmp_path / "c.mcap"
+    cfg = CampaignConfig(readings_per_pose=2, settle_s=0.2)
+    run_campaign(robot, tracker, cell, path, poses=80, seed=1, config=cfg)
+    clean = Dataset.from_recording(path)
+    model, rep = fit_dataset(clean, method="dh")
+    assert rep["heldout_outliers"] is None  # nothing to name in a clean recording
+
+    bad = Dataset.from_recording(path)
+    _, test = bad.holdout_split(0.25)
+    k = int(test[3])
+    bad.p_tracker = bad.p_tracker.copy()
+    bad.sigma_m = bad.sigma_m.copy()
+    bad.p_tracker[k] += np.array([0.0004, -0.0001, 0.0002])
+    bad.sigma_m[k] = 2.5e-4
+    model_b, rep_b = fit_dataset(bad, method="dh")
+    assert np.allclose(model_b.predict(clean.q), model.predict(clean.q), atol=1e-9)
+    assert rep_b["heldout_rms_m"] > 3 * rep["heldout_rms_m"]
+    ho = rep_b["heldout_outliers"]
+    assert ho["pose_ids"] == [int(bad.pose_id[k])]
+    rest = clean.subset(np.array([i for i in test if i != k]))
+    want = error_stats(model.predict(rest.q), rest.p_tracker)["rms_m"]
+    assert ho["heldout_rms_m"] == pytest.approx(want, rel=1e-9)
+    assert ho["unexplained"]["upper_m"] < 15e-6

@@ -132,6 +132,18 @@ def print_report(r: dict) -> None:
             f"unexplained     {unexplained_text(r['unexplained'])}: what the model leaves out "
             "beyond the tracker's noise, not in the parameters' std"
         )
+    ho = r.get("heldout_outliers")
+    if ho:
+        poses = ", ".join(
+            f"pose {i} ({e * 1e3:.2f} mm)"
+            for i, e in zip(ho["pose_ids"], ho["errors_m"], strict=True)
+        )
+        print(
+            f"held-out outliers {len(ho['pose_ids'])} pose(s), {ho['rule']}: {poses}; without "
+            f"them: held-out RMS {ho['heldout_rms_m'] * 1e6:.1f} um "
+            f"({interval_um(ho['heldout_rms_ci95_m'])}), unexplained "
+            f"{unexplained_text(ho['unexplained'])}"
+        )
     print(f"fit time        {r['fit_seconds']:.2f} s")
     if r.get("unidentifiable"):
         print("not separately identifiable (fixed at nominal, first of each group kept free):")

@@ -104,6 +104,39 @@ def tracker_noise_floor(ds: Dataset, mpe: tuple[float, float] = TRACKER_MPE_M) -
     return float(np.sqrt(np.mean(3.0 * pose_sigma_model(ds, mpe) ** 2)))
 
 
+HELDOUT_OUTLIER_SIGMAS = 15.0  # robust sigmas, the band of the fits' robust pass (3 x 5)
+
+
+def heldout_outliers(model, ev: Dataset, tracker_mpe=TRACKER_MPE_M) -> dict | None:
+    """Held-out poses whose error lies beyond 15 robust sigmas (MAD) of the held-out errors.
+    One outlier reading there inflates the held-out RMS and what it says the model leaves
+    unexplained; this names them (`pose_ids`, `errors_m`) and gives both figures without them
+    (`heldout_rms_m`, `heldout_rms_ci95_m`, `unexplained`, the floor from the other poses).
+    The error is not weighted: a bad reading among a pose's few also inflates its recorded sigma
+    (its weighted error then looks ordinary). None when there are none, with fewer than 10
+    held-out poses, or when more than 20 % would go (then it is the model's error)."""
+    if len(ev) < 10:
+        return None
+    e = np.linalg.norm(model.predict(ev.q, **aux_from_dataset(ev)) - ev.p_tracker, axis=1)
+    med = np.median(e)
+    mad = 1.4826 * np.median(np.abs(e - med)) + 1e-12
+    out = e > med + HELDOUT_OUTLIER_SIGMAS * mad
+    if not out.any() or out.sum() > 0.2 * len(ev):
+        return None
+    rest = ev.subset(np.flatnonzero(~out))
+    st = error_stats(model.predict(rest.q, **aux_from_dataset(rest)), rest.p_tracker, interval=True)
+    floor = tracker_noise_floor(rest, tracker_mpe)
+    return {
+        "pose_ids": [int(ev.pose_id[i]) for i in np.flatnonzero(out)],
+        "errors_m": e[out].tolist(),
+        "rule": f"error beyond {HELDOUT_OUTLIER_SIGMAS:g} robust sigmas (MAD) of the held-out "
+        "errors",
+        "heldout_rms_m": st["rms_m"],
+        "heldout_rms_ci95_m": st["rms_ci95_m"],
+        "unexplained": unexplained_error(st["rms_m"], st["rms_ci95_m"], floor),
+    }
+
+
 def fit_dataset(
     ds: Dataset,
     *,
@@ -168,6 +201,7 @@ def fit_dataset(
         "unexplained": unexplained_error(held["rms_m"], held["rms_ci95_m"], floor)
         if len(dte)
         else None,
+        "heldout_outliers": heldout_outliers(model, dte, tracker_mpe) if len(dte) else None,
         "tracker_mpe": {"a_m": float(tracker_mpe[0]), "b_m_per_m": float(tracker_mpe[1])},
         "tracker_noise_floor_basis": (
             f"per-pose sigma = max(recorded, tracker MPE ({tracker_mpe[0] * 1e6:g} um + "
@@ -237,6 +271,7 @@ __all__ = [
     "fit_dataset",
     "fit_recording",
     "keep_in_model",
+    "heldout_outliers",
     "MIN_TRAIN_POSES",
     "min_poses_for_fit",
     "stated_noise_floor",

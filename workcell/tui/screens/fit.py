@@ -143,6 +143,13 @@ class FitScreen(WorkcellScreen):
             t.add_row(
                 "unexplained above it", um(u["rms_m"]), f"up to {um(up)}" if up is not None else ""
             )
+        ho = r.get("heldout_outliers")
+        if ho:
+            t.add_row(
+                "held-out outliers",
+                f"{len(ho['pose_ids'])} (max {um(max(ho['errors_m']))})",
+                f"without: {um(ho['heldout_rms_m'])}",
+            )
         t.add_row(
             "poses", f"{r.get('train_poses', '-')} train", f"{r.get('heldout_poses', '-')} held out"
         )
