@@ -31,7 +31,6 @@ from workcell.estimation.models import (
 from workcell.kinematics.chain import PARAMETER_FRAMES, p_tracker
 from workcell.recording.dataset import HOLDOUT_SEED, Dataset, distinct_poses, read_warnings
 
-# method -> "module:function(ds_train, *, on, bounds, progress) -> (model, extra dict)"
 MIN_TRAIN_POSES = 12  # a fit refuses fewer training poses (or distinct configurations)
 
 
@@ -43,6 +42,7 @@ def min_poses_for_fit(holdout: float = 0.25) -> int:
     return n
 
 
+# method -> "module:function(ds_train, *, on, bounds, progress) -> (model, extra dict)"
 FIT_METHODS: dict[str, str] = {
     "dh": "workcell.estimation.fitting:_fit_dh",
     "lddmm": "workcell.estimation.lddmm_fit:fit_method",
@@ -156,8 +156,8 @@ def fit_dataset(
     if n_distinct < MIN_TRAIN_POSES:
         raise UserError(
             f"only {n_distinct} distinct joint configurations among the {len(train)} training "
-            f"poses; a fit needs at least {MIN_TRAIN_POSES} different poses (the same pose measured again adds "
-            "no geometry)"
+            f"poses; a fit needs at least {MIN_TRAIN_POSES} different poses (the same pose "
+            "measured again adds no geometry)"
         )
     dtr, dte = ds.subset(train), ds.subset(test)
     mod, fn = FIT_METHODS[method].split(":")
