@@ -272,18 +272,12 @@ def test_online_ekf_ann_estimate_reaches_the_campaign_view(tmp_path, monkeypatch
     asyncio.run(flow())
 
 
-REAL_D = Path(__file__).resolve().parents[2] / "shared/data/ur10-leica/series_D_iso_cubes.mcap"
-
-
-@pytest.mark.skipif(not REAL_D.exists(), reason="shared real data not present")
-def test_the_fit_screen_names_weakly_identified_parameters(tmp_path, monkeypatch):
-    """The real iso-cube series barely separates base_ty from the SMR's tool_z: the Fit screen's
-    table says so, with the std inflation."""
+def fit_table_rows(rep: dict) -> dict[str, list[str]]:
+    """The Fit screen's table for a fit report: {row label: [the other cells]}."""
     from textual.widgets import DataTable
 
-    monkeypatch.chdir(tmp_path)
-    rep = backend.fit(REAL_D, "dh", model_out=tmp_path / "d.json")
     app = app_for(10)
+    rows: dict[str, list[str]] = {}
 
     async def flow():
         async with app.run_test(size=(120, 40)) as pilot:
@@ -292,22 +286,32 @@ def test_the_fit_screen_names_weakly_identified_parameters(tmp_path, monkeypatch
             fit.show_report(rep)
             await pilot.pause()
             t = fit.query_one("#table", DataTable)
-            rows = {
-                str(t.get_row_at(i)[0]): [str(c) for c in t.get_row_at(i)[1:]]
-                for i in range(t.row_count)
-            }
-            assert "weakly identified" in rows, rows
-            assert rows["weakly identified"][0] == "1 group"
-            assert rows["weakly identified"][1].startswith("base_ty/tool_z (std ")
+            for i in range(t.row_count):
+                row = t.get_row_at(i)
+                rows[str(row[0])] = [str(c) for c in row[1:]]
 
     asyncio.run(flow())
+    return rows
+
+
+REAL_D = Path(__file__).resolve().parents[2] / "shared/data/ur10-leica/series_D_iso_cubes.mcap"
+
+
+@pytest.mark.skipif(not REAL_D.exists(), reason="shared real data not present")
+def test_the_fit_screen_names_weakly_identified_parameters(tmp_path, monkeypatch):
+    """The real iso-cube series barely separates base_ty from the SMR's tool_z: the Fit screen's
+    table says so, with the std inflation."""
+    monkeypatch.chdir(tmp_path)
+    rep = backend.fit(REAL_D, "dh", model_out=tmp_path / "d.json")
+    rows = fit_table_rows(rep)
+    assert "weakly identified" in rows, rows
+    assert rows["weakly identified"][0] == "1 group"
+    assert rows["weakly identified"][1].startswith("base_ty/tool_z (std ")
 
 
 def test_the_fit_screen_names_heldout_outliers(tmp_path, monkeypatch):
     """A fit report with a held-out outlier (a planted 0.46 mm reading) shows it on the Fit
     screen, with the held-out RMS without it."""
-    from textual.widgets import DataTable
-
     from workcell.campaign.executor import CampaignConfig
     from workcell.campaign.run import run_campaign, sim_cell
     from workcell.estimation.fitting import fit_dataset
@@ -323,20 +327,6 @@ def test_the_fit_screen_names_heldout_outliers(tmp_path, monkeypatch):
     ds.p_tracker[k] += np.array([0.0004, -0.0001, 0.0002])
     _, rep = fit_dataset(ds, method="dh")
     assert rep["heldout_outliers"] is not None
-    app = app_for(10)
-
-    async def flow():
-        async with app.run_test(size=(120, 40)) as pilot:
-            await pilot.press("f4")
-            fit = app.views["fit"]
-            fit.show_report(rep)
-            await pilot.pause()
-            t = fit.query_one("#table", DataTable)
-            rows = {
-                str(t.get_row_at(i)[0]): [str(c) for c in t.get_row_at(i)[1:]]
-                for i in range(t.row_count)
-            }
-            assert re.fullmatch(r"1 \(max 4\d\d\.\d um\)", rows["held-out outliers"][0]), rows
-            assert rows["held-out outliers"][1].startswith("without: ")
-
-    asyncio.run(flow())
+    rows = fit_table_rows(rep)
+    assert re.fullmatch(r"1 \(max 4\d\d\.\d um\)", rows["held-out outliers"][0]), rows
+    assert rows["held-out outliers"][1].startswith("without: ")
