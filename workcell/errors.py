@@ -55,14 +55,26 @@ def refuse_overwrite(outputs, inputs=(), what: str = "output") -> None:
             )
 
 
-def replace_or_refuse(what: str, path, earlier: str | None, not_what: str, *, force: bool, say):
+REPLACE_REMEDY = "choose another name, or pass --force to replace it"
+
+
+def replace_or_refuse(
+    what: str,
+    path,
+    earlier: str | None,
+    not_what: str,
+    *,
+    force: bool,
+    say,
+    remedy: str = REPLACE_REMEDY,
+):
     """The one policy for writing over an existing output file: an earlier output of the same
     kind (`earlier` says which, e.g. "an earlier correction table") is replaced, and `say(line)`
-    is told; anything else (`not_what`: what it is instead) is refused unless `force`."""
+    is told; anything else (`not_what`: what it is instead) is refused unless `force`, with
+    `remedy` (what to do instead) ending the line."""
     if earlier is None and not force:
         raise UserError(
-            f"{what} {path} exists and is {not_what}; writing there would destroy it; choose "
-            "another name, or pass --force to replace it"
+            f"{what} {path} exists and is {not_what}; writing there would destroy it; {remedy}"
         )
     if say is not None:
         say(f"replacing {path}: {earlier or '(--force)'}")

@@ -16,7 +16,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from workcell.errors import UserError, folder_problem, replace_or_refuse
+from workcell.errors import REPLACE_REMEDY, UserError, folder_problem, replace_or_refuse
 
 MODEL_FORMAT = "workcell-model/1"
 
@@ -72,12 +72,17 @@ def default_model_out(recording: str | os.PathLike, suffix: str) -> tuple[Path, 
 
 
 def check_model_output(
-    path: str | os.PathLike, recording: str | os.PathLike, *, force: bool = False, say=None
+    path: str | os.PathLike,
+    recording: str | os.PathLike,
+    *,
+    force: bool = False,
+    say=None,
+    remedy: str = REPLACE_REMEDY,
 ) -> None:
     """Refuse, before any work, to write a model over an existing file, except an earlier model
     of the same recording (same sha256): the recording re-creates that one, so nothing is lost.
     `force` replaces anything but a recording (see `errors.refuse_overwrite`); `say(line)` is told
-    what is being replaced."""
+    what is being replaced; `remedy` ends a refusal (what to do instead)."""
     from workcell.recording.dataset import file_sha256
 
     p = Path(path)
@@ -88,7 +93,8 @@ def check_model_output(
     except PermissionError:
         raise UserError(
             f"model file {p} exists and cannot be read (permissions), so it cannot be checked "
-            "before writing over it; choose another name"
+            "before writing over it; "
+            + ("choose another name" if remedy == REPLACE_REMEDY else remedy)
         ) from None
     except (OSError, ValueError, UnicodeDecodeError):
         d = None
@@ -102,6 +108,7 @@ def check_model_output(
         "a model of another recording" if is_model else "not a workcell model",
         force=force,
         say=say,
+        remedy=remedy,
     )
 
 

@@ -479,14 +479,7 @@ def fit(
     error before/after, m) for the plot. `ekf-ann` replays the recording through the online
     filter (`workcell.commands.replay`) when that module exists."""
     from workcell.errors import check_output_path
-    from workcell.estimation.fitting import fit_dataset, keep_in_model
-    from workcell.estimation.models import (
-        aux_from_dataset,
-        check_model_output,
-        default_model_out,
-        save_model,
-    )
-    from workcell.recording.dataset import Dataset
+    from workcell.estimation.models import check_model_output, default_model_out
 
     moved = None
     if model_out:
@@ -494,31 +487,36 @@ def fit(
     else:  # beside the recording, unless its folder is read-only (an archive: kept as it is)
         out, moved = default_model_out(recording, f".{method}.model.json")
     check_output_path(out, "model file", inputs=[recording])
-    try:  # over an earlier model of this recording only
-        check_model_output(out, recording)
-    except UserError as e:  # the same refusal, with what to do here (no --force on this screen)
-        why = str(e).split("; choose another name")[0]
-        raise UserError(
-            f"{why}; the Fit screen writes its model there: move that file away, or fit on the "
-            "command line with --out"
-        ) from None
+    check_model_output(  # over an earlier model of this recording only; no --force here
+        out,
+        recording,
+        remedy="the Fit screen writes its model there: move that file away, or fit on the "
+        "command line with --out",
+    )
     if method == "ekf-ann":
         report = _replay(recording, progress, holdout, out)
-        if moved:
-            report["model_note"] = moved
-        return report
+    else:
+        report = _fit_and_save(recording, method, holdout, out, progress)
+    if moved:
+        report["model_note"] = moved
+    return report
+
+
+def _fit_and_save(recording, method: str, holdout: float, out: Path, progress) -> dict:
+    """`fit` for the batch methods: fit, save the model at `out`, add the plot's residuals."""
+    from workcell.estimation.dh import nominal_registered
+    from workcell.estimation.fitting import fit_dataset, keep_in_model
+    from workcell.estimation.models import aux_from_dataset, save_model
+    from workcell.kinematics.chain import p_tracker
+    from workcell.recording.dataset import Dataset
+
     ds = Dataset.from_recording(recording)
     model, report = fit_dataset(ds, method=method, holdout=holdout, progress=progress)
     keep_in_model(model, ds, report)
-    if moved:
-        report["model_note"] = moved
     report["model"] = str(save_model(model, out))
     _, test = ds.holdout_split(holdout)
     ev = ds.subset(test) if len(test) else ds
     after = np.linalg.norm(model.predict(ev.q, **aux_from_dataset(ev)) - ev.p_tracker, axis=1)
-    from workcell.estimation.dh import nominal_registered
-    from workcell.kinematics.chain import p_tracker
-
     train, _ = ds.holdout_split(holdout)
     th, base = nominal_registered(ds.subset(train))
     before = np.linalg.norm(np.asarray(p_tracker(th, base, ev.q)) - ev.p_tracker, axis=1)
