@@ -107,8 +107,9 @@ def tracker_noise_floor(ds: Dataset, mpe: tuple[float, float] = TRACKER_MPE_M) -
 HELDOUT_OUTLIER_SIGMAS = 15.0  # robust sigmas, the band of the fits' robust pass (3 x 5)
 
 
-def heldout_outliers(model, ev: Dataset, tracker_mpe=TRACKER_MPE_M) -> dict | None:
-    """Held-out poses whose error lies beyond 15 robust sigmas (MAD) of the held-out errors.
+def heldout_outliers(p_pred: np.ndarray, ev: Dataset, tracker_mpe=TRACKER_MPE_M) -> dict | None:
+    """Held-out poses `ev` whose error (model prediction `p_pred` (N, 3) against the measured
+    point) lies beyond 15 robust sigmas (MAD) of the held-out errors.
     One outlier reading there inflates the held-out RMS and what it says the model leaves
     unexplained; this names them (`pose_ids`, `errors_m`) and gives both figures without them
     (`heldout_rms_m`, `heldout_rms_ci95_m`, `unexplained`, the floor from the other poses).
@@ -117,14 +118,14 @@ def heldout_outliers(model, ev: Dataset, tracker_mpe=TRACKER_MPE_M) -> dict | No
     held-out poses, or when more than 20 % would go (then it is the model's error)."""
     if len(ev) < 10:
         return None
-    e = np.linalg.norm(model.predict(ev.q, **aux_from_dataset(ev)) - ev.p_tracker, axis=1)
+    e = np.linalg.norm(p_pred - ev.p_tracker, axis=1)
     med = np.median(e)
     mad = 1.4826 * np.median(np.abs(e - med)) + 1e-12
     out = e > med + HELDOUT_OUTLIER_SIGMAS * mad
     if not out.any() or out.sum() > 0.2 * len(ev):
         return None
     rest = ev.subset(np.flatnonzero(~out))
-    st = error_stats(model.predict(rest.q, **aux_from_dataset(rest)), rest.p_tracker, interval=True)
+    st = error_stats(p_pred[~out], rest.p_tracker, interval=True)
     floor = tracker_noise_floor(rest, tracker_mpe)
     return {
         "pose_ids": [int(ev.pose_id[i]) for i in np.flatnonzero(out)],
@@ -173,7 +174,8 @@ def fit_dataset(
     nominal = error_stats(
         np.asarray(p_tracker(th_nom, base_nom, ev.q)), ev.p_tracker, interval=True
     )
-    held = error_stats(model.predict(ev.q, **aux_from_dataset(ev)), ev.p_tracker, interval=True)
+    pred = model.predict(ev.q, **aux_from_dataset(ev))
+    held = error_stats(pred, ev.p_tracker, interval=True)
     train_stats = error_stats(model.predict(dtr.q, **aux_from_dataset(dtr)), dtr.p_tracker)
     params = model.parameters()
     info = getattr(model, "info", {}) or {}
@@ -201,7 +203,7 @@ def fit_dataset(
         "unexplained": unexplained_error(held["rms_m"], held["rms_ci95_m"], floor)
         if len(dte)
         else None,
-        "heldout_outliers": heldout_outliers(model, dte, tracker_mpe) if len(dte) else None,
+        "heldout_outliers": heldout_outliers(pred, ev, tracker_mpe) if len(dte) else None,
         "tracker_mpe": {"a_m": float(tracker_mpe[0]), "b_m_per_m": float(tracker_mpe[1])},
         "tracker_noise_floor_basis": (
             f"per-pose sigma = max(recorded, tracker MPE ({tracker_mpe[0] * 1e6:g} um + "
