@@ -64,11 +64,10 @@ from workcell.campaign.plans import (
     approach_signs,
     random_configurations,
 )
-from workcell.estimation.identifiability import analyse
+from workcell.estimation.identifiability import analyse, candidates_for
 from workcell.kinematics.chain import (
     base_T_flange,
     pack,
-    parallel_beta_names,
     param_names,
 )
 from workcell.kinematics.robots import RobotSpec
@@ -121,9 +120,7 @@ def identifiable_mask(spec: RobotSpec, J: np.ndarray) -> np.ndarray:
     """Bool (P,): identifiable parameters for the Jacobian J (N, 3, P), P = 5 n + 9 (Theorem 1
     analysis)."""
     names = param_names(spec.n_joints)
-    betas = set(parallel_beta_names(spec.dh))
-    cand = [n for n in names if not n.startswith("beta") or n in betas]
-    ident = analyse(J.reshape(-1, len(names)), candidates=cand)
+    ident = analyse(J.reshape(-1, len(names)), candidates=candidates_for(spec.dh))
     free = np.zeros(len(names), bool)
     free[[names.index(n) for n in ident.identifiable]] = True
     return free

@@ -54,13 +54,12 @@ from workcell.estimation.dh import (
     robust_keep,
     weighted_covariance,
 )
-from workcell.estimation.identifiability import Identifiability, analyse
+from workcell.estimation.identifiability import Identifiability, analyse, candidates_for
 from workcell.estimation.models import error_stats
 from workcell.kinematics.chain import (
     jac_params,
     joints_of,
     p_tracker,
-    parallel_beta_names,
     param_index,
     param_names,
 )
@@ -233,13 +232,7 @@ def fit_dh_bounded(
     ident: Identifiability | None = None
     if free is None:
         J0 = jacobian_padded(theta, base_ref, ds.q) * w[:, None, None]
-        betas = set(parallel_beta_names(ds.robot.dh))
-        cand = [
-            n
-            for n in names
-            if n not in set(fixed or []) and (not n.startswith("beta") or n in betas)
-        ]
-        ident = analyse(J0.reshape(-1, n_par), candidates=cand)
+        ident = analyse(J0.reshape(-1, n_par), candidates=candidates_for(ds.robot.dh, fixed))
         free = np.zeros(n_par, bool)
         free[[index[n] for n in ident.identifiable]] = True
     else:

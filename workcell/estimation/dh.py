@@ -26,18 +26,16 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
-from workcell.estimation.identifiability import Identifiability, analyse
+from workcell.estimation.identifiability import Identifiability, analyse, candidates_for
 from workcell.estimation.models import error_stats
 from workcell.kinematics.chain import (
     IDX,
     N_PARAMS,
-    PARAM_NAMES,
     base_slice,
     jac_params,
     joints_of,
     p_tracker,
     pack,
-    parallel_beta_names,
     param_names,
     param_unit,
     tracker_T_base,
@@ -198,13 +196,7 @@ def fit_dh(
     base_ref = register_base(ds, theta) if base_ref is None else base_ref
     w = 1.0 / pose_sigma_model(ds, tracker_mpe)
     J0 = np.asarray(jac_params(theta, base_ref, ds.q)) * w[:, None, None]
-    betas = set(parallel_beta_names(ds.robot.dh))
-    cand = [
-        n
-        for n in PARAM_NAMES
-        if n not in set(fixed or []) and (not n.startswith("beta") or n in betas)
-    ]
-    ident = analyse(J0.reshape(-1, N_PARAMS), candidates=cand)
+    ident = analyse(J0.reshape(-1, N_PARAMS), candidates=candidates_for(ds.robot.dh, fixed))
     free = np.zeros(N_PARAMS, bool)
     free[[IDX[n] for n in ident.identifiable]] = True
     keep = np.ones(len(ds), bool)

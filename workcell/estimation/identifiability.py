@@ -41,6 +41,20 @@ def priority_for(n: int) -> list[str]:
 PRIORITY = priority_for(6)
 
 
+def candidates_for(dh, fixed=()) -> list[str]:
+    """The parameters a fit may estimate for the chain `dh`: all 5 n + 9 but the Hayati tilts of
+    links whose next axis is not nominally parallel, and those in `fixed`."""
+    from workcell.kinematics.chain import parallel_beta_names
+
+    betas = set(parallel_beta_names(dh))
+    fixed = set(fixed or ())
+    return [
+        n
+        for n in param_names(len(dh.a))
+        if n not in fixed and (not n.startswith("beta") or n in betas)
+    ]
+
+
 @dataclass
 class Identifiability:
     names: list[str]
@@ -216,13 +230,12 @@ def pose_set_report(dh, q: np.ndarray, tool_m, reference_q: np.ndarray | None = 
     Jacobian (Theorem 1), and the weakly identified groups (`weak_directions` of the unit-weight
     covariance). With `reference_q`, a rich pose set, also `rank_reference` and `missing`: what
     the reference identifies that `q` leaves dependent (too few or too alike poses)."""
-    from workcell.kinematics.chain import jac_params, pack, parallel_beta_names
+    from workcell.kinematics.chain import jac_params, pack
 
     q = np.atleast_2d(np.asarray(q, float))
     n_j = len(dh.a)
     names = param_names(n_j)
-    betas = set(parallel_beta_names(dh))
-    cand = [n for n in names if not n.startswith("beta") or n in betas]
+    cand = candidates_for(dh)
     theta = pack(dh, tool=np.asarray(tool_m, float))
 
     def analysed(qs):

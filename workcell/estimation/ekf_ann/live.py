@@ -33,7 +33,7 @@ from workcell.estimation.dh import TRACKER_MPE_M
 from workcell.estimation.ekf_ann import ann as A
 from workcell.estimation.ekf_ann.filter import EkfAnnFilter, FilterConfig, prefit_weights
 from workcell.estimation.ekf_ann.model import EkfAnnModel
-from workcell.estimation.identifiability import analyse
+from workcell.estimation.identifiability import analyse, candidates_for
 from workcell.kinematics.chain import (
     N_PARAMS,
     PARAM_NAMES,
@@ -41,7 +41,6 @@ from workcell.kinematics.chain import (
     jac_params,
     p_tracker,
     pack,
-    parallel_beta_names,
     tracker_T_base,
 )
 from workcell.kinematics.frames import kabsch
@@ -60,9 +59,7 @@ def identifiable_geometry(
     """Geometric parameters separately identifiable from these samples (weighted Jacobian)."""
     w = 1.0 / np.sqrt(np.mean(np.asarray(sigma) ** 2, axis=1))
     J = np.asarray(jac_params(theta, base_ref, np.asarray(q))) * w[:, None, None]
-    betas = set(parallel_beta_names(dh))
-    cand = [n for n in PARAM_NAMES if not n.startswith("beta") or n in betas]
-    return analyse(J.reshape(-1, N_PARAMS), candidates=cand).identifiable
+    return analyse(J.reshape(-1, N_PARAMS), candidates=candidates_for(dh)).identifiable
 
 
 class LiveFilter:
