@@ -105,14 +105,23 @@ def test_any_stored_value_gives_a_finite_figure_or_none():
         ci=JSON | st.lists(big, min_size=2, max_size=2),
         floor=JSON | big,
         u=st.one_of(st.just("dict"), JSON),
+        ids=JSON | st.lists(st.integers(), max_size=3),
+        ho=st.one_of(st.just("dict"), JSON),
     )
-    def check(rms, ci, floor, u):
+    def check(rms, ci, floor, u, ids, ho):
         info = {"heldout_rms_m": rms, "heldout_rms_ci95_m": ci}
         info["unexplained"] = {"floor_m": floor} if u == "dict" else u
-        out = model_unexplained(type("M", (), {"info": info})())
-        if out is not None:
-            assert np.isfinite(out["rms_m"]) and out["rms_m"] >= 0.0
-            assert out["upper_m"] is None or (np.isfinite(out["upper_m"]) and out["upper_m"] >= 0)
+        info["heldout_outliers"] = (
+            {"heldout_rms_m": rms, "heldout_rms_ci95_m": ci, "floor_m": floor, "pose_ids": ids}
+            if ho == "dict"
+            else ho
+        )
+        model = type("M", (), {"info": info})()
+        for out in (model_unexplained(model), model_unexplained(model, without_outliers=True)):
+            if out is not None:
+                assert np.isfinite(out["rms_m"]) and out["rms_m"] >= 0.0
+                up = out["upper_m"]
+                assert up is None or (np.isfinite(up) and up >= 0)
 
     check()
 
@@ -152,3 +161,20 @@ def test_an_outlier_reading_among_the_heldout_poses_is_named_and_set_aside(tmp_p
     want = error_stats(model.predict(rest.q), rest.p_tracker)["rms_m"]
     assert ho["heldout_rms_m"] == pytest.approx(want, rel=1e-9)
     assert ho["unexplained"]["upper_m"] < 15e-6
+    # the model file keeps both figures and the correction table states both
+    from workcell.estimation.fitting import keep_in_model
+    from workcell.export.build import make_table
+
+    keep_in_model(model_b, bad, rep_b)
+    lines: list[str] = []
+    table, _ = make_table(model_b, target_error_m=20e-6, log=lines.append)
+    w = table.meta["model_unexplained_without_outliers"]
+    assert w["pose_ids"] == ho["pose_ids"]
+    assert w["rms_m"] == pytest.approx(ho["unexplained"]["rms_m"], abs=1e-12)
+    assert w["upper_m"] == pytest.approx(ho["unexplained"]["upper_m"], rel=1e-9)
+    assert table.meta["model_unexplained"]["rms_m"] > 3 * max(w["upper_m"], 1e-6)
+    assert any(f"outlier pose(s) {ho['pose_ids'][0]} " in ln for ln in lines), lines
+    keep_in_model(model_b, clean, rep)  # refitted without outliers: the old entry goes
+    assert "heldout_outliers" not in model_b.info
+    t2, _ = make_table(model_b, target_error_m=20e-6)
+    assert "model_unexplained_without_outliers" not in t2.meta

@@ -258,8 +258,9 @@ def fit_recording(
 
 def keep_in_model(model, ds: Dataset, report: dict) -> None:
     """Put what the model file should carry into the model's `info`: its recording (path and
-    sha256) and the held-out figures of `report` (RMS, its interval, what it leaves unexplained),
-    which `export` states beside a table's 1-sigma."""
+    sha256) and the held-out figures of `report` (RMS, its interval, what it leaves unexplained,
+    and the same without named held-out outliers), which `export` states beside a table's
+    1-sigma."""
     info = getattr(model, "info", None)
     if isinstance(info, dict):
         info.setdefault("recording", ds.source)
@@ -267,6 +268,19 @@ def keep_in_model(model, ds: Dataset, report: dict) -> None:
         info["heldout_rms_m"] = report["heldout_rms_m"]
         info["heldout_rms_ci95_m"] = report["heldout_rms_ci95_m"]
         info["unexplained"] = report["unexplained"]
+        ho = report.get("heldout_outliers")
+        if ho:
+            # the same figures without the held-out poses `heldout_outliers` names (what `fit`
+            # prints); `export` recomputes them too and states both
+            info["heldout_outliers"] = {
+                "pose_ids": ho["pose_ids"],
+                "rule": ho["rule"],
+                "heldout_rms_m": ho["heldout_rms_m"],
+                "heldout_rms_ci95_m": ho["heldout_rms_ci95_m"],
+                "floor_m": ho["unexplained"]["floor_m"],
+            }
+        else:
+            info.pop("heldout_outliers", None)
 
 
 __all__ = [

@@ -229,24 +229,53 @@ def make_table(
                 f"  not in that 1-sigma: the model leaves {unexplained_text(u)} on its held-out "
                 "poses"
             )
+        w = model_unexplained(model, without_outliers=True)
+        if w is not None:
+            tab.meta["model_unexplained_without_outliers"] = w
+            if log:
+                ids = ", ".join(str(i) for i in w["pose_ids"])
+                log(
+                    f"  without the held-out outlier pose(s) {ids} ({w['rule']}): "
+                    f"{unexplained_text(w)}"
+                )
     return tab, corr
 
 
-def model_unexplained(model) -> dict | None:
+def model_unexplained(model, *, without_outliers: bool = False) -> dict | None:
     """The model file's held-out figure of what it leaves unexplained (`fit` and `diagnose`
     store it), recomputed from the stored RMS, interval and floor so a hand-edited entry cannot
-    put a wrong figure in a table; None when the model has none or it does not parse."""
+    put a wrong figure in a table; None when the model has none or it does not parse.
+    With `without_outliers`, the same figure without the held-out poses `fit` named as outliers
+    (`heldout_outliers` in the model file), with their `pose_ids` and `rule`; None when none
+    were named."""
     from workcell.estimation.models import unexplained_error
 
     info = getattr(model, "info", None)
     if not isinstance(info, dict) or not isinstance(info.get("unexplained"), dict):
         return None
-    ci = info.get("heldout_rms_ci95_m")
+    src, floor = info, info["unexplained"].get("floor_m")
+    if without_outliers:
+        src = info.get("heldout_outliers")
+        if not isinstance(src, dict):
+            return None
+        floor = src.get("floor_m")
+    ci = src.get("heldout_rms_ci95_m")
     try:
         ci = [float(c) for c in ci] if ci is not None else None
     except (TypeError, ValueError):
         ci = None
-    return unexplained_error(info.get("heldout_rms_m"), ci, info["unexplained"].get("floor_m"))
+    u = unexplained_error(src.get("heldout_rms_m"), ci, floor)
+    if u is None or not without_outliers:
+        return u
+    ids = src.get("pose_ids")
+    if not isinstance(ids, list) or not ids:
+        return None
+    try:
+        u["pose_ids"] = [int(i) for i in ids]
+    except (TypeError, ValueError):
+        return None
+    u["rule"] = str(src.get("rule", "named by fit"))
+    return u
 
 
 def reach_of(nominal: Nominal) -> float:
