@@ -467,7 +467,10 @@ def test_the_dry_run_says_what_the_planned_poses_can_identify(capsys):
     assert dep.startswith("warning: these poses leave 10 parameter(s) dependent")
     assert "a point tracker needs at least 9 poses" in dep
     assert "warning: too few poses to fit (5)" in out and "16 poses" in out
+    assert "expected after a DH fit" not in out  # no noise-only figure for a fit that can't run
     assert main([*argv, "30"]) == 0
     out = capsys.readouterr().out
     assert "rank 25 of the 25 that well-spread poses give" in out
     assert "warning" not in out
+    exp = next(ln for ln in out.splitlines() if ln.startswith("expected after a DH fit"))
+    assert "of the 22 training poses" in exp and "x the noise floor of" in exp

@@ -105,6 +105,8 @@ def test_whole_flow(tmp_path, monkeypatch):
             await set_input(pilot, plan, "poses", "44")
             await pilot.press("ctrl+r")
             await until(pilot, lambda: plan.checked and plan.checked.poses == 44, 60, "dry run")
+            # what a DH fit of these poses should reach, before anything moves
+            assert "expected after a DH fit of the 33 training poses" in plan.result_text
             await run_campaign(app, pilot, 2)
             assert app.finished[-1].recording["samples"] >= 40
             # fit dh

@@ -8,20 +8,93 @@ from __future__ import annotations
 import numpy as np
 
 from workcell.campaign.envelope import Envelope
+from workcell.estimation.dh import TRACKER_MPE_M
 from workcell.kinematics.robots import RobotSpec
 
 REFERENCE_POSES = 60  # random poses inside the envelope: what well-spread poses identify
+HOLDOUT = 0.25  # the fits' default held-out share
+
+
+def tracker_sigma_m(
+    spec: RobotSpec,
+    q: np.ndarray,
+    tool_m: np.ndarray,
+    base_in_tracker: dict | None,
+    mpe: tuple[float, float] = TRACKER_MPE_M,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-axis 1-sigma (N,) a tracker meeting its MPE (A + B x range) measures the SMR with at
+    joints q (N, n), the floor the fits weight by (MPE / 4), and the ranges (N,) in metres from
+    the tracker at the declared `base_in_tracker` (identity when not declared)."""
+    from workcell.kinematics.chain import p_tracker, pack
+    from workcell.kinematics.frames import matrix_from_quat_wxyz, transform_from
+
+    T = np.eye(4)
+    if isinstance(base_in_tracker, dict):
+        T = transform_from(
+            matrix_from_quat_wxyz(np.asarray(base_in_tracker["quaternion_wxyz"], float)),
+            np.asarray(base_in_tracker["translation_m"], float),
+        )
+    theta = pack(spec.dh, tool=np.asarray(tool_m, float))
+    rng = np.linalg.norm(np.asarray(p_tracker(theta, T, np.atleast_2d(q))), axis=1)
+    return (mpe[0] + mpe[1] * rng) / 4.0, rng
+
+
+def expected_after_fit(
+    spec: RobotSpec,
+    env: Envelope,
+    q: np.ndarray,
+    tool_m: np.ndarray,
+    base_in_tracker: dict | None = None,
+    reference_q: np.ndarray | None = None,
+) -> dict | None:
+    """What a DH fit of the poses q (N, n) should reach if the geometry is the whole error and
+    the tracker meets its MPE: `expected_prediction_sigma` over `reference_q` (default:
+    `REFERENCE_POSES` random poses inside the envelope) of the fit's training poses (the fits'
+    deterministic split), plus `train_poses`, `pose_sigma_m` and `range_m` of the planned poses.
+    None with too few training poses, or when they leave a parameter dependent."""
+    from workcell.campaign.plans import random_configurations
+    from workcell.estimation.fitting import MIN_TRAIN_POSES
+    from workcell.estimation.identifiability import pose_set_report
+    from workcell.recording.dataset import holdout_indices
+
+    q = np.atleast_2d(np.asarray(q, float))
+    if reference_q is None:
+        reference_q = random_configurations(
+            spec, env, REFERENCE_POSES, np.random.default_rng(0), tool_m
+        )
+    train, _ = holdout_indices(len(q), HOLDOUT)
+    if len(train) < MIN_TRAIN_POSES:
+        return None
+    sig, rng = tracker_sigma_m(spec, q, tool_m, base_in_tracker)
+    sig_ref, _ = tracker_sigma_m(spec, reference_q, tool_m, base_in_tracker)
+    e = pose_set_report(
+        spec.dh,
+        q[train],
+        tool_m,
+        reference_q=reference_q,
+        sigma_m=sig[train],
+        reference_sigma_m=sig_ref,
+    )["expected_prediction"]
+    if e is None:
+        return None
+    return {**e, "train_poses": int(len(train)), "pose_sigma_m": sig, "range_m": rng}
 
 
 def identification_lines(
-    spec: RobotSpec, env: Envelope, q: np.ndarray, tool_m: np.ndarray
+    spec: RobotSpec,
+    env: Envelope,
+    q: np.ndarray,
+    tool_m: np.ndarray,
+    base_in_tracker: dict | None = None,
 ) -> list[str]:
-    """The dry run's identification summary: one line, then a line per warning (each starts
-    with 'warning:')."""
+    """The dry run's identification summary: one line, then what a DH fit of these poses
+    should reach if the geometric model holds, then a line per warning (each starts with
+    'warning:')."""
     from workcell.campaign.plans import random_configurations
     from workcell.estimation.fitting import MIN_TRAIN_POSES, min_poses_for_fit
     from workcell.estimation.identifiability import pose_set_report
 
+    q = np.atleast_2d(np.asarray(q, float))
     ref = random_configurations(spec, env, REFERENCE_POSES, np.random.default_rng(0), tool_m)
     r = pose_set_report(spec.dh, q, tool_m, reference_q=ref)
     lines = [
@@ -29,6 +102,18 @@ def identification_lines(
         f"{r['rank']} of the {r['rank_reference']} that well-spread poses give; condition "
         f"{r['condition']:.3g}, O1 {r['o1']:.3g}"
     ]
+    e = expected_after_fit(spec, env, q, tool_m, base_in_tracker, reference_q=ref)
+    if e is not None:
+        sig, rng, um = e["pose_sigma_m"], e["range_m"], 1e6
+        lines.append(
+            f"expected after a DH fit of the {e['train_poses']} training poses, if the geometry "
+            f"is the whole error and the tracker meets its MPE (1-sigma {sig.min() * um:.1f}-"
+            f"{sig.max() * um:.1f} um an axis at {rng.min():.2f}-{rng.max():.2f} m): the "
+            f"model's 1-sigma over the envelope {e['rms_m'] * um:.1f} um RMS (max "
+            f"{e['max_m'] * um:.1f} um); held-out RMS about {e['heldout_rms_m'] * um:.1f} um, "
+            f"{e['heldout_rms_m'] / e['floor_m']:.2f}x the noise floor of "
+            f"{e['floor_m'] * um:.1f} um"
+        )
     if r["missing"]:
         need = -(-r["rank_reference"] // 3)
         why = (

@@ -258,5 +258,5 @@ def dry_run(args, cell, env, cfg) -> int:
         from workcell.campaign.identification import identification_lines
 
         q = np.array([t.q_rad for t in targets])
-        print("\n".join(identification_lines(cell.spec, env, q, cell.tool_m)))
+        print("\n".join(identification_lines(cell.spec, env, q, cell.tool_m, cell.base_in_tracker)))
     return 1 if problems else 0

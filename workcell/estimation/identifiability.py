@@ -224,12 +224,27 @@ def weak_directions(cov: np.ndarray, names: list[str], inflation: float = 100.0)
     return sorted(out, key=lambda g: -g["std_inflation"])
 
 
-def pose_set_report(dh, q: np.ndarray, tool_m, reference_q: np.ndarray | None = None) -> dict:
+def pose_set_report(
+    dh,
+    q: np.ndarray,
+    tool_m,
+    reference_q: np.ndarray | None = None,
+    *,
+    sigma_m: np.ndarray | None = None,
+    reference_sigma_m: np.ndarray | None = None,
+    train_share: float = 1.0,
+) -> dict:
     """What measuring the SMR (`tool_m` on the flange) at joint angles `q` (N, n) can identify,
     at the nominal chain, before anything moves: rank, condition and O1 of the identification
     Jacobian (Theorem 1), and the weakly identified groups (`weak_directions` of the unit-weight
     covariance). With `reference_q`, a rich pose set, also `rank_reference` and `missing`: what
-    the reference identifies that `q` leaves dependent (too few or too alike poses)."""
+    the reference identifies that `q` leaves dependent (too few or too alike poses).
+
+    With `sigma_m` (N,), the per-axis 1-sigma each pose will be measured with, and
+    `reference_sigma_m` (M,) at the reference poses, also what a fit of these poses should give
+    at the reference poses if the geometric model holds (`expected_prediction`,
+    `expected_prediction_sigma`); None when the poses leave a parameter dependent, which the fit
+    then fixes at nominal, an error no noise figure bounds."""
     from workcell.kinematics.chain import jac_params, pack
 
     q = np.atleast_2d(np.asarray(q, float))
@@ -255,7 +270,67 @@ def pose_set_report(dh, q: np.ndarray, tool_m, reference_q: np.ndarray | None = 
         "weakly_identified": weak_directions(cov, names),
     }
     if reference_q is not None:
-        _, ref = analysed(np.atleast_2d(np.asarray(reference_q, float)))
+        J_ref, ref = analysed(np.atleast_2d(np.asarray(reference_q, float)))
         out["rank_reference"] = ref.rank
         out["missing"] = [n for n in ref.identifiable if n not in ident.identifiable]
+        if sigma_m is not None and reference_sigma_m is not None:
+            out["expected_prediction"] = (
+                None
+                if out["missing"]
+                else expected_prediction_sigma(
+                    J[:, keep], sigma_m, J_ref[:, keep], reference_sigma_m, train_share
+                )
+            )
     return out
+
+
+EXPECTED_PREDICTION_BASIS = (
+    "first order at the nominal chain: the weighted least-squares covariance of the identifiable "
+    "parameters from the planned poses (rows weighted by the tracker's per-axis 1-sigma, the "
+    "information scaled by the share of poses the fit trains on), propagated to the SMR position "
+    "at the reference poses; it holds if the geometric model is the truth and the tracker meets "
+    "its stated accuracy: what the model leaves out comes on top"
+)
+
+
+def expected_prediction_sigma(
+    J: np.ndarray,
+    sigma_m: np.ndarray,
+    J_ref: np.ndarray,
+    reference_sigma_m: np.ndarray,
+    train_share: float = 1.0,
+) -> dict:
+    """The fitted geometry's expected 3-D prediction 1-sigma at reference poses, before anything
+    is measured. J (3 N, P) is the identification Jacobian of the planned poses (identifiable
+    columns only), `sigma_m` (N,) their per-axis 1-sigma, J_ref (3 M, P) and `reference_sigma_m`
+    (M,) the same at the reference poses; the fit trains on `train_share` of the poses.
+
+    Returns metres: `rms_m` (RMS over the reference poses of sqrt(trace of the 3 x 3 prediction
+    covariance)), `max_m`, `floor_m` (the RMS 3-D noise of a measurement there) and
+    `heldout_rms_m` = sqrt(rms^2 + floor^2), what the held-out RMS should come to."""
+    sigma_m = np.asarray(sigma_m, float).reshape(-1)
+    rs = np.asarray(reference_sigma_m, float).reshape(-1)
+    if J.shape[0] != 3 * len(sigma_m) or J_ref.shape[0] != 3 * len(rs):
+        raise ValueError(
+            f"Jacobians {J.shape} and {J_ref.shape} need 3 rows a pose: sigmas {sigma_m.shape}, "
+            f"{rs.shape}"
+        )
+    if not (0.0 < train_share <= 1.0):
+        raise ValueError(f"train_share must be in (0, 1], got {train_share}")
+    w = np.repeat(1.0 / sigma_m, 3)
+    Jw = J * w[:, None]
+    scale = np.linalg.norm(Jw, axis=0)
+    cov_s = np.linalg.pinv((Jw / scale).T @ (Jw / scale)) / train_share
+    G = J_ref / scale  # prediction Jacobian in the scaled parameters
+    var = np.einsum("ij,jk,ik->i", G, cov_s, G).reshape(-1, 3).sum(axis=1)
+    s3 = np.sqrt(np.maximum(var, 0.0))
+    rms = float(np.sqrt(np.mean(s3**2)))
+    floor = float(np.sqrt(np.mean(3.0 * rs**2)))
+    return {
+        "rms_m": rms,
+        "max_m": float(s3.max()),
+        "floor_m": floor,
+        "heldout_rms_m": float(np.hypot(rms, floor)),
+        "train_share": float(train_share),
+        "basis": EXPECTED_PREDICTION_BASIS,
+    }

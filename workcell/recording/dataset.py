@@ -20,6 +20,16 @@ from workcell.recording.reader import Recording, RecordingError, is_finite_list,
 HOLDOUT_SEED = 20240601
 
 
+def holdout_indices(n: int, fraction: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
+    """The deterministic split of n poses in recording order (fixed-seed permutation):
+    (train indices, held-out indices); what `Dataset.holdout_split` and the fits use."""
+    if not 0.0 <= fraction < 1.0:
+        raise ValueError(f"holdout fraction must be in [0, 1), got {fraction}")
+    n_test = int(round(fraction * n))
+    perm = np.random.default_rng(HOLDOUT_SEED).permutation(n)
+    return np.sort(perm[n_test:]), np.sort(perm[:n_test])
+
+
 @dataclass
 class Dataset:
     robot: RobotSpec
@@ -89,12 +99,7 @@ class Dataset:
 
     def holdout_split(self, fraction: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
         """Deterministic split (fixed-seed permutation): (train indices, held-out indices)."""
-        if not 0.0 <= fraction < 1.0:
-            raise ValueError(f"holdout fraction must be in [0, 1), got {fraction}")
-        n = len(self)
-        n_test = int(round(fraction * n))
-        perm = np.random.default_rng(HOLDOUT_SEED).permutation(n)
-        return np.sort(perm[n_test:]), np.sort(perm[:n_test])
+        return holdout_indices(len(self), fraction)
 
     @classmethod
     def from_recording(cls, rec: Recording | str | os.PathLike) -> Dataset:

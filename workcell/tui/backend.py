@@ -213,7 +213,7 @@ def dry_run(plan: PlanConfig, dev: Devices) -> dict:
         from workcell.campaign.identification import identification_lines
 
         q = np.array([t.q_rad for t in targets])
-        ident = identification_lines(cell.spec, env, q, cell.tool_m)
+        ident = identification_lines(cell.spec, env, q, cell.tool_m, cell.base_in_tracker)
     return {
         "adaptive": False,
         "targets": len(targets),
