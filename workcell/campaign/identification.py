@@ -105,10 +105,12 @@ def identification_lines(
     e = expected_after_fit(spec, env, q, tool_m, base_in_tracker, reference_q=ref)
     if e is not None:
         sig, rng, um = e["pose_sigma_m"], e["range_m"], 1e6
+        t = (base_in_tracker or {}).get("translation_m")
+        where = "" if t is not None and np.any(np.asarray(t, float)) else ", from the robot base"
         lines.append(
             f"expected after a DH fit of the {e['train_poses']} training poses, if the geometry "
             f"is the whole error and the tracker meets its MPE (1-sigma {sig.min() * um:.1f}-"
-            f"{sig.max() * um:.1f} um an axis at {rng.min():.2f}-{rng.max():.2f} m): the "
+            f"{sig.max() * um:.1f} um an axis at {rng.min():.2f}-{rng.max():.2f} m{where}): the "
             f"model's 1-sigma over the envelope {e['rms_m'] * um:.1f} um RMS (max "
             f"{e['max_m'] * um:.1f} um); held-out RMS about {e['heldout_rms_m'] * um:.1f} um, "
             f"{e['heldout_rms_m'] / e['floor_m']:.2f}x the noise floor of "
