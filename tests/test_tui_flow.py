@@ -150,6 +150,9 @@ def test_whole_flow(tmp_path, monkeypatch):
             assert v["after_rms_m"] < 0.5 * v["before_rms_m"], v
             rows = dict(ex.result_rows)
             assert "Closed loop after" in rows and "x better" in rows["Closed loop after"]
+            # beside the table's 1-sigma, what the model leaves out (the fit's held-out figure)
+            assert rows["Not in it"].startswith("the model leaves ")
+            assert "above the noise floor" in rows["Not in it"]
             assert not [n for n in app.notices if n[1] == "UI error"], app.notices
 
     asyncio.run(flow())

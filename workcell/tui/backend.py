@@ -694,6 +694,9 @@ def export(cfg: ExportConfig, log: Callable[[str], None] | None = None) -> dict:
         )
     }
     summary["conditions"] = list(table.meta.get("conditions_note") or [])
+    # what the model leaves out, not in the table's 1-sigma (as `workcell export` prints it)
+    summary["unexplained"] = table.meta.get("model_unexplained")
+    summary["unexplained_without_outliers"] = table.meta.get("model_unexplained_without_outliers")
     if cfg.format == "table":
         summary["files"] = [str(p) for p in table.save(out)]
     else:

@@ -13,7 +13,7 @@ from textual.containers import Horizontal, Vertical, VerticalScroll
 from textual.widgets import Button, Input, Label, Select, Static
 
 from workcell.errors import UserError
-from workcell.estimation.models import interval_um
+from workcell.estimation.models import interval_um, unexplained_text
 from workcell.tui.backend import ExportConfig
 from workcell.tui.messages import ExportRequested, ValidateRequested
 from workcell.tui.screens.base import WorkcellScreen, um
@@ -201,6 +201,21 @@ class ExportScreen(WorkcellScreen):
             )
         elif "grid" in s:
             rows.append(("Uncertainty", "not given: the model carries no covariance"))
+        if s.get("unexplained"):
+            rows.append(
+                (
+                    "Not in it",
+                    "the model leaves "
+                    + escape(unexplained_text(s["unexplained"]))
+                    + " on its held-out poses",
+                )
+            )
+        w = s.get("unexplained_without_outliers")
+        if w:
+            ids = ", ".join(str(i) for i in w.get("pose_ids", []))
+            rows.append(
+                ("", f"without held-out outlier pose(s) {ids}: " + escape(unexplained_text(w)))
+            )
         rows += [("Conditions", escape(line)) for line in s.get("conditions", [])]
         self.result_rows = rows
         self.status = f"[green]exported[/green] {len(s.get('files', []))} file(s)"
