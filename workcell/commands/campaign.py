@@ -36,7 +36,13 @@ DEFAULTS = {
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--robot", help="sim or ur://HOST (default sim)")
     p.add_argument("--tracker", help="sim or serial:///dev/ttyX (default sim)")
-    p.add_argument("--plan", help="grid, random, bo, dopt or vopt (default random)")
+    p.add_argument(
+        "--plan",
+        help="grid, random (default), or an adaptive plan that picks each next pose from the "
+        "measurements so far: vopt (V-optimal: least prediction variance over the envelope; "
+        "the best measured on the real UR10 data), dopt (D-optimal: greedy O1), bo (GP-UCB as "
+        "in seed 002; no better than random for identification, see the README)",
+    )
     p.add_argument("--poses", type=int, help="number of poses to measure (default 50)")
     p.add_argument("--out", help="recording to write (.mcap); must not exist")
     p.add_argument("--seed", type=int, help="plan seed (and simulated truth seed; default 0)")
