@@ -286,10 +286,10 @@ def pose_set_report(
 
 EXPECTED_PREDICTION_BASIS = (
     "first order at the nominal chain: the weighted least-squares covariance of the identifiable "
-    "parameters from the planned poses (rows weighted by the tracker's per-axis 1-sigma, the "
-    "information scaled by the share of poses the fit trains on), propagated to the SMR position "
-    "at the reference poses; it holds if the geometric model is the truth and the tracker meets "
-    "its stated accuracy: what the model leaves out comes on top"
+    "parameters from the poses the fit trains on (rows weighted by the tracker's per-axis "
+    "1-sigma), propagated to the SMR position at the reference poses; it holds if the geometric "
+    "model is the truth and the tracker meets its stated accuracy: what the model leaves out "
+    "comes on top"
 )
 
 
@@ -320,6 +320,7 @@ def expected_prediction_sigma(
     w = np.repeat(1.0 / sigma_m, 3)
     Jw = J * w[:, None]
     scale = np.linalg.norm(Jw, axis=0)
+    scale = np.where(scale > 0.0, scale, 1.0)  # a column without effect: left unscaled
     cov_s = np.linalg.pinv((Jw / scale).T @ (Jw / scale)) / train_share
     G = J_ref / scale  # prediction Jacobian in the scaled parameters
     var = np.einsum("ij,jk,ik->i", G, cov_s, G).reshape(-1, 3).sum(axis=1)
