@@ -241,6 +241,31 @@ def test_bad_plan_input_is_a_notice_not_a_crash(tmp_path, monkeypatch, bad):
     asyncio.run(flow())
 
 
+def test_the_plan_screen_previews_a_design_plan(tmp_path, monkeypatch):
+    """A dry run of vopt on the Plan screen shows the poses the design would choose at the
+    nominal chain: checked, with what a fit of them should reach."""
+    from textual.widgets import Select
+
+    monkeypatch.chdir(tmp_path)
+    app = app_for(20)
+
+    async def flow():
+        async with app.run_test(size=SIZE) as pilot:
+            await connect(app, pilot)
+            await pilot.press("f2")
+            plan = app.views["plan"]
+            plan.query_one("#kind", Select).value = "vopt"
+            await set_input(pilot, plan, "poses", "20")
+            await pilot.press("ctrl+r")
+            await until(pilot, lambda: plan.checked is not None, 60, "dry run")
+            assert plan.checked.kind == "vopt"
+            text = plan.result_text
+            assert "preview: the poses vopt chooses if the arm is its nominal chain" in text
+            assert "expected after a DH fit of the 15 training poses" in text
+
+    asyncio.run(flow())
+
+
 def test_online_ekf_ann_estimate_reaches_the_campaign_view(tmp_path, monkeypatch):
     """With the online estimate on (the production default), the EKF-ANN filter runs in its own
     thread during a campaign: once it has initialised (30 samples) its innovation RMS reaches

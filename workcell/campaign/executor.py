@@ -611,3 +611,54 @@ def dry_run_plan(
     targets = list(gen)
     ex = Executor(None, None, spec, env, None, tool_m=tool_m, config=cfg)
     return targets, ex.check_plan(targets)
+
+
+PREVIEW_KINDS = ("dopt", "vopt")  # adaptive plans whose choice at the nominal chain means much
+
+
+def preview_adaptive_plan(
+    kind: str,
+    spec: RobotSpec,
+    env: Envelope,
+    n: int,
+    *,
+    seed: int,
+    tool_m: np.ndarray,
+    base_in_tracker: dict | None = None,
+    config: CampaignConfig | None = None,
+) -> tuple[list[PoseTarget], list[str]]:
+    """The poses an adaptive design plan (`PREVIEW_KINDS`) would choose if the arm were its
+    nominal chain, each answered with the nominal SMR position measured at the tracker's stated
+    accuracy, and their envelope check; nothing moves. The campaign chooses from the real
+    measurements, which move the choice once the calibrated model departs from the nominal one.
+    (bo chases the measured error, which the nominal chain does not have: no preview.)"""
+    from workcell.campaign.identification import nominal_smr_in_tracker, tracker_sigma_m
+    from workcell.campaign.plans import make_plan
+
+    if kind not in PREVIEW_KINDS:
+        raise ValueError(f"no preview for plan {kind!r}; {', '.join(PREVIEW_KINDS)} have one")
+    cfg = config or CampaignConfig()
+    gen, _ = make_plan(kind, spec, env, n, seed=seed, tool_m=tool_m, approach_rad=cfg.approach_rad)
+    targets: list[PoseTarget] = []
+    try:
+        t = next(gen)
+        while True:
+            targets.append(t)
+            q = np.asarray(t.q_rad, float)
+            p = nominal_smr_in_tracker(spec, q[None], tool_m, base_in_tracker)[0]
+            sig, _ = tracker_sigma_m(spec, q[None], tool_m, base_in_tracker)
+            t = gen.send(
+                {
+                    "index": len(targets) - 1,
+                    "pose_id": int(t.pose_id),
+                    "q_commanded_rad": q.tolist(),
+                    "q_measured_rad": q.tolist(),
+                    "approach_sign": [int(x) for x in np.sign(t.approach_sign)],
+                    "tracker_position_m": p.tolist(),
+                    "tracker_sigma_m": [float(sig[0])] * 3,
+                }
+            )
+    except StopIteration:
+        pass
+    ex = Executor(None, None, spec, env, None, tool_m=tool_m, config=cfg)
+    return targets, ex.check_plan(targets)

@@ -15,16 +15,11 @@ REFERENCE_POSES = 60  # random poses inside the envelope: what well-spread poses
 HOLDOUT = 0.25  # the fits' default held-out share
 
 
-def tracker_sigma_m(
-    spec: RobotSpec,
-    q: np.ndarray,
-    tool_m: np.ndarray,
-    base_in_tracker: dict | None,
-    mpe: tuple[float, float] = TRACKER_MPE_M,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Per-axis 1-sigma (N,) a tracker meeting its MPE (A + B x range) measures the SMR with at
-    joints q (N, n), the floor the fits weight by (MPE / 4), and the ranges (N,) in metres from
-    the tracker at the declared `base_in_tracker` (identity when not declared)."""
+def nominal_smr_in_tracker(
+    spec: RobotSpec, q: np.ndarray, tool_m: np.ndarray, base_in_tracker: dict | None
+) -> np.ndarray:
+    """The nominal chain's SMR positions (N, 3) in the tracker frame at joints q (N, n), with
+    the base at the declared `base_in_tracker` (identity when not declared)."""
     from workcell.kinematics.chain import p_tracker, pack
     from workcell.kinematics.frames import matrix_from_quat_wxyz, transform_from
 
@@ -35,7 +30,20 @@ def tracker_sigma_m(
             np.asarray(base_in_tracker["translation_m"], float),
         )
     theta = pack(spec.dh, tool=np.asarray(tool_m, float))
-    rng = np.linalg.norm(np.asarray(p_tracker(theta, T, np.atleast_2d(q))), axis=1)
+    return np.asarray(p_tracker(theta, T, np.atleast_2d(np.asarray(q, float))))
+
+
+def tracker_sigma_m(
+    spec: RobotSpec,
+    q: np.ndarray,
+    tool_m: np.ndarray,
+    base_in_tracker: dict | None,
+    mpe: tuple[float, float] = TRACKER_MPE_M,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-axis 1-sigma (N,) a tracker meeting its MPE (A + B x range) measures the SMR with at
+    joints q (N, n), the floor the fits weight by (MPE / 4), and the ranges (N,) in metres from
+    the tracker at the declared `base_in_tracker` (identity when not declared)."""
+    rng = np.linalg.norm(nominal_smr_in_tracker(spec, q, tool_m, base_in_tracker), axis=1)
     return (mpe[0] + mpe[1] * rng) / 4.0, rng
 
 

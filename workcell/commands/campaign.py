@@ -244,7 +244,7 @@ def _ask_on_protective_stop(control: CampaignControl) -> None:
 
 
 def dry_run(args, cell, env, cfg) -> int:
-    from workcell.campaign.executor import dry_run_plan
+    from workcell.campaign.executor import PREVIEW_KINDS, dry_run_plan, preview_adaptive_plan
 
     targets, problems = dry_run_plan(
         args.plan, cell.spec, env, args.poses, seed=args.seed, tool_m=cell.tool_m, config=cfg
@@ -254,7 +254,16 @@ def dry_run(args, cell, env, cfg) -> int:
             f"plan {args.plan}: adaptive; each pose is chosen during the campaign inside the "
             f"envelope; {args.poses} poses"
         )
-        return 0
+        if args.plan not in PREVIEW_KINDS:
+            return 0
+        targets, problems = preview_adaptive_plan(
+            args.plan, cell.spec, env, args.poses, seed=args.seed, tool_m=cell.tool_m,
+            base_in_tracker=cell.base_in_tracker, config=cfg,
+        )  # fmt: skip
+        print(
+            f"preview: the poses {args.plan} chooses if the arm is its nominal chain (the "
+            "campaign's choice moves with what is measured):"
+        )
     for t in targets:
         print(f"pose {t.pose_id:4d}  q = [" + ", ".join(f"{x:+.4f}" for x in t.q_rad) + "] rad")
     print(f"dry run: {len(targets)} poses, {len(problems)} problems; nothing moved")

@@ -197,7 +197,8 @@ def campaign_config(plan: PlanConfig, dev: Devices):
 
 def dry_run(plan: PlanConfig, dev: Devices) -> dict:
     """Check every planned target and pre-pose against the envelope; nothing moves."""
-    from workcell.campaign.executor import dry_run_plan
+    from workcell.campaign.executor import PREVIEW_KINDS, dry_run_plan, preview_adaptive_plan
+    from workcell.campaign.identification import identification_lines
 
     plan.validate()
     env = envelope_for(plan, dev)
@@ -207,11 +208,25 @@ def dry_run(plan: PlanConfig, dev: Devices) -> dict:
         plan.kind, cell.spec, env, plan.poses, seed=plan.seed, tool_m=cell.tool_m, config=cfg
     )
     if targets is None:
-        return {"adaptive": True, "targets": plan.poses, "problems": [], "ok": True}
+        out = {"adaptive": True, "targets": plan.poses, "problems": [], "ok": True}
+        if plan.kind not in PREVIEW_KINDS:
+            return out
+        # what the design would choose if the arm were its nominal chain
+        targets, problems = preview_adaptive_plan(
+            plan.kind, cell.spec, env, plan.poses, seed=plan.seed, tool_m=cell.tool_m,
+            base_in_tracker=cell.base_in_tracker, config=cfg,
+        )  # fmt: skip
+        q = np.array([t.q_rad for t in targets])
+        ident = identification_lines(cell.spec, env, q, cell.tool_m, cell.base_in_tracker)
+        return {
+            **out,
+            "problems": problems,
+            "ok": not problems,
+            "preview": True,
+            "identification": ident,
+        }
     ident = []
     if targets:
-        from workcell.campaign.identification import identification_lines
-
         q = np.array([t.q_rad for t in targets])
         ident = identification_lines(cell.spec, env, q, cell.tool_m, cell.base_in_tracker)
     return {

@@ -139,8 +139,16 @@ class PlanScreen(WorkcellScreen):
         if result.get("adaptive"):
             text = (
                 f"[b]{plan.kind}[/b]: adaptive; each of the {plan.poses} poses is chosen during the "
-                "campaign and checked against the envelope before it moves.  [green]OK[/green]"
+                "campaign and checked against the envelope before it moves.  "
+                + ("[green]OK[/green]" if result.get("ok") else "[red]see below[/red]")
             )
+            if result.get("preview"):
+                text += (
+                    f"\npreview: the poses {plan.kind} chooses if the arm is its nominal chain "
+                    "(the campaign's choice moves with what is measured)"
+                )
+            for x in result["problems"][:8]:
+                text += "\n  [red]" + escape(x) + "[/red]"
         elif result["problems"]:
             shown = "\n".join("  " + escape(x) for x in result["problems"][:8])
             more = len(result["problems"]) - 8
