@@ -373,7 +373,7 @@ class WorkcellApp(App):
             path = None
             try:
                 if not msg.resume_from:
-                    chk = backend.dry_run(plan, dev)
+                    chk = backend.dry_run(plan, dev, preview=False)
                     self.post_message(m.PlanChecked(plan, chk))
                     if not chk["ok"]:
                         raise UserError(

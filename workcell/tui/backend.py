@@ -195,8 +195,11 @@ def campaign_config(plan: PlanConfig, dev: Devices):
     )
 
 
-def dry_run(plan: PlanConfig, dev: Devices) -> dict:
-    """Check every planned target and pre-pose against the envelope; nothing moves."""
+def dry_run(plan: PlanConfig, dev: Devices, *, preview: bool = True) -> dict:
+    """Check every planned target and pre-pose against the envelope; nothing moves. With
+    `preview`, a design plan (dopt, vopt) is previewed at the nominal chain (seconds for
+    tens of poses); the campaign's own check before it starts does without (each adaptive pose
+    is checked before it moves)."""
     from workcell.campaign.executor import PREVIEW_KINDS, dry_run_plan, preview_adaptive_plan
     from workcell.campaign.identification import identification_lines
 
@@ -209,7 +212,7 @@ def dry_run(plan: PlanConfig, dev: Devices) -> dict:
     )
     if targets is None:
         out = {"adaptive": True, "targets": plan.poses, "problems": [], "ok": True}
-        if plan.kind not in PREVIEW_KINDS:
+        if not preview or plan.kind not in PREVIEW_KINDS:
             return out
         # what the design would choose if the arm were its nominal chain
         targets, problems = preview_adaptive_plan(
