@@ -632,8 +632,9 @@ def preview_adaptive_plan(
     accuracy, and their envelope check; nothing moves. The campaign chooses from the real
     measurements, which move the choice once the calibrated model departs from the nominal one.
     (bo chases the measured error, which the nominal chain does not have: no preview.)"""
-    from workcell.campaign.identification import nominal_smr_in_tracker, tracker_sigma_m
+    from workcell.campaign.identification import nominal_smr_in_tracker
     from workcell.campaign.plans import make_plan
+    from workcell.estimation.dh import tracker_spec_sigma
 
     if kind not in PREVIEW_KINDS:
         raise ValueError(f"no preview for plan {kind!r}; {', '.join(PREVIEW_KINDS)} have one")
@@ -646,7 +647,7 @@ def preview_adaptive_plan(
             targets.append(t)
             q = np.asarray(t.q_rad, float)
             p = nominal_smr_in_tracker(spec, q[None], tool_m, base_in_tracker)[0]
-            sig, _ = tracker_sigma_m(spec, q[None], tool_m, base_in_tracker)
+            sig = tracker_spec_sigma(p)  # one forward kinematics a pose, not two
             t = gen.send(
                 {
                     "index": len(targets) - 1,

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from workcell.campaign.envelope import Envelope
-from workcell.estimation.dh import TRACKER_MPE_M
+from workcell.estimation.dh import TRACKER_MPE_M, tracker_spec_sigma
 from workcell.kinematics.robots import RobotSpec
 
 REFERENCE_POSES = 60  # random poses inside the envelope: what well-spread poses identify
@@ -43,8 +43,8 @@ def tracker_sigma_m(
     """Per-axis 1-sigma (N,) a tracker meeting its MPE (A + B x range) measures the SMR with at
     joints q (N, n), the floor the fits weight by (MPE / 4), and the ranges (N,) in metres from
     the tracker at the declared `base_in_tracker` (identity when not declared)."""
-    rng = np.linalg.norm(nominal_smr_in_tracker(spec, q, tool_m, base_in_tracker), axis=1)
-    return (mpe[0] + mpe[1] * rng) / 4.0, rng
+    p = nominal_smr_in_tracker(spec, q, tool_m, base_in_tracker)
+    return tracker_spec_sigma(p, mpe), np.linalg.norm(p, axis=1)
 
 
 def expected_after_fit(

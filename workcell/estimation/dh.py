@@ -162,8 +162,15 @@ TRACKER_MPE_M: tuple[float, float] = (15e-6, 6e-6)
 
 def pose_sigma_model(ds: Dataset, mpe: tuple[float, float] = TRACKER_MPE_M) -> np.ndarray:
     """Per-pose isotropic 1-sigma per axis (N,): max(recorded, tracker MPE model / 4)."""
-    spec = (mpe[0] + mpe[1] * np.linalg.norm(ds.p_tracker, axis=1)) / 4.0
-    return np.maximum(pose_sigma(ds), spec)
+    return np.maximum(pose_sigma(ds), tracker_spec_sigma(ds.p_tracker, mpe))
+
+
+def tracker_spec_sigma(
+    p_tracker: np.ndarray, mpe: tuple[float, float] = TRACKER_MPE_M
+) -> np.ndarray:
+    """Per-axis 1-sigma (N,) of a tracker meeting its MPE (A + B x range) at the points
+    p_tracker (N, 3) in its frame: MPE / 4, the floor the fits weight by."""
+    return (mpe[0] + mpe[1] * np.linalg.norm(np.atleast_2d(p_tracker), axis=1)) / 4.0
 
 
 def register_base(ds: Dataset, theta: np.ndarray) -> np.ndarray:
