@@ -96,3 +96,71 @@ def test_the_expected_figure_tracks_the_fitted_models_true_error():
             true.append(float(np.sqrt(np.mean(err**2))))
     ratio = np.sqrt(np.mean(np.square(true))) / np.sqrt(np.mean(np.square(expected)))
     assert 0.6 <= ratio <= 1.3, (expected, true, ratio)
+
+
+def _ur5e():
+    from workcell.campaign.envelope import default_envelope
+    from workcell.kinematics.robots import robot_by_name
+
+    spec = robot_by_name("ur5e")
+    return spec, default_envelope(spec), np.array([0.0, 0.0, 0.05])
+
+
+def test_the_pose_count_curve_is_the_expected_figure_at_each_count():
+    """Each point of the dry run's pose-count curve is `expected_after_fit` of the plan made
+    with that many poses (recomputed here from `make_plan`), from the fewest poses a fit takes,
+    and the curve stops at the first count within the stop ratio of the floor."""
+    from workcell.campaign.identification import expected_after_fit, pose_count_curve
+    from workcell.campaign.plans import make_plan
+
+    spec, env, tool = _ur5e()
+
+    def q_for(n):
+        return make_plan("random", spec, env, n, seed=2, tool_m=tool)[1]
+
+    curve = pose_count_curve(spec, env, q_for, tool, counts=(10, 16, 30, 60, 100), stop_ratio=1.1)
+    assert list(curve)[0] == 16  # 10 poses leave too few to train on
+    for n in (16, 30):
+        e = expected_after_fit(spec, env, q_for(n), tool)
+        assert curve[n] == pytest.approx(e["heldout_rms_m"] / e["floor_m"], rel=1e-9)
+    last = list(curve)[-1]
+    assert curve[last] <= 1.1 and all(r > 1.1 for n, r in curve.items() if n != last)
+    assert curve[16] > curve[30] > curve[last] > 1.0  # more poses, closer to the floor
+    # a stricter stop reads on; a plan with no n poses ends the curve
+    longer = pose_count_curve(spec, env, q_for, tool, counts=(16, 30, 60, 100), stop_ratio=1.0)
+    assert list(longer) == [16, 30, 60, 100]
+    cut = pose_count_curve(spec, env, lambda n: q_for(n) if n < 60 else None, tool)
+    assert max(cut) < 60
+
+
+def test_a_design_plans_first_poses_are_its_shorter_plan():
+    """The pose-count curve of a previewed design plan cuts the preview at each count, which
+    holds because the greedy choice does not depend on how many poses follow."""
+    from workcell.campaign.executor import preview_adaptive_plan
+
+    spec, env, tool = _ur5e()
+    for kind in ("dopt", "vopt"):
+        short, _ = preview_adaptive_plan(kind, spec, env, 16, seed=4, tool_m=tool)
+        long, _ = preview_adaptive_plan(kind, spec, env, 24, seed=4, tool_m=tool)
+        assert np.array_equal([t.q_rad for t in short], [t.q_rad for t in long[:16]]), kind
+
+
+def test_the_dry_run_gives_the_pose_count_curve(capsys):
+    """The dry run's line: the random plan's curve reads on past the planned 20 poses until
+    the held-out RMS is within 1.1x the floor; a design plan's stops at its own count; bo
+    (no preview) has none."""
+    from workcell.cli import main
+
+    argv = ["campaign", "--robot", "sim", "--tracker", "sim", "--dry-run", "--poses", "20"]
+    pre = "expected held-out RMS / noise floor of a DH fit of n poses planned the same way"
+    assert main(argv) == 0
+    line = next(ln for ln in capsys.readouterr().out.splitlines() if ln.startswith(pre))
+    pts = [p.split("x at ") for p in line.split(": ", 1)[1].split(", ")]
+    ratios, counts = [float(r) for r, _ in pts], [int(n) for _, n in pts]
+    assert counts[0] == 16 and counts[-1] > 20 and ratios[-1] <= 1.1
+    assert all(r > 1.1 for r in ratios[:-1]) and ratios[0] > ratios[-1]
+    assert main([*argv, "--plan", "vopt"]) == 0
+    line = next(ln for ln in capsys.readouterr().out.splitlines() if ln.startswith(pre))
+    assert "(vopt;" in line and line.endswith("at 20")
+    assert main([*argv, "--plan", "bo"]) == 0
+    assert pre not in capsys.readouterr().out

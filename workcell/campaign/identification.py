@@ -5,6 +5,8 @@ the poses leave dependent or barely separate, and for too few poses to fit."""
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
+
 import numpy as np
 
 from workcell.campaign.envelope import Envelope
@@ -150,3 +152,87 @@ def identification_lines(
     if len(weak) > 3:
         lines.append(f"warning: ... and {len(weak) - 3} more weakly identified groups")
     return lines
+
+
+POSE_COUNTS = (16, 20, 25, 30, 40, 50, 60, 80, 100, 125, 150, 200, 250, 300)
+STOP_RATIO = 1.1  # the pose-count curve stops once the held-out RMS is this close to the floor
+
+
+def pose_count_curve(
+    spec: RobotSpec,
+    env: Envelope,
+    q_for: Callable[[int], np.ndarray | None],
+    tool_m: np.ndarray,
+    base_in_tracker: dict | None = None,
+    *,
+    counts: Sequence[int] = POSE_COUNTS,
+    stop_ratio: float = STOP_RATIO,
+) -> dict[int, float]:
+    """{n: expected held-out RMS / noise floor} of a DH fit of the plan's first n poses
+    `q_for(n)` (None: the plan has no n poses), by `expected_after_fit`, for the `counts` a fit
+    accepts, in order, until the ratio is within `stop_ratio`."""
+    from workcell.campaign.plans import random_configurations
+    from workcell.estimation.fitting import min_poses_for_fit
+
+    ref = random_configurations(spec, env, REFERENCE_POSES, np.random.default_rng(0), tool_m)
+    curve: dict[int, float] = {}
+    for n in sorted(c for c in counts if c >= min_poses_for_fit(HOLDOUT)):
+        q = q_for(n)
+        if q is None:
+            break
+        e = expected_after_fit(spec, env, q, tool_m, base_in_tracker, reference_q=ref)
+        if e is None:
+            continue
+        curve[n] = float(e["heldout_rms_m"] / e["floor_m"])
+        if curve[n] <= stop_ratio:
+            break
+    return curve
+
+
+def pose_count_line(curve: dict[int, float], plan: str) -> str | None:
+    """The dry run's line from `pose_count_curve`; None when no count could be assessed."""
+    if not curve:
+        return None
+    pts = [f"{r:.2f}x at {n}" for n, r in curve.items()]
+    return (
+        f"expected held-out RMS / noise floor of a DH fit of n poses planned the same way "
+        f"({plan}; the geometry the whole error, the tracker at its MPE): " + ", ".join(pts)
+    )
+
+
+def plan_pose_count_line(
+    kind: str,
+    spec: RobotSpec,
+    env: Envelope,
+    *,
+    seed: int,
+    tool_m: np.ndarray,
+    base_in_tracker: dict | None = None,
+    approach_rad: float = 0.02,
+    previewed_q: np.ndarray | None = None,
+) -> str | None:
+    """The dry run's pose-count line for a plan: a grid or random plan re-planned (same seed)
+    with each count; an adaptive plan's preview `previewed_q` (its choice at the nominal
+    chain, greedy, so its first n poses are the n-pose plan's) cut at each count up to its
+    length. None for an adaptive plan without a preview."""
+    from workcell.campaign.plans import STATIC_KINDS, make_plan
+
+    if kind in STATIC_KINDS:
+
+        def q_for(n: int) -> np.ndarray | None:
+            try:
+                return make_plan(
+                    kind, spec, env, n, seed=seed, tool_m=tool_m, approach_rad=approach_rad
+                )[1]
+            except ValueError:  # the envelope does not hold n such poses
+                return None
+
+    elif previewed_q is not None:
+        qp = np.atleast_2d(np.asarray(previewed_q, float))
+
+        def q_for(n: int) -> np.ndarray | None:
+            return qp[:n] if n <= len(qp) else None
+
+    else:
+        return None
+    return pose_count_line(pose_count_curve(spec, env, q_for, tool_m, base_in_tracker), kind)

@@ -270,8 +270,15 @@ def dry_run(args, cell, env, cfg) -> int:
     for p in problems:
         print("  " + p)
     if targets:
-        from workcell.campaign.identification import identification_lines
+        from workcell.campaign.identification import identification_lines, plan_pose_count_line
 
         q = np.array([t.q_rad for t in targets])
         print("\n".join(identification_lines(cell.spec, env, q, cell.tool_m, cell.base_in_tracker)))
+        line = plan_pose_count_line(
+            args.plan, cell.spec, env, seed=args.seed, tool_m=cell.tool_m,
+            base_in_tracker=cell.base_in_tracker, approach_rad=cfg.approach_rad,
+            previewed_q=q if args.plan in PREVIEW_KINDS else None,
+        )  # fmt: skip
+        if line:
+            print(line)
     return 1 if problems else 0

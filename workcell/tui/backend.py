@@ -198,8 +198,8 @@ def campaign_config(plan: PlanConfig, dev: Devices):
 def dry_run(plan: PlanConfig, dev: Devices, *, preview: bool = True) -> dict:
     """Check every planned target and pre-pose against the envelope; nothing moves. With
     `preview`, a design plan (dopt, vopt) is previewed at the nominal chain (seconds for
-    tens of poses); the campaign's own check before it starts does without (each adaptive pose
-    is checked before it moves)."""
+    tens of poses) and the expected fit is given for other pose counts; the campaign's own check
+    before it starts does without (each adaptive pose is checked before it moves)."""
     from workcell.campaign.executor import PREVIEW_KINDS, dry_run_plan, preview_adaptive_plan
     from workcell.campaign.identification import identification_lines
 
@@ -221,6 +221,7 @@ def dry_run(plan: PlanConfig, dev: Devices, *, preview: bool = True) -> dict:
         )  # fmt: skip
         q = np.array([t.q_rad for t in targets])
         ident = identification_lines(cell.spec, env, q, cell.tool_m, cell.base_in_tracker)
+        ident += _pose_count(plan, cell, env, cfg, q)
         return {
             **out,
             "problems": problems,
@@ -232,6 +233,8 @@ def dry_run(plan: PlanConfig, dev: Devices, *, preview: bool = True) -> dict:
     if targets:
         q = np.array([t.q_rad for t in targets])
         ident = identification_lines(cell.spec, env, q, cell.tool_m, cell.base_in_tracker)
+        if preview:
+            ident += _pose_count(plan, cell, env, cfg, None)
     return {
         "adaptive": False,
         "targets": len(targets),
@@ -240,6 +243,18 @@ def dry_run(plan: PlanConfig, dev: Devices, *, preview: bool = True) -> dict:
         "first_q_rad": [np.asarray(t.q_rad).tolist() for t in targets[:3]],
         "identification": ident,
     }
+
+
+def _pose_count(plan: PlanConfig, cell, env, cfg, previewed_q) -> list[str]:
+    """The dry run's pose-count line (a second or a few: the Plan screen's check only)."""
+    from workcell.campaign.identification import plan_pose_count_line
+
+    line = plan_pose_count_line(
+        plan.kind, cell.spec, env, seed=plan.seed, tool_m=cell.tool_m,
+        base_in_tracker=cell.base_in_tracker, approach_rad=cfg.approach_rad,
+        previewed_q=previewed_q,
+    )  # fmt: skip
+    return [line] if line else []
 
 
 def envelope_summary(env) -> list[str]:
