@@ -144,6 +144,9 @@ def test_effect_outside_the_library_is_unexplained_located_and_reduced(tmp_path)
     # located: the truth's extra error depends on joint 2's angle
     assert u["where"] and "joint(s) 2" in u["where"][0]
     assert "What is not explained: a structured residual" in r["summary"]
+    # and not a drift: the poses are in random order, the joints predict it, the time does not
+    assert u["drift_check"]["verdict"] == "joints" and not u["drift_check"]["time_adds"]
+    assert "it follows the joints, not the recording order" in r["summary"]
 
 
 def test_harmonic_overlap_over_part_of_a_turn_is_said():

@@ -849,6 +849,11 @@ def _nonparametric(model, dfit, res_tr, dte, res_te, after, cfg, log):
                 f"largest for joint {j} in [{lo:+.2f}, {hi:+.2f}] rad "
                 f"(RMS {rms3[k] * 1e6:.1f} um vs {min(rms3) * 1e6:.1f} um elsewhere)"
             )
+    if structured:
+        drift = _drift(dfit, res_tr, dte, res_te, cfg, gp)
+        if drift is not None:
+            out["drift_check"] = drift
+            where.append(drift["text"])
     out.update(
         {
             "structured": structured,
@@ -877,6 +882,48 @@ def _nonparametric(model, dfit, res_tr, dte, res_te, after, cfg, log):
         f"(p={p:.1e}) -> {'structured residual remains' if structured else 'no structure left'}"
     )
     return out, model_np
+
+
+def _drift(dfit: Dataset, res_tr, dte: Dataset, res_te, cfg: DiagnoseConfig, gp) -> dict | None:
+    """`discovery_np.drift_check` on the structure the joints GP found, with its sentence."""
+    from workcell.estimation.discovery_np import drift_check
+
+    if dfit.elapsed_s is None or dte.elapsed_s is None:
+        return None
+    d = drift_check(
+        dfit.q, dfit.elapsed_s, res_tr, dte.q, dte.elapsed_s, res_te, alpha=cfg.np_alpha,
+        seed=cfg.seed, gp_joints=gp,
+    )  # fmt: skip
+    if d is None:
+        return None
+    j, t, b = (
+        f"{d[k] * 1e6:.1f} um"
+        for k in ("heldout_rms_joints_m", "heldout_rms_time_m", "heldout_rms_both_m")
+    )
+    if d["verdict"] == "joints":
+        text = (
+            f"it follows the joints, not the recording order (held out, a GP over the joints "
+            f"{j}, over the recording time alone {t}"
+            + (
+                f"; the time adds a drift on top: {b} with both)"
+                if d["time_adds"]
+                else "; given the joints the time adds nothing)"
+            )
+        )
+    elif d["verdict"] == "time":
+        text = (
+            f"it follows the recording order more than the joints (held out, a GP over the "
+            f"recording time {t}, over the joints {j}): a drift during the recording (temperature, "
+            "the tracker or its set-up moving); a correction over the joints would not carry "
+            "to another day"
+        )
+    else:
+        text = (
+            f"the joints and the recording order cannot be told apart on these poses (held out, "
+            f"a GP over the joints {j}, over the recording time {t}): the arm's path ties them "
+            "together, so a drift is not ruled out"
+        )
+    return {**d, "text": text}
 
 
 def noise_floor_m(dh: DHModel, dtr: Dataset, dte: Dataset, sig_tr, sig_te) -> float:

@@ -69,35 +69,117 @@ def fit_residual_gp(
     q: np.ndarray, r: np.ndarray, *, max_points: int = 400, seed: int = 0
 ) -> ResidualGP:
     """Fit the GP to residuals r (N, 3) at joints q (N, 6)."""
-    from sklearn.gaussian_process import GaussianProcessRegressor
-    from sklearn.gaussian_process.kernels import RBF, ConstantKernel, WhiteKernel
-
     q = np.asarray(q, float)
     r = np.asarray(r, float)
     if q.ndim != 2 or q.shape[1] != 6 or r.shape != (len(q), 3):
         raise ValueError(f"fit_residual_gp: q {q.shape} and r {r.shape} must be (N, 6), (N, 3)")
+    return _fit_ard_gp(q, r, max_points=max_points, seed=seed)
+
+
+def _fit_ard_gp(X: np.ndarray, r: np.ndarray, *, max_points: int, seed: int) -> ResidualGP:
+    """ARD-RBF + white-noise GP on inputs X (N, d) for residuals r (N, 3): hyperparameters by
+    maximum marginal likelihood on at most `max_points` poses, weights on all of them."""
+    from sklearn.gaussian_process import GaussianProcessRegressor
+    from sklearn.gaussian_process.kernels import RBF, ConstantKernel, WhiteKernel
+
     rng = np.random.default_rng(seed)
-    sub = rng.permutation(len(q))[:max_points] if len(q) > max_points else np.arange(len(q))
+    sub = rng.permutation(len(X))[:max_points] if len(X) > max_points else np.arange(len(X))
     y_mean = r.mean(0)
     y_std = r.std(0) + 1e-12
     Y = (r - y_mean) / y_std
     k = ConstantKernel(0.5, (1e-3, 1e2)) * RBF(
-        length_scale=np.full(6, 1.0), length_scale_bounds=(0.05, 100.0)
+        length_scale=np.full(X.shape[1], 1.0), length_scale_bounds=(0.05, 100.0)
     ) + WhiteKernel(0.5, (1e-3, 10.0))
     gp = GaussianProcessRegressor(k, normalize_y=False, n_restarts_optimizer=0, random_state=seed)
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # bounds reached = no dependence on that joint: expected
-        gp.fit(q[sub], Y[sub])
+        warnings.simplefilter("ignore")  # bounds reached = no dependence on that input: expected
+        gp.fit(X[sub], Y[sub])
     kk = gp.kernel_
     signal = float(kk.k1.k1.constant_value)
     ls = np.atleast_1d(np.asarray(kk.k1.k2.length_scale, float))
     noise = float(kk.k2.noise_level)
     # weights on all training poses with the fitted hyperparameters
-    model = ResidualGP(q, np.zeros((len(q), 3)), ls, signal, noise, y_mean, y_std)
-    K = model.kernel(q, q) + noise * np.eye(len(q))
-    L = np.linalg.cholesky(K + 1e-10 * np.eye(len(q)))
+    model = ResidualGP(X, np.zeros((len(X), 3)), ls, signal, noise, y_mean, y_std)
+    K = model.kernel(X, X) + noise * np.eye(len(X))
+    L = np.linalg.cholesky(K + 1e-10 * np.eye(len(X)))
     model.alpha = np.linalg.solve(L.T, np.linalg.solve(L, Y))
     return model
+
+
+def drift_check(
+    q_tr: np.ndarray,
+    t_tr: np.ndarray,
+    r_tr: np.ndarray,
+    q_te: np.ndarray,
+    t_te: np.ndarray,
+    r_te: np.ndarray,
+    *,
+    alpha: float = 0.01,
+    max_points: int = 400,
+    seed: int = 0,
+    gp_joints: ResidualGP | None = None,
+) -> dict | None:
+    """Does a residual structure follow the joints or the recording order? When the arm sweeps
+    a joint slowly through the recording, a drift in time (temperature, the tracker's set-up)
+    looks like short-scale structure over that joint, and a correction over the joints would
+    not carry to another day. The GP of `fit_residual_gp` is fitted on the joints, on the
+    recording time alone (scaled to the training span), and on both (additive: a time GP on
+    the joints GP's leave-one-out residuals), and the three are compared
+    on the held-out poses, pose by pose (one-sided paired t-tests on the squared errors at
+    `alpha`). `verdict`: "joints" (the joints predict better than the time), "time" (the
+    reverse), or "either" (not told apart: the arm's path ties them together); `time_adds`: the
+    time lowers the error further given the joints (a drift on top). Also the three held-out
+    RMS (m) and the p-values. None without usable times. `gp_joints`: the joints GP already
+    fitted to (q_tr, r_tr) by `fit_residual_gp`, if at hand."""
+    from scipy import stats
+
+    t_tr = np.asarray(t_tr, float)
+    t_te = np.asarray(t_te, float)
+    q_tr, q_te = np.asarray(q_tr, float), np.asarray(q_te, float)
+    r_tr, r_te = np.asarray(r_tr, float), np.asarray(r_te, float)
+    if not (np.all(np.isfinite(t_tr)) and np.all(np.isfinite(t_te))):
+        return None
+    t0, span = float(t_tr.min()), float(np.ptp(t_tr))
+    if span <= 0.0 or len(t_tr) < 10 or len(t_te) < 3:
+        return None
+    s_tr, s_te = (t_tr - t0) / span, (t_te - t0) / span
+
+    def fit(
+        X_tr: np.ndarray, y: np.ndarray, X_te: np.ndarray, gp: ResidualGP | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(leave-one-out residuals at the training poses, prediction at the held-out ones)"""
+        gp = gp or _fit_ard_gp(X_tr, y, max_points=max_points, seed=seed)
+        K = gp.kernel(X_tr, X_tr) + (gp.noise_var + 1e-10) * np.eye(len(X_tr))
+        Kinv = np.linalg.inv(K)
+        loo = (gp.alpha / np.diag(Kinv)[:, None]) * gp.y_std  # y_i - mean without pose i
+        return loo, gp.predict(X_te)
+
+    loo_j, f_te = fit(q_tr, r_tr, q_te, gp_joints)
+    _, g_te = fit(s_tr[:, None], r_tr, s_te[:, None])
+    # both: additive, a field over the joints plus a drift in time; the drift is fitted to
+    # what the joints GP leaves at each training pose without that pose (one backfitting step)
+    _, h_te = fit(s_tr[:, None], loo_j, s_te[:, None])
+    e_j = np.sum((r_te - f_te) ** 2, axis=1)
+    e_t = np.sum((r_te - g_te) ** 2, axis=1)
+    e_b = np.sum((r_te - f_te - h_te) ** 2, axis=1)
+
+    def p_less(a: np.ndarray, b: np.ndarray) -> float:  # H1: a's errors below b's
+        return float(stats.ttest_1samp(b - a, 0.0, alternative="greater").pvalue)
+
+    p_j, p_t, p_add = p_less(e_j, e_t), p_less(e_t, e_j), p_less(e_b, e_j)
+    verdict = "joints" if p_j < alpha else "time" if p_t < alpha else "either"
+    return {
+        "verdict": verdict,
+        "time_adds": bool(p_add < alpha),
+        "heldout_rms_joints_m": float(np.sqrt(e_j.mean())),
+        "heldout_rms_time_m": float(np.sqrt(e_t.mean())),
+        "heldout_rms_both_m": float(np.sqrt(e_b.mean())),
+        "p_joints_better": p_j,
+        "p_time_better": p_t,
+        "p_time_adds": p_add,
+        "span_s": span,
+        "alpha": alpha,
+    }
 
 
 def relevant_joints(model: ResidualGP, q_range: np.ndarray) -> list[tuple[int, float]]:
