@@ -121,11 +121,58 @@ def test_diagnose_says_when_joint_structure_is_a_drift(tmp_path):
     w = 2 * np.pi * t / (t.max() / 1.5)
     drift = np.c_[60 * np.sin(w), 40 * np.cos(w), 20 * np.sin(w)] * UM
     moved = dataclasses.replace(ds, elapsed_s=t, p_tracker=ds.p_tracker + drift)
-    r = diagnose(moved, DiagnoseConfig()).report
+    d = diagnose(moved, DiagnoseConfig())
+    r = d.report
     u = r["unexplained"]
     assert u["structured"], u.get("np_test")
     assert u["drift_check"]["verdict"] == "either", u["drift_check"]
     assert "the joints and the recording order cannot be told apart" in r["summary"]
     assert "a drift is not ruled out" in r["summary"]
+    # the GP correction saved beside the model carries the verdict, and export says it
+    from workcell.estimation.models import load_model, save_model
+    from workcell.export.build import conditions_note, parse_conditions
+
+    cond = parse_conditions("1,1,1,1,1,1", None, None, None)
+    path = save_model(d.model_np, tmp_path / "np.json")
+    note = conditions_note(load_model(path), cond)
+    assert any("may be a drift during the recording" in n for n in note), note
+    assert not any("drift during the recording" in n for n in conditions_note(d.model, cond))
     clean = diagnose(dataclasses.replace(ds, elapsed_s=t), DiagnoseConfig()).report
     assert not clean["unexplained"]["structured"] and "drift_check" not in clean["unexplained"]
+
+
+def test_any_stored_drift_verdict_gives_a_line_or_none():
+    """Whatever a hand-edited model file holds as its residual's drift verdict, `export`'s
+    conditions give a line (only for the two verdicts that call for it) or none: never an
+    exception."""
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+    from jsonfuzz import JSON
+
+    from workcell.export.build import residual_drift_note
+
+    @settings(max_examples=200, deadline=None, suppress_health_check=list(HealthCheck))
+    @given(
+        dc=st.one_of(
+            JSON,
+            st.fixed_dictionaries(
+                {"verdict": JSON | st.sampled_from(["time", "either", "joints"])}
+            ),
+        ),
+        residual=st.one_of(st.none(), st.just({"kind": "ard-rbf-gp"})),
+        info=st.one_of(st.just("dict"), JSON),
+    )
+    def check(dc, residual, info):
+        model = type("M", (), {})()
+        model.residual = residual
+        model.info = {"residual_drift_check": dc} if info == "dict" else info
+        line = residual_drift_note(model)
+        called = (
+            residual is not None
+            and info == "dict"
+            and isinstance(dc, dict)
+            and dc.get("verdict") in ("time", "either")
+        )
+        assert (line is not None) == called, (dc, residual, info)
+
+    check()

@@ -871,7 +871,13 @@ def _nonparametric(model, dfit, res_tr, dte, res_te, after, cfg, log):
     )
     model_np = None
     if structured:
-        model_np = replace(model, residual=gp.to_dict())
+        info = dict(model.info)
+        if "drift_check" in out:  # for `export` to say when the GP may be carrying a drift
+            info["residual_drift_check"] = {
+                k: out["drift_check"][k]
+                for k in ("verdict", "time_adds", "heldout_rms_joints_m", "heldout_rms_time_m")
+            }
+        model_np = replace(model, residual=gp.to_dict(), info=info)
         out["np_model"] = {
             "method": "augmented + gp residual",
             "heldout_rms_m": rms1,

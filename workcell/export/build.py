@@ -106,6 +106,28 @@ def parse_conditions(
     return cond
 
 
+def residual_drift_note(model) -> str | None:
+    """A line when the model's non-parametric residual (a GP over the joints) may be a drift
+    during the recording: `diagnose` found the joints and the recording order not told apart,
+    or the order predicting better (`residual_drift_check` in the model file)."""
+    info = getattr(model, "info", None)
+    dc = info.get("residual_drift_check") if isinstance(info, dict) else None
+    if getattr(model, "residual", None) is None or not isinstance(dc, dict):
+        return None
+    verdict = dc.get("verdict")
+    why = {
+        "time": "it followed the recording order more than the joints",
+        "either": "the joints and the recording order could not be told apart on its poses",
+    }.get(verdict if isinstance(verdict, str) else "")
+    if why is None:
+        return None
+    return (
+        f"the model's GP residual may be a drift during the recording, not an error of the "
+        f"joints (diagnose: {why}); the table carries it as a function of the joints: check "
+        "the correction on another day's measurements"
+    )
+
+
 def conditions_note(model, cond: Conditions, strict: bool = False) -> list[str]:
     """What the table assumes about the conditions the model's accepted effects depend on, one
     line each; `strict` (a user's options): refuses a given condition that does not drive the
@@ -114,6 +136,9 @@ def conditions_note(model, cond: Conditions, strict: bool = False) -> list[str]:
     fs = getattr(model, "features_spec", None)
     kinds = {c.kind for c in accepted} if accepted is not None and fs is not None else set()
     lines = []
+    drift = residual_drift_note(model)
+    if drift:
+        lines.append(drift)
     if kinds & set(COMPLIANCE_KINDS):
         if cond.payload_kg is not None:
             lines.append(f"payload {cond.payload_kg:g} kg (given), for the compliance terms")
