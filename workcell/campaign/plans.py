@@ -200,6 +200,9 @@ def static_plan(
         yield PoseTarget(pose_id=pid, q_rad=qi, approach_sign=si)
 
 
+CANDIDATE_SPARE = (1.1, 1.5, 2.5)  # candidates drawn per pose asked for, tried in turn
+
+
 def make_plan(
     kind: str,
     spec: RobotSpec,
@@ -216,17 +219,22 @@ def make_plan(
     if n <= 0:
         raise ValueError(f"number of poses must be positive, got {n}")
     if kind in ("random", "grid"):
-        if kind == "random":
-            q = random_configurations(
-                spec, env, int(n * 1.1) + 2, np.random.default_rng(seed), tool_m
-            )
-        else:
-            q = grid_configurations(spec, env, int(n * 1.1) + 2, tool_m, seed)
-        q, signs = approach_signs(spec, env, q, tool_m, approach_rad, seed)
-        if kind == "grid" and len(q) > n:
-            idx = np.round(np.linspace(0, len(q) - 1, n)).astype(int)
-            q, signs = q[idx], signs[idx]
-        q, signs = order_for_paths(spec, env, q, signs, tool_m, approach_rad)
+        # 10 % spare candidates; in a tight envelope, where more are lost to their approach and
+        # the paths between them, more spare ones (the first try unchanged, so a recording
+        # planned by it resumes with the same plan)
+        for spare in CANDIDATE_SPARE:
+            m = int(n * spare) + 2
+            if kind == "random":
+                q = random_configurations(spec, env, m, np.random.default_rng(seed), tool_m)
+            else:
+                q = grid_configurations(spec, env, m, tool_m, seed)
+            q, signs = approach_signs(spec, env, q, tool_m, approach_rad, seed)
+            if kind == "grid" and len(q) > n:
+                idx = np.round(np.linspace(0, len(q) - 1, n)).astype(int)
+                q, signs = q[idx], signs[idx]
+            q, signs = order_for_paths(spec, env, q, signs, tool_m, approach_rad)
+            if len(q) >= n:
+                break
         if len(q) < n:
             raise ValueError(
                 f"only {len(q)} of {n} poses fit the envelope with their approach and the paths "
