@@ -849,11 +849,13 @@ def _nonparametric(model, dfit, res_tr, dte, res_te, after, cfg, log):
                 f"largest for joint {j} in [{lo:+.2f}, {hi:+.2f}] rad "
                 f"(RMS {rms3[k] * 1e6:.1f} um vs {min(rms3) * 1e6:.1f} um elsewhere)"
             )
-    if structured:
+    if structured or _serial_correlation(res_tr, dfit.elapsed_s)["significant"]:
+        # joint-space structure, or residuals correlated in recording order: drift or joints?
         drift = _drift(dfit, res_tr, dte, res_te, cfg, gp)
         if drift is not None:
             out["drift_check"] = drift
-            where.append(drift["text"])
+            if structured:
+                where.append(drift["text"])
     out.update(
         {
             "structured": structured,
@@ -1173,6 +1175,14 @@ def summary_text(r: dict) -> str:
                 f"; the residual is correlated between consecutive poses (lag-1 "
                 f"{sc['lag1']:+.2f}): look for a drift or a change of set-up during the recording"
             )
+            dc = u.get("drift_check")
+            if dc:
+                helps = dc["p_time_helps"] < dc["alpha"]
+                txt += (
+                    f" (a GP over the recording time {'lowers' if helps else 'does not lower'} "
+                    f"the held-out RMS: {um(dc['heldout_rms_m'])} -> {um(dc['heldout_rms_time_m'])}"
+                    f", p = {dc['p_time_helps']:.1g})"
+                )
         elif big:
             txt += (
                 " and it is not correlated in time: it behaves like pose-to-pose scatter "

@@ -129,7 +129,8 @@ def drift_check(
     `alpha`). `verdict`: "joints" (the joints predict better than the time), "time" (the
     reverse), or "either" (not told apart: the arm's path ties them together); `time_adds`: the
     time lowers the error further given the joints (a drift on top). Also the three held-out
-    RMS (m) and the p-values. None without usable times. `gp_joints`: the joints GP already
+    RMS (m), the one without any (`heldout_rms_m`) and the p-values (`p_time_helps`: the time
+    GP against none). None without usable times. `gp_joints`: the joints GP already
     fitted to (q_tr, r_tr) by `fit_residual_gp`, if at hand."""
     from scipy import stats
 
@@ -166,6 +167,7 @@ def drift_check(
     def p_less(a: np.ndarray, b: np.ndarray) -> float:  # H1: a's errors below b's
         return float(stats.ttest_1samp(b - a, 0.0, alternative="greater").pvalue)
 
+    e_0 = np.sum(r_te**2, axis=1)
     p_j, p_t, p_add = p_less(e_j, e_t), p_less(e_t, e_j), p_less(e_b, e_j)
     verdict = "joints" if p_j < alpha else "time" if p_t < alpha else "either"
     return {
@@ -177,6 +179,8 @@ def drift_check(
         "p_joints_better": p_j,
         "p_time_better": p_t,
         "p_time_adds": p_add,
+        "heldout_rms_m": float(np.sqrt(e_0.mean())),  # without any of them
+        "p_time_helps": p_less(e_t, e_0),
         "span_s": span,
         "alpha": alpha,
     }
