@@ -201,3 +201,14 @@ def test_diagnose_sizes_a_drift_the_joints_cannot_see(tmp_path):
     assert dc["p_time_helps"] < dc["alpha"]
     assert dc["heldout_rms_time_m"] < 0.5 * dc["heldout_rms_m"], dc
     assert "a GP over the recording time lowers the held-out RMS" in r["summary"]
+
+
+def test_identical_predictions_give_no_evidence_rather_than_nan():
+    """A residual of zeros: every GP predicts the same, the paired differences are all zero;
+    the p-values are 1 (no evidence), not NaN, and the verdict is 'either'."""
+    rng = np.random.default_rng(5)
+    q, t = _poses(60, rng, False)
+    r = np.zeros((60, 3))
+    d = _check(q, t, r, rng)
+    assert d["verdict"] == "either" and not d["time_adds"]
+    assert all(np.isfinite(d[k]) for k in d if k.startswith("p_"))

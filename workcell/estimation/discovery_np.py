@@ -149,7 +149,8 @@ def drift_check(
         X_tr: np.ndarray, y: np.ndarray, X_te: np.ndarray, gp: ResidualGP | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
         """(leave-one-out residuals at the training poses, prediction at the held-out ones)"""
-        gp = gp or _fit_ard_gp(X_tr, y, max_points=max_points, seed=seed)
+        if gp is None:
+            gp = _fit_ard_gp(X_tr, y, max_points=max_points, seed=seed)
         K = gp.kernel(X_tr, X_tr) + (gp.noise_var + 1e-10) * np.eye(len(X_tr))
         Kinv = np.linalg.inv(K)
         loo = (gp.alpha / np.diag(Kinv)[:, None]) * gp.y_std  # y_i - mean without pose i
@@ -165,7 +166,8 @@ def drift_check(
     e_b = np.sum((r_te - f_te - h_te) ** 2, axis=1)
 
     def p_less(a: np.ndarray, b: np.ndarray) -> float:  # H1: a's errors below b's
-        return float(stats.ttest_1samp(b - a, 0.0, alternative="greater").pvalue)
+        p = float(stats.ttest_1samp(b - a, 0.0, alternative="greater").pvalue)
+        return p if np.isfinite(p) else 1.0  # no difference at all: no evidence
 
     e_0 = np.sum(r_te**2, axis=1)
     p_j, p_t, p_add = p_less(e_j, e_t), p_less(e_t, e_j), p_less(e_b, e_j)
