@@ -212,3 +212,27 @@ def test_identical_predictions_give_no_evidence_rather_than_nan():
     d = _check(q, t, r, rng)
     assert d["verdict"] == "either" and not d["time_adds"]
     assert all(np.isfinite(d[k]) for k in d if k.startswith("p_"))
+
+
+def test_a_joint_term_on_a_joint_tied_to_time_is_flagged(tmp_path):
+    """Joint 1 rising with the recording time (as a grid plan rasters it) and a drift added:
+    on seed 507 the library accepts a joint-1 transmission error, and diagnose says it may be
+    the drift; the same recording in its own (random) order has no joint tied to time."""
+    import dataclasses
+
+    from workcell.bench.discovery import make_case
+    from workcell.estimation.discovery import DiagnoseConfig, _joints_tied_to_time, diagnose
+    from workcell.recording.dataset import Dataset
+
+    c = make_case([], 507, 160, 1.0, tmp_path, np.random.default_rng(507), warmup_s=300.0)
+    ds = Dataset.from_recording(c["path"])
+    assert _joints_tied_to_time(ds) == {}
+    t = 20.0 * np.argsort(np.argsort(ds.q[:, 0]))
+    w = 2 * np.pi * t / (t.max() / 1.5)
+    drift = np.c_[60 * np.sin(w), 40 * np.cos(w), 20 * np.sin(w)] * UM
+    r = diagnose(
+        dataclasses.replace(ds, elapsed_s=t, p_tracker=ds.p_tracker + drift), DiagnoseConfig()
+    ).report
+    assert r["joints_tied_to_time"] == {"1": pytest.approx(1.0)}
+    assert any(e["kind"] == "transmission_error" and e["joint"] == 1 for e in r["effects"])
+    assert "Joint 1 moved with the recording time" in r["summary"]

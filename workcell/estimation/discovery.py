@@ -786,6 +786,7 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
         "geometry": geometry,
         "unexplained": unexplained,
         "thermal_source": src,
+        "joints_tied_to_time": _joints_tied_to_time(dfit),
         "seconds": time.perf_counter() - t0,
     }
     report["summary"] = summary_text(report)
@@ -890,6 +891,26 @@ def _nonparametric(model, dfit, res_tr, dte, res_te, after, cfg, log):
         f"(p={p:.1e}) -> {'structured residual remains' if structured else 'no structure left'}"
     )
     return out, model_np
+
+
+TIED_TO_TIME = 0.9  # |rank correlation| of a joint's angle with the recording time
+
+
+def _joints_tied_to_time(ds: Dataset) -> dict[str, float]:
+    """{joint (1-based, str): rank correlation} of the joints whose angle rises or falls with
+    the recording time (|Spearman| >= `TIED_TO_TIME`): an angle-periodic term of such a joint
+    and a drift during the recording are confounded."""
+    t = ds.elapsed_s
+    if t is None or not np.all(np.isfinite(t)) or np.ptp(t) <= 0 or len(t) < 10:
+        return {}
+    out = {}
+    for j in range(ds.q.shape[1]):
+        if np.ptp(ds.q[:, j]) <= 0:
+            continue
+        rho = float(stats.spearmanr(ds.q[:, j], t).statistic)
+        if np.isfinite(rho) and abs(rho) >= TIED_TO_TIME:
+            out[str(j + 1)] = rho
+    return out
 
 
 def _drift(dfit: Dataset, res_tr, dte: Dataset, res_te, cfg: DiagnoseConfig, gp) -> dict | None:
@@ -1123,6 +1144,19 @@ def summary_text(r: dict) -> str:
         for e in r["effects"]:
             lines.append("  - " + effect_sentence(e))
         lines.append(f"  ({r.get('parameter_std_basis', PARAMETER_STD_BASIS)}.)")
+        tied = r.get("joints_tied_to_time") or {}
+        for j, rho in tied.items():
+            terms = [
+                e
+                for e in r["effects"]
+                if e["kind"] == "transmission_error" and e["joint"] == int(j)
+            ]
+            if terms:
+                lines.append(
+                    f"  Joint {j} moved with the recording time (rank correlation {rho:+.2f}; a grid "
+                    f"plan rasters joint 1): its transmission-error term(s) may carry a drift "
+                    "during the recording rather than the gear; a random plan separates the two."
+                )
         lines.append(
             f"With these effects the held-out RMS is {um(r['rms_after_m'])} "
             f"({_ci(r, 'rms_after_ci95_m')}max "
