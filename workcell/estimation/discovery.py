@@ -1153,8 +1153,8 @@ def summary_text(r: dict) -> str:
             ]
             if terms:
                 lines.append(
-                    f"  Joint {j} moved with the recording time (rank correlation {rho:+.2f}; a grid "
-                    f"plan rasters joint 1): its transmission-error term(s) may carry a drift "
+                    f"  Joint {j} moved with the recording time (rank correlation {rho:+.2f}, as a "
+                    "grid plan's joint 1 does): its transmission-error term(s) may carry a drift "
                     "during the recording rather than the gear; a random plan separates the two."
                 )
         lines.append(
