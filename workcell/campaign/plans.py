@@ -200,6 +200,37 @@ def static_plan(
         yield PoseTarget(pose_id=pid, q_rad=qi, approach_sign=si)
 
 
+def with_reference(plan: Plan, every: int, reference: PoseTarget | None = None) -> Plan:
+    """The plan, with a reference pose (default: the plan's first) measured again after every
+    `every` measured poses and once at the end: a record of how the measured position of one
+    fixed pose drifts during the campaign (temperature, the tracker, the set-up). The
+    reference is approached with its own approach signs each time, so backlash is the same.
+    Its repeats are recorded like any sample, with the reference's pose_id, and are not sent to
+    the plan: an adaptive plan sees each of its poses once."""
+    if every <= 0:
+        raise ValueError(f"reference interval must be a positive number of poses, got {every}")
+    try:
+        t = next(plan)
+    except StopIteration:
+        return
+    ref = reference or t
+    measured, just_checked = 0, False
+    while True:
+        sample = yield t
+        just_checked = False
+        if sample is not None:
+            measured += 1
+            if measured % every == 0:
+                yield ref
+                just_checked = True
+        try:
+            t = plan.send(sample)
+        except StopIteration:
+            if measured and not just_checked:
+                yield ref
+            return
+
+
 CANDIDATE_SPARE = (1.1, 1.5, 2.5)  # candidates drawn per pose asked for, tried in turn
 
 

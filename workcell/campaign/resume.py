@@ -38,7 +38,9 @@ def resume_plan(old: str) -> dict:
     problems = checks.problems_of(rec.session, rec.samples)
     if problems:
         raise UserError(f"{old}: {checks.first_problem(problems)}; cannot resume it")
-    history = {int(s["pose_id"]): s for s in rec.samples}
+    history: dict[int, dict] = {}
+    for s in rec.samples:  # a reference pose measured again keeps its first sample
+        history.setdefault(int(s["pose_id"]), s)
     done = set(history)
     skipped_events = [e for e in rec.events if e.get("kind") in ("skip", "refused")]
     return {
@@ -117,6 +119,19 @@ def recorded_tool(session: dict) -> list[float]:
     return [float(v) for v in session["tool"]["smr_offset_m"]]
 
 
+def _reference_every(camp: dict, source: str) -> int:
+    """The recorded reference interval (0: none); a hand-edited one is refused in one line."""
+    v = camp.get("reference_every", 0)
+    if v in (None, 0):
+        return 0
+    if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
+        raise UserError(
+            f"{source}: campaign reference_every {v!r} is not a positive whole number of poses; "
+            "cannot resume it"
+        )
+    return v
+
+
 def default_out(old: Path) -> Path:
     k = 1
     while True:
@@ -190,6 +205,7 @@ def resume_campaign(args: argparse.Namespace, control: CampaignControl) -> int:
             "readings_per_pose",
             "settle_s",
             "approach_rad",
+            "reference_every",
         )
     }
     _, res = run_campaign(
@@ -209,6 +225,7 @@ def resume_campaign(args: argparse.Namespace, control: CampaignControl) -> int:
         chained_from=chained,
         elapsed0_s=info["last_elapsed"],
         watch_history=info["recording"].samples,
+        reference_every=_reference_every(camp, str(old)),
         on_event=lambda e: print(f"  [{e['level']}] {e['kind']}: {e['message']}", file=sys.stderr),
     )
     print(f"recorded {res.measured} more poses, skipped {res.skipped} -> {out}")

@@ -17,7 +17,7 @@ from workcell.campaign.executor import (
     CampaignResult,
     Executor,
 )
-from workcell.campaign.plans import make_plan
+from workcell.campaign.plans import PoseTarget, make_plan, with_reference
 from workcell.campaign.watch import MarginWatch
 from workcell.drivers.protocols import close_quietly
 from workcell.errors import INTERRUPTED, UserError
@@ -50,6 +50,20 @@ class CellSetup:
         }
 
 
+def _first_target(plan, cell, env, poses, seed, cfg, plan_kwargs) -> PoseTarget:
+    """The plan's first pose, re-created fresh (a resumed campaign skips it): the reference a
+    `reference_every` campaign re-measures."""
+    kw = {k: v for k, v in (plan_kwargs or {}).items() if k != "history"}
+    gen, _ = make_plan(
+        plan, cell.spec, env, poses, seed=seed, tool_m=cell.tool_m,
+        approach_rad=cfg.approach_rad, **kw,
+    )  # fmt: skip
+    try:
+        return next(gen)
+    finally:
+        gen.close()
+
+
 def run_campaign(
     robot,
     tracker,
@@ -71,11 +85,13 @@ def run_campaign(
     elapsed0_s: float = 0.0,
     plan_kwargs: dict | None = None,
     watch_history: list[dict] | None = None,
+    reference_every: int = 0,
 ) -> tuple[Path, CampaignResult]:
     """Plan, connect, record. With a non-zero kinematic margin, every sample
     also checks that the real SMR stays within the margin of the nominal one (`watch.MarginWatch`;
     `watch_history`: samples of the recording a resume continues) and the campaign stops when it
-    does not."""
+    does not. `reference_every` N > 0: the plan's first pose is measured again after every N
+    poses and at the end (`plans.with_reference`), a drift record."""
     env = envelope or default_envelope(cell.spec)
     cfg = config or CampaignConfig(payload_kg=cell.payload_kg)
     gen, _ = make_plan(
@@ -89,6 +105,14 @@ def run_campaign(
         approach_rad=cfg.approach_rad,
         **(plan_kwargs or {}),
     )
+    if reference_every:
+        gen = with_reference(
+            gen,
+            reference_every,
+            _first_target(plan, cell, env, poses, seed, cfg, plan_kwargs)
+            if skip_ids or (plan_kwargs or {}).get("history")
+            else None,
+        )
     campaign = {
         "plan": plan,
         "poses": poses,
@@ -99,6 +123,8 @@ def run_campaign(
         "envelope": env.to_dict(),
         **(extra_campaign or {}),
     }
+    if reference_every:
+        campaign["reference_every"] = int(reference_every)
     session = cell.session(campaign)
     if chained_from:
         session["chained_from"] = chained_from

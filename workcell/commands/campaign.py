@@ -71,6 +71,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="safety envelope JSON (joint limits in rad, workspace box and floor in m, speed "
         "caps; `workcell envelope` writes the default to edit); default: the arm's default",
     )
+    p.add_argument(
+        "--reference-every",
+        type=int,
+        metavar="N",
+        help="measure the plan's first pose again after every N poses and at the end, with the "
+        "same approach: a record of drift during the campaign (`workcell info` reports it)",
+    )
     p.add_argument("--dry-run", action="store_true", help="print and check the plan; do not move")
     p.add_argument("--resume", help="continue this interrupted recording in a new chained file")
     p.add_argument("--online", choices=["ekf-ann"], help="feed samples to an online estimator")
@@ -97,8 +104,18 @@ def _say_planning(args: argparse.Namespace) -> None:
 def _check_resume_options(args: argparse.Namespace) -> None:
     """A resume continues the recorded campaign: refuse options it would ignore, in one line."""
     given = [
-        "--" + k
-        for k in ("plan", "poses", "seed", "effects", "model", "readings", "settle", "warmup")
+        "--" + k.replace("_", "-")
+        for k in (
+            "plan",
+            "poses",
+            "seed",
+            "effects",
+            "model",
+            "readings",
+            "settle",
+            "warmup",
+            "reference_every",
+        )  # fmt: skip
         if getattr(args, k) is not None
     ]
     if given:
@@ -151,6 +168,10 @@ def run(args: argparse.Namespace) -> int:
         )
     if args.readings <= 0:
         raise UserError(f"--readings must be positive, got {args.readings}")
+    if args.reference_every is not None and args.reference_every <= 0:
+        raise UserError(
+            f"--reference-every must be a positive number of poses, got {args.reference_every}"
+        )
     if args.seed < 0:
         raise UserError(f"--seed must be >= 0, got {args.seed}")
     if not (math.isfinite(args.time_scale) and args.time_scale > 0):
@@ -173,7 +194,17 @@ def run(args: argparse.Namespace) -> int:
     control = _control(args)
     n = [0]
 
+    seen: set[int] = set()
+
     def on_sample(s: dict) -> None:
+        if s["pose_id"] in seen:  # the reference pose measured again (--reference-every)
+            print(
+                f"pose {s['pose_id']:4d}  reference   elapsed {s['elapsed_s']:8.1f} s",
+                file=sys.stderr,
+                flush=True,
+            )
+            return
+        seen.add(s["pose_id"])
         n[0] += 1
         print(
             f"pose {s['pose_id']:4d}  {n[0]:4d}/{args.poses}  elapsed {s['elapsed_s']:8.1f} s",
@@ -214,6 +245,7 @@ def run(args: argparse.Namespace) -> int:
             "tracker_url": args.tracker,
             "effects": args.effects if args.robot == "sim" else None,
         },
+        reference_every=args.reference_every or 0,
     )
     print(f"recorded {res.measured} poses, skipped {res.skipped}, events {res.events} -> {path}")
     margin_stop(res, path)
@@ -267,6 +299,13 @@ def dry_run(args, cell, env, cfg) -> int:
     for t in targets:
         print(f"pose {t.pose_id:4d}  q = [" + ", ".join(f"{x:+.4f}" for x in t.q_rad) + "] rad")
     print(f"dry run: {len(targets)} poses, {len(problems)} problems; nothing moved")
+    if args.reference_every and targets:
+        k = len(targets) // args.reference_every + (len(targets) % args.reference_every > 0)
+        print(
+            f"reference: pose {targets[0].pose_id} measured again after every "
+            f"{args.reference_every} poses and at the end ({k} more measurements; each move to it "
+            "is checked against the envelope when it is made)"
+        )
     for p in problems:
         print("  " + p)
     if targets:

@@ -51,7 +51,23 @@ def summary(path: str) -> dict:
         "envelope": _get(s.get("campaign"), "envelope"),
         "chained_from": s.get("chained_from"),
         "size_bytes": rec.size_bytes,
+        "repeats": _repeats(rec),
     }
+
+
+def _repeats(rec: Recording) -> list[dict]:
+    """Poses measured more than once and how far they moved (`recording.repeats`); none when
+    the samples do not make a dataset (their problems are listed instead)."""
+    from workcell.errors import UserError
+    from workcell.recording.dataset import Dataset
+    from workcell.recording.repeats import repeat_drift
+
+    if not rec.samples:
+        return []
+    try:
+        return repeat_drift(Dataset.from_recording(rec))
+    except (UserError, ValueError):
+        return []
 
 
 def run(args: argparse.Namespace) -> int:
@@ -74,6 +90,12 @@ def run(args: argparse.Namespace) -> int:
         print(f"envelope    {envelope_line(d['envelope'])}")
     if d["chained_from"]:
         print(f"continues   {_get(d['chained_from'], 'path')}")
+    from workcell.recording.repeats import repeat_line
+
+    for r in d["repeats"][:3]:
+        print(f"repeated    {repeat_line(r)}")
+    if len(d["repeats"]) > 3:
+        print(f"repeated    ... and {len(d['repeats']) - 3} more poses measured more than once")
     for p in d["problems"]:
         print(f"problem     {p}")
     vp = d["value_problems"]

@@ -85,6 +85,7 @@ from workcell.estimation.models import (
 )
 from workcell.kinematics.chain import PARAM_NAMES, PARAMETER_FRAMES, jac_joints
 from workcell.recording.dataset import Dataset, distinct_poses
+from workcell.recording.repeats import repeat_drift, repeat_line
 
 
 @dataclass
@@ -787,6 +788,7 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
         "unexplained": unexplained,
         "thermal_source": src,
         "joints_tied_to_time": _joints_tied_to_time(dfit),
+        "repeats": repeat_drift(ds),
         "seconds": time.perf_counter() - t0,
     }
     report["summary"] = summary_text(report)
@@ -1223,6 +1225,11 @@ def summary_text(r: dict) -> str:
                 "(repeatability of the arm or of the measurement) larger than the stated noise"
             )
         lines.append(txt + ".")
+    for rp in (r.get("repeats") or [])[:3]:
+        lines.append(
+            "Measured again (no model involved): " + repeat_line(rp) + "; a drift during the "
+            "recording shows here directly."
+        )
     return "\n".join(lines)
 
 

@@ -187,6 +187,11 @@ def fit_dataset(
         "train_poses": int(len(train)),
         "heldout_poses": int(len(test)),
         "split": f"seeded permutation (seed {HOLDOUT_SEED}), {holdout:.0%} held out"
+        + (
+            "; poses measured more than once trained on"
+            if len(np.unique(ds.pose_groups())) < len(ds)
+            else ""
+        )
         if len(test)
         else "no hold-out: numbers are on the training poses",
         "nominal_rms_m": nominal["rms_m"],

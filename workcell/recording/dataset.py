@@ -20,14 +20,39 @@ from workcell.recording.reader import Recording, RecordingError, is_finite_list,
 HOLDOUT_SEED = 20240601
 
 
-def holdout_indices(n: int, fraction: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
+def holdout_indices(
+    n: int, fraction: float = 0.25, groups: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """The deterministic split of n poses in recording order (fixed-seed permutation):
-    (train indices, held-out indices); what `Dataset.holdout_split` and the fits use."""
+    (train indices, held-out indices); what `Dataset.holdout_split` and the fits use.
+    `groups` (n,): the samples of one group (one pose measured again, e.g. a reference) go to
+    the same side, and to training unless the singly measured poses cannot fill the held-out
+    share: so a held-out figure counts each pose once. Without repeats the split is the
+    ungrouped one, sample for sample."""
     if not 0.0 <= fraction < 1.0:
         raise ValueError(f"holdout fraction must be in [0, 1), got {fraction}")
     n_test = int(round(fraction * n))
     perm = np.random.default_rng(HOLDOUT_SEED).permutation(n)
-    return np.sort(perm[n_test:]), np.sort(perm[:n_test])
+    if groups is None:
+        return np.sort(perm[n_test:]), np.sort(perm[:n_test])
+    _, g = np.unique(np.asarray(groups), return_inverse=True)
+    g = np.asarray(g).ravel()
+    size = np.bincount(g)
+    test = np.zeros(n, bool)
+    taken = 0
+    for i in perm:  # singly measured poses first, in the permutation's order
+        if size[g[i]] == 1 and taken < n_test:
+            test[i] = True
+            taken += 1
+    if taken < n_test:  # too few: whole repeated groups, in the order they first appear
+        for i in perm:
+            if taken >= n_test:
+                break
+            if size[g[i]] > 1 and not test[i]:
+                members = g == g[i]
+                test |= members
+                taken += int(members.sum())
+    return np.flatnonzero(~test), np.flatnonzero(test)
 
 
 @dataclass
@@ -99,7 +124,18 @@ class Dataset:
 
     def holdout_split(self, fraction: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
         """Deterministic split (fixed-seed permutation): (train indices, held-out indices)."""
-        return holdout_indices(len(self), fraction)
+        return holdout_indices(len(self), fraction, self.pose_groups())
+
+    def pose_groups(self) -> np.ndarray:
+        """(N,) group of each sample: samples of one pose measured again (same pose_id, same
+        commanded configuration, e.g. `campaign --reference-every`) share a group, so a split
+        never trains on one of them and tests on another."""
+        q = self.q_commanded if self.q_commanded is not None else self.q
+        key = np.round(np.nan_to_num(np.asarray(q, float)) / 1e-6).astype(np.int64)
+        _, g = np.unique(
+            np.c_[np.asarray(self.pose_id, np.int64), key], axis=0, return_inverse=True
+        )
+        return np.asarray(g).ravel()
 
     @classmethod
     def from_recording(cls, rec: Recording | str | os.PathLike) -> Dataset:

@@ -1,0 +1,162 @@
+"""`campaign --reference-every N`: the plan's first pose measured again during the campaign, a
+drift record read without any model (`recording.repeats`), kept on one side of the hold-out
+split, and continued by a resume."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from workcell.campaign.plans import PoseTarget, with_reference
+from workcell.recording.dataset import holdout_indices
+
+
+def _plan(n: int, sent: list):
+    """A plan of n targets that records what the executor sends back to it."""
+    for i in range(n):
+        s = yield PoseTarget(pose_id=i, q_rad=np.full(6, float(i)), approach_sign=np.ones(6))
+        sent.append(None if s is None else s["pose_id"])
+
+
+def _drive(plan, skip: set[int] = frozenset()):
+    """Run a plan the way the executor does: measure each target (or skip it) and send back."""
+    order = []
+    try:
+        t = next(plan)
+        while True:
+            order.append(t.pose_id)
+            sample = (
+                None
+                if (t.pose_id in skip and order.count(t.pose_id) == 1)
+                else {"pose_id": t.pose_id}
+            )
+            t = plan.send(sample)
+    except StopIteration:
+        return order
+
+
+def test_the_reference_is_measured_after_every_n_poses_and_at_the_end():
+    sent: list = []
+    order = _drive(with_reference(_plan(7, sent), 3))
+    assert order == [0, 1, 2, 0, 3, 4, 5, 0, 6, 0]
+    assert sent == [0, 1, 2, 3, 4, 5, 6]  # the plan sees each of its own poses once
+    # a campaign ending right after a reference measures it once, not twice
+    assert _drive(with_reference(_plan(6, []), 3)) == [0, 1, 2, 0, 3, 4, 5, 0]
+    # skipped poses do not count towards the interval
+    assert _drive(with_reference(_plan(5, []), 2), skip={1}) == [0, 1, 2, 0, 3, 4, 0]
+    # a given reference (a resume: the plan's first pose is already measured)
+    ref = PoseTarget(pose_id=0, q_rad=np.zeros(6), approach_sign=np.ones(6))
+    rest = (t for t in [PoseTarget(5, np.ones(6), np.ones(6))])
+    assert _drive(with_reference(rest, 4, ref)) == [5, 0]
+    with pytest.raises(ValueError, match="positive"):
+        next(with_reference(_plan(3, []), 0))
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    n=st.integers(1, 80),
+    frac=st.sampled_from([0.0, 0.1, 0.25, 0.5]),
+    reps=st.lists(st.integers(0, 79), max_size=30),
+)
+def test_a_pose_measured_again_stays_on_one_side_of_the_split(n, frac, reps):
+    """Samples of one group (one pose measured again) are never split between training and
+    held-out, and are trained on while singly measured poses can fill the held-out share;
+    without repeats the split is the ungrouped one, sample for sample."""
+    groups = list(range(n)) + [r % n for r in reps]
+    m = len(groups)
+    tr, te = holdout_indices(m, frac, np.array(groups))
+    assert sorted(np.r_[tr, te].tolist()) == list(range(m))
+    side = {}
+    for i in te:
+        side.setdefault(groups[i], "test")
+        assert side[groups[i]] == "test"
+    for i in tr:
+        assert side.get(groups[i], "train") == "train"
+    size = {k: groups.count(k) for k in set(groups)}
+    singles = sum(1 for k in groups if size[k] == 1)
+    n_test = int(round(frac * m))
+    if singles >= n_test:
+        assert len(te) == n_test and all(size[groups[i]] == 1 for i in te)
+    else:
+        assert len(te) >= n_test
+    if not reps:
+        tr0, te0 = holdout_indices(n, frac)
+        assert np.array_equal(tr, tr0) and np.array_equal(te, te0)
+
+
+def test_a_campaign_with_a_reference_records_its_drift(tmp_path, capsys):
+    """Simulated UR5e with its realistic effects (thermal drift from a cold start), 12 poses,
+    the reference every 5: pose 0 is measured 4 times (start, after 5, after 10, at the end);
+    `info` reports how far it moved against the readings' own scatter, fits keep the repeats on
+    one side of the split, and a fit runs on the recording."""
+    from workcell.campaign.executor import CampaignConfig
+    from workcell.campaign.run import run_campaign, sim_cell
+    from workcell.cli import main
+    from workcell.recording.dataset import Dataset
+    from workcell.recording.reader import read_recording
+
+    _, robot, tracker, cell = sim_cell("ur5e", "realistic", 2, beam_break_prob=0.0)
+    path = tmp_path / "ref.mcap"
+    cfg = CampaignConfig(readings_per_pose=2, settle_s=0.2)
+    _, res = run_campaign(
+        robot, tracker, cell, path, poses=12, seed=2, config=cfg, reference_every=5
+    )
+    rec = read_recording(path)
+    ids = [s["pose_id"] for s in rec.samples]
+    assert len(ids) == 15 and [i for i, p in enumerate(ids) if p == 0] == [0, 5, 11, 14], ids
+    assert rec.session["campaign"]["reference_every"] == 5
+    q0 = [s["q_commanded_rad"] for s in rec.samples if s["pose_id"] == 0]
+    assert all(np.allclose(q, q0[0], atol=1e-12) for q in q0)
+    ds = Dataset.from_recording(path)
+    tr, te = ds.holdout_split(0.25)
+    assert set(np.flatnonzero(ds.pose_id == 0).tolist()) <= set(tr.tolist())  # trained on
+    assert len(te) == round(0.25 * 15) and len(set(ds.pose_id[te].tolist())) == len(te)
+    assert main(["info", str(path), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    (r,) = info["repeats"]
+    assert r["pose_id"] == 0 and r["measurements"] == 4
+    assert r["displacement_m"][0] == 0.0 and r["max_m"] > 0.0 and r["noise_m"] > 0.0
+    assert r["span_s"] == pytest.approx(r["elapsed_s"][-1] - r["elapsed_s"][0])
+    assert main(["info", str(path)]) == 0
+    assert "repeated    pose 0 measured 4 times" in capsys.readouterr().out
+
+
+def test_a_resumed_campaign_goes_on_measuring_the_reference(tmp_path):
+    """Aborted after 6 samples, resumed from the command line: the continuation records the
+    interval again, re-measures the plan's first pose (not the first pose it measures itself),
+    and together the two files hold each plan pose once plus the references."""
+    from workcell.campaign.executor import CampaignConfig, CampaignControl
+    from workcell.campaign.run import run_campaign, sim_cell
+    from workcell.cli import main
+    from workcell.recording.reader import read_recording
+
+    _, robot, tracker, cell = sim_cell("ur5e", "realistic", 0, beam_break_prob=0.0)
+    path = tmp_path / "c.mcap"
+    control = CampaignControl()
+    n = [0]
+
+    def on_sample(s):
+        n[0] += 1
+        if n[0] >= 6:
+            control.abort.set()
+
+    cfg = CampaignConfig(readings_per_pose=2, settle_s=0.2)
+    run_campaign(
+        robot, tracker, cell, path, poses=14, seed=0, config=cfg, control=control,
+        on_sample=on_sample, reference_every=4,
+        extra_campaign={"robot_url": "sim", "tracker_url": "sim", "effects": "realistic"},
+    )  # fmt: skip
+    first = read_recording(path)
+    assert [s["pose_id"] for s in first.samples][:6] == [0, 1, 2, 3, 0, 4]
+    assert main(["campaign", "--resume", str(path)]) == 0
+    second = read_recording(tmp_path / "c.resumed1.mcap")
+    assert second.session["campaign"]["reference_every"] == 4
+    more = [s["pose_id"] for s in second.samples]
+    assert more.count(0) >= 2 and 0 not in more[:1]
+    own = [p for p in more if p != 0]
+    assert len(own) == len(set(own)) and not set(own) & {1, 2, 3, 4}
+    assert set(own) | {0, 1, 2, 3, 4} == set(range(14))

@@ -1,0 +1,55 @@
+"""Poses measured more than once in a recording (`campaign --reference-every`, or another tool's
+repeat measurements): how far the measured position of a fixed pose moved during the campaign,
+against what the readings' own scatter gives. A drift of the whole measurement (temperature, the
+tracker, the set-up) shows here directly, without any model."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from workcell.recording.dataset import Dataset
+
+
+def repeat_drift(ds: Dataset) -> list[dict]:
+    """One entry per pose measured at least twice (same pose_id and commanded configuration),
+    in order of its first measurement: `pose_id`, `measurements`, `span_s` (first to last),
+    `displacement_m` of each measurement from the first (3-D, m; the first is 0), `elapsed_s`,
+    `max_m`, `last_m`, `rms_m` (over the repeats), and `noise_m`: the RMS 3-D difference the
+    recorded sigmas of the means alone would give."""
+    groups = ds.pose_groups()
+    _, first, counts = np.unique(groups, return_index=True, return_counts=True)
+    t = np.asarray(ds.elapsed_s, float)
+    out = []
+    for k in np.argsort(first):
+        if counts[k] < 2:
+            continue
+        idx = np.flatnonzero(groups == groups[first[k]])
+        idx = idx[np.argsort(t[idx], kind="stable")]
+        d = np.linalg.norm(ds.p_tracker[idx] - ds.p_tracker[idx[0]], axis=1)
+        s = np.asarray(ds.sigma_m, float)
+        noise = np.sqrt(np.sum(s[idx[1:]] ** 2 + s[idx[0]] ** 2, axis=1))
+        out.append(
+            {
+                "pose_id": int(ds.pose_id[idx[0]]),
+                "measurements": int(len(idx)),
+                "span_s": float(t[idx[-1]] - t[idx[0]]),
+                "elapsed_s": t[idx].tolist(),
+                "displacement_m": d.tolist(),
+                "max_m": float(d[1:].max()),
+                "last_m": float(d[-1]),
+                "rms_m": float(np.sqrt(np.mean(d[1:] ** 2))),
+                "noise_m": float(np.sqrt(np.mean(noise**2))),
+            }
+        )
+    return out
+
+
+def repeat_line(r: dict) -> str:
+    """One line for a `repeat_drift` entry."""
+    um = 1e6
+    return (
+        f"pose {r['pose_id']} measured {r['measurements']} times over {r['span_s'] / 60:.1f} "
+        f"min: up to {r['max_m'] * um:.1f} um from its first reading (last {r['last_m'] * um:.1f}"
+        f" um, RMS {r['rms_m'] * um:.1f} um); the readings' own scatter would give about "
+        f"{r['noise_m'] * um:.1f} um"
+    )
