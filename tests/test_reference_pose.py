@@ -160,3 +160,26 @@ def test_a_resumed_campaign_goes_on_measuring_the_reference(tmp_path):
     own = [p for p in more if p != 0]
     assert len(own) == len(set(own)) and not set(own) & {1, 2, 3, 4}
     assert set(own) | {0, 1, 2, 3, 4} == set(range(14))
+
+
+@pytest.mark.parametrize("bad", ["5", 2.5, -1, True, [3]])
+def test_a_hand_edited_reference_interval_is_refused_in_one_line(bad):
+    from workcell.campaign.resume import _reference_every
+    from workcell.errors import UserError
+
+    assert _reference_every({}, "x.mcap") == 0 and _reference_every({"reference_every": 4}, "") == 4
+    with pytest.raises(UserError, match="not a positive whole number"):
+        _reference_every({"reference_every": bad}, "x.mcap")
+
+
+def test_the_command_line_refuses_a_non_positive_interval(capsys):
+    from workcell.cli import main
+
+    argv = ["campaign", "--robot", "sim", "--tracker", "sim", "--dry-run", "--poses", "20"]
+    assert main([*argv, "--reference-every", "0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--reference-every must be a positive number" in err[0]
+    assert main([*argv, "--reference-every", "8"]) == 0
+    assert "reference: pose 0 measured again after every 8 poses and at the end (3 more" in (
+        capsys.readouterr().out
+    )
