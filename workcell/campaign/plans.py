@@ -213,7 +213,7 @@ def with_reference(plan: Plan, every: int, reference: PoseTarget | None = None) 
         t = next(plan)
     except StopIteration:
         return
-    ref = reference or t
+    ref = t if reference is None else reference
     measured, just_checked = 0, False
     while True:
         sample = yield t

@@ -68,6 +68,8 @@ def _repeats(rec: Recording) -> list[dict]:
         return repeat_drift(Dataset.from_recording(rec))
     except (UserError, ValueError):
         return []
+    except Exception:  # noqa: BLE001 - an optional extra must not sink `info` on a bad file
+        return []
 
 
 def run(args: argparse.Namespace) -> int:
