@@ -17,6 +17,15 @@ REFERENCE_POSES = 60  # random poses inside the envelope: what well-spread poses
 HOLDOUT = 0.25  # the fits' default held-out share
 
 
+def reference_poses(spec: RobotSpec, env: Envelope, tool_m: np.ndarray) -> np.ndarray:
+    """`REFERENCE_POSES` random poses inside the envelope (seeded): what well-spread poses
+    identify, and where the expected figures are taken. A dry run draws them once and passes
+    them to `identification_lines` and `plan_pose_count_line`."""
+    from workcell.campaign.plans import random_configurations
+
+    return random_configurations(spec, env, REFERENCE_POSES, np.random.default_rng(0), tool_m)
+
+
 def nominal_smr_in_tracker(
     spec: RobotSpec, q: np.ndarray, tool_m: np.ndarray, base_in_tracker: dict | None
 ) -> np.ndarray:
@@ -62,16 +71,13 @@ def expected_after_fit(
     `REFERENCE_POSES` random poses inside the envelope) of the fit's training poses (the fits'
     deterministic split), plus `train_poses`, `pose_sigma_m` and `range_m` of the planned poses.
     None with too few training poses, or when they leave a parameter dependent."""
-    from workcell.campaign.plans import random_configurations
     from workcell.estimation.fitting import MIN_TRAIN_POSES
     from workcell.estimation.identifiability import pose_set_report
     from workcell.recording.dataset import holdout_indices
 
     q = np.atleast_2d(np.asarray(q, float))
     if reference_q is None:
-        reference_q = random_configurations(
-            spec, env, REFERENCE_POSES, np.random.default_rng(0), tool_m
-        )
+        reference_q = reference_poses(spec, env, tool_m)
     train, _ = holdout_indices(len(q), HOLDOUT)
     if len(train) < MIN_TRAIN_POSES:
         return None
@@ -96,16 +102,16 @@ def identification_lines(
     q: np.ndarray,
     tool_m: np.ndarray,
     base_in_tracker: dict | None = None,
+    reference_q: np.ndarray | None = None,
 ) -> list[str]:
     """The dry run's identification summary: one line, then what a DH fit of these poses
     should reach if the geometric model holds, then a line per warning (each starts with
-    'warning:')."""
-    from workcell.campaign.plans import random_configurations
+    'warning:'). `reference_q`: `reference_poses`, drawn here if not given."""
     from workcell.estimation.fitting import MIN_TRAIN_POSES, min_poses_for_fit
     from workcell.estimation.identifiability import pose_set_report
 
     q = np.atleast_2d(np.asarray(q, float))
-    ref = random_configurations(spec, env, REFERENCE_POSES, np.random.default_rng(0), tool_m)
+    ref = reference_poses(spec, env, tool_m) if reference_q is None else reference_q
     r = pose_set_report(spec.dh, q, tool_m, reference_q=ref)
     lines = [
         f"identification (nominal chain, a point measured: 3 equations a pose): rank "
@@ -167,14 +173,14 @@ def pose_count_curve(
     *,
     counts: Sequence[int] = POSE_COUNTS,
     stop_ratio: float = STOP_RATIO,
+    reference_q: np.ndarray | None = None,
 ) -> dict[int, float]:
     """{n: expected held-out RMS / noise floor} of a DH fit of the plan's first n poses
     `q_for(n)` (None: the plan has no n poses), by `expected_after_fit`, for the `counts` a fit
     accepts, in order, until the ratio is within `stop_ratio`."""
-    from workcell.campaign.plans import random_configurations
     from workcell.estimation.fitting import min_poses_for_fit
 
-    ref = random_configurations(spec, env, REFERENCE_POSES, np.random.default_rng(0), tool_m)
+    ref = reference_poses(spec, env, tool_m) if reference_q is None else reference_q
     curve: dict[int, float] = {}
     for n in sorted(c for c in counts if c >= min_poses_for_fit(HOLDOUT)):
         q = q_for(n)
@@ -210,6 +216,7 @@ def plan_pose_count_line(
     base_in_tracker: dict | None = None,
     approach_rad: float = 0.02,
     previewed_q: np.ndarray | None = None,
+    reference_q: np.ndarray | None = None,
 ) -> str | None:
     """The dry run's pose-count line for a plan: a grid or random plan re-planned (same seed)
     with each count; an adaptive plan's preview `previewed_q` (its choice at the nominal
@@ -235,4 +242,5 @@ def plan_pose_count_line(
 
     else:
         return None
-    return pose_count_line(pose_count_curve(spec, env, q_for, tool_m, base_in_tracker), kind)
+    curve = pose_count_curve(spec, env, q_for, tool_m, base_in_tracker, reference_q=reference_q)
+    return pose_count_line(curve, kind)

@@ -309,14 +309,22 @@ def dry_run(args, cell, env, cfg) -> int:
     for p in problems:
         print("  " + p)
     if targets:
-        from workcell.campaign.identification import identification_lines, plan_pose_count_line
+        from workcell.campaign.identification import (
+            identification_lines,
+            plan_pose_count_line,
+            reference_poses,
+        )
 
         q = np.array([t.q_rad for t in targets])
-        print("\n".join(identification_lines(cell.spec, env, q, cell.tool_m, cell.base_in_tracker)))
+        ref = reference_poses(cell.spec, env, cell.tool_m)
+        lines = identification_lines(
+            cell.spec, env, q, cell.tool_m, cell.base_in_tracker, reference_q=ref
+        )
+        print("\n".join(lines))
         line = plan_pose_count_line(
             args.plan, cell.spec, env, seed=args.seed, tool_m=cell.tool_m,
             base_in_tracker=cell.base_in_tracker, approach_rad=cfg.approach_rad,
-            previewed_q=q if args.plan in PREVIEW_KINDS else None,
+            previewed_q=q if args.plan in PREVIEW_KINDS else None, reference_q=ref,
         )  # fmt: skip
         if line:
             print(line)

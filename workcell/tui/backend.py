@@ -201,7 +201,7 @@ def dry_run(plan: PlanConfig, dev: Devices, *, preview: bool = True) -> dict:
     tens of poses) and the expected fit is given for other pose counts; the campaign's own check
     before it starts does without (each adaptive pose is checked before it moves)."""
     from workcell.campaign.executor import PREVIEW_KINDS, dry_run_plan, preview_adaptive_plan
-    from workcell.campaign.identification import identification_lines
+    from workcell.campaign.identification import identification_lines, reference_poses
 
     plan.validate()
     env = envelope_for(plan, dev)
@@ -220,8 +220,9 @@ def dry_run(plan: PlanConfig, dev: Devices, *, preview: bool = True) -> dict:
             base_in_tracker=cell.base_in_tracker, config=cfg,
         )  # fmt: skip
         q = np.array([t.q_rad for t in targets])
-        ident = identification_lines(cell.spec, env, q, cell.tool_m, cell.base_in_tracker)
-        ident += _pose_count(plan, cell, env, cfg, q)
+        ref = reference_poses(cell.spec, env, cell.tool_m)
+        ident = identification_lines(cell.spec, env, q, cell.tool_m, cell.base_in_tracker, ref)
+        ident += _pose_count(plan, cell, env, cfg, q, ref)
         return {
             **out,
             "problems": problems,
@@ -232,9 +233,10 @@ def dry_run(plan: PlanConfig, dev: Devices, *, preview: bool = True) -> dict:
     ident = []
     if targets:
         q = np.array([t.q_rad for t in targets])
-        ident = identification_lines(cell.spec, env, q, cell.tool_m, cell.base_in_tracker)
+        ref = reference_poses(cell.spec, env, cell.tool_m)
+        ident = identification_lines(cell.spec, env, q, cell.tool_m, cell.base_in_tracker, ref)
         if preview:
-            ident += _pose_count(plan, cell, env, cfg, None)
+            ident += _pose_count(plan, cell, env, cfg, None, ref)
     return {
         "adaptive": False,
         "targets": len(targets),
@@ -245,14 +247,14 @@ def dry_run(plan: PlanConfig, dev: Devices, *, preview: bool = True) -> dict:
     }
 
 
-def _pose_count(plan: PlanConfig, cell, env, cfg, previewed_q) -> list[str]:
+def _pose_count(plan: PlanConfig, cell, env, cfg, previewed_q, ref) -> list[str]:
     """The dry run's pose-count line (a second or a few: the Plan screen's check only)."""
     from workcell.campaign.identification import plan_pose_count_line
 
     line = plan_pose_count_line(
         plan.kind, cell.spec, env, seed=plan.seed, tool_m=cell.tool_m,
         base_in_tracker=cell.base_in_tracker, approach_rad=cfg.approach_rad,
-        previewed_q=previewed_q,
+        previewed_q=previewed_q, reference_q=ref,
     )  # fmt: skip
     return [line] if line else []
 
