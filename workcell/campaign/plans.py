@@ -214,7 +214,7 @@ def with_reference(plan: Plan, every: int, reference: PoseTarget | None = None) 
     except StopIteration:
         return
     ref = t if reference is None else reference
-    measured, just_checked = 0, False
+    measured = 0
     while True:
         sample = yield t
         just_checked = False

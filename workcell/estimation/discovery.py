@@ -735,7 +735,10 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
     unexplained["serial_correlation"] = _serial_correlation(res_tr, dfit.elapsed_s)
     model_np = None
     if cfg.nonparametric:
-        unexplained_np, model_np = _nonparametric(model, dfit, res_tr, dte, res_te, after, cfg, log)
+        unexplained_np, model_np = _nonparametric(
+            model, dfit, res_tr, dte, res_te, after, cfg, log,
+            serial=unexplained["serial_correlation"]["significant"],
+        )  # fmt: skip
         unexplained.update(unexplained_np)
 
     geometry = _geometry_items(dh)
@@ -815,8 +818,9 @@ def _serial_correlation(res: np.ndarray, t: np.ndarray) -> dict:
     return {"lag1": rho, "significant": bool(abs(rho) > 3.0 / np.sqrt(max(n, 1)))}
 
 
-def _nonparametric(model, dfit, res_tr, dte, res_te, after, cfg, log):
-    """Fit a residual GP; judge it on the held-out poses."""
+def _nonparametric(model, dfit, res_tr, dte, res_te, after, cfg, log, *, serial: bool = False):
+    """Fit a residual GP; judge it on the held-out poses. `serial`: the residual is correlated
+    in recording order (`_serial_correlation`), which calls for the drift check too."""
     from workcell.estimation.discovery_np import fit_residual_gp, relevant_joints
 
     out: dict = {}
@@ -852,7 +856,7 @@ def _nonparametric(model, dfit, res_tr, dte, res_te, after, cfg, log):
                 f"largest for joint {j} in [{lo:+.2f}, {hi:+.2f}] rad "
                 f"(RMS {rms3[k] * 1e6:.1f} um vs {min(rms3) * 1e6:.1f} um elsewhere)"
             )
-    if structured or _serial_correlation(res_tr, dfit.elapsed_s)["significant"]:
+    if structured or serial:
         # joint-space structure, or residuals correlated in recording order: drift or joints?
         drift = _drift(dfit, res_tr, dte, res_te, cfg, gp)
         if drift is not None:

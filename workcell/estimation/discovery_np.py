@@ -145,22 +145,18 @@ def drift_check(
         return None
     s_tr, s_te = (t_tr - t0) / span, (t_te - t0) / span
 
-    def fit(
-        X_tr: np.ndarray, y: np.ndarray, X_te: np.ndarray, gp: ResidualGP | None = None
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """(leave-one-out residuals at the training poses, prediction at the held-out ones)"""
-        if gp is None:
-            gp = _fit_ard_gp(X_tr, y, max_points=max_points, seed=seed)
-        K = gp.kernel(X_tr, X_tr) + (gp.noise_var + 1e-10) * np.eye(len(X_tr))
-        Kinv = np.linalg.inv(K)
-        loo = (gp.alpha / np.diag(Kinv)[:, None]) * gp.y_std  # y_i - mean without pose i
-        return loo, gp.predict(X_te)
+    def predict(X_tr: np.ndarray, y: np.ndarray, X_te: np.ndarray) -> np.ndarray:
+        return _fit_ard_gp(X_tr, y, max_points=max_points, seed=seed).predict(X_te)
 
-    loo_j, f_te = fit(q_tr, r_tr, q_te, gp_joints)
-    _, g_te = fit(s_tr[:, None], r_tr, s_te[:, None])
+    gp_j = gp_joints or _fit_ard_gp(q_tr, r_tr, max_points=max_points, seed=seed)
+    f_te = gp_j.predict(q_te)
+    g_te = predict(s_tr[:, None], r_tr, s_te[:, None])
     # both: additive, a field over the joints plus a drift in time; the drift is fitted to
-    # what the joints GP leaves at each training pose without that pose (one backfitting step)
-    _, h_te = fit(s_tr[:, None], loo_j, s_te[:, None])
+    # what the joints GP leaves at each training pose without that pose (its leave-one-out
+    # residual, one backfitting step)
+    K = gp_j.kernel(q_tr, q_tr) + (gp_j.noise_var + 1e-10) * np.eye(len(q_tr))
+    loo_j = (gp_j.alpha / np.diag(np.linalg.inv(K))[:, None]) * gp_j.y_std
+    h_te = predict(s_tr[:, None], loo_j, s_te[:, None])
     e_j = np.sum((r_te - f_te) ** 2, axis=1)
     e_t = np.sum((r_te - g_te) ** 2, axis=1)
     e_b = np.sum((r_te - f_te - h_te) ** 2, axis=1)

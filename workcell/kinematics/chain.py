@@ -227,21 +227,18 @@ def _batched(fn):
 
     def wrapper(*args):
         *head, q = args
-        if any(isinstance(a, _Tracer) for a in args):  # inside a trace: stay in jax
-            q = jnp.asarray(q, dtype=jnp.float64)
-            n = q.shape[0]
-            m = _bucket(n)
-            if m != n:
-                q = jnp.concatenate([q, jnp.zeros((m - n, q.shape[1]), q.dtype)])
-            return fn(*head, q)[:n]
-        # concrete values: pad and cut in numpy, so a new N compiles nothing (jax's eager
-        # concatenate and slice compile once per shape: 243 compiles in four tight-envelope plans)
-        q = np.asarray(q, dtype=np.float64)
+        # concrete values are padded and cut in numpy, so a new N compiles nothing (jax's eager
+        # concatenate and slice compile once per shape: 243 compiles in four tight-envelope
+        # plans); inside a trace everything stays in jax
+        traced = any(isinstance(a, _Tracer) for a in args)
+        xp = jnp if traced else np
+        q = xp.asarray(q, dtype=xp.float64)
         n = q.shape[0]
         m = _bucket(n)
         if m != n:
-            q = np.concatenate([q, np.zeros((m - n, q.shape[1]), q.dtype)])
-        return np.asarray(fn(*head, q))[:n]
+            q = xp.concatenate([q, xp.zeros((m - n, q.shape[1]), q.dtype)])
+        out = fn(*head, q)
+        return out[:n] if traced else np.asarray(out)[:n]
 
     wrapper.__doc__ = fn.__doc__
     wrapper.__wrapped__ = fn

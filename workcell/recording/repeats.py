@@ -19,6 +19,7 @@ def repeat_drift(ds: Dataset) -> list[dict]:
     groups = ds.pose_groups()
     _, first, counts = np.unique(groups, return_index=True, return_counts=True)
     t = np.asarray(ds.elapsed_s, float)
+    s = np.asarray(ds.sigma_m, float)
     out = []
     for k in np.argsort(first):
         if counts[k] < 2:
@@ -26,7 +27,6 @@ def repeat_drift(ds: Dataset) -> list[dict]:
         idx = np.flatnonzero(groups == groups[first[k]])
         idx = idx[np.argsort(t[idx], kind="stable")]
         d = np.linalg.norm(ds.p_tracker[idx] - ds.p_tracker[idx[0]], axis=1)
-        s = np.asarray(ds.sigma_m, float)
         noise = np.sqrt(np.sum(s[idx[1:]] ** 2 + s[idx[0]] ** 2, axis=1))
         out.append(
             {
