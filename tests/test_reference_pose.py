@@ -121,11 +121,19 @@ def test_a_campaign_with_a_reference_records_its_drift(tmp_path, capsys):
     assert r["pose_id"] == 0 and r["measurements"] == 4
     assert r["displacement_m"][0] == 0.0 and r["max_m"] > 0.0 and r["noise_m"] > 0.0
     assert r["span_s"] == pytest.approx(r["elapsed_s"][-1] - r["elapsed_s"][0])
+    # the live comparison (campaign output, TUI event log) gives the same displacements
+    from workcell.recording.repeats import RepeatWatch, repeat_event_line
+
+    watch = RepeatWatch()
+    live = [x for x in map(watch.update, rec.samples) if x is not None]
+    assert [x["pose_id"] for x in live] == [0, 0, 0]
+    assert [x["displacement_m"] for x in live] == pytest.approx(r["displacement_m"][1:], abs=1e-12)
+    assert "um from its first reading" in repeat_event_line(live[0])
     assert main(["info", str(path)]) == 0
     assert "repeated    pose 0 measured 4 times" in capsys.readouterr().out
 
 
-def test_a_resumed_campaign_goes_on_measuring_the_reference(tmp_path):
+def test_a_resumed_campaign_goes_on_measuring_the_reference(tmp_path, capsys):
     """Aborted after 6 samples, resumed from the command line: the continuation records the
     interval again, re-measures the plan's first pose (not the first pose it measures itself),
     and together the two files hold each plan pose once plus the references."""
@@ -152,10 +160,14 @@ def test_a_resumed_campaign_goes_on_measuring_the_reference(tmp_path):
     )  # fmt: skip
     first = read_recording(path)
     assert [s["pose_id"] for s in first.samples][:6] == [0, 1, 2, 3, 0, 4]
+    capsys.readouterr()
     assert main(["campaign", "--resume", str(path)]) == 0
     second = read_recording(tmp_path / "c.resumed1.mcap")
     assert second.session["campaign"]["reference_every"] == 4
     more = [s["pose_id"] for s in second.samples]
+    out = capsys.readouterr().out
+    assert f"recorded {len(more) - more.count(0)} more poses (and the reference " in out
+    assert f"{more.count(0)} more times)" in out
     assert more.count(0) >= 2 and 0 not in more[:1]
     own = [p for p in more if p != 0]
     assert len(own) == len(set(own)) and not set(own) & {1, 2, 3, 4}
@@ -164,7 +176,7 @@ def test_a_resumed_campaign_goes_on_measuring_the_reference(tmp_path):
 
 @pytest.mark.parametrize("bad", ["5", 2.5, -1, True, [3]])
 def test_a_hand_edited_reference_interval_is_refused_in_one_line(bad):
-    from workcell.campaign.resume import _reference_every
+    from workcell.campaign.resume import recorded_reference_every as _reference_every
     from workcell.errors import UserError
 
     assert _reference_every({}, "x.mcap") == 0 and _reference_every({"reference_every": 4}, "") == 4

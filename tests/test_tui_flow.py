@@ -360,3 +360,106 @@ def test_the_fit_screen_names_heldout_outliers(tmp_path, monkeypatch):
     rows = fit_table_rows(rep)
     assert re.fullmatch(r"1 \(max 4\d\d\.\d um\)", rows["held-out outliers"][0]), rows
     assert rows["held-out outliers"][1].startswith("without: ")
+
+
+def test_reference_pose_from_the_plan_screen_and_kept_by_a_resume(tmp_path, monkeypatch):
+    """`Ref. every` on the Plan screen: the dry run says how many more measurements, the
+    campaign measures the first pose again (each repeat in the event log with its displacement),
+    the progress counts the repeats. A resume of it, with the Plan screen back at 0, keeps the
+    recorded interval as the command line does."""
+    monkeypatch.chdir(tmp_path)
+    app = app_for(10)
+    gate = threading.Event()
+    real_start = backend.start_campaign
+    hold = {"after": None}  # hold the second campaign's worker after this many samples
+
+    def held_start(dev, plan, *, on_sample, **kw):
+        n = [0]
+
+        def sample(s):
+            on_sample(s)
+            n[0] += 1
+            if n[0] == hold["after"]:
+                assert gate.wait(60), "the test never released the campaign"
+
+        return real_start(dev, plan, on_sample=sample, **kw)
+
+    monkeypatch.setattr(backend, "start_campaign", held_start)
+
+    async def flow():
+        async with app.run_test(size=SIZE) as pilot:
+            await connect(app, pilot)
+            await pilot.press("f2")
+            plan = app.views["plan"]
+            await set_input(pilot, plan, "ref-every", "4")
+            await pilot.press("ctrl+r")
+            await until(pilot, lambda: plan.checked is not None, 60, "dry run")
+            assert (
+                "reference: pose 0 measured again after every 4 poses and at the end (3 more"
+                in (plan.result_text)
+            )
+            await run_campaign(app, pilot, 1)
+            scr = app.views["campaign"]
+            assert scr.state == "finished", app.notices[-3:]
+            assert (scr.done, scr.total, scr.references) == (13, 13, 3)
+            rec = read_recording(tmp_path / "run.mcap")
+            assert rec.session["campaign"]["reference_every"] == 4
+            ids = [s["pose_id"] for s in rec.samples]
+            assert ids.count(0) == 4 and len(set(ids)) == 10
+            refs = [e for e in scr.events if e.get("kind") == "reference"]
+            assert len(refs) == 3
+            first = np.array(rec.samples[0]["tracker_position_m"])
+            for e, s in zip(refs, [s for s in rec.samples[1:] if s["pose_id"] == 0], strict=True):
+                d_um = np.linalg.norm(np.array(s["tracker_position_m"]) - first) * 1e6
+                assert f"{d_um:.1f} um from its first reading" in e["message"]
+
+            # a second campaign with a reference every 3 poses, aborted, then resumed with the
+            # Plan screen's interval back at 0: the resume keeps the recorded 3
+            await pilot.press("f2")
+            await set_input(pilot, plan, "poses", "20")
+            await set_input(pilot, plan, "ref-every", "3")
+            await set_input(pilot, plan, "out", "ref.mcap")
+            await pilot.press("ctrl+r")
+            await until(pilot, lambda: plan.checked and plan.checked.poses == 20, 60, "dry run")
+            hold["after"] = 5  # 4 poses and the reference's first repeat
+            await pilot.press("f3", "s")
+            await until_confirm(app, pilot, "start")
+            await pilot.press("y")
+            await until(pilot, lambda: scr.done >= 5 and scr.state == "running", 60, "5 samples")
+            await pilot.press("p")
+            await until(pilot, lambda: scr.state == "paused", 10, "pause")
+            gate.set()
+            await pilot.press("a")
+            await until_confirm(app, pilot, "abort")
+            await pilot.press("y")
+            await until(pilot, lambda: len(app.finished) >= 2, 60, "abort")
+            assert app.finished[-1].result.aborted
+            old = read_recording(tmp_path / "ref.mcap")
+            done = {s["pose_id"] for s in old.samples}
+            await pilot.press("f2")
+            await set_input(pilot, plan, "ref-every", "0")
+            await pilot.press("ctrl+r")
+            await until(pilot, lambda: plan.checked and plan.checked.reference_every == 0, 60, "")
+            await pilot.press("f3", "r", "ctrl+u")
+            for ch in "ref.mcap":
+                await pilot.press(ch)
+            await pilot.press("enter")
+            await until_confirm(app, pilot, "resume")
+            await pilot.press("y")
+            await until(pilot, lambda: len(app.finished) >= 3, 60, "resume")
+            fin = app.finished[-1]
+            assert fin.result is not None and not fin.result.aborted, app.notices[-3:]
+            new = read_recording(fin.path)
+            assert new.session["campaign"]["reference_every"] == 3
+            left = 20 - len(done) - app.finished[-2].result.skipped
+            ids = [s["pose_id"] for s in new.samples]
+            assert ids.count(0) == left // 3 + (left % 3 > 0)  # the reference, measured again
+            assert scr.total == left + ids.count(0) and scr.references == ids.count(0)
+            assert not (set(ids) - {0}) & done
+            # the repeats are compared with pose 0's first reading, in the old file
+            first = np.array(old.samples[0]["tracker_position_m"])
+            s = next(s for s in new.samples if s["pose_id"] == 0)
+            d_um = np.linalg.norm(np.array(s["tracker_position_m"]) - first) * 1e6
+            assert any(f"{d_um:.1f} um from" in e["message"] for e in scr.events)
+
+    asyncio.run(flow())

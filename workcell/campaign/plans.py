@@ -231,6 +231,23 @@ def with_reference(plan: Plan, every: int, reference: PoseTarget | None = None) 
             return
 
 
+def reference_repeats(poses: int, every: int) -> int:
+    """How many times `with_reference` measures the reference again in a plan of `poses` poses
+    (0 when `every` is 0): after every `every` poses, and at the end unless it just was."""
+    if every <= 0 or poses <= 0:
+        return 0
+    return poses // every + (poses % every > 0)
+
+
+def reference_line(pose_id: int, poses: int, every: int) -> str:
+    """The dry run's line for a reference interval."""
+    return (
+        f"reference: pose {pose_id} measured again after every {every} poses and at the end "
+        f"({reference_repeats(poses, every)} more measurements; each move to it is checked "
+        "against the envelope when it is made)"
+    )
+
+
 CANDIDATE_SPARE = (1.1, 1.5, 2.5)  # candidates drawn per pose asked for, tried in turn
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -24,6 +25,7 @@ from workcell.errors import UserError, check_output_path
 from workcell.recording import checks
 from workcell.recording.dataset import file_sha256
 from workcell.recording.reader import read_recording
+from workcell.recording.repeats import RepeatWatch
 
 
 def resume_plan(old: str) -> dict:
@@ -62,6 +64,38 @@ def plan_continuation(kind: str, info: dict) -> dict:
     if kind in ADAPTIVE_KINDS:
         return {"plan_kwargs": {"history": info["history"]}}
     return {"skip_ids": info["done"]}
+
+
+def continuation(info: dict, old: str | Path) -> dict:
+    """Every run_campaign argument that makes a new run continue the recording `info`
+    (`resume_plan`) was read from: the plan's state, sample index and elapsed time carried on,
+    the chain to the old file, the margin watch's history and the reference interval. The
+    command line and the terminal UI resume through this one function."""
+    camp = info["campaign"]
+    return {
+        **plan_continuation(camp["plan"], info),
+        "index0": info["n_samples"],
+        "chained_from": {
+            "path": str(old),
+            "sha256": file_sha256(old),
+            "samples": info["n_samples"],
+        },
+        "elapsed0_s": info["last_elapsed"],
+        "watch_history": info["recording"].samples,
+        "reference_every": recorded_reference_every(camp, str(old)),
+    }
+
+
+def recorded_config(camp: dict, payload_kg: float, defaults: CampaignConfig) -> CampaignConfig:
+    """The measurement settings the old campaign recorded (readings, settle time, approach);
+    `defaults` for a recording that lacks one."""
+    return dataclasses.replace(
+        defaults,
+        readings_per_pose=int(camp.get("readings_per_pose", defaults.readings_per_pose)),
+        settle_s=float(camp.get("settle_s", defaults.settle_s)),
+        approach_rad=float(camp.get("approach_rad", defaults.approach_rad)),
+        payload_kg=payload_kg,
+    )
 
 
 def check_same_plan(info: dict, spec, env, tool_m, source: str) -> None:
@@ -119,7 +153,7 @@ def recorded_tool(session: dict) -> list[float]:
     return [float(v) for v in session["tool"]["smr_offset_m"]]
 
 
-def _reference_every(camp: dict, source: str) -> int:
+def recorded_reference_every(camp: dict, source: str) -> int:
     """The recorded reference interval (0: none); a hand-edited one is refused in one line."""
     v = camp.get("reference_every", 0)
     if v in (None, 0):
@@ -182,13 +216,9 @@ def resume_campaign(args: argparse.Namespace, control: CampaignControl) -> int:
     cell.tool_m = np.asarray(recorded_tool(info["recording"].session))
     env = recorded_envelope(camp, cell.spec, str(old), default=env)
     check_same_plan(info, cell.spec, env, cell.tool_m, str(old))
-    cfg = CampaignConfig(
-        readings_per_pose=int(camp.get("readings_per_pose", args.readings)),
-        settle_s=float(camp.get("settle_s", args.settle)),
-        approach_rad=float(camp.get("approach_rad", 0.02)),
-        payload_kg=cell.payload_kg,
+    cfg = recorded_config(
+        camp, cell.payload_kg, CampaignConfig(readings_per_pose=args.readings, settle_s=args.settle)
     )
-    chained = {"path": str(old), "sha256": file_sha256(old), "samples": info["n_samples"]}
     print(
         f"resuming {old}: {len(info['done'])} poses measured, {remaining} to go -> {out}",
         file=sys.stderr,
@@ -208,6 +238,11 @@ def resume_campaign(args: argparse.Namespace, control: CampaignControl) -> int:
             "reference_every",
         )
     }
+    watch, repeats = RepeatWatch(info["history"]), [0]
+
+    def count_repeats(sample: dict) -> None:
+        repeats[0] += watch.update(sample) is not None
+
     _, res = run_campaign(
         robot,
         tracker,
@@ -220,14 +255,11 @@ def resume_campaign(args: argparse.Namespace, control: CampaignControl) -> int:
         config=cfg,
         control=control,
         extra_campaign=extra,
-        **plan_continuation(camp["plan"], info),
-        index0=info["n_samples"],
-        chained_from=chained,
-        elapsed0_s=info["last_elapsed"],
-        watch_history=info["recording"].samples,
-        reference_every=_reference_every(camp, str(old)),
+        **continuation(info, old),
         on_event=lambda e: print(f"  [{e['level']}] {e['kind']}: {e['message']}", file=sys.stderr),
+        on_sample=count_repeats,
     )
-    print(f"recorded {res.measured} more poses, skipped {res.skipped} -> {out}")
+    again = f" (and the reference {repeats[0]} more times)" if repeats[0] else ""
+    print(f"recorded {res.measured - repeats[0]} more poses{again}, skipped {res.skipped} -> {out}")
     margin_stop(res, out)
     return 130 if res.aborted else 0

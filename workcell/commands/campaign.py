@@ -11,8 +11,10 @@ import numpy as np
 
 from workcell.campaign.devices import open_cell
 from workcell.campaign.executor import CampaignConfig, CampaignControl
+from workcell.campaign.plans import reference_line
 from workcell.campaign.run import margin_stop, run_campaign
 from workcell.errors import UserError, check_output_path
+from workcell.recording.repeats import RepeatWatch
 
 MAX_POSES = 100_000  # ~10 s a pose: eleven days at the tracker
 
@@ -194,17 +196,19 @@ def run(args: argparse.Namespace) -> int:
     control = _control(args)
     n = [0]
 
-    seen: set[int] = set()
+    repeats = RepeatWatch()
 
     def on_sample(s: dict) -> None:
-        if s["pose_id"] in seen:  # the reference pose measured again (--reference-every)
+        r = repeats.update(s)
+        if r is not None:  # the reference pose measured again (--reference-every)
             print(
-                f"pose {s['pose_id']:4d}  reference   elapsed {s['elapsed_s']:8.1f} s",
+                f"pose {s['pose_id']:4d}  reference   elapsed {s['elapsed_s']:8.1f} s  "
+                f"{r['displacement_m'] * 1e6:.1f} um from its first reading (scatter alone "
+                f"~{r['noise_m'] * 1e6:.1f} um)",
                 file=sys.stderr,
                 flush=True,
             )
             return
-        seen.add(s["pose_id"])
         n[0] += 1
         print(
             f"pose {s['pose_id']:4d}  {n[0]:4d}/{args.poses}  elapsed {s['elapsed_s']:8.1f} s",
@@ -247,7 +251,8 @@ def run(args: argparse.Namespace) -> int:
         },
         reference_every=args.reference_every or 0,
     )
-    print(f"recorded {res.measured} poses, skipped {res.skipped}, events {res.events} -> {path}")
+    again = f" (and the reference {res.measured - n[0]} more times)" if res.measured > n[0] else ""
+    print(f"recorded {n[0]} poses{again}, skipped {res.skipped}, events {res.events} -> {path}")
     margin_stop(res, path)
     return 130 if res.aborted else 0
 
@@ -300,12 +305,7 @@ def dry_run(args, cell, env, cfg) -> int:
         print(f"pose {t.pose_id:4d}  q = [" + ", ".join(f"{x:+.4f}" for x in t.q_rad) + "] rad")
     print(f"dry run: {len(targets)} poses, {len(problems)} problems; nothing moved")
     if args.reference_every and targets:
-        k = len(targets) // args.reference_every + (len(targets) % args.reference_every > 0)
-        print(
-            f"reference: pose {targets[0].pose_id} measured again after every "
-            f"{args.reference_every} poses and at the end ({k} more measurements; each move to it "
-            "is checked against the envelope when it is made)"
-        )
+        print(reference_line(targets[0].pose_id, len(targets), args.reference_every))
     for p in problems:
         print("  " + p)
     if targets:

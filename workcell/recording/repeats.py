@@ -53,3 +53,41 @@ def repeat_line(r: dict) -> str:
         f" um, RMS {r['rms_m'] * um:.1f} um); the readings' own scatter would give about "
         f"{r['noise_m'] * um:.1f} um"
     )
+
+
+class RepeatWatch:
+    """Live: each sample of a pose measured before (the reference of `campaign
+    --reference-every`) is compared with that pose's first reading as it arrives. `first`:
+    {pose_id: first sample} of a recording a resume continues."""
+
+    def __init__(self, first: dict[int, dict] | None = None) -> None:
+        self.first: dict[int, dict] = dict(first or {})
+
+    def update(self, sample: dict) -> dict | None:
+        """None for a pose's first sample; else `pose_id`, `elapsed_s`, `displacement_m` (3-D,
+        from the first reading) and `noise_m` (what the two readings' recorded sigmas give)."""
+        pid = int(sample["pose_id"])
+        first = self.first.get(pid)
+        if first is None:
+            self.first[pid] = sample
+            return None
+        p0 = np.asarray(first["tracker_position_m"], float)
+        p1 = np.asarray(sample["tracker_position_m"], float)
+        s0 = np.asarray(first.get("tracker_sigma_m", [np.nan] * 3), float)
+        s1 = np.asarray(sample.get("tracker_sigma_m", [np.nan] * 3), float)
+        return {
+            "pose_id": pid,
+            "elapsed_s": float(sample.get("elapsed_s", np.nan)),
+            "displacement_m": float(np.linalg.norm(p1 - p0)),
+            "noise_m": float(np.sqrt(np.sum(s0**2 + s1**2))),
+        }
+
+
+def repeat_event_line(r: dict) -> str:
+    """One line for a `RepeatWatch.update` result."""
+    noise = r["noise_m"]
+    scatter = f"; the readings' scatter alone gives ~{noise * 1e6:.1f} um" if noise == noise else ""
+    return (
+        f"pose {r['pose_id']} measured again at {r['elapsed_s'] / 60:.1f} min: "
+        f"{r['displacement_m'] * 1e6:.1f} um from its first reading{scatter}"
+    )

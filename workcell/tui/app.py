@@ -388,20 +388,33 @@ class WorkcellApp(App):
                         on_result=lambda i, e: self.post_message(m.EstimateUpdated(i, e)),
                     )
                     note = "" if est.available else "EKF-ANN unavailable"
+                from workcell.recording.repeats import RepeatWatch, repeat_event_line
+
                 out = plan.out
                 if msg.resume_from:
-                    from workcell.campaign.resume import default_out, resume_plan
+                    from workcell.campaign.plans import reference_repeats
+                    from workcell.campaign.resume import (
+                        default_out,
+                        recorded_reference_every,
+                        resume_plan,
+                    )
 
                     info = resume_plan(msg.resume_from)
-                    total = int(info["campaign"]["poses"]) - len(info["done"])
+                    left = int(info["campaign"]["poses"]) - len(info["done"])
+                    every = recorded_reference_every(info["campaign"], msg.resume_from)
+                    refs = reference_repeats(left, every)
+                    total = left + refs
                     old = Path(msg.resume_from)
                     if not out or Path(out) == old or Path(out).exists():
                         out = str(default_out(old))
                     plan_run = PlanConfig(**{**plan.__dict__, "out": out})
+                    repeats = RepeatWatch(info["history"])
                 else:
-                    total = plan.poses
+                    total = plan.measurements()
+                    refs = total - plan.poses
                     plan_run = plan
-                self.post_message(m.CampaignStarted(total, out, note))
+                    repeats = RepeatWatch()
+                self.post_message(m.CampaignStarted(total, out, note, refs))
                 if est is not None and not est.available:
                     self.post_message(
                         m.CampaignEvent({"level": "info", "kind": "ekf-ann", "message": est.reason})
@@ -409,6 +422,11 @@ class WorkcellApp(App):
 
                 def on_sample(s: dict) -> None:
                     self.post_message(m.SampleRecorded(s, live.update(s), None))
+                    if (r := repeats.update(s)) is not None:  # the reference measured again
+                        line = repeat_event_line(r)
+                        self.post_message(
+                            m.CampaignEvent({"level": "info", "kind": "reference", "message": line})
+                        )
                     if est is not None:
                         est.submit(s)
 
@@ -447,7 +465,7 @@ class WorkcellApp(App):
     def on_campaign_started(self, msg: m.CampaignStarted) -> None:
         self._t0 = self.clock()
         self._n0 = 0
-        self.views["campaign"].begin(msg.total, msg.recording, msg.ekf_note)
+        self.views["campaign"].begin(msg.total, msg.recording, msg.ekf_note, msg.references)
 
     @guarded
     def on_sample_recorded(self, msg: m.SampleRecorded) -> None:

@@ -160,6 +160,13 @@ class PlanConfig:
     envelope: str = "default"  # or a JSON file written by Envelope.to_dict
     out: str = "campaign.mcap"
     warmup_s: float = 0.0
+    reference_every: int = 0  # > 0: the first pose measured again after every N poses
+
+    def measurements(self) -> int:
+        """Poses plus the reference pose's repeats (`plans.reference_repeats`)."""
+        from workcell.campaign.plans import reference_repeats
+
+        return self.poses + reference_repeats(self.poses, self.reference_every)
 
     def validate(self) -> None:
         from workcell.campaign.plans import PLAN_CHOICES, PLAN_KINDS
@@ -170,6 +177,10 @@ class PlanConfig:
             raise UserError(f"number of poses must be positive, got {self.poses}")
         if self.readings_per_pose <= 0:
             raise UserError(f"readings per pose must be positive, got {self.readings_per_pose}")
+        if self.reference_every < 0:
+            raise UserError(
+                f"reference interval must be a number of poses (0: none), got {self.reference_every}"
+            )
         if not self.settle_s >= 0:
             raise UserError(f"settle time must be >= 0 s, got {self.settle_s}")
         if not self.out:
@@ -229,6 +240,7 @@ def dry_run(plan: PlanConfig, dev: Devices, *, preview: bool = True) -> dict:
             "ok": not problems,
             "preview": True,
             "identification": ident,
+            "reference": _reference(plan, targets),
         }
     ident = []
     if targets:
@@ -244,7 +256,17 @@ def dry_run(plan: PlanConfig, dev: Devices, *, preview: bool = True) -> dict:
         "ok": not problems and len(targets) > 0,
         "first_q_rad": [np.asarray(t.q_rad).tolist() for t in targets[:3]],
         "identification": ident,
+        "reference": _reference(plan, targets),
     }
+
+
+def _reference(plan: PlanConfig, targets) -> str | None:
+    """The dry run's reference line (`campaign --reference-every`), or None."""
+    from workcell.campaign.plans import reference_line
+
+    if not (plan.reference_every and targets):
+        return None
+    return reference_line(targets[0].pose_id, len(targets), plan.reference_every)
 
 
 def _pose_count(plan: PlanConfig, cell, env, cfg, previewed_q, ref) -> list[str]:
@@ -402,18 +424,18 @@ def start_campaign(
 
     plan.validate()
     out = Path(plan.out)
-    kw: dict = {}
     env = None
     if resume_from:
         from workcell.campaign.resume import (
             check_same_plan,
+            continuation,
             default_out,
-            plan_continuation,
+            recorded_config,
             recorded_envelope,
+            recorded_reference_every,
             recorded_tool,
             resume_plan,
         )
-        from workcell.recording.dataset import file_sha256
 
         old = Path(resume_from)
         info = resume_plan(str(old))
@@ -436,26 +458,22 @@ def start_campaign(
                 "one; set it on the Devices screen and reconnect, or start a new campaign"
             )
         check_same_plan(info, dev.cell.spec, env, dev.cell.tool_m, str(old))
+        cfg = recorded_config(camp, dev.cell.payload_kg, campaign_config(plan, dev))
         plan = PlanConfig(
             kind=camp["plan"],
             poses=int(camp["poses"]),
             seed=int(camp["seed"]),
-            settle_s=float(camp.get("settle_s", plan.settle_s)),
-            readings_per_pose=int(camp.get("readings_per_pose", plan.readings_per_pose)),
+            settle_s=cfg.settle_s,
+            readings_per_pose=cfg.readings_per_pose,
             envelope=plan.envelope,
             out=str(out),
+            warmup_s=plan.warmup_s,
+            reference_every=recorded_reference_every(camp, str(old)),
         )
-        kw = dict(
-            **plan_continuation(camp["plan"], info),
-            index0=info["n_samples"],
-            chained_from={
-                "path": str(old),
-                "sha256": file_sha256(old),
-                "samples": info["n_samples"],
-            },
-            elapsed0_s=info["last_elapsed"],
-            watch_history=info["recording"].samples,
-        )
+        kw = continuation(info, old)
+    else:
+        cfg = campaign_config(plan, dev)
+        kw = {"reference_every": plan.reference_every}
     if out.exists():
         raise UserError(f"{out} already exists; choose a new recording path or resume it")
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -468,7 +486,7 @@ def start_campaign(
         poses=plan.poses,
         seed=plan.seed,
         envelope=env if resume_from else envelope_for(plan, dev),
-        config=campaign_config(plan, dev),
+        config=cfg,
         control=control,
         on_sample=on_sample,
         on_event=on_event,

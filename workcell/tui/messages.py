@@ -91,9 +91,12 @@ class PlanChecked(Message):
 
 
 class CampaignStarted(Message):
-    def __init__(self, total: int, recording: str, ekf_note: str) -> None:
+    """`total` measurements to make: poses, plus the reference's repeats (`references`)."""
+
+    def __init__(self, total: int, recording: str, ekf_note: str, references: int = 0) -> None:
         super().__init__()
         self.total, self.recording, self.ekf_note = total, recording, ekf_note
+        self.references = references
 
 
 class SampleRecorded(Message):

@@ -57,8 +57,9 @@ class CampaignScreen(WorkcellScreen):
         self.plan = None  # PlanConfig set by the app
         self.connected = False
         self.state = "idle"
-        self.total = 0
+        self.total = 0  # measurements: poses and the reference pose's repeats
         self.done = 0
+        self.references = 0
         self.recording: str | None = None
         self.residuals_um: list[float] = []
         self.rms_um: list[float | None] = []
@@ -96,7 +97,13 @@ class CampaignScreen(WorkcellScreen):
         q = (
             f"Start the campaign? The robot will MOVE.\n\n{p.poses} {p.kind} poses, "
             f"{p.readings_per_pose} readings each, settle {p.settle_s:g} s\n"
-            f"recording: {p.out}\n\nCheck the cell is clear."
+            + (
+                f"the first pose measured again after every {p.reference_every} poses and at "
+                f"the end ({p.measurements() - p.poses} more)\n"
+                if p.reference_every
+                else ""
+            )
+            + f"recording: {p.out}\n\nCheck the cell is clear."
         )
 
         def answer(ok: bool | None) -> None:
@@ -161,12 +168,13 @@ class CampaignScreen(WorkcellScreen):
     def set_context(self, plan, connected: bool) -> None:
         self.plan, self.connected = plan, connected
         if self.state in ("idle", "finished", "aborted", "failed") and self.done == 0:
-            self.total = plan.poses if plan else 0
+            self.total = plan.measurements() if plan else 0
+            self.references = self.total - plan.poses if plan else 0
         self.update_view()
 
-    def begin(self, total: int, recording: str, ekf_note: str) -> None:
+    def begin(self, total: int, recording: str, ekf_note: str, references: int = 0) -> None:
         self.state = "running"
-        self.total, self.done = total, 0
+        self.total, self.done, self.references = total, 0, references
         self.residuals_um, self.rms_um, self.ekf_um = [], [], []
         self.ekf_note = ekf_note
         self.recording = recording
@@ -244,7 +252,13 @@ class CampaignScreen(WorkcellScreen):
         rows.append(
             (
                 "State",
-                f"{self.state.upper()}  {self.done}/{self.total} poses  -> {Path(str(rec)).name}",
+                f"{self.state.upper()}  {self.done}/{self.total} "
+                + (
+                    f"measurements ({self.references} of the reference)"
+                    if self.references
+                    else "poses"
+                )
+                + f"  -> {Path(str(rec)).name}",
             )
         )
         s = self.last_sample

@@ -1,5 +1,5 @@
-"""Plan: plan type, poses, envelope, settle time, readings per pose, recording path; a dry-run
-check of every target against the envelope before anything moves."""
+"""Plan: plan type, poses, envelope, settle time, readings per pose, reference interval,
+recording path; a dry-run check of every target against the envelope before anything moves."""
 
 from __future__ import annotations
 
@@ -60,6 +60,13 @@ class PlanScreen(WorkcellScreen):
                 yield Input(f"{p.settle_s:g}", id="settle", type="number")
                 yield Label("Readings")
                 yield Input(str(p.readings_per_pose), id="readings", type="integer")
+                yield Label("Ref. every")
+                ref = Input(str(p.reference_every), id="ref-every", type="integer")
+                ref.tooltip = (
+                    "0: no reference. N: the first pose is measured again after every N poses "
+                    "and at the end, a drift record without a model"
+                )
+                yield ref
             with Horizontal(classes="row"):
                 yield Label("Envelope")
                 yield Input(p.envelope, id="envelope", placeholder="default or envelope.json")
@@ -85,6 +92,7 @@ class PlanScreen(WorkcellScreen):
             envelope=self.text("envelope") or "default",
             out=self.text("out"),
             warmup_s=self.plan.warmup_s,
+            reference_every=self.number("ref-every", int, "reference interval"),
         )
         p.validate()
         self.plan = p
@@ -162,6 +170,8 @@ class PlanScreen(WorkcellScreen):
                 f"[green]dry run OK[/green]: {result['targets']} poses and their approach "
                 f"pre-poses inside the envelope; nothing moved. Recording: {plan.out}"
             )
+        if result.get("reference"):
+            text += "\n" + escape(result["reference"])
         for line in result.get("identification") or []:
             warn = line.startswith("warning:")
             text += "\n" + (f"[yellow]{escape(line)}[/yellow]" if warn else escape(line))
