@@ -67,6 +67,28 @@ async def run_campaign(app, pilot, n_finished: int) -> None:
     await until(pilot, lambda: len(app.finished) >= n_finished, 120, "campaign end")
 
 
+def hold_campaign(monkeypatch, hold: dict) -> threading.Event:
+    """The campaign runs in a worker thread and may outrun the event loop on a loaded machine.
+    Hold the worker after its `hold["after"]`-th sample until the returned event is set, so a
+    pause or abort lands mid-campaign."""
+    gate = threading.Event()
+    real_start = backend.start_campaign
+
+    def held_start(dev, plan, *, on_sample, **kw):
+        n = [0]
+
+        def sample(s):
+            on_sample(s)
+            n[0] += 1
+            if n[0] == hold["after"]:
+                assert gate.wait(60), "the test never released the campaign"
+
+        return real_start(dev, plan, on_sample=sample, **kw)
+
+    monkeypatch.setattr(backend, "start_campaign", held_start)
+    return gate
+
+
 def test_whole_flow(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     app = app_for(10)
@@ -164,21 +186,7 @@ def test_abort_leaves_valid_recording_then_resume(tmp_path, monkeypatch):
     # The campaign runs in a worker thread and may outrun the event loop on a loaded machine
     # (all 60 poses measured before the pause key is handled). Hold the worker after its third
     # sample until the pause request has landed, so the abort always lands mid-campaign.
-    gate = threading.Event()
-    real_start = backend.start_campaign
-
-    def held_start(dev, plan, *, on_sample, **kw):
-        n = [0]
-
-        def sample(s):
-            on_sample(s)
-            n[0] += 1
-            if n[0] == 3:
-                assert gate.wait(60), "the test never released the campaign"
-
-        return real_start(dev, plan, on_sample=sample, **kw)
-
-    monkeypatch.setattr(backend, "start_campaign", held_start)
+    gate = hold_campaign(monkeypatch, {"after": 3})
 
     async def flow():
         async with app.run_test(size=SIZE) as pilot:
@@ -369,22 +377,8 @@ def test_reference_pose_from_the_plan_screen_and_kept_by_a_resume(tmp_path, monk
     recorded interval as the command line does."""
     monkeypatch.chdir(tmp_path)
     app = app_for(10)
-    gate = threading.Event()
-    real_start = backend.start_campaign
     hold = {"after": None}  # hold the second campaign's worker after this many samples
-
-    def held_start(dev, plan, *, on_sample, **kw):
-        n = [0]
-
-        def sample(s):
-            on_sample(s)
-            n[0] += 1
-            if n[0] == hold["after"]:
-                assert gate.wait(60), "the test never released the campaign"
-
-        return real_start(dev, plan, on_sample=sample, **kw)
-
-    monkeypatch.setattr(backend, "start_campaign", held_start)
+    gate = hold_campaign(monkeypatch, hold)
 
     async def flow():
         async with app.run_test(size=SIZE) as pilot:
