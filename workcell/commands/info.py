@@ -9,6 +9,7 @@ import numpy as np
 
 from workcell.recording import checks
 from workcell.recording.reader import Recording, read_recording
+from workcell.recording.repeats import repeats_of
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -51,25 +52,8 @@ def summary(path: str) -> dict:
         "envelope": _get(s.get("campaign"), "envelope"),
         "chained_from": s.get("chained_from"),
         "size_bytes": rec.size_bytes,
-        "repeats": _repeats(rec),
+        "repeats": repeats_of(rec),
     }
-
-
-def _repeats(rec: Recording) -> list[dict]:
-    """Poses measured more than once and how far they moved (`recording.repeats`); none when
-    the samples do not make a dataset (their problems are listed instead)."""
-    from workcell.errors import UserError
-    from workcell.recording.dataset import Dataset
-    from workcell.recording.repeats import repeat_drift
-
-    if not rec.samples:
-        return []
-    try:
-        return repeat_drift(Dataset.from_recording(rec))
-    except (UserError, ValueError):
-        return []
-    except Exception:  # noqa: BLE001 - an optional extra must not sink `info` on a bad file
-        return []
 
 
 def run(args: argparse.Namespace) -> int:

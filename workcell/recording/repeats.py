@@ -44,6 +44,17 @@ def repeat_drift(ds: Dataset) -> list[dict]:
     return out
 
 
+def repeats_of(rec) -> list[dict]:
+    """`repeat_drift` of a read recording; none when its samples do not make a dataset (a
+    damaged or foreign file: its problems are reported elsewhere)."""
+    if not rec.samples:
+        return []
+    try:
+        return repeat_drift(Dataset.from_recording(rec))
+    except Exception:  # noqa: BLE001 - an optional extra must not sink a report on a bad file
+        return []
+
+
 def repeat_line(r: dict) -> str:
     """One line for a `repeat_drift` entry."""
     um = 1e6

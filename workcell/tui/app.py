@@ -573,6 +573,8 @@ class WorkcellApp(App):
                 f"{Path(msg.path).name}: {rec.get('samples', '?')} samples, {ok}"
             )
         scr.finish(state, summary)
+        for line in rec.get("repeats") or []:  # the reference pose, over the whole recording
+            scr.add_event({"level": "info", "kind": "reference", "message": line})
         if rec.get("samples"):
             self.last_recording = rec["path"]
             self.views["fit"].set_recording(rec["path"])

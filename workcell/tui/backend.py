@@ -503,6 +503,7 @@ def start_campaign(
 def check_recording(path: str | Path) -> dict:
     """What a reader sees in a (possibly interrupted) recording."""
     from workcell.recording.reader import read_recording
+    from workcell.recording.repeats import repeat_line, repeats_of
 
     rec = read_recording(path)
     return {
@@ -511,6 +512,7 @@ def check_recording(path: str | Path) -> dict:
         "events": len(rec.events),
         "closed_cleanly": bool(rec.closed_cleanly),
         "problems": list(rec.problems),
+        "repeats": [repeat_line(r) for r in repeats_of(rec)],
     }
 
 
