@@ -100,6 +100,13 @@ def test_design_real_json_keys(sim_recording, capsys):
         out["poses_to_target"]["dopt"]["mean"] / out["poses_to_target"]["random"]["mean"]
     )
     assert out["ratios_to_random"] == {"dopt": out["ratio_best_to_random"]}
+    # what the figures were measured with: the libraries that move numerics, the commit
+    from importlib import metadata
+
+    env = out["environment"]
+    assert env["versions"]["numpy"] == metadata.version("numpy")
+    assert env["versions"]["scipy"] == metadata.version("scipy")
+    assert env["python"].count(".") == 2 and "CPUs" in env["machine"]
 
 
 REAL_B = (

@@ -9,3 +9,45 @@ BENCHES: dict[str, str] = {
     "design-real": "workcell.bench.design_real",
     "discovery": "workcell.bench.discovery",
 }
+
+
+def environment() -> dict:
+    """What a benchmark figure was measured with, for its JSON (`environment`): a figure that
+    moves between runs of the same commit moved with these (library versions change numerics,
+    a loaded machine changes rates)."""
+    import os
+    import platform
+    import subprocess
+    from importlib import metadata
+    from pathlib import Path
+
+    versions = {}
+    for dist in ("workcell", "numpy", "scipy", "jax", "jaxlib", "filterpy", "mcap"):
+        try:
+            versions[dist] = metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            versions[dist] = None
+    try:
+        commit = (
+            subprocess.run(
+                ["git", "describe", "--always", "--dirty", "--abbrev=7"],
+                cwd=Path(__file__).resolve().parent,
+                capture_output=True,
+                text=True,
+                timeout=5,
+            ).stdout.strip()
+            or None
+        )
+    except (OSError, subprocess.SubprocessError):
+        commit = None
+    try:
+        load = round(os.getloadavg()[0], 2)
+    except OSError:
+        load = None
+    return {
+        "commit": commit,
+        "python": platform.python_version(),
+        "machine": f"{platform.system()} {platform.machine()}, {os.cpu_count()} CPUs",
+        "load_avg_1min": load,
+        "versions": versions,
+    }

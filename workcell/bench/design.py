@@ -54,6 +54,7 @@ import time
 
 import numpy as np
 
+from workcell.bench import environment
 from workcell.errors import OneLineParser
 
 PLANS = ("random", "dopt", "vopt", "bo")
@@ -366,6 +367,7 @@ def main(argv: list[str]) -> int:
     }
     if a.runs:
         out["runs"] = runs
+    out["environment"] = environment()
     if a.json:
         print(json.dumps(out))
         return 0

@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from workcell.bench import environment
 from workcell.errors import OneLineParser
 
 PLANS = ("random", "dopt", "vopt", "bo")
@@ -189,6 +190,7 @@ def main(argv: list[str]) -> int:
         "best_plan": best,
         "best_possible_ratio": n_min / summary["random"]["mean"] if "random" in summary else None,
         "wall_seconds": time.perf_counter() - t0,
+        "environment": environment(),
     }
     if a.json:
         print(json.dumps(out))

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from workcell.bench import environment
 from workcell.errors import OneLineParser
 
 
@@ -67,6 +68,7 @@ def main(argv: list[str]) -> int:
         "fk_points_per_s": fk,
         "jacobian_points_per_s": jac,
         "train_rms_m": m.info["train_rms_m"],
+        "environment": environment(),
     }
     if a.json:
         print(json.dumps(out))

@@ -35,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
+from workcell.bench import environment
 from workcell.errors import OneLineParser
 from workcell.kinematics.chain import jac_params, pack
 
@@ -427,6 +428,7 @@ def main(argv: list[str]) -> int:
     summary["poses"] = a.poses
     summary["seconds"] = time.perf_counter() - t_all
     summary["cases"] = res
+    summary["environment"] = environment()
     if a.out:
         Path(a.out).write_text(json.dumps(summary, indent=1, default=float))
     if a.json:

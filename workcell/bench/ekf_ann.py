@@ -29,6 +29,7 @@ import time
 
 import numpy as np
 
+from workcell.bench import environment
 from workcell.errors import OneLineParser
 
 
@@ -230,6 +231,7 @@ def main(argv: list[str]) -> int:
         f"{fp_rate:.1f} samples/s ({fp_cpu:.1f}), speed-up {jax_rate / fp_rate:.0f}x, "
         f"n = {len(f.x)} states; max state difference {agree:.2e}"
     )
+    out["environment"] = environment()
     if a.json:
         print(json.dumps(out, indent=1))
     return 0

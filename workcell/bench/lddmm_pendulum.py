@@ -42,6 +42,7 @@ import time
 import numpy as np
 
 from workcell._jax import jnp
+from workcell.bench import environment
 from workcell.errors import OneLineParser
 
 L1, L2 = 1.0, 0.5
@@ -221,6 +222,7 @@ def main(argv: list[str]) -> int:
         "n_train": 169,
         "n_test": 3000,
         "heatmap_png": png,
+        "environment": environment(),
     }
     with open(os.path.join(args.out, "results.json"), "w") as f:
         json.dump(doc, f, indent=2)

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from workcell.bench import environment
 from workcell.errors import OneLineParser
 
 TARGETS = {"pendulum_fit_s": 5.0, "fit_500_s": 60.0, "eval_points_per_s": 100_000.0}
@@ -138,6 +139,7 @@ def main(argv: list[str]) -> int:
     if "pendulum" in doc:
         met["pendulum_fit_s"] = doc["pendulum"]["fit_warm_s"] <= TARGETS["pendulum_fit_s"]
     doc["met"] = met
+    doc["environment"] = environment()
     if args.json:
         json.dump(doc, sys.stdout)
         sys.stdout.write("\n")
