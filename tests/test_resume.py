@@ -2,10 +2,13 @@
 the rest into a chained file; no pose is measured twice."""
 
 import os
+import re
 import signal
 import subprocess
 import sys
 import time
+
+import pytest
 
 from workcell.recording.reader import read_recording
 
@@ -110,3 +113,106 @@ def test_resume_refuses_a_recording_whose_plan_this_version_would_not_recreate(
     )
     with pytest.raises(UserError, match="another workcell version"):
         check_same_plan(info, cell.spec, env, cell.tool_m, "c.mcap")
+
+
+def test_tui_resume_continues_on_the_same_simulated_cell_only(tmp_path, monkeypatch):
+    """The terminal UI resumes on the devices it has connected: a simulated truth other than the
+    recorded one (effects, or the Devices screen's seed, which the UI keeps apart from the
+    plan's) is refused in one line, as the command line adopts the recorded one. The recording
+    keeps the simulation's seed (`sim_seed`) and the warm-up, which `validate --robot sim` and
+    the resume then use."""
+    import workcell.campaign.run as run_mod
+    from workcell.campaign.executor import CampaignControl
+    from workcell.cli import main
+    from workcell.errors import UserError
+    from workcell.tui import backend
+
+    monkeypatch.chdir(tmp_path)
+    plan = backend.PlanConfig(poses=18, seed=5, readings_per_pose=2, settle_s=0.2, out="a.mcap")
+
+    def start(effects="none", seed=2, control=None, resume_from=None, on_sample=lambda s: None):
+        dev = backend.open_devices(backend.DeviceConfig(effects=effects, seed=seed))
+        try:
+            return backend.start_campaign(
+                dev, plan, control=control or CampaignControl(), on_sample=on_sample,
+                on_event=lambda e: None, resume_from=resume_from,
+            )  # fmt: skip
+        finally:
+            dev.close()
+
+    control = CampaignControl()
+    start(control=control, on_sample=lambda s: s["index"] >= 12 and control.abort.set())
+    camp = read_recording(tmp_path / "a.mcap").session["campaign"]
+    assert (camp["seed"], camp["sim_seed"], camp["effects"], camp["warmup_s"]) == (5, 2, "none", 0)
+    with pytest.raises(UserError, match="simulated truth 'none', seed 2; the connected simulation"):
+        start(seed=3, resume_from="a.mcap")
+    with pytest.raises(UserError, match="is 'realistic', seed 2"):
+        start(effects="realistic", resume_from="a.mcap")
+    path, res = start(resume_from="a.mcap")
+    assert not res.aborted
+    assert read_recording(path).session["campaign"]["sim_seed"] == 2
+    # validate rebuilds the simulated arm the recording was made on: seed 2, not the plan's 5
+    seeds = []
+    real = run_mod.sim_cell
+
+    def spy(model, effects, seed, **kw):
+        seeds.append(seed)
+        return real(model, effects, seed, **kw)
+
+    monkeypatch.setattr(run_mod, "sim_cell", spy)
+    assert main(["fit", "a.mcap", "--holdout", "0", "--out", "m.json"]) == 0
+    assert main(["validate", "m.json", "--targets", "2", "--json"]) == 0
+    assert seeds == [2]
+
+
+@pytest.mark.parametrize(
+    ("recorded", "connected", "refused"),
+    [
+        # a real cell: the addresses must match
+        ({"robot_url": "ur://10.0.0.5", "tracker_url": "serial:///dev/ttyUSB0"},
+         ("ur://10.0.0.5", "serial:///dev/ttyUSB0", None, None), None),
+        ({"robot_url": "ur://10.0.0.5", "tracker_url": "serial:///dev/ttyUSB0"},
+         ("ur://10.0.0.6", "serial:///dev/ttyUSB0", None, None), "robot at ur://10.0.0.5"),
+        ({"robot_url": "ur://10.0.0.5", "tracker_url": "serial:///dev/ttyUSB0"},
+         ("sim", "sim", "none", 0), "not on a simulation"),
+        # simulators the UI started: their ports change each start, the truth must not
+        ({"robot_url": "ur://127.0.0.2", "tracker_url": "serial:///dev/pts/4",
+          "effects": "realistic", "sim_seed": 7},
+         ("ur://127.0.0.2", "serial:///dev/pts/9", "realistic", 7), None),
+        ({"robot_url": "sim", "tracker_url": "sim", "effects": "realistic", "sim_seed": 7},
+         ("ur://10.0.0.5", "serial:///dev/ttyUSB0", None, None), "connect that simulation"),
+        # a command-line recording: its seed is the truth's
+        ({"robot_url": "sim", "tracker_url": "sim", "effects": "none", "sim_seed": None},
+         ("sim", "sim", "none", 3), "seed 0"),
+    ],
+)  # fmt: skip
+def test_check_same_cell(recorded, connected, refused):
+    from workcell.campaign.resume import check_same_cell
+    from workcell.errors import UserError
+
+    camp = {"plan": "random", "poses": 10, "seed": 0, **recorded}
+    robot_url, tracker_url, effects, sim_seed = connected
+    kw = dict(robot_url=robot_url, tracker_url=tracker_url, effects=effects, sim_seed=sim_seed)
+    if refused is None:
+        check_same_cell(camp, "x.mcap", **kw)
+    else:
+        with pytest.raises(UserError, match=re.escape(refused)):
+            check_same_cell(camp, "x.mcap", **kw)
+
+
+def test_a_resume_measures_with_the_recorded_settings():
+    """Readings, settle time, approach and warm-up come from the recording (the arm is warmed
+    up again as the campaign was); a recording without one gets the caller's default."""
+    from workcell.campaign.executor import CampaignConfig
+    from workcell.campaign.resume import recorded_config
+
+    camp = {"readings_per_pose": 7, "settle_s": 2.5, "approach_rad": 0.03, "warmup_s": 600.0}
+    cfg = recorded_config(camp, 1.5, CampaignConfig(readings_per_pose=3, settle_s=1.0))
+    assert (cfg.readings_per_pose, cfg.settle_s, cfg.approach_rad, cfg.warmup_s) == (
+        7, 2.5, 0.03, 600.0
+    )  # fmt: skip
+    assert cfg.payload_kg == 1.5
+    old = recorded_config({}, 0.0, CampaignConfig(readings_per_pose=3, settle_s=1.0))
+    assert (old.readings_per_pose, old.settle_s, old.approach_rad, old.warmup_s) == (
+        3, 1.0, 0.02, 0.0
+    )  # fmt: skip

@@ -87,13 +87,15 @@ def continuation(info: dict, old: str | Path) -> dict:
 
 
 def recorded_config(camp: dict, payload_kg: float, defaults: CampaignConfig) -> CampaignConfig:
-    """The measurement settings the old campaign recorded (readings, settle time, approach);
-    `defaults` for a recording that lacks one."""
+    """The measurement settings the old campaign recorded (readings, settle time, approach,
+    warm-up: the arm is warmed up again as the campaign was); `defaults` for a recording that
+    lacks one."""
     return dataclasses.replace(
         defaults,
         readings_per_pose=int(camp.get("readings_per_pose", defaults.readings_per_pose)),
         settle_s=float(camp.get("settle_s", defaults.settle_s)),
         approach_rad=float(camp.get("approach_rad", defaults.approach_rad)),
+        warmup_s=float(camp.get("warmup_s", defaults.warmup_s)),
         payload_kg=payload_kg,
     )
 
@@ -166,6 +168,49 @@ def recorded_reference_every(camp: dict, source: str) -> int:
     return v
 
 
+def recorded_sim_seed(camp: dict) -> int:
+    """The seed of the simulated truth a campaign ran against: `sim_seed` where recorded (the
+    terminal UI sets it apart from the plan's seed), else the plan's `seed`, which the command
+    line uses for both."""
+    v = camp.get("sim_seed")
+    return int(camp["seed"] if v is None else v)
+
+
+def check_same_cell(camp: dict, source: str, *, robot_url: str, tracker_url: str,
+                    effects: str | None, sim_seed: int | None) -> None:  # fmt: skip
+    """A resume continues on the cell the campaign was recorded on: refuse (one line) a
+    simulated truth other than the recorded one (`effects` None: the connected cell is not a
+    simulation this program runs), or other device addresses for a real cell. Addresses of
+    simulators started for the recording are not compared (their ports change each start)."""
+    rec_effects = camp.get("effects")
+    if rec_effects is not None or effects is not None:
+        if effects is None:
+            raise UserError(
+                f"{source} was recorded on a simulated cell ({rec_effects} effects); a resume "
+                "continues on the same cell: connect that simulation"
+            )
+        if rec_effects is None:
+            raise UserError(
+                f"{source} was recorded on {camp.get('robot_url', 'a real cell')}; a resume "
+                "continues on the same cell, not on a simulation"
+            )
+        rec_seed = recorded_sim_seed(camp)
+        if (rec_effects, rec_seed) != (effects, sim_seed):
+            raise UserError(
+                f"{source} was recorded against the simulated truth '{rec_effects}', seed "
+                f"{rec_seed}; the connected simulation is '{effects}', seed {sim_seed}: a resume "
+                "continues on the same cell (set them on the Devices screen and reconnect)"
+            )
+        return
+    for what, given in (("robot", robot_url), ("tracker", tracker_url)):
+        recorded = camp.get(f"{what}_url")
+        if recorded is not None and recorded != given:
+            raise UserError(
+                f"{source} was recorded with the {what} at {recorded}, the connected one is "
+                f"{given}: a resume continues on the same cell"
+            )
+
+
 def default_out(old: Path) -> Path:
     k = 1
     while True:
@@ -209,7 +254,7 @@ def resume_campaign(args: argparse.Namespace, control: CampaignControl) -> int:
         setattr(ns, opt, recorded or given or "sim")
     if camp.get("effects") is not None:
         ns.effects = camp["effects"]
-    ns.seed = int(camp["seed"])
+    ns.seed = recorded_sim_seed(camp)
     ns.model = info["recording"].session.get("robot", {}).get("model", args.model)
     ns.envelope = None
     cell, robot, tracker, env = open_cell(ns)
@@ -235,6 +280,7 @@ def resume_campaign(args: argparse.Namespace, control: CampaignControl) -> int:
             "readings_per_pose",
             "settle_s",
             "approach_rad",
+            "warmup_s",
             "reference_every",
         )
     }
@@ -250,7 +296,7 @@ def resume_campaign(args: argparse.Namespace, control: CampaignControl) -> int:
         out,
         plan=camp["plan"],
         poses=int(camp["poses"]),
-        seed=ns.seed,
+        seed=int(camp["seed"]),
         envelope=env,
         config=cfg,
         control=control,

@@ -120,6 +120,7 @@ def run_campaign(
         "readings_per_pose": cfg.readings_per_pose,
         "settle_s": cfg.settle_s,
         "approach_rad": cfg.approach_rad,
+        "warmup_s": cfg.warmup_s,
         "envelope": env.to_dict(),
         **(extra_campaign or {}),
     }

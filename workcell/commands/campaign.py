@@ -248,6 +248,7 @@ def run(args: argparse.Namespace) -> int:
             "robot_url": args.robot,
             "tracker_url": args.tracker,
             "effects": args.effects if args.robot == "sim" else None,
+            "sim_seed": args.seed if args.robot == "sim" else None,
         },
         reference_every=args.reference_every or 0,
     )

@@ -130,7 +130,9 @@ def run(args: argparse.Namespace) -> int:
     if args.robot == "sim" and args.tracker == "sim":
         from workcell.campaign.run import sim_cell
 
-        seed = args.sim_seed if args.sim_seed is not None else camp.get("seed")
+        seed = args.sim_seed
+        if seed is None:  # the recording's simulated truth (older recordings: the plan's seed)
+            seed = camp.get("seed") if camp.get("sim_seed") is None else camp["sim_seed"]
         effects = args.effects or camp.get("effects")
         if seed is None or effects is None:
             why = missing or "the model's recording does not give the simulated seed/effects"

@@ -427,6 +427,7 @@ def start_campaign(
     env = None
     if resume_from:
         from workcell.campaign.resume import (
+            check_same_cell,
             check_same_plan,
             continuation,
             default_out,
@@ -457,6 +458,7 @@ def start_campaign(
                 f"declares {np.asarray(dev.cell.tool_m).tolist()} m: a resume keeps the recorded "
                 "one; set it on the Devices screen and reconnect, or start a new campaign"
             )
+        check_same_cell(camp, str(old), **_cell_identity(dev))
         check_same_plan(info, dev.cell.spec, env, dev.cell.tool_m, str(old))
         cfg = recorded_config(camp, dev.cell.payload_kg, campaign_config(plan, dev))
         plan = PlanConfig(
@@ -490,14 +492,21 @@ def start_campaign(
         control=control,
         on_sample=on_sample,
         on_event=on_event,
-        extra_campaign={
-            "robot_url": dev.robot_url,
-            "tracker_url": dev.tracker_url,
-            "effects": dev.config.effects if dev.kind != "hardware" else None,
-            "ui": "workcell tui",
-        },
+        extra_campaign={**_cell_identity(dev), "ui": "workcell tui"},
         **kw,
     )
+
+
+def _cell_identity(dev: Devices) -> dict:
+    """What a recording says of the cell it was made on (`resume.check_same_cell`): the device
+    addresses, and for a simulation this program runs its truth (effects, seed)."""
+    sim = dev.kind != "hardware"
+    return {
+        "robot_url": dev.robot_url,
+        "tracker_url": dev.tracker_url,
+        "effects": dev.config.effects if sim else None,
+        "sim_seed": dev.config.seed if sim else None,
+    }
 
 
 def check_recording(path: str | Path) -> dict:
