@@ -458,3 +458,43 @@ def test_reference_pose_from_the_plan_screen_and_kept_by_a_resume(tmp_path, monk
             assert any(f"{d_um:.1f} um from" in e["message"] for e in scr.events)
 
     asyncio.run(flow())
+
+
+def test_a_recording_read_in_part_is_said_on_the_fit_and_diagnose_screens(tmp_path, monkeypatch):
+    """A recording cut short (a crash while writing) is fitted and diagnosed on the samples
+    that could be read, as on the command line, and the UI says so with a warning notice
+    (before, it fitted the readable part without a word)."""
+    from workcell.campaign.executor import CampaignConfig
+    from workcell.campaign.run import run_campaign as run_engine
+    from workcell.campaign.run import sim_cell
+
+    monkeypatch.chdir(tmp_path)
+    _, robot, tracker, cell = sim_cell("ur5e", "none", 3)
+    cfg = CampaignConfig(readings_per_pose=2, settle_s=0.2)
+    run_engine(robot, tracker, cell, tmp_path / "whole.mcap", poses=60, seed=3, config=cfg)
+    data = (tmp_path / "whole.mcap").read_bytes()
+    (tmp_path / "cut.mcap").write_bytes(data[: int(0.85 * len(data))])
+    n = len(read_recording(tmp_path / "cut.mcap").samples)
+    assert 40 <= n < 60
+    app = app_for(10)
+
+    async def flow():
+        async with app.run_test(size=SIZE) as pilot:
+            await pilot.press("f4")
+            fit = app.views["fit"]
+            await set_input(pilot, fit, "recording", "cut.mcap")
+            await pilot.press("ctrl+r")
+            await until(pilot, lambda: app.last_fit is not None, 240, "fit")
+            assert app.last_fit["recording_problems"]
+            said = [txt for sev, _, txt in app.notices if sev == "warning"]
+            assert any(f"using the {n} samples that could be read" in t for t in said), said
+            await pilot.press("f5")
+            diag = app.views["diagnose"]
+            await set_input(pilot, diag, "recording", "cut.mcap")
+            k = len(said)
+            await pilot.press("ctrl+r")
+            await until(pilot, lambda: app.last_diagnosis is not None, 300, "diagnosis")
+            said = [txt for sev, _, txt in app.notices if sev == "warning"][k:]
+            assert any(f"using the {n} samples that could be read" in t for t in said), said
+
+    asyncio.run(flow())

@@ -619,6 +619,7 @@ class WorkcellApp(App):
     def on_fit_finished(self, msg: m.FitFinished) -> None:
         self.last_fit = msg.report
         self.views["fit"].show_report(msg.report)
+        self._read_warnings(msg.report, "Fit")
         if msg.report.get("model"):
             self.last_model = msg.report["model"]
             self.views["export"].set_model(msg.report["model"])
@@ -632,6 +633,17 @@ class WorkcellApp(App):
             self.notify(
                 msg.report["model_note"],
                 title="Model file",
+                severity="warning",
+                timeout=self.notify_timeout_s,
+            )
+
+    def _read_warnings(self, report: dict, title: str) -> None:
+        """A recording read only in part (damaged, cut off): each problem as a warning, as the
+        command line prints it before its fit or diagnosis."""
+        for line in report.get("read_warnings") or []:
+            self.notify(
+                line.removeprefix("warning: "),
+                title=f"{title}: recording read in part",
                 severity="warning",
                 timeout=self.notify_timeout_s,
             )
@@ -651,6 +663,7 @@ class WorkcellApp(App):
     def on_diagnose_finished(self, msg: m.DiagnoseFinished) -> None:
         self.last_diagnosis = msg.report
         self.views["diagnose"].show_report(msg.report)
+        self._read_warnings(msg.report, "Diagnose")
         self.notify(
             f"{len(msg.report.get('effects', []))} effect(s) found",
             title="Diagnosis done",

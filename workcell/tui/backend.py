@@ -575,7 +575,9 @@ def _fit_and_save(recording, method: str, holdout: float, out: Path, progress) -
     from workcell.recording.dataset import Dataset
 
     ds = Dataset.from_recording(recording)
+    warnings = _read_warnings(ds, progress)
     model, report = fit_dataset(ds, method=method, holdout=holdout, progress=progress)
+    report["recording_problems"], report["read_warnings"] = list(ds.read_problems), warnings
     keep_in_model(model, ds, report)
     report["model"] = str(save_model(model, out))
     _, test = ds.holdout_split(holdout)
@@ -586,6 +588,18 @@ def _fit_and_save(recording, method: str, holdout: float, out: Path, progress) -
     before = np.linalg.norm(np.asarray(p_tracker(th, base, ev.q)) - ev.p_tracker, axis=1)
     report["residuals"] = {"before_m": before.tolist(), "after_m": after.tolist()}
     return report
+
+
+def _read_warnings(ds, progress) -> list[str]:
+    """What the reader could not read of the recording (a damaged chunk, a cut-off end), one
+    line each, as `fit` and `diagnose` print them: said through `progress` before the work
+    starts, and returned for the report (the app shows them as warnings)."""
+    from workcell.recording.dataset import read_warnings
+
+    lines = read_warnings(ds)
+    for line in lines if progress else ():
+        progress(line)
+    return lines
 
 
 def _replay(recording, progress, holdout: float, out: Path) -> dict:
@@ -602,7 +616,8 @@ def _replay(recording, progress, holdout: float, out: Path) -> dict:
     from workcell.recording.reader import read_recording
 
     rec = read_recording(recording)
-    ds = Dataset.from_recording(recording)
+    ds = Dataset.from_recording(rec)
+    warnings = _read_warnings(ds, progress)
     train, test = ds.holdout_split(holdout)
     keep = {int(ds.pose_id[i]) for i in train}
     samples = [s for s in rec.samples if int(s["pose_id"]) in keep]
@@ -644,6 +659,8 @@ def _replay(recording, progress, holdout: float, out: Path) -> dict:
         "fit_seconds": time.perf_counter() - t0,
         "estimate": lf.estimate(),
         "last_line": line,
+        "recording_problems": list(ds.read_problems),
+        "read_warnings": warnings,
         "model": str(save_model(model, out)),
         "residuals": {
             "before_m": np.linalg.norm(nom_pred - ev.p_tracker, axis=1).tolist(),
@@ -669,9 +686,11 @@ def diagnose(
     from workcell.recording.dataset import Dataset
 
     ds = Dataset.from_recording(recording)
+    warnings = _read_warnings(ds, progress)
     cfg = disc.DiagnoseConfig(nonparametric=not quick) if hasattr(disc, "DiagnoseConfig") else None
     diag = fn(ds, cfg, progress=progress)
     rep = dict(diag.report)
+    rep["recording_problems"], rep["read_warnings"] = list(ds.read_problems), warnings
     plots = getattr(diag, "plots", {}) or {}
     if "res_before" in plots and "res_after" in plots:
         rep["residuals"] = {
