@@ -468,8 +468,8 @@ def test_export_refuses_options_its_format_would_ignore(tmp_path, capsys, fmt, e
 def test_validate_warns_when_a_table_is_for_another_thermal_state():
     """A table exported for the recording's mean thermal state, validated on a warmer arm, gets
     one warning line with the export option that fixes it; within 2 K, none."""
-    from workcell.commands.validate import thermal_mismatch
     from workcell.export.table import CorrectionTable
+    from workcell.export.validate import thermal_mismatch
 
     m = _thermal_model("joint")  # thermal_ref: links at 25 degC
     tab = CorrectionTable(LO, HI, (2, 2, 2), np.array([DOWN]), np.zeros((1, 2, 2, 2, 3)))

@@ -155,3 +155,40 @@ def test_the_tables_stated_uncertainty_matches_the_corrected_error(tmp_path):
         ratios.append(res["after"]["rms_m"] / pred)
     pooled = float(np.sqrt(np.mean(np.square(ratios))))
     assert 0.4 < pooled < 2.5, ratios
+
+
+def test_the_tui_closed_loop_check_validates_as_the_command_line(tmp_path, monkeypatch):
+    """The terminal UI's closed-loop check (`backend.closed_loop`) guards its moves with the
+    SMR the model's campaign declared, refuses in one line when the Devices screen declares
+    another, and warns when the table is for another thermal state than the arm's (the check
+    `validate` uses, fed the connected arm's temperatures)."""
+    import workcell.export.validate as xv
+    from workcell.cli import main
+    from workcell.tui import backend
+
+    monkeypatch.chdir(tmp_path)
+    argv = ["campaign", "--effects", "none", "--seed", "3", "--poses", "16", "--readings", "2"]
+    assert main([*argv, "--smr-offset", "0,0,0.062", "--out", "c.mcap"]) == 0
+    assert main(["fit", "c.mcap", "--holdout", "0", "--out", "m.json"]) == 0
+    backend.export(backend.ExportConfig(model="m.json", out="t", spacing_m=0.15))
+    seen = []
+
+    def mismatch(model, table, temps_c, *, ui=False):
+        seen.append((np.asarray(temps_c, float), ui))
+        return "the table is for another thermal state"
+
+    monkeypatch.setattr(xv, "thermal_mismatch", mismatch)
+    other = backend.open_devices(backend.DeviceConfig(effects="none", seed=3))
+    with pytest.raises(UserError, match=r"the Devices screen declares \[0.0, 0.0, 0.06\] m"):
+        backend.closed_loop("m.json", "t.json", other, 2)
+    other.close()
+    dev = backend.open_devices(backend.DeviceConfig(effects="none", seed=3, smr_offset="0,0,0.062"))
+    lines = []
+    try:
+        res = backend.closed_loop("m.json", "t.json", dev, 2, log=lines.append)
+    finally:
+        dev.close()
+    assert res["warnings"] == ["the table is for another thermal state"]
+    assert "warning: the table is for another thermal state" in lines
+    assert len(seen) == 1 and seen[0][1] and seen[0][0].shape == (6,)
+    assert np.all(np.isfinite([res["after"]["rms_m"], res["before"]["rms_m"]]))

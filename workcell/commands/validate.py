@@ -60,43 +60,6 @@ def check_options(args: argparse.Namespace) -> None:
         )
 
 
-THERMAL_MISMATCH_K = 2.0
-
-
-def thermal_mismatch(model, table, temps_c) -> str | None:
-    """One line when a given table was built for another thermal state than the arm's now (a
-    model whose thermal drift follows the joint temperatures), else None."""
-    from workcell.estimation.effects import thermal_signal
-
-    fs = getattr(model, "features_spec", None)
-    accepted = getattr(model, "accepted", None) or []
-    if fs is None or fs.thermal_source != "joint" or temps_c is None:
-        return None
-    if not any(c.kind == "thermal_drift" for c in accepted):
-        return None
-    now = np.asarray(temps_c, float).reshape(1, 6)
-    if not np.all(np.isfinite(now)):
-        return None
-    t_table = (table.meta.get("conditions") or {}).get("joint_temperature_c")
-    if t_table is None:
-        link_table, what = np.asarray(fs.thermal_ref, float), "the recording's mean"
-    else:
-        link_table = thermal_signal(
-            "joint", np.asarray(t_table, float).reshape(1, 6), None, None, 1
-        )[0]
-        what = "the temperatures it was exported for"
-    link_now = thermal_signal("joint", now, None, None, 1)[0]
-    d = float(np.abs(link_now - link_table).max())
-    if d <= THERMAL_MISMATCH_K:
-        return None
-    return (
-        f"the table is for {what} (link temperatures {np.round(link_table, 1).tolist()} degC); "
-        f"the arm is now at {np.round(link_now, 1).tolist()} degC ({d:.1f} K apart), and the "
-        "model's thermal drift differs by that: export the table again with --joint-temperature "
-        f"{','.join(f'{t:.1f}' for t in now[0])}, or leave --table out to build it for now"
-    )
-
-
 def run(args: argparse.Namespace) -> int:
     from workcell.campaign.devices import envelope_from_args
     from workcell.campaign.envelope import Guard
@@ -109,6 +72,7 @@ def run(args: argparse.Namespace) -> int:
         robot_mover,
         run_validation,
         sim_measure,
+        thermal_mismatch,
         tracker_measure,
     )
 

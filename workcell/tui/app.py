@@ -728,6 +728,10 @@ class WorkcellApp(App):
             title="Closed-loop check",
             timeout=self.notify_timeout_s,
         )
+        for w in r.get("warnings") or []:  # a table for another thermal state than the arm's
+            self.notify(
+                w, title="Closed-loop check", severity="warning", timeout=self.notify_timeout_s
+            )
 
 
 def make_app(

@@ -811,7 +811,12 @@ def closed_loop(
     from workcell.estimation.models import load_model
     from workcell.export.build import nominal_for_model
     from workcell.export.table import load_table
-    from workcell.export.validate import robot_mover, run_validation, tracker_measure
+    from workcell.export.validate import (
+        robot_mover,
+        run_validation,
+        thermal_mismatch,
+        tracker_measure,
+    )
 
     if not 1 <= targets <= 1000:
         raise UserError(f"targets must be 1..1000, got {targets}")
@@ -819,23 +824,37 @@ def closed_loop(
         raise UserError("export a table first (the check moves the arm to its corrected targets)")
     model = load_model(model_path)
     table = load_table(table_path)
-    env, spec, tool = dev.envelope, dev.cell.spec, dev.cell.tool_m
+    nominal = nominal_for_model(model)
+    env, spec = dev.envelope, dev.cell.spec
+    if not np.allclose(nominal.tool_m, dev.cell.tool_m, rtol=0.0, atol=1e-6):
+        raise UserError(
+            f"the model was fitted with the SMR at {np.round(nominal.tool_m, 6).tolist()} m on "
+            f"the flange, the Devices screen declares {np.round(dev.cell.tool_m, 6).tolist()} m: "
+            "the table corrects the model's SMR; mount and declare that one, then reconnect"
+        )
     dev.robot.connect()  # as a campaign does: it closes them when it ends
     dev.tracker.connect()
+    warnings: list[str] = []
     try:
+        # the arm's joint temperatures now (None if the controller does not report them)
+        if w := thermal_mismatch(model, table, dev.robot.state().temperature_c, ui=True):
+            warnings.append(w)
+            if log:
+                log(f"warning: {w}")
         res = run_validation(
-            nominal_for_model(model),
+            nominal,
             table,
             robot_mover(dev.robot, *env.cap(0.5, 1.0)),
             tracker_measure(dev.tracker, readings),
             n=targets,
             seed=12345,
-            guard=Guard(env, spec, tool),
+            guard=Guard(env, spec, nominal.tool_m),  # the SMR the campaign declared
             q_start=np.asarray(dev.robot.state().q_rad, float),
             log=log,
         )
     finally:
         close_quietly(dev.robot, dev.tracker)
+    res["warnings"] = warnings
     res["truth"] = "tracker"
     res["table"] = str(table_path)
     return res
