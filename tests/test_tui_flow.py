@@ -498,3 +498,35 @@ def test_a_recording_read_in_part_is_said_on_the_fit_and_diagnose_screens(tmp_pa
             assert any(f"using the {n} samples that could be read" in t for t in said), said
 
     asyncio.run(flow())
+
+
+@pytest.mark.parametrize(
+    ("change", "said"),
+    [
+        ({"poses": 100_001}, "limit 100000"),
+        ({"seed": -1}, "seed must be >= 0"),
+        ({"reference_every": -2}, "reference interval must be a number of poses"),
+        ({"out": "/proc/workcell-test/run.mcap"}, "/proc/workcell-test"),
+    ],
+)
+def test_a_plan_the_command_line_refuses_is_refused_by_the_ui(tmp_path, monkeypatch, change, said):
+    """The Plan screen's limits are the command line's (pose count, seed, reference interval),
+    and a recording path that cannot be written is refused before anything moves."""
+    from workcell.campaign.executor import CampaignControl
+    from workcell.errors import UserError
+
+    monkeypatch.chdir(tmp_path)
+    plan = PlanConfig(
+        **{"poses": 4, "readings_per_pose": 2, "settle_s": 0.2, "out": "run.mcap", **change}
+    )
+    dev = backend.open_devices(backend.DeviceConfig(effects="none"))
+    moved = []
+    try:
+        with pytest.raises(UserError, match=re.escape(said)):
+            backend.start_campaign(
+                dev, plan, control=CampaignControl(), on_sample=moved.append,
+                on_event=lambda e: None,
+            )  # fmt: skip
+    finally:
+        dev.close()
+    assert not moved and not (tmp_path / "run.mcap").exists()

@@ -231,6 +231,9 @@ def with_reference(plan: Plan, every: int, reference: PoseTarget | None = None) 
             return
 
 
+MAX_POSES = 100_000  # ~10 s a pose: eleven days at the tracker
+
+
 def reference_repeats(poses: int, every: int) -> int:
     """How many times `with_reference` measures the reference again in a plan of `poses` poses
     (0 when `every` is 0): after every `every` poses, and at the end unless it just was."""

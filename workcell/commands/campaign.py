@@ -11,13 +11,10 @@ import numpy as np
 
 from workcell.campaign.devices import open_cell
 from workcell.campaign.executor import CampaignConfig, CampaignControl
-from workcell.campaign.plans import reference_line
+from workcell.campaign.plans import MAX_POSES, reference_line
 from workcell.campaign.run import margin_stop, run_campaign
 from workcell.errors import UserError, check_output_path
 from workcell.recording.repeats import RepeatWatch
-
-MAX_POSES = 100_000  # ~10 s a pose: eleven days at the tracker
-
 
 # Defaults of the options a resumed campaign takes from its recording instead. They default to
 # None so that a resume can tell an option given from one left out, and refuse the former.

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from workcell.drivers.protocols import close_quietly
-from workcell.errors import UserError
+from workcell.errors import UserError, check_output_path
 
 
 class Unavailable(UserError):
@@ -173,8 +173,17 @@ class PlanConfig:
 
         if self.kind not in PLAN_KINDS:
             raise UserError(f"plan type {self.kind!r}: choose {PLAN_CHOICES}")
+        from workcell.campaign.plans import MAX_POSES
+
         if self.poses <= 0:
             raise UserError(f"number of poses must be positive, got {self.poses}")
+        if self.poses > MAX_POSES:
+            raise UserError(
+                f"{self.poses} poses is more than a campaign can measure (limit {MAX_POSES}); "
+                "split it into several recordings"
+            )
+        if self.seed < 0:
+            raise UserError(f"seed must be >= 0, got {self.seed}")
         if self.readings_per_pose <= 0:
             raise UserError(f"readings per pose must be positive, got {self.readings_per_pose}")
         if self.reference_every < 0:
@@ -478,6 +487,7 @@ def start_campaign(
         kw = {"reference_every": plan.reference_every}
     if out.exists():
         raise UserError(f"{out} already exists; choose a new recording path or resume it")
+    check_output_path(out, "recording", inputs=[resume_from] if resume_from else [])
     out.parent.mkdir(parents=True, exist_ok=True)
     return run_campaign(
         dev.robot,
@@ -542,7 +552,6 @@ def fit(
     Returns the `fit_dataset` report plus `model` (path) and `residuals` (held-out per-pose
     error before/after, m) for the plot. `ekf-ann` replays the recording through the online
     filter (`workcell.commands.replay`) when that module exists."""
-    from workcell.errors import check_output_path
     from workcell.estimation.models import check_model_output, default_model_out
 
     moved = None
@@ -729,7 +738,7 @@ def export(cfg: ExportConfig, log: Callable[[str], None] | None = None) -> dict:
         raise UserError("choose a fitted model first (fit a recording on the Fit screen)")
     if not Path(cfg.model).exists():
         raise UserError(f"model file {cfg.model} does not exist")
-    from workcell.errors import check_output_path, refuse_overwrite
+    from workcell.errors import refuse_overwrite
     from workcell.export.files import check_export_outputs, output_files
 
     out = check_output_path(cfg.out, "output")
