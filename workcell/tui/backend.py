@@ -169,12 +169,10 @@ class PlanConfig:
         return self.poses + reference_repeats(self.poses, self.reference_every)
 
     def validate(self) -> None:
-        from workcell.campaign.plans import PLAN_CHOICES, PLAN_KINDS
+        from workcell.campaign.plans import MAX_POSES, PLAN_CHOICES, PLAN_KINDS
 
         if self.kind not in PLAN_KINDS:
             raise UserError(f"plan type {self.kind!r}: choose {PLAN_CHOICES}")
-        from workcell.campaign.plans import MAX_POSES
-
         if self.poses <= 0:
             raise UserError(f"number of poses must be positive, got {self.poses}")
         if self.poses > MAX_POSES:
@@ -478,7 +476,7 @@ def start_campaign(
             readings_per_pose=cfg.readings_per_pose,
             envelope=plan.envelope,
             out=str(out),
-            warmup_s=plan.warmup_s,
+            warmup_s=cfg.warmup_s,
             reference_every=recorded_reference_every(camp, str(old)),
         )
         kw = continuation(info, old)
