@@ -500,3 +500,86 @@ def test_a_tight_envelope_still_gives_the_poses_asked_for():
         UR5E, default_envelope(UR5E), 24, np.random.default_rng(0), tool
     )
     assert all(any(np.array_equal(a, b) for b in q_first) for a in q_default)
+
+
+class JoggedDuringAFault:
+    """The in-process simulated robot, with one fault: at the first move command from the
+    `at`-th on whose target allows it, the arm is jogged (as an operator may do while the
+    campaign waits) to a posture inside the envelope from which the straight path to that
+    target leaves it, and the move fails with
+    `fault` (a protective stop, or a lost connection the driver can reconnect). Every motion
+    command is recorded with the joint position it starts from."""
+
+    def __init__(self, inner, world, env, tool, at: int, fault: Exception, seed: int = 0):
+        self.inner, self.world, self.env, self.tool = inner, world, env, tool
+        self.at, self.fault, self.rng = at, fault, np.random.default_rng(seed)
+        self.commands: list[tuple[np.ndarray, np.ndarray]] = []
+        self.jogged_to = None
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+    def reconnect(self):
+        pass
+
+    def unlock_protective_stop(self):
+        pass
+
+    def _jog_for(self, target: np.ndarray) -> np.ndarray | None:
+        lo, hi = self.env.joint_limits_rad[:, 0], self.env.joint_limits_rad[:, 1]
+        for _ in range(300):
+            q = self.rng.uniform(lo, hi)
+            if self.env.violations(UR5E, q[None], self.tool)[0] is not None:
+                continue
+            if self.env.path_violation(UR5E, q, target, self.tool) is not None:
+                return q
+        return None
+
+    def move_joints(self, q, speed, accel):
+        q = np.asarray(q, float)
+        n = len(self.commands)
+        if n >= self.at and self.jogged_to is None and (jog := self._jog_for(q)) is not None:
+            self.jogged_to = jog
+            from sim_devices.world import Trajectory
+
+            t = self.world.clock.now()
+            self.world._traj = Trajectory(t, self.jogged_to, self.jogged_to, 1.0, 1.0, np.ones(6))
+            raise self.fault
+        self.commands.append((np.asarray(self.world.joint_state()[0], float), q))
+        return self.inner.move_joints(q, speed, accel)
+
+
+@pytest.mark.parametrize("fault", ["protective stop", "connection lost"])
+def test_a_move_cut_short_is_planned_again_from_where_the_arm_was_jogged(fault):
+    """After a protective stop or a reconnect, the interrupted move used to be sent again as it
+    was, from wherever the arm then stood: the operator may have jogged it meanwhile, and that
+    straight path can leave the envelope. Now the pose starts over: every motion command of the
+    campaign, from the position the arm had when it was sent, stays inside the envelope, and
+    every pose is measured or skipped with an event."""
+    from workcell.campaign.executor import CampaignControl
+    from workcell.drivers.protocols import DeviceError, ProtectiveStop
+
+    world, robot, tracker, cell = sim_cell("ur5e", "none", 4, beam_break_prob=0.0)
+    env = default_envelope(cell.spec)
+    err = ProtectiveStop("simulated") if fault == "protective stop" else DeviceError("RTDE lost")
+    jog = JoggedDuringAFault(robot, world, env, cell.tool_m, at=7, fault=err)
+    samples = []
+
+    class Sink(NullSink):
+        def sample(self, *a):
+            samples.append(a)
+
+    sink = Sink()
+    cfg = CampaignConfig(readings_per_pose=1, settle_s=0.1, reconnect_backoff_s=0.0)
+    control = CampaignControl()  # resumes a protective stop by itself
+    gen, _ = make_plan("random", cell.spec, env, 6, seed=4, tool_m=cell.tool_m)
+    jog.connect(), tracker.connect()
+    ex = Executor(jog, tracker, cell.spec, env, sink, tool_m=cell.tool_m, config=cfg,
+                  control=control)  # fmt: skip
+    res = ex.run(gen)
+    assert jog.jogged_to is not None
+    for q_from, q_to in jog.commands:
+        assert env.path_violation(cell.spec, q_from, q_to, cell.tool_m) is None, (q_from, q_to)
+    kinds = [k for k, _ in sink.events]
+    assert "retry" in kinds, kinds
+    assert res.measured + res.skipped == 6 and len(samples) == res.measured

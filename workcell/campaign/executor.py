@@ -7,6 +7,9 @@ MCAP. Faults become `/campaign/event` records and are handled by a small policy:
 - tracker I/O error: the driver resyncs; the executor retries, then skips the pose;
 - robot connection lost: reconnect with exponential back-off (if the driver can), then continue;
 - protective stop: pause, event, and resume when `resume_protective_stop()` says so;
+- a move cut short by either is never sent again as it was: the arm may have been jogged or
+  freedriven meanwhile, so the pose starts over from where the arm is, every path checked again
+  (`_MoveInterrupted`; after `max_reconnects` such restarts the pose is skipped);
 - Ctrl-C / abort: stop the robot, record an `abort` event; the caller closes the recording;
 - the kinematic margin does not hold (`watch.MarginWatch`, when given): stop the robot, record
   a `margin` event saying why, end the campaign (`CampaignResult.stopped_by == "margin"`).
@@ -44,6 +47,12 @@ class ArmOutsideEnvelope(UserError):
     def __init__(self, message: str, reason: str = "") -> None:
         super().__init__(message)
         self.reason = reason
+
+
+class _MoveInterrupted(Exception):
+    """A move cut short by a protective stop or a lost robot connection, recovered from. The
+    arm may be anywhere now (the operator may have jogged it while the campaign waited), so the
+    move must be planned again from where the arm is, never repeated as it was."""
 
 
 @dataclass
@@ -219,7 +228,10 @@ class Executor:
         return st
 
     # ------------------------------------------------------------------ robot with fault policy
-    def _robot_call(self, fn):
+    def _robot_call(self, fn, *, repeat: bool = True):
+        """fn() with the reconnect policy. A lost connection is reconnected with back-off; then
+        fn is called again (`repeat`), or, for a motion, `_MoveInterrupted` is raised so that the
+        caller plans the move again from where the arm is."""
         attempt = 0
         while True:
             try:
@@ -227,25 +239,30 @@ class Executor:
             except ProtectiveStop:
                 raise
             except DeviceError as e:
+                err = e
+            while True:  # reconnect, with back-off
                 attempt += 1
                 reconnect = getattr(self.robot, "reconnect", None)
                 if reconnect is None or attempt > self.cfg.max_reconnects:
-                    raise
+                    raise err
                 wait = self.cfg.reconnect_backoff_s * 2 ** (attempt - 1)
                 self.sink.event(
                     time.time_ns(),
                     "warning",
                     "reconnect",
-                    f"robot connection lost ({e}); reconnect {attempt} in {wait:.1f} s",
+                    f"robot connection lost ({err}); reconnect {attempt} in {wait:.1f} s",
                 )
                 self.result.events += 1
                 if self.on_event:
-                    self.on_event({"level": "warning", "kind": "reconnect", "message": str(e)})
+                    self.on_event({"level": "warning", "kind": "reconnect", "message": str(err)})
                 time.sleep(wait)
                 try:
                     reconnect()
-                except DeviceError:
-                    continue
+                    break
+                except DeviceError as e:
+                    err = e
+            if not repeat:
+                raise _MoveInterrupted(f"robot connection lost during a move ({err})")
 
     def _reconnect_tracker(self, err: Exception) -> bool:
         reconnect = getattr(self.tracker, "reconnect", None)
@@ -267,15 +284,17 @@ class Executor:
         return False
 
     def _move(self, q: np.ndarray) -> None:
+        """One joint move whose path the caller has checked from where the arm is. Cut short
+        (protective stop, lost connection) -> `_MoveInterrupted` once recovered: never sent
+        again from wherever the arm is now."""
         speed, accel = self.env.cap(self.cfg.speed_rad_s, self.cfg.accel_rad_s2)
-        while True:
-            try:
-                self._robot_call(lambda: self.robot.move_joints(q, speed, accel))
-                self._last_cmd = np.array(q, float)
-                return
-            except ProtectiveStop as e:
-                self.event("error", "protective_stop", f"protective stop during a move: {e}")
-                self._wait_protective_stop()
+        try:
+            self._robot_call(lambda: self.robot.move_joints(q, speed, accel), repeat=False)
+        except ProtectiveStop as e:
+            self.event("error", "protective_stop", f"protective stop during a move: {e}")
+            self._wait_protective_stop()
+            raise _MoveInterrupted("protective stop during a move") from None
+        self._last_cmd = np.array(q, float)
 
     def _wait_protective_stop(self) -> None:
         self.event("warning", "pause", "campaign paused by a protective stop")
@@ -292,7 +311,9 @@ class Executor:
         unlock = getattr(self.robot, "unlock_protective_stop", None)
         if unlock is not None:
             self._robot_call(unlock)
-        self.event("info", "resume", "protective stop cleared; resuming the pose")
+        self.event(
+            "info", "resume", "protective stop cleared; the pose starts over from where the arm is"
+        )
 
     # ------------------------------------------------------------------ steps
     def check_plan(self, targets: list[PoseTarget]) -> list[str]:
@@ -384,12 +405,29 @@ class Executor:
         self.result.skipped_ids.append(t.pose_id)
 
     def run_pose(self, t: PoseTarget) -> dict | None:
-        pre = self._prepose(t)
         problems = self._pose_problems(t)
         if problems:
             self.event("error", "refused", problems[0])
             self._skip(t)
             return None
+        for _ in range(self.cfg.max_reconnects + 1):
+            try:
+                return self._run_pose_once(t)
+            except _MoveInterrupted as e:
+                self.event(
+                    "warning",
+                    "retry",
+                    f"pose {t.pose_id}: {e}; the arm may have been moved meanwhile: the pose "
+                    "starts over from where the arm is, every path checked again",
+                )
+        self.event(
+            "error", "skip", f"pose {t.pose_id}: its moves were cut short too often; skipped"
+        )
+        self._skip(t)
+        return None
+
+    def _run_pose_once(self, t: PoseTarget) -> dict | None:
+        pre = self._prepose(t)
         if not self._move_along(pre, f"pose {t.pose_id}"):
             self._skip(t)
             return None
@@ -524,8 +562,11 @@ class Executor:
             q = q_centre + (offsets if k % 2 == 0 else -offsets)
             if self.env.violations(self.spec, q, self.tool_m)[0] is not None:
                 q = q_centre
-            if not self._move_along(q, "the warm-up"):
-                break
+            try:
+                if not self._move_along(q, "the warm-up"):
+                    break
+            except _MoveInterrupted as e:  # the next warm-up move is planned from where it is
+                self.event("warning", "retry", f"the warm-up: {e}")
             self._record_state(force=False)
             k += 1
         self.event("info", "warmup", f"warm-up done after {k} moves")
