@@ -583,3 +583,60 @@ def test_a_move_cut_short_is_planned_again_from_where_the_arm_was_jogged(fault):
     kinds = [k for k, _ in sink.events]
     assert "retry" in kinds, kinds
     assert res.measured + res.skipped == 6 and len(samples) == res.measured
+
+
+def _tight_joint3():
+    """The default UR5e envelope with joint 3 limited to [-2.8, -0.3] rad: the upright posture
+    (joint 3 at 0) is outside it."""
+    env = default_envelope(UR5E)
+    lim = env.joint_limits_rad.copy()
+    lim[2] = [-2.8, -0.3]
+    return dataclasses.replace(env, joint_limits_rad=lim)
+
+
+def test_an_arm_beyond_the_joint_ranges_comes_back_without_leaving_them_further():
+    """An arm the operator left 0.05 rad beyond joint 1's range: the way back in was routed with
+    the arm's own joint ranges throughout, so the upright via posture could take joint 3 to 0,
+    outside the envelope's [-2.8, -0.3]. Now the direct path back (which only comes nearer the
+    ranges) is checked with the arm's ranges, and a via posture (upright, brought inside the
+    ranges) only if it and the move on from it are inside the envelope."""
+    from workcell.campaign.envelope import route_back_in
+
+    env, tool = _tight_joint3(), np.array([0.0, 0.0, 0.06])
+    q_from = np.array([3.0171, -1.4022, -2.2439, -1.2281, -2.895, 1.2639])
+    q_to = np.array([2.6328, -2.463, -1.5196, -4.3954, -1.9976, 2.2753])
+    loose = env.with_arm_joint_ranges(UR5E)
+    old, _ = route(loose, UR5E, tool, q_from, q_to)  # what the executor used to move along
+    assert len(old) == 2 and env.violations(UR5E, old[0][None], tool)[0] is not None
+    wps, why = route_back_in(env, UR5E, tool, q_from, q_to)
+    assert why is None and len(wps) == 2
+    assert env.violations(UR5E, wps[0][None], tool)[0] is None  # inside the envelope
+    assert env.path_violation(UR5E, wps[0], q_to, tool) is None
+    from workcell.drivers.protocols import RobotState
+
+    robot = RecordingRobot()
+    robot.state = lambda: RobotState(t_s=0.0, q_rad=q_from, qd_rad_s=np.zeros(6))
+    ex = Executor(robot, None, UR5E, env, NullSink(), tool_m=tool)
+    assert ex._move_along(q_to, "pose 0") is True
+    assert len(robot.moves) == 2 and np.allclose(robot.moves[0], wps[0])
+    # over random starts beyond joint 1's range of the default envelope (whose joint ranges
+    # hold the upright posture): every via posture chosen is inside the envelope, and every
+    # leg after the first is checked against it
+    env = default_envelope(UR5E)
+    loose = env.with_arm_joint_ranges(UR5E)
+    rng = np.random.default_rng(7)
+    lim = env.joint_limits_rad
+    n_via = 0
+    for _ in range(3000):
+        a, b = rng.uniform(lim[:, 0], lim[:, 1]), rng.uniform(lim[:, 0], lim[:, 1])
+        a[0] = lim[0, 1] + rng.uniform(0.01, 0.1)
+        if loose.violations(UR5E, a[None], tool)[0] or env.violations(UR5E, b[None], tool)[0]:
+            continue
+        wps, why = route_back_in(env, UR5E, tool, a, b)
+        if len(wps) == 2:
+            n_via += 1
+            assert env.violations(UR5E, wps[0][None], tool)[0] is None
+            assert env.path_violation(UR5E, wps[0], b, tool) is None
+        if wps:
+            assert loose.path_violation(UR5E, a, wps[0], tool) is None
+    assert n_via > 0

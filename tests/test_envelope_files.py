@@ -312,3 +312,40 @@ def test_margin_from_a_fitted_model_covers_the_true_arm(tmp_path, capsys):
     assert load_envelope(written, UR5E).kinematic_margin_m >= dev["suggested_margin_m"] - 1e-12
     assert main(["envelope", "--check", str(written), "--model", str(model_path)]) == 0
     assert "covers it" in capsys.readouterr().out
+
+
+def test_validate_moves_inside_the_campaigns_recorded_envelope_by_default(tmp_path, capsys):
+    """A campaign run in a narrower envelope, then `validate` without `--envelope`: the moves are
+    checked against the envelope recorded with the model's campaign (until 2026-11-25 against
+    the arm's default one, which let validation's targets and transits go where the campaign's
+    envelope kept the arm out), and the result says which envelope it was."""
+    from sim_devices.inprocess import SimRobot
+
+    tight = tmp_path / "tight.json"
+    assert main(["envelope", "--out", str(tight)]) == 0
+    d = json.loads(tight.read_text())
+    d["joint_limits_rad"][0] = [-1.0, 1.5]
+    d["max_speed_rad_s"] = 0.3
+    tight.write_text(json.dumps(d))
+    rec, model = tmp_path / "c.mcap", tmp_path / "m.json"
+    argv = ["campaign", "--effects", "none", "--seed", str(SEED), "--poses", "16"]
+    assert main([*argv, "--readings", "2", "--envelope", str(tight), "--out", str(rec)]) == 0
+    assert main(["fit", str(rec), "--holdout", "0", "--out", str(model)]) == 0
+    moves: list[tuple[np.ndarray, float]] = []
+    orig = SimRobot.move_joints
+
+    def spy(self, q, speed, accel):
+        moves.append((np.asarray(q, float), speed))
+        return orig(self, q, speed, accel)
+
+    SimRobot.move_joints = spy
+    try:
+        rc = main(["validate", str(model), "--targets", "6", "--json"])
+    finally:
+        SimRobot.move_joints = orig
+    cap = capsys.readouterr()
+    assert rc == 0, cap.err
+    res = json.loads(cap.out.strip().splitlines()[-1])
+    assert res["envelope"].startswith("the envelope recorded with the model's campaign")
+    assert moves and all(-1.0 <= q[0] <= 1.5 and s <= 0.3 for q, s in moves)
+    assert res["skipped"] and all("joint 1 target" in w for w in res["skipped"]), res["skipped"]

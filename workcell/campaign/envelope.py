@@ -418,6 +418,32 @@ def route(
     return [], why
 
 
+def route_back_in(
+    env: Envelope, spec: RobotSpec, tool_m: np.ndarray, q_from: np.ndarray, q_to: np.ndarray
+) -> tuple[list[np.ndarray], str | None]:
+    """`route` for an arm beyond `env`'s joint ranges only (its SMR and links inside the box,
+    above the floor) to q_to inside them: the direct move, checked against the box and the floor
+    with the arm's own joint ranges (a straight joint path towards the ranges only comes nearer
+    to them); else via the upright posture brought inside the joint ranges (the joints it keeps
+    from q_from clipped into them), only when that posture, and the move on from it, are inside
+    `env` itself."""
+    loose = env.with_arm_joint_ranges(spec)
+    q_to = np.asarray(q_to, float)
+    why = loose.path_violation(spec, q_from, q_to, tool_m)
+    if why is None:
+        return [q_to], None
+    if spec.n_joints == 6:
+        lim = np.asarray(env.joint_limits_rad, float)
+        u = np.clip(upright(q_from), lim[:, 0], lim[:, 1])
+        if (
+            env.violations(spec, u[None], tool_m)[0] is None
+            and loose.path_violation(spec, q_from, u, tool_m) is None
+            and env.path_violation(spec, u, q_to, tool_m) is None
+        ):
+            return [u, q_to], None
+    return [], why
+
+
 @dataclass
 class Guard:
     """The envelope with its arm and tool, for code that moves the arm outside the campaign
@@ -440,3 +466,9 @@ class Guard:
     def with_arm_joint_ranges(self) -> Guard:
         """The same guard with the arm's own joint ranges (`Envelope.with_arm_joint_ranges`)."""
         return Guard(self.env.with_arm_joint_ranges(self.spec), self.spec, self.tool_m)
+
+    def route_back_in(
+        self, q_from: np.ndarray, q_to: np.ndarray
+    ) -> tuple[list[np.ndarray], str | None]:
+        """`route_back_in`: from beyond the joint ranges only, back inside them."""
+        return route_back_in(self.env, self.spec, self.tool_m, q_from, q_to)

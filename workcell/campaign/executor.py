@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from workcell.campaign.envelope import Envelope, route
+from workcell.campaign.envelope import Envelope, route, route_back_in
 from workcell.campaign.plans import Plan, PoseTarget
 from workcell.drivers.protocols import (
     DeviceError,
@@ -372,12 +372,14 @@ class Executor:
             # at a target on the envelope's edge, encoder noise can read just outside: the arm
             # is where it was sent, a checked posture, so check the path from there
             q_now, outside = last, None
-        env = self.env
+        find_route = route
         if outside is not None:
             # beyond the envelope's joint ranges only (its SMR above the table, in the box):
-            # the way back in may go, checked against the box and floor all along
-            env = self.env.with_arm_joint_ranges(self.spec)
-            if env.violations(self.spec, q_now[None], self.tool_m)[0] is not None:
+            # the way back in may go, checked against the box and floor all along, via the
+            # upright posture only if that is inside the envelope itself
+            find_route = route_back_in
+            loose = self.env.with_arm_joint_ranges(self.spec)
+            if loose.violations(self.spec, q_now[None], self.tool_m)[0] is not None:
                 msg = (
                     f"the arm is outside the envelope ({outside}); no move to {what} from there: "
                     "jog it inside, then resume the campaign (--resume)"
@@ -390,7 +392,7 @@ class Executor:
                 f"the arm starts outside the envelope's joint ranges ({outside}); the move to "
                 f"{what} is checked against the box and the floor",
             )
-        waypoints, why = route(env, self.spec, self.tool_m, q_now, q_to)
+        waypoints, why = find_route(self.env, self.spec, self.tool_m, q_now, q_to)
         if why is not None:
             self.event("error", "refused", f"{what}: {why}; also via the upright posture")
             return False

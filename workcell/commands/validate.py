@@ -20,7 +20,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--table", help="exported table (.json); default: build it from the model")
     p.add_argument("--volume", help="x0,y0,z0,x1,y1,z1 in m (when building the table)")
     p.add_argument(
-        "--envelope", metavar="FILE", help="safety envelope JSON; default: the arm's default"
+        "--envelope",
+        metavar="FILE",
+        help="safety envelope JSON; default: the one recorded with the model's campaign, else "
+        "the arm's default",
     )
     p.add_argument("--seed", type=int, default=12345, help="seed of the random targets")
     p.add_argument("--sim-seed", type=int, help="simulated truth seed (default: the recording's)")
@@ -74,6 +77,7 @@ def run(args: argparse.Namespace) -> int:
         sim_measure,
         thermal_mismatch,
         tracker_measure,
+        validation_envelope,
     )
 
     check_options(args)
@@ -125,7 +129,10 @@ def run(args: argparse.Namespace) -> int:
         cell, robot, tracker, _ = open_cell(ns)
         measure = tracker_measure(tracker, args.readings or 5)
         spec = cell.spec
-    env = envelope_from_args(args, spec)  # before connecting
+    env, env_what = validation_envelope(  # before connecting
+        envelope_from_args(args, spec) if args.envelope else None, session, spec, str(rec)
+    )
+    log(f"moves checked against {env_what}")
     robot.connect()
     tracker.connect()
     try:
@@ -157,12 +164,13 @@ def run(args: argparse.Namespace) -> int:
             n=args.targets,
             seed=args.seed,
             guard=Guard(env, spec, nominal.tool_m),  # the SMR the campaign declared
-            q_start=np.asarray(robot.state().q_rad, float),
+            q_start=lambda: np.asarray(robot.state().q_rad, float),
             log=log,
         )
     finally:
         close_quietly(robot, tracker)
     res["truth"] = "simulated robot" if args.robot == "sim" else "tracker"
+    res["envelope"] = env_what
     res["warnings"] = warnings
     res["rms_interval_basis"] = RMS_INTERVAL_BASIS
     if args.json:

@@ -81,7 +81,7 @@ def run_validation(
     seed: int = 0,
     approach_rad: float = 0.02,
     guard: Guard | None = None,
-    q_start: np.ndarray | None = None,
+    q_start: np.ndarray | Callable[[], np.ndarray] | None = None,
     log: Callable[[str], None] | None = None,
 ) -> dict:
     """Measure n targets uncorrected and corrected. `move(q)` moves the robot (blocking, along
@@ -90,26 +90,30 @@ def run_validation(
     With a `guard` (the envelope) every motion is checked before the arm moves: each target and
     pre-pose, the approach (pre-pose -> target) and the transit from where the arm is (`q_start`
     at first) to the pre-pose, direct or via the upright posture. A target any of whose four
-    moves would leave the envelope is skipped, with the reason, before its first motion."""
+    moves would leave the envelope is skipped, with the reason, before its first motion.
+    `q_start` may be a callable: it is then read after the targets are solved, just before the
+    first move is checked (the arm may have been jogged while they were)."""
     log = log or (lambda m: None)
-    start_guard = guard  # for the first transit only
-    if guard is not None:
-        if q_start is None:
-            raise ValueError("run_validation: a guard needs q_start, the arm's joints now")
-        why = guard.pose(q_start)
-        if why is not None:
-            # beyond the joint ranges only: come back in along a path checked for box and floor
-            start_guard = guard.with_arm_joint_ranges()
-            if start_guard.pose(q_start) is not None:
-                raise UserError(
-                    f"the arm is outside the envelope before validation ({why}); jog it inside, "
-                    "then run again"
-                )
-            log(f"  the arm starts outside the envelope's joint ranges ({why}); moves checked")
+    if guard is not None and q_start is None:
+        raise ValueError("run_validation: a guard needs q_start, the arm's joints now")
     P, k = random_targets(table, n, seed)
     sign = np.sign(np.asarray(table.meta.get("conditions", {}).get("approach_sign", [1.0] * 6)))
     q_u = commanded_joints(nominal, table, P, k, corrected=False)
     q_c = commanded_joints(nominal, table, P, k, corrected=True)
+    if callable(q_start):
+        q_start = q_start()
+    start_outside = False  # beyond the joint ranges: the first transit comes back in
+    if guard is not None:
+        why = guard.pose(q_start)
+        if why is not None:
+            # beyond the joint ranges only: come back in along a path checked for box and floor
+            if guard.with_arm_joint_ranges().pose(q_start) is not None:
+                raise UserError(
+                    f"the arm is outside the envelope before validation ({why}); jog it inside, "
+                    "then run again"
+                )
+            start_outside = True
+            log(f"  the arm starts outside the envelope's joint ranges ({why}); moves checked")
     p_goal = nominal.to_tracker(P)
     keep = np.all(np.isfinite(q_u), 1) & np.all(np.isfinite(q_c), 1)
     skipped = []
@@ -136,8 +140,10 @@ def run_validation(
             if guard is None:
                 legs.append(([pre], q))
                 continue
-            g = start_guard if (not legs and not any(meas.values())) else guard
-            wps, why = g.route(q_at if not legs else legs[-1][1], pre)
+            if start_outside and not legs and not any(meas.values()):
+                wps, why = guard.route_back_in(q_at, pre)
+            else:
+                wps, why = guard.route(q_at if not legs else legs[-1][1], pre)
             if why is None and (v := guard.direct(pre, q)) is not None:
                 why = f"approach: {v}"
             if why is not None:
@@ -262,4 +268,22 @@ def thermal_mismatch(model, table, temps_c, *, ui: bool = False) -> str | None:
         f"the table is for {what} (link temperatures {np.round(link_table, 1).tolist()} degC); "
         f"the arm is now at {np.round(link_now, 1).tolist()} degC ({d:.1f} K apart), and the "
         f"model's thermal drift differs by that: {remedy}"
+    )
+
+
+def validation_envelope(given, session: dict, spec, source: str, default=None):
+    """The envelope a closed-loop validation moves in -> (envelope, what it is): the one
+    `given` (chosen by the user), else the one the model's campaign recorded (the cell's, as
+    it was calibrated in), else `default` (the arm's default envelope), said so."""
+    from workcell.campaign.envelope import default_envelope, envelope_of_session
+
+    if given is not None:
+        return given, "the envelope given"
+    env = envelope_of_session((session or {}).get("campaign") or {}, spec, source)
+    if env is not None:
+        return env, f"the envelope recorded with the model's campaign ({source})"
+    return (
+        default if default is not None else default_envelope(spec),
+        "the arm's default envelope: the model's recording gives none (give the cell's "
+        "envelope file)",
     )

@@ -711,7 +711,14 @@ class WorkcellApp(App):
             self.post_message(m.JobProgress("export", str(text)))
 
         def work() -> None:
-            res = backend.closed_loop(msg.model, msg.table, dev, msg.targets, log=log)
+            res = backend.closed_loop(
+                msg.model,
+                msg.table,
+                dev,
+                msg.targets,
+                log=log,
+                envelope_file=getattr(self.plan, "envelope", "default"),
+            )
             self.post_message(m.ValidateFinished(res))
 
         self._thread(work, "validate")

@@ -809,21 +809,26 @@ def closed_loop(
     *,
     readings: int = 3,
     log: Callable[[str], None] | None = None,
+    envelope_file: str = "default",
 ) -> dict:
     """`workcell validate` on the connected cell: random targets in the table's volume, each
     measured by the tracker uncorrected and corrected through the table; every motion checked
-    against the cell's envelope first. Measured by the tracker, as on a real cell (in simulation
-    too: the simulated tracker's noise is in the numbers)."""
+    against the cell's envelope first: the Plan screen's envelope file when one is set, else the
+    one recorded with the model's campaign, else the arm's default (`validation_envelope`).
+    Measured by the tracker, as on a real cell (in simulation too: the simulated tracker's noise
+    is in the numbers)."""
     from workcell.campaign.envelope import Guard
     from workcell.estimation.models import load_model
-    from workcell.export.build import nominal_for_model
+    from workcell.export.build import model_recording, nominal_for_model
     from workcell.export.table import load_table
     from workcell.export.validate import (
         robot_mover,
         run_validation,
         thermal_mismatch,
         tracker_measure,
+        validation_envelope,
     )
+    from workcell.recording.reader import read_recording
 
     if not 1 <= targets <= 1000:
         raise UserError(f"targets must be 1..1000, got {targets}")
@@ -832,7 +837,20 @@ def closed_loop(
     model = load_model(model_path)
     table = load_table(table_path)
     nominal = nominal_for_model(model)
-    env, spec = dev.envelope, dev.cell.spec
+    spec = dev.cell.spec
+    rec, _ = model_recording(model)
+    try:
+        session = read_recording(rec).session if rec else {}
+    except Exception:  # noqa: BLE001 - the recording is optional here, as for validate
+        session = {}
+    given = None
+    if envelope_file not in ("", "default"):
+        from workcell.campaign.envelope import load_envelope
+
+        given = load_envelope(envelope_file, spec)
+    env, env_what = validation_envelope(given, session, spec, str(rec), default=dev.envelope)
+    if log:
+        log(f"moves checked against {env_what}")
     if not np.allclose(nominal.tool_m, dev.cell.tool_m, rtol=0.0, atol=1e-6):
         raise UserError(
             f"the model was fitted with the SMR at {np.round(nominal.tool_m, 6).tolist()} m on "
@@ -856,12 +874,13 @@ def closed_loop(
             n=targets,
             seed=12345,
             guard=Guard(env, spec, nominal.tool_m),  # the SMR the campaign declared
-            q_start=np.asarray(dev.robot.state().q_rad, float),
+            q_start=lambda: np.asarray(dev.robot.state().q_rad, float),
             log=log,
         )
     finally:
         close_quietly(dev.robot, dev.tracker)
     res["warnings"] = warnings
+    res["envelope"] = env_what
     res["truth"] = "tracker"
     res["table"] = str(table_path)
     return res
