@@ -640,3 +640,42 @@ def test_an_arm_beyond_the_joint_ranges_comes_back_without_leaving_them_further(
         if wps:
             assert loose.path_violation(UR5E, a, wps[0], tool) is None
     assert n_via > 0
+
+
+def test_an_unexpected_error_stops_the_arm_and_the_recording_says_why(tmp_path):
+    """Anything that ends a campaign other than its end, an abort or the margin watch (a fault
+    beyond the retries, a closed output pipe, a bug in a callback) stops the arm and leaves a
+    `stopped` event in the closed recording before the error reaches the caller; a progress
+    line on a closed pipe no longer stops a campaign at all (`run.progress`)."""
+    world, robot, tracker, cell = sim_cell("ur5e", "none", 1, beam_break_prob=0.0)
+    stops = []
+    real_stop = robot.stop
+    robot.stop = lambda: (stops.append(True), real_stop())
+
+    def on_sample(s):
+        if s["index"] == 2:
+            raise RuntimeError("a callback failed")
+
+    cfg = CampaignConfig(readings_per_pose=1, settle_s=0.1)
+    with pytest.raises(RuntimeError, match="a callback failed"):
+        run_campaign(robot, tracker, cell, tmp_path / "e.mcap", poses=6, seed=1, config=cfg,
+                     on_sample=on_sample)  # fmt: skip
+    rec = read_recording(tmp_path / "e.mcap")
+    assert rec.closed_cleanly and len(rec.samples) == 3 and stops
+    (ev,) = [e for e in rec.events if e["kind"] == "stopped"]
+    assert ev["level"] == "error" and "RuntimeError: a callback failed" in ev["message"]
+
+    import io
+    import sys
+
+    from workcell.campaign.run import progress
+
+    class Closed(io.StringIO):
+        def write(self, s):
+            raise BrokenPipeError(32, "Broken pipe")
+
+    old, sys.stderr = sys.stderr, Closed()
+    try:
+        progress("pose 1")  # no exception
+    finally:
+        sys.stderr = old

@@ -596,6 +596,23 @@ class Executor:
         except _MarginStop:
             self.result.aborted, self.result.stopped_by = True, "margin"
             self._stop_robot()
+        except BaseException as e:
+            # anything else (a device fault beyond the retries, the arm found outside the
+            # envelope, a closed output pipe, a bug): the arm is stopped and the recording
+            # says why before it is closed; the caller reports the error
+            self.result.aborted, self.result.stopped_by = True, "error"
+            self._stop_robot()
+            try:
+                self.event(
+                    "error",
+                    "stopped",
+                    f"campaign stopped after {self.result.measured} poses: {type(e).__name__}: {e}"[
+                        :500
+                    ],
+                )
+            except Exception:  # noqa: BLE001 - the recording itself may be what failed
+                pass
+            raise
         # `running` stays set: a late Ctrl-C must not cut the recording's closing short
         return self.result
 

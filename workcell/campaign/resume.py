@@ -20,7 +20,7 @@ import numpy as np
 from workcell.campaign.devices import open_cell
 from workcell.campaign.envelope import envelope_of_session
 from workcell.campaign.executor import CampaignConfig, CampaignControl
-from workcell.campaign.run import margin_stop, run_campaign
+from workcell.campaign.run import margin_stop, progress, run_campaign
 from workcell.errors import UserError, check_output_path
 from workcell.recording import checks
 from workcell.recording.dataset import file_sha256
@@ -302,7 +302,7 @@ def resume_campaign(args: argparse.Namespace, control: CampaignControl) -> int:
         control=control,
         extra_campaign=extra,
         **continuation(info, old),
-        on_event=lambda e: print(f"  [{e['level']}] {e['kind']}: {e['message']}", file=sys.stderr),
+        on_event=lambda e: progress(f"  [{e['level']}] {e['kind']}: {e['message']}"),
         on_sample=count_repeats,
     )
     again = f" (and the reference {repeats[0]} more times)" if repeats[0] else ""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -184,6 +185,15 @@ def run_campaign(
     finally:
         close_quietly(robot, tracker)
     return Path(out), result
+
+
+def progress(line: str) -> None:
+    """A progress line on stderr, best effort: a closed pipe or terminal (`... 2>&1 | head`)
+    must not stop a campaign; the recording is what counts."""
+    try:
+        print(line, file=sys.stderr, flush=True)
+    except (OSError, ValueError):
+        pass
 
 
 def margin_stop(res: CampaignResult, path: str | Path) -> None:

@@ -12,7 +12,7 @@ import numpy as np
 from workcell.campaign.devices import open_cell
 from workcell.campaign.executor import CampaignConfig, CampaignControl
 from workcell.campaign.plans import MAX_POSES, reference_line
-from workcell.campaign.run import margin_stop, run_campaign
+from workcell.campaign.run import margin_stop, progress, run_campaign
 from workcell.errors import UserError, check_output_path
 from workcell.recording.repeats import RepeatWatch
 
@@ -198,23 +198,17 @@ def run(args: argparse.Namespace) -> int:
     def on_sample(s: dict) -> None:
         r = repeats.update(s)
         if r is not None:  # the reference pose measured again (--reference-every)
-            print(
+            progress(
                 f"pose {s['pose_id']:4d}  reference   elapsed {s['elapsed_s']:8.1f} s  "
                 f"{r['displacement_m'] * 1e6:.1f} um from its first reading (scatter alone "
-                f"~{r['noise_m'] * 1e6:.1f} um)",
-                file=sys.stderr,
-                flush=True,
+                f"~{r['noise_m'] * 1e6:.1f} um)"
             )
             return
         n[0] += 1
-        print(
-            f"pose {s['pose_id']:4d}  {n[0]:4d}/{args.poses}  elapsed {s['elapsed_s']:8.1f} s",
-            file=sys.stderr,
-            flush=True,
-        )
+        progress(f"pose {s['pose_id']:4d}  {n[0]:4d}/{args.poses}  elapsed {s['elapsed_s']:8.1f} s")
 
     def on_event(e: dict) -> None:
-        print(f"  [{e['level']}] {e['kind']}: {e['message']}", file=sys.stderr, flush=True)
+        progress(f"  [{e['level']}] {e['kind']}: {e['message']}")
 
     online = None
     if args.online:
@@ -225,7 +219,7 @@ def run(args: argparse.Namespace) -> int:
 
         def on_sample(s: dict) -> None:  # noqa: F811
             prev(s)
-            print("  " + online.update(s), file=sys.stderr, flush=True)
+            progress("  " + online.update(s))
 
     _say_planning(args)
     path, res = run_campaign(
