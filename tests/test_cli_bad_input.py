@@ -721,3 +721,28 @@ def test_a_folder_marked_read_only_is_not_written_even_by_root(cell, capsys, tmp
         )
     finally:
         archive.chmod(0o755)
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["bench", "discovery", "--quick", "--out", "{rec}"],
+        ["bench", "lddmm-pendulum", "--out", "{dir}"],
+    ],
+)
+def test_bench_outputs_never_replace_a_recording(tmp_path, capsys, argv):
+    """`bench discovery --out REC.mcap` wrote its JSON over a recording after minutes of work;
+    a benchmark's outputs are now checked like any command's, before the work."""
+    from workcell.errors import MCAP_MAGIC
+
+    rec = tmp_path / "run.mcap"
+    rec.write_bytes(MCAP_MAGIC + b"measured data")
+    d = tmp_path / "out"
+    d.mkdir()
+    (d / "results.json").write_bytes(MCAP_MAGIC + b"a recording under that name")
+    capsys.readouterr()
+    rc = main([a.format(rec=rec, dir=d) for a in argv])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "existing recording (MCAP)" in err[0], err
+    assert rec.read_bytes() == MCAP_MAGIC + b"measured data"
+    assert (d / "results.json").read_bytes().endswith(b"a recording under that name")

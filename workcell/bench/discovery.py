@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from workcell.bench import environment
-from workcell.errors import OneLineParser
+from workcell.errors import OneLineParser, check_output_path
 from workcell.kinematics.chain import jac_params, pack
 
 SINGLE_CASES: list[tuple[str, int | None]] = (
@@ -376,6 +376,8 @@ def main(argv: list[str]) -> int:
         "it does not change which effects are named)",
     )
     a = ap.parse_args(argv)
+    if a.out:  # before minutes of work: never over a recording, a device or an input
+        check_output_path(a.out, "bench result")
     master = int(np.random.SeedSequence().entropy % (2**31)) if a.seed is None else a.seed
     rng = np.random.default_rng(master)
     log = (

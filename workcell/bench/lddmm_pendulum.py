@@ -43,7 +43,7 @@ import numpy as np
 
 from workcell._jax import jnp
 from workcell.bench import environment
-from workcell.errors import OneLineParser
+from workcell.errors import OneLineParser, check_output_path
 
 L1, L2 = 1.0, 0.5
 G = 9.81
@@ -205,6 +205,9 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--n-steps", type=int, default=10, help="RK4 steps")
     ap.add_argument("--max-iter", type=int, default=100, help="L-BFGS iterations")
     args = ap.parse_args(argv)
+    check_output_path(args.out, "bench output folder", folder=True)
+    for name in ("heatmaps.png", "results.json"):  # never over a recording or a device
+        check_output_path(os.path.join(args.out, name), "bench output")
     res = run_scenarios(
         args.scenario,
         sigma=args.sigma,
