@@ -9,6 +9,8 @@ import sys
 import time
 
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from workcell.recording.reader import read_recording
 
@@ -216,3 +218,74 @@ def test_a_resume_measures_with_the_recorded_settings():
     assert (old.readings_per_pose, old.settle_s, old.approach_rad, old.warmup_s) == (
         3, 1.0, 0.02, 0.0
     )  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def interrupted(tmp_path_factory):
+    """A 6-pose simulated campaign aborted after 2 poses: (session, samples)."""
+    from workcell.campaign.executor import CampaignConfig, CampaignControl
+    from workcell.campaign.run import run_campaign, sim_cell
+
+    _, robot, tracker, cell = sim_cell("ur5e", "none", 1, beam_break_prob=0.0)
+    path = tmp_path_factory.mktemp("interrupted") / "i.mcap"
+    control = CampaignControl()
+    run_campaign(
+        robot, tracker, cell, path, poses=6, seed=1,
+        config=CampaignConfig(readings_per_pose=1, settle_s=0.1), control=control,
+        on_sample=lambda s: s["index"] >= 1 and control.abort.set(),
+        extra_campaign={"robot_url": "sim", "tracker_url": "sim", "effects": "none"},
+    )  # fmt: skip
+    rec = read_recording(path)
+    return rec.session, rec.samples
+
+
+JSON_VALUES = st.one_of(
+    st.none(), st.booleans(), st.integers(-3, 40), st.just(10**9), st.floats(allow_nan=True),
+    st.text("abcnoe", max_size=6), st.lists(st.integers(0, 3), max_size=2),
+    st.dictionaries(st.text("ab", max_size=2), st.integers(), max_size=1),
+)  # fmt: skip
+CAMPAIGN_KEYS = (
+    "plan", "poses", "seed", "readings_per_pose", "settle_s", "approach_rad", "warmup_s",
+    "sim_seed", "effects", "robot_url", "tracker_url", "reference_every",
+)  # fmt: skip
+
+
+@settings(
+    max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(where=st.sampled_from([*CAMPAIGN_KEYS, "robot.model", "elapsed_s", "campaign"]),
+       value=JSON_VALUES)  # fmt: skip
+def test_a_hand_edited_campaign_block_resumes_or_is_one_line(interrupted, tmp_path, capsys,
+                                                              where, value):  # fmt: skip
+    """`campaign --resume` of a recording whose campaign block (or a sample's elapsed time, or
+    the arm's model) was edited by hand or written by another tool: it resumes, or says in one
+    line what it cannot use (before, a null settle time, a list as the seed, a text as the pose
+    count... ended in a traceback)."""
+    import copy
+    import uuid
+
+    from workcell.cli import main
+    from workcell.recording.schema import SAMPLE
+    from workcell.recording.writer import RecordingWriter
+
+    session, samples = copy.deepcopy(interrupted)
+    if where == "campaign":
+        session["campaign"] = value
+    elif where == "robot.model":
+        session["robot"]["model"] = value
+    elif where == "elapsed_s":
+        samples[-1]["elapsed_s"] = value
+    else:
+        session["campaign"][where] = value
+    path = tmp_path / f"{uuid.uuid4().hex}.mcap"
+    with RecordingWriter(path, session) as w:
+        for i, s in enumerate(samples):  # past the writer's own checks, as another tool would
+            w._write(SAMPLE, s, 10**9 * (i + 1))
+    capsys.readouterr()
+    rc = main(["campaign", "--resume", str(path), "--on-protective-stop", "resume"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc in (0, 2), (rc, err)
+    assert not any("Traceback" in x for x in err), err
+    if rc == 2:  # progress lines may come first (a resume that started); one error line
+        errors = [x for x in err if x.startswith("workcell campaign: error:")]
+        assert len(errors) == 1 and err[-1] == errors[0], err

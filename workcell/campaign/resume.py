@@ -32,11 +32,15 @@ def resume_plan(old: str) -> dict:
     """What a resume needs from the old recording."""
     rec = read_recording(old)
     camp = rec.session.get("campaign") or {}
+    if not isinstance(camp, dict):
+        raise UserError(f"{old}: session campaign block is not an object; cannot resume it")
     for key in ("plan", "poses", "seed"):
         if key not in camp:
             raise UserError(
                 f"{old}: session campaign block has no {key!r}; cannot re-create the plan"
             )
+    if (why := campaign_block_problem(camp, rec.session)) is not None:
+        raise UserError(f"{old}: session campaign block: {why}; cannot resume it")
     problems = checks.problems_of(rec.session, rec.samples)
     if problems:
         raise UserError(f"{old}: {checks.first_problem(problems)}; cannot resume it")
@@ -51,9 +55,52 @@ def resume_plan(old: str) -> dict:
         "done": done,
         "history": history,
         "n_samples": len(rec.samples),
-        "last_elapsed": max((float(s.get("elapsed_s", 0.0)) for s in rec.samples), default=0.0),
+        "last_elapsed": max((float(s.get("elapsed_s") or 0.0) for s in rec.samples), default=0.0),
         "skipped_events": len(skipped_events),
     }
+
+
+def campaign_block_problem(camp: dict, session: dict) -> str | None:
+    """What in a recorded campaign block (edited by hand, or written by another tool) a resume
+    could not use, or None: the plan, its size and seed, the measurement settings, the simulated
+    truth, the arm's model."""
+    import math
+
+    from workcell.campaign.plans import MAX_POSES, PLAN_KINDS
+
+    def whole(v) -> bool:
+        return isinstance(v, int) and not isinstance(v, bool)
+
+    def number(v) -> bool:
+        return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+
+    if camp["plan"] not in PLAN_KINDS:
+        return f"plan {camp['plan']!r} is not one of {sorted(PLAN_KINDS)}"
+    for key, lo in (("poses", 1), ("seed", 0)):
+        if not whole(camp[key]) or camp[key] < lo:
+            return f"{key} {camp[key]!r} is not a whole number >= {lo}"
+    if camp["poses"] > MAX_POSES:
+        return f"poses {camp['poses']} is more than a campaign can measure ({MAX_POSES})"
+    optional = (
+        ("readings_per_pose", whole, 1),
+        ("settle_s", number, 0),
+        ("approach_rad", number, 0),
+        ("warmup_s", number, 0),
+        ("sim_seed", whole, 0),
+        ("reference_every", whole, 0),
+    )
+    for key, kind, lo in optional:
+        v = camp.get(key)
+        if v is not None and (not kind(v) or v < lo):
+            return f"{key} {v!r} is not a {'whole ' if kind is whole else ''}number >= {lo}"
+    for key in ("effects", "robot_url", "tracker_url"):
+        v = camp.get(key)
+        if v is not None and not isinstance(v, str):
+            return f"{key} {v!r} is not text"
+    model = (session.get("robot") or {}).get("model") if isinstance(session, dict) else None
+    if model is not None and not isinstance(model, str):
+        return f"robot model {model!r} is not text"
+    return None
 
 
 def plan_continuation(kind: str, info: dict) -> dict:
@@ -90,12 +137,17 @@ def recorded_config(camp: dict, payload_kg: float, defaults: CampaignConfig) -> 
     """The measurement settings the old campaign recorded (readings, settle time, approach,
     warm-up: the arm is warmed up again as the campaign was); `defaults` for a recording that
     lacks one."""
+
+    def get(key: str):
+        v = camp.get(key)
+        return getattr(defaults, key) if v is None else v
+
     return dataclasses.replace(
         defaults,
-        readings_per_pose=int(camp.get("readings_per_pose", defaults.readings_per_pose)),
-        settle_s=float(camp.get("settle_s", defaults.settle_s)),
-        approach_rad=float(camp.get("approach_rad", defaults.approach_rad)),
-        warmup_s=float(camp.get("warmup_s", defaults.warmup_s)),
+        readings_per_pose=int(get("readings_per_pose")),
+        settle_s=float(get("settle_s")),
+        approach_rad=float(get("approach_rad")),
+        warmup_s=float(get("warmup_s")),
         payload_kg=payload_kg,
     )
 
@@ -120,7 +172,7 @@ def check_same_plan(info: dict, spec, env, tool_m, source: str) -> None:
             int(camp["poses"]),
             seed=int(camp["seed"]),
             tool_m=tool_m,
-            approach_rad=float(camp.get("approach_rad", 0.02)),
+            approach_rad=float(0.02 if camp.get("approach_rad") is None else camp["approach_rad"]),
         )
     except ValueError as e:
         raise UserError(f"{source}: cannot re-create its plan ({e})") from None
@@ -255,7 +307,7 @@ def resume_campaign(args: argparse.Namespace, control: CampaignControl) -> int:
     if camp.get("effects") is not None:
         ns.effects = camp["effects"]
     ns.seed = recorded_sim_seed(camp)
-    ns.model = info["recording"].session.get("robot", {}).get("model", args.model)
+    ns.model = (info["recording"].session.get("robot") or {}).get("model") or args.model
     ns.envelope = None
     cell, robot, tracker, env = open_cell(ns)
     cell.tool_m = np.asarray(recorded_tool(info["recording"].session))

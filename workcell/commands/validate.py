@@ -113,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
         )
         world, robot, tracker, cell = sim_cell(robot_name, effects, int(seed))
         # the recording's robot was warm: warm-up plus the campaign
-        world.clock.advance(float(camp.get("warmup_s", 0.0)) + 3600.0)
+        world.clock.advance(float(camp.get("warmup_s") or 0.0) + 3600.0)
         measure = sim_measure(world)
         spec = cell.spec
     else:
