@@ -746,3 +746,42 @@ def test_bench_outputs_never_replace_a_recording(tmp_path, capsys, argv):
     assert rc == 2 and len(err) == 1 and "existing recording (MCAP)" in err[0], err
     assert rec.read_bytes() == MCAP_MAGIC + b"measured data"
     assert (d / "results.json").read_bytes().endswith(b"a recording under that name")
+
+
+@pytest.mark.parametrize(
+    "argv, match",
+    [
+        (["info", "{fifo}"], "not a regular file (a pipe or device)"),
+        (["fit", "{fifo}"], "not a regular file (a pipe or device)"),
+        (["export", "{fifo}", "--format", "table", "--out", "{tmp}/t"], "not a regular file"),
+        (["export", "{deep}", "--format", "table", "--out", "{tmp}/t"], "nested too deeply"),
+        (["campaign", "--envelope", "{deep}", "--dry-run", "--poses", "4"], "nested too deeply"),
+    ],
+)
+def test_a_pipe_or_a_deeply_nested_file_is_one_line(tmp_path, capsys, argv, match):
+    """A named pipe given as a recording or model made the command wait forever for a writer;
+    a JSON file nested 200,000 deep ended in a RecursionError traceback."""
+    import os
+
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    deep = tmp_path / "deep.json"
+    deep.write_text("[" * 200_000)
+    one_line_refusal(capsys, [a.format(fifo=fifo, deep=deep, tmp=tmp_path) for a in argv], match)
+
+
+def test_a_full_disk_says_what_to_do(monkeypatch, capsys):
+    """ENOSPC was reported as the bare '[Errno 28] No space left on device'."""
+    import errno
+
+    import workcell.commands.info as info
+
+    def full(args):
+        raise OSError(errno.ENOSPC, "No space left on device", "run.mcap")
+
+    monkeypatch.setattr(info, "run", full)
+    one_line_refusal(capsys, ["info", "x.mcap"], "cannot use run.mcap: No space left on device;")
+    monkeypatch.setattr(info, "run", full)
+    capsys.readouterr()
+    main(["info", "x.mcap"])
+    assert "campaign --resume REC" in capsys.readouterr().err

@@ -9,6 +9,7 @@ printed as one line `workcell <cmd>: error: ...` with exit code 2, never a trace
 
 from __future__ import annotations
 
+import errno
 import os
 import signal
 import sys
@@ -142,7 +143,19 @@ def _main(argv: list[str] | None) -> int:
         msg = str(e)
         if isinstance(e, OSError) and e.filename and e.strerror:
             msg = f"cannot use {e.filename}: {e.strerror}"
+        if isinstance(e, OSError) and e.errno == errno.ENOSPC:
+            msg += (
+                "; the disk is full: free some space and run again (a campaign's recording "
+                "keeps every pose measured so far: `workcell campaign --resume REC` continues it)"
+            )
         print(f"workcell {args.command}: error: {msg}", file=sys.stderr)
+        return 2
+    except RecursionError:
+        print(
+            f"workcell {args.command}: error: an input file is nested too deeply to read (a "
+            "JSON file that is not a workcell file?); check the files given",
+            file=sys.stderr,
+        )
         return 2
 
 

@@ -249,6 +249,8 @@ def _targets(args, model, cond, summary) -> int:
     src = Path(args.targets_in)
     if not src.exists():
         raise UserError(f"{src}: no such file")
+    if not src.is_file():
+        raise UserError(f"{src}: not a regular file; give a targets CSV file")
     try:
         with open(src, newline="", encoding="utf-8-sig") as f:  # spreadsheets write a BOM
             reader = csv.reader(f)

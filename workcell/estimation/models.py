@@ -136,6 +136,8 @@ def load_model(path: str | os.PathLike) -> FittedModel:
     p = Path(path)
     if not p.exists():
         raise UserError(f"{p}: no such model file; fit one with `workcell fit REC --out {p}`")
+    if not p.is_file():  # a directory, or a pipe (reading it would wait forever)
+        raise UserError(f"{p}: not a regular file; give a model file (.json)")
     try:
         d = json.loads(p.read_text(encoding="utf-8-sig"))
     except (ValueError, UnicodeDecodeError):

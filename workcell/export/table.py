@@ -258,6 +258,8 @@ def load_table(path: str | os.PathLike) -> CorrectionTable:
                 "write one with `workcell export`"
             )
         raise UserError(f"{p}: no such correction table; write one with `workcell export`")
+    if not p.is_file():
+        raise UserError(f"{p}: not a regular file; give a correction table (.json)")
     try:
         d = json.loads(p.read_text(encoding="utf-8-sig"))
         if not isinstance(d, dict):

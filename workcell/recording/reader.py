@@ -57,6 +57,8 @@ def read_recording(path: str | os.PathLike, *, streams: bool = True) -> Recordin
         raise RecordingError(f"{p}: no such file; check the path")
     if p.is_dir():
         raise RecordingError(f"{p}: is a directory, expected an .mcap recording")
+    if not p.is_file():  # reading a pipe would wait for a writer forever
+        raise RecordingError(f"{p}: not a regular file (a pipe or device); give a recording file")
     with open(p, "rb") as f:
         head = f.read(len(MAGIC))
         if head != MAGIC:
