@@ -482,3 +482,36 @@ def test_validate_warns_when_a_table_is_for_another_thermal_state():
     assert thermal_mismatch(m, tab, np.full(6, 31.0)) is None
     assert thermal_mismatch(m, tab, None) is None  # a controller without temperatures
     assert thermal_mismatch(_thermal_model("time"), tab, np.full(6, 50.0)) is None
+
+
+def test_a_failed_table_write_keeps_the_earlier_table_whole(tmp_path, monkeypatch):
+    """A table write that fails half way (a full disk) used to leave the new JSON beside a CSV
+    cut off mid-row, with the earlier good CSV gone; a later run took the truncated CSV for a
+    table. Now both files are written to temporaries and renamed only when both are whole."""
+    import errno
+
+    import workcell.export.table as table_mod
+    from workcell.export.table import load_table
+
+    m = make_model(3)
+    corr = Corrector(m, nominal_for(m))
+    tab = build_table(corr, LO, HI, [DOWN], spacing_m=0.2, n_check=20)
+    tab.save(tmp_path / "t")
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    assert set(before) == {"t.json", "t.csv"}
+
+    class FullDisk:
+        def __init__(self, f):
+            self.rows = 0
+
+        def writerow(self, row):
+            self.rows += 1
+            if self.rows > 3:
+                raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(table_mod.csv, "writer", FullDisk)
+    with pytest.raises(OSError, match="No space left"):
+        tab.save(tmp_path / "t")
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before  # no temporaries
+    monkeypatch.undo()
+    assert load_table(tmp_path / "t").shape == tab.shape

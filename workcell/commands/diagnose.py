@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from workcell.atomic import write_text
 from workcell.commands.options import add_tracker_mpe, parse_tracker_mpe
 from workcell.errors import UserError, check_output_path, replace_or_refuse
 from workcell.estimation.models import interval_um
@@ -119,8 +120,8 @@ def run(args: argparse.Namespace) -> int:
             )
     if outdir:
         rep["plots"] = write_plots(diag, outdir)
-        (outdir / REPORT_FILES[0]).write_text(rep["summary"] + "\n")
-        (outdir / REPORT_FILES[1]).write_text(json.dumps(rep, indent=1, default=_json_default))
+        write_text(outdir / REPORT_FILES[0], rep["summary"] + "\n")
+        write_text(outdir / REPORT_FILES[1], json.dumps(rep, indent=1, default=_json_default))
     if args.json:
         print(json.dumps(rep, default=_json_default))
     else:

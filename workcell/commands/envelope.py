@@ -11,6 +11,7 @@ import json
 
 import numpy as np
 
+from workcell.atomic import write_text
 from workcell.errors import UserError, check_output_path
 
 
@@ -69,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
         if p.exists():
             raise UserError(f"{p} already exists; choose a new file")
         p.parent.mkdir(parents=True, exist_ok=True)
-        p.write_text(text + "\n")
+        write_text(p, text + "\n")
         what = f"with the margin from {args.model}" if model is not None else ""
         print(
             f"wrote {p}: the default envelope of the {spec.model}{' ' + what if what else ''}; "

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from workcell.atomic import atomic_files
 from workcell.errors import UserError, check_output_path, refuse_overwrite
 
 FORMATS = ("table", "urscript", "ros-yaml", "targets")
@@ -338,7 +339,7 @@ def _targets(args, model, cond, summary) -> int:
     rv = matrix_to_rotvec(R)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    with open(out, "w", newline="") as f:
+    with atomic_files(out, newline="") as (f,):
         w = csv.writer(f)
         w.writerow(
             ["x", "y", "z", "rx", "ry", "rz", "x_cmd", "y_cmd", "z_cmd"]

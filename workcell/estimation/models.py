@@ -9,7 +9,6 @@ from __future__ import annotations
 import importlib
 import json
 import os
-import tempfile
 import warnings
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
@@ -113,23 +112,11 @@ def check_model_output(
 
 
 def save_model(model: FittedModel, path: str | os.PathLike) -> Path:
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
+    from workcell.atomic import write_text
+
     d = {"format": MODEL_FORMAT, **model.to_dict()}
-    text = json.dumps(d, indent=1, allow_nan=False)
-    # a fresh temporary name beside the output (never an existing file), then an atomic rename
-    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # as an ordinary new file (mkstemp makes it 0600)
-        os.replace(tmp, p)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return p
+    # whole or not at all: a temporary name beside the output, then an atomic rename
+    return write_text(path, json.dumps(d, indent=1, allow_nan=False))
 
 
 def load_model(path: str | os.PathLike) -> FittedModel:

@@ -35,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
+from workcell.atomic import write_text
 from workcell.errors import UserError
 
 LINKS = ("shoulder", "upper_arm", "forearm", "wrist_1", "wrist_2", "wrist_3")
@@ -317,5 +318,5 @@ def export_ros_yaml(model, path, meta: dict | None = None) -> tuple[Path, dict]:
         )
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    p.write_text(to_yaml(kin, comments=comments, std=std))
+    write_text(p, to_yaml(kin, comments=comments, std=std))
     return p, {"kinematics": kin, "kinematics_std": std, "tcp_in_tool0": tcp.tolist()}

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from workcell.atomic import atomic_files
 from workcell.errors import UserError
 from workcell.export.correction import (
     Q_REF,
@@ -212,11 +213,12 @@ class CorrectionTable:
         """Write PATH.json (everything) and PATH.csv (one row per node). Returns both paths."""
         p = Path(path)
         base = p.with_suffix("") if p.suffix.lower() in (".json", ".csv") else p
-        base.parent.mkdir(parents=True, exist_ok=True)
         pj, pc = base.with_suffix(".json"), base.with_suffix(".csv")
-        pj.write_text(json.dumps(self.to_dict(), indent=1, allow_nan=False))
+        text = json.dumps(self.to_dict(), indent=1, allow_nan=False)
         X = self.node_positions()
-        with open(pc, "w", newline="") as f:
+        # both files whole or neither replaced: a failure (full disk) keeps an earlier pair
+        with atomic_files(pj, pc, newline="") as (fj, f):
+            fj.write(text)
             for key in ("model", "recording_sha256", "robot", "frame", "units"):
                 if key in self.meta:
                     f.write(f"# {key}: {self.meta[key]}\n")

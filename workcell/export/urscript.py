@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from workcell.atomic import write_text
 from workcell.export.table import OUTSIDE_TOL_M, CorrectionTable
 
 
@@ -128,7 +129,7 @@ def generate_urscript(table: CorrectionTable, name: str = "wc_correct") -> str:
 def write_urscript(table: CorrectionTable, path, name: str = "wc_correct") -> Path:
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    p.write_text(generate_urscript(table, name))
+    write_text(p, generate_urscript(table, name))
     return p
 
 

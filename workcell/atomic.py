@@ -1,0 +1,51 @@
+"""Outputs written whole or not at all: each file goes to a fresh temporary name beside it,
+is flushed to disk, and only then renamed over the target (`os.replace`, atomic on POSIX). A
+failure on the way (a full disk, Ctrl-C, an error while formatting) leaves the earlier output
+as it was and no partial file behind."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+
+@contextlib.contextmanager
+def atomic_files(*paths: str | os.PathLike, newline: str | None = None) -> Iterator[list]:
+    """Open a temporary text file beside each of `paths`; yields the open files. When the block
+    ends without an error, every file is flushed and synced, then all are renamed into place
+    (in the order given); otherwise the temporaries are removed and nothing is replaced."""
+    targets = [Path(p) for p in paths]
+    tmps: list[str] = []
+    files = []
+    try:
+        for p in targets:
+            p.parent.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent)
+            tmps.append(tmp)
+            files.append(os.fdopen(fd, "w", newline=newline))
+        yield files
+        umask = os.umask(0)
+        os.umask(umask)
+        for f, tmp in zip(files, tmps, strict=True):
+            f.flush()
+            os.fsync(f.fileno())
+            f.close()
+            os.chmod(tmp, 0o666 & ~umask)  # as an ordinary new file (mkstemp makes it 0600)
+        for tmp, p in zip(tmps, targets, strict=True):
+            os.replace(tmp, p)
+    finally:
+        for f in files:
+            with contextlib.suppress(OSError):
+                f.close()
+        for tmp in tmps:
+            Path(tmp).unlink(missing_ok=True)  # gone already once renamed
+
+
+def write_text(path: str | os.PathLike, text: str) -> Path:
+    """`Path.write_text`, whole or not at all."""
+    with atomic_files(path) as (f,):
+        f.write(text)
+    return Path(path)
