@@ -216,3 +216,23 @@ def test_unreachable_devices_give_one_clear_line(tmp_path):
     )
     assert_one_line_error(r, "unreachable")
     assert not out.exists(), "no recording is started before the devices answer"
+
+
+def test_a_recording_that_cannot_start_leaves_no_file(tmp_path, monkeypatch):
+    """A campaign that failed while writing its session (a full disk) left a header-only .mcap
+    that blocked the same --out and that --resume refused as "bad magic"; now nothing is left,
+    and the writer never opens over a file that appeared meanwhile."""
+    import errno
+
+    import pytest
+
+    import workcell.recording.writer as writer_mod
+    from workcell.recording.writer import RecordingWriter
+
+    def full(self):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(writer_mod.RecordingWriter, "flush", full)
+    with pytest.raises(OSError, match="No space left"):
+        RecordingWriter(tmp_path / "r.mcap", {"campaign": {}})
+    assert list(tmp_path.iterdir()) == []

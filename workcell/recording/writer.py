@@ -43,7 +43,17 @@ class RecordingWriter:
         if self.path.exists():
             raise FileExistsError(f"{self.path} already exists; refusing to overwrite a recording")
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._f = open(self.path, "wb")
+        self._f = open(self.path, "xb")  # never over a file that appeared meanwhile
+        try:
+            self._start(session, compression)
+        except BaseException:
+            # nothing measured yet (a full disk, an unwritable session): leave no header-only
+            # file behind, which would block the same path and could not be resumed
+            self._f.close()
+            self.path.unlink(missing_ok=True)
+            raise
+
+    def _start(self, session: dict, compression: str) -> None:
         comp = {
             "zstd": CompressionType.ZSTD,
             "lz4": CompressionType.LZ4,
