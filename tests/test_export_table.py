@@ -515,3 +515,24 @@ def test_a_failed_table_write_keeps_the_earlier_table_whole(tmp_path, monkeypatc
     assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before  # no temporaries
     monkeypatch.undo()
     assert load_table(tmp_path / "t").shape == tab.shape
+
+
+def test_a_dotted_output_name_keeps_its_dots():
+    """`--out cell.v1` wrote cell.json and cell.csv (the '.v1' taken for an extension), and a
+    URScript `--out cell.v2` then silently replaced that table. A .json, .csv or .script
+    extension is replaced; any other dotted part is kept."""
+    from pathlib import Path
+
+    from workcell.export.files import output_files
+    from workcell.export.table import table_files
+
+    assert table_files("out/cell.v1") == (Path("out/cell.v1.json"), Path("out/cell.v1.csv"))
+    assert table_files("cell.json") == (Path("cell.json"), Path("cell.csv"))
+    assert table_files("cell.script") == (Path("cell.json"), Path("cell.csv"))
+    assert output_files("table", Path("cell.v1")) == [Path("cell.v1.json"), Path("cell.v1.csv")]
+    assert output_files("urscript", Path("cell.v2")) == [
+        Path("cell.v2"), Path("cell.v2.json"), Path("cell.v2.csv"),
+    ]  # fmt: skip
+    assert output_files("urscript", Path("c")) == [
+        Path("c.script"), Path("c.json"), Path("c.csv"),
+    ]  # fmt: skip

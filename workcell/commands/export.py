@@ -180,7 +180,7 @@ def run(args: argparse.Namespace) -> int:
 
         script = out if out.suffix else out.with_suffix(".script")
         files = [str(write_urscript(table, script))]
-        files += [str(p) for p in table.save(script.with_suffix(""))]
+        files += [str(p) for p in table.save(script)]  # X.script -> X.json, X.csv
         summary["files"] = files
     return _report(args, summary)
 

@@ -46,9 +46,10 @@ def output_files(fmt: str, out: Path) -> list[Path]:
     """The files `export --format fmt --out out` writes (a table is PATH.json + PATH.csv)."""
     if fmt in ("ros-yaml", "targets"):
         return [out]
+    from workcell.export.table import table_files
+
     if fmt == "table":
-        base = out.with_suffix("") if out.suffix.lower() in (".json", ".csv") else out
-        return [base.with_suffix(".json"), base.with_suffix(".csv")]
+        return list(table_files(out))
     script = out if out.suffix else out.with_suffix(".script")
     if script.suffix.lower() in (".json", ".csv"):
         raise UserError(
@@ -56,4 +57,4 @@ def output_files(fmt: str, out: Path) -> list[Path]:
             f"{script.stem}.csv, which would replace the script; give --out "
             f"{script.with_suffix('.script')}"
         )
-    return [script, script.with_suffix(".json"), script.with_suffix(".csv")]
+    return [script, *table_files(script)]

@@ -211,9 +211,7 @@ class CorrectionTable:
 
     def save(self, path: str | os.PathLike) -> tuple[Path, Path]:
         """Write PATH.json (everything) and PATH.csv (one row per node). Returns both paths."""
-        p = Path(path)
-        base = p.with_suffix("") if p.suffix.lower() in (".json", ".csv") else p
-        pj, pc = base.with_suffix(".json"), base.with_suffix(".csv")
+        pj, pc = table_files(path)
         text = json.dumps(self.to_dict(), indent=1, allow_nan=False)
         X = self.node_positions()
         # both files whole or neither replaced: a failure (full disk) keeps an earlier pair
@@ -249,10 +247,19 @@ class CorrectionTable:
         return pj, pc
 
 
+def table_files(path: str | os.PathLike) -> tuple[Path, Path]:
+    """The JSON and CSV of the table named `path`: a .json, .csv or .script extension is
+    replaced (`export --out X.script` writes X.json and X.csv beside the script), any other
+    dotted part is kept (`--out cell.v1` writes cell.v1.json and cell.v1.csv, not cell.json)."""
+    p = Path(path)
+    base = p.with_suffix("") if p.suffix.lower() in (".json", ".csv", ".script") else p
+    return base.with_name(base.name + ".json"), base.with_name(base.name + ".csv")
+
+
 def load_table(path: str | os.PathLike) -> CorrectionTable:
     given = p = Path(path)
     if p.suffix.lower() != ".json":
-        p = p.with_suffix(".json")  # `export --out X.script` writes the table as X.json
+        p = table_files(p)[0]  # `export --out X.script` writes the table as X.json
     if not p.exists():
         if given != p and given.exists():
             raise UserError(

@@ -794,7 +794,8 @@ def export(cfg: ExportConfig, log: Callable[[str], None] | None = None) -> dict:
 
         script = out if out.suffix else out.with_suffix(".script")
         summary["files"] = [str(write_urscript(table, script))] + [
-            str(p) for p in table.save(script.with_suffix(""))
+            str(p)
+            for p in table.save(script)  # X.script -> X.json, X.csv
         ]
     summary["seconds"] = time.perf_counter() - t0
     return summary
