@@ -785,3 +785,21 @@ def test_a_full_disk_says_what_to_do(monkeypatch, capsys):
     capsys.readouterr()
     main(["info", "x.mcap"])
     assert "campaign --resume REC" in capsys.readouterr().err
+
+
+def test_demo_interrupted_stops_instead_of_fitting_a_partial_campaign(
+    tmp_path, monkeypatch, capsys
+):
+    """Ctrl-C during the demo's campaign aborted it quietly, then fitted the partial recording
+    and exited 0; now it says where the recording is and exits 130."""
+    import workcell.campaign.run as run_mod
+    from workcell.campaign.executor import CampaignResult
+
+    def aborted(robot, tracker, cell, path, **kw):
+        return path, CampaignResult(measured=3, aborted=True, stopped_by="operator")
+
+    monkeypatch.setattr(run_mod, "run_campaign", aborted)
+    capsys.readouterr()
+    assert main(["demo", "--out", str(tmp_path), "--poses", "20"]) == 130
+    err = capsys.readouterr().err
+    assert "interrupted after 3 poses" in err and "fit" not in err

@@ -14,7 +14,9 @@ jax.config.update("jax_enable_x64", True)
 
 _cache = os.environ.get(
     "WORKCELL_JAX_CACHE",
-    os.path.join(os.environ.get("XDG_CACHE_HOME", os.path.expanduser("~/.cache")), "workcell-jax"),
+    os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "workcell-jax"
+    ),
 )
 if _cache:
     try:

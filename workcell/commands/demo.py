@@ -89,6 +89,13 @@ def run(args: argparse.Namespace) -> int:
         on_event=lambda e: log(f"  {e['kind']}: {e['message']}") if e["kind"] == "margin" else None,
     )
     margin_stop(res, rec_path)
+    if res.aborted:  # Ctrl-C during the campaign: stop there, do not fit a partial demo
+        print(
+            f"workcell demo: interrupted after {res.measured} poses; {rec_path} is closed and "
+            "keeps them",
+            file=sys.stderr,
+        )
+        return 130
     camp_s = time.perf_counter() - t0
     log(
         f"  measured {res.measured}, skipped {res.skipped}, {res.events} events "
