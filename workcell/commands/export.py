@@ -198,11 +198,16 @@ def _report(args, summary: dict) -> int:
                 f"{summary['max_correction_m'] * 1e3:.3f} mm"
             )
             if not summary.get("interp_error_target_met", True):
+                why = (
+                    "with the --spacing given (a finer one lowers the error)"
+                    if args.spacing is not None
+                    else "(node limit reached); a smaller volume or fewer orientations give a "
+                    "finer grid"
+                )
                 print(
                     f"warning: the interpolation error target "
-                    f"{summary['target_interp_error_m'] * 1e6:.3g} um is not met (node limit "
-                    "reached); the table holds the error above; a smaller volume or fewer "
-                    "orientations give a finer grid"
+                    f"{summary['target_interp_error_m'] * 1e6:.3g} um is not met {why}; the "
+                    "table holds the error above"
                 )
     return 0
 
