@@ -403,19 +403,7 @@ def route(
     """Waypoints from q_from to q_to whose joint paths stay inside `env`: the direct move, else
     via the upright posture (`upright(q_from)`). Returns (waypoints, None), or ([], why) when
     neither stays inside (then nothing may move)."""
-    q_to = np.asarray(q_to, float)
-    why = env.path_violation(spec, q_from, q_to, tool_m)
-    if why is None:
-        return [q_to], None
-    if spec.n_joints == 6:
-        u = upright(q_from)
-        if (
-            env.violations(spec, u[None], tool_m)[0] is None
-            and env.path_violation(spec, q_from, u, tool_m) is None
-            and env.path_violation(spec, u, q_to, tool_m) is None
-        ):
-            return [u, q_to], None
-    return [], why
+    return _route(env, env, spec, tool_m, q_from, q_to)
 
 
 def route_back_in(
@@ -427,17 +415,24 @@ def route_back_in(
     to them); else via the upright posture brought inside the joint ranges (the joints it keeps
     from q_from clipped into them), only when that posture, and the move on from it, are inside
     `env` itself."""
-    loose = env.with_arm_joint_ranges(spec)
+    return _route(env.with_arm_joint_ranges(spec), env, spec, tool_m, q_from, q_to)
+
+
+def _route(first: Envelope, env: Envelope, spec, tool_m, q_from, q_to):
+    """The direct move and the leg to the via posture checked against `first`; the via posture
+    (upright, inside `env`'s joint ranges) and the leg on from it against `env`."""
     q_to = np.asarray(q_to, float)
-    why = loose.path_violation(spec, q_from, q_to, tool_m)
+    why = first.path_violation(spec, q_from, q_to, tool_m)
     if why is None:
         return [q_to], None
     if spec.n_joints == 6:
         lim = np.asarray(env.joint_limits_rad, float)
-        u = np.clip(upright(q_from), lim[:, 0], lim[:, 1])
+        u = upright(q_from)
+        if first is not env:  # coming back in: the via posture inside the ranges
+            u = np.clip(u, lim[:, 0], lim[:, 1])
         if (
             env.violations(spec, u[None], tool_m)[0] is None
-            and loose.path_violation(spec, q_from, u, tool_m) is None
+            and first.path_violation(spec, q_from, u, tool_m) is None
             and env.path_violation(spec, u, q_to, tool_m) is None
         ):
             return [u, q_to], None
