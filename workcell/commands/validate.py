@@ -10,13 +10,14 @@ import textwrap
 import numpy as np
 
 from workcell.errors import UserError
+from workcell.export.validate import DEFAULT_READINGS, DEFAULT_TARGETS, MAX_READINGS, MAX_TARGETS
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("model", help="fitted model file")
     p.add_argument("--robot", default="sim", help="sim or ur://HOST")
     p.add_argument("--tracker", default="sim", help="sim or serial:///dev/ttyX")
-    p.add_argument("--targets", type=int, default=50, help="random targets to measure")
+    p.add_argument("--targets", type=int, default=DEFAULT_TARGETS, help="random targets to measure")
     p.add_argument("--table", help="exported table (.json); default: build it from the model")
     p.add_argument("--volume", help="x0,y0,z0,x1,y1,z1 in m (when building the table)")
     p.add_argument(
@@ -35,10 +36,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--readings", type=int, help="tracker readings per target (real tracker; default 5)"
     )
     p.add_argument("--json", action="store_true", help="print one JSON object")
-
-
-MAX_TARGETS = 10_000  # ~10 s a target: more than a day at the tracker
-MAX_READINGS = 1000
 
 
 def check_options(args: argparse.Namespace) -> None:
@@ -127,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
             seed=0,
         )
         cell, robot, tracker, _ = open_cell(ns)
-        measure = tracker_measure(tracker, args.readings or 5)
+        measure = tracker_measure(tracker, args.readings or DEFAULT_READINGS)
         spec = cell.spec
     env, env_what = validation_envelope(  # before connecting
         envelope_from_args(args, spec) if args.envelope else None, session, spec, str(rec)

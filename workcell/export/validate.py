@@ -71,6 +71,13 @@ def commanded_joints(
     return q
 
 
+# the closed-loop check's defaults and limits, shared by `workcell validate` and the TUI
+DEFAULT_TARGETS = 50
+DEFAULT_READINGS = 5  # tracker readings per visit (a real or protocol-simulated tracker)
+MAX_TARGETS = 10_000  # ~10 s a target: more than a day at the tracker
+MAX_READINGS = 1000
+
+
 def run_validation(
     nominal: Nominal,
     table: CorrectionTable,

@@ -806,9 +806,9 @@ def closed_loop(
     model_path: str,
     table_path: str,
     dev: Devices,
-    targets: int = 20,
+    targets: int | None = None,
     *,
-    readings: int = 3,
+    readings: int | None = None,
     log: Callable[[str], None] | None = None,
     envelope_file: str = "default",
 ) -> dict:
@@ -823,6 +823,9 @@ def closed_loop(
     from workcell.export.build import model_recording, nominal_for_model
     from workcell.export.table import load_table
     from workcell.export.validate import (
+        DEFAULT_READINGS,
+        DEFAULT_TARGETS,
+        MAX_TARGETS,
         robot_mover,
         run_validation,
         thermal_mismatch,
@@ -831,8 +834,10 @@ def closed_loop(
     )
     from workcell.recording.reader import read_recording
 
-    if not 1 <= targets <= 1000:
-        raise UserError(f"targets must be 1..1000, got {targets}")
+    targets = DEFAULT_TARGETS if targets is None else targets
+    if not 1 <= targets <= MAX_TARGETS:
+        raise UserError(f"targets must be 1..{MAX_TARGETS}, got {targets}")
+    readings = DEFAULT_READINGS if readings is None else readings
     if not table_path or not Path(table_path).exists():
         raise UserError("export a table first (the check moves the arm to its corrected targets)")
     model = load_model(model_path)

@@ -14,6 +14,7 @@ from textual.widgets import Button, Input, Label, Select, Static
 
 from workcell.errors import UserError
 from workcell.estimation.models import interval_um, unexplained_text
+from workcell.export.validate import DEFAULT_TARGETS, MAX_TARGETS
 from workcell.tui.backend import ExportConfig
 from workcell.tui.messages import ExportRequested, ValidateRequested
 from workcell.tui.screens.base import WorkcellScreen, um
@@ -71,7 +72,7 @@ class ExportScreen(WorkcellScreen):
                 yield Button("Export", id="run", variant="primary")
             with Horizontal(classes="row"):
                 yield Label("Check")
-                yield Input("20", id="targets", placeholder="targets")
+                yield Input(str(DEFAULT_TARGETS), id="targets", placeholder="targets")
                 yield Button("Validate on the cell", id="validate")
         yield Static(self.status, id="status")
         with VerticalScroll(id="result-box"):
@@ -124,8 +125,8 @@ class ExportScreen(WorkcellScreen):
             if not table:
                 raise UserError("export a table (or urscript) first; the check uses its table")
             n = self.number("targets", int, "targets")
-            if not 1 <= n <= 1000:
-                raise UserError(f"targets must be 1..1000, got {n}")
+            if not 1 <= n <= MAX_TARGETS:
+                raise UserError(f"targets must be 1..{MAX_TARGETS}, got {n}")
         except UserError as e:
             self.notify(str(e), severity="error", title="Validate")
             return
