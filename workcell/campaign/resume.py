@@ -220,12 +220,13 @@ def recorded_reference_every(camp: dict, source: str) -> int:
     return v
 
 
-def recorded_sim_seed(camp: dict) -> int:
+def recorded_sim_seed(camp: dict) -> int | None:
     """The seed of the simulated truth a campaign ran against: `sim_seed` where recorded (the
     terminal UI sets it apart from the plan's seed), else the plan's `seed`, which the command
-    line uses for both."""
+    line uses for both; None when neither is recorded."""
     v = camp.get("sim_seed")
-    return int(camp["seed"] if v is None else v)
+    v = camp.get("seed") if v is None else v
+    return None if v is None else int(v)
 
 
 def check_same_cell(camp: dict, source: str, *, robot_url: str, tracker_url: str,

@@ -63,9 +63,16 @@ def check_options(args: argparse.Namespace) -> None:
 def run(args: argparse.Namespace) -> int:
     from workcell.campaign.devices import envelope_from_args
     from workcell.campaign.envelope import Guard
+    from workcell.campaign.resume import recorded_sim_seed
     from workcell.drivers.protocols import close_quietly
     from workcell.estimation.models import RMS_INTERVAL_BASIS, interval_um, load_model
-    from workcell.export.build import make_table, model_recording, nominal_for_model, parse_vec
+    from workcell.export.build import (
+        make_table,
+        model_recording,
+        model_session,
+        nominal_for_model,
+        parse_vec,
+    )
     from workcell.export.correction import Conditions
     from workcell.export.table import load_table
     from workcell.export.validate import (
@@ -81,23 +88,12 @@ def run(args: argparse.Namespace) -> int:
     model = load_model(args.model)
     log = (lambda m: None) if args.json else print
     rec, _ = model_recording(model)
-    session = {}
-    missing = (getattr(model, "info", {}) or {}).get("recording_unusable", "")
-    if rec:
-        try:
-            from workcell.recording.reader import read_recording
-
-            session = read_recording(rec).session
-        except Exception as e:  # noqa: BLE001 - the recording is optional here
-            session = {}
-            missing = f"the model's recording {rec} is unreadable: {e}"[:300]
+    session, missing = model_session(model)
     camp = session.get("campaign", {}) or {}
     if args.robot == "sim" and args.tracker == "sim":
         from workcell.campaign.run import sim_cell
 
-        seed = args.sim_seed
-        if seed is None:  # the recording's simulated truth (older recordings: the plan's seed)
-            seed = camp.get("seed") if camp.get("sim_seed") is None else camp["sim_seed"]
+        seed = args.sim_seed if args.sim_seed is not None else recorded_sim_seed(camp)
         effects = args.effects or camp.get("effects")
         if seed is None or effects is None:
             why = missing or "the model's recording does not give the simulated seed/effects"

@@ -25,6 +25,22 @@ def model_recording(model) -> tuple[str | None, str | None]:
     return info.get("recording"), info.get("recording_sha256")
 
 
+def model_session(model) -> tuple[dict, str]:
+    """The session of the recording the model was fitted on -> (session, why not): {} and a
+    reason when the model names none or it cannot be read (the recording is optional to
+    `validate`: it gives the simulated truth and the cell's envelope)."""
+    rec, _ = model_recording(model)
+    missing = (getattr(model, "info", {}) or {}).get("recording_unusable", "")
+    if not rec:
+        return {}, missing
+    try:
+        from workcell.recording.reader import read_recording
+
+        return read_recording(rec).session, ""
+    except Exception as e:  # noqa: BLE001 - the recording is optional here
+        return {}, f"the model's recording {rec} is unreadable: {e}"[:300]
+
+
 def nominal_for_model(model, recording: str | None = None) -> Nominal:
     """nominal_for(model), falling back on the model's (or the given) recording."""
     try:

@@ -820,7 +820,7 @@ def closed_loop(
     is in the numbers)."""
     from workcell.campaign.envelope import Guard
     from workcell.estimation.models import load_model
-    from workcell.export.build import model_recording, nominal_for_model
+    from workcell.export.build import model_recording, model_session, nominal_for_model
     from workcell.export.table import load_table
     from workcell.export.validate import (
         DEFAULT_READINGS,
@@ -832,7 +832,6 @@ def closed_loop(
         tracker_measure,
         validation_envelope,
     )
-    from workcell.recording.reader import read_recording
 
     targets = DEFAULT_TARGETS if targets is None else targets
     if not 1 <= targets <= MAX_TARGETS:
@@ -845,10 +844,7 @@ def closed_loop(
     nominal = nominal_for_model(model)
     spec = dev.cell.spec
     rec, _ = model_recording(model)
-    try:
-        session = read_recording(rec).session if rec else {}
-    except Exception:  # noqa: BLE001 - the recording is optional here, as for validate
-        session = {}
+    session, _ = model_session(model)
     given = None
     if envelope_file not in ("", "default"):
         from workcell.campaign.envelope import load_envelope
