@@ -123,6 +123,11 @@ def read_recording(path: str | os.PathLike, *, streams: bool = True) -> Recordin
             f"{p}: no {S.SESSION} message; a recording must start with its session"
         )
     _check_session(p, rec.session)
+    # MCAP does not require a file's messages to be in time order (a merged or rewritten file
+    # may not be): everything downstream (hold-out split, replay, drift tests) follows the order
+    # of measurement, so put each stream in log-time order. Stable: equal times keep file order.
+    for stream in (rec.samples, rec.events, rec.joint_states, rec.tracker_measurements):
+        stream.sort(key=lambda m: m["_log_time_ns"])
     return rec
 
 
