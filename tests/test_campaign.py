@@ -679,3 +679,72 @@ def test_an_unexpected_error_stops_the_arm_and_the_recording_says_why(tmp_path):
         progress("pose 1")  # no exception
     finally:
         sys.stderr = old
+
+
+class LostOnceAndRestarted:
+    """The in-process simulated robot whose connection is lost at the `at`-th move command; the
+    reconnect finds a restarted controller whose clock starts again from zero."""
+
+    def __init__(self, inner, at: int):
+        self.inner, self.at, self.n, self.lost, self.t_back = inner, at, 0, False, 0.0
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+    def reconnect(self):
+        self.t_back = self.inner.state().t_s  # the controller's clock restarts
+
+    def state(self):
+        st = self.inner.state()
+        return dataclasses.replace(st, t_s=st.t_s - self.t_back)
+
+    def move_joints(self, q, speed, accel):
+        from workcell.drivers.protocols import DeviceError
+
+        self.n += 1
+        if self.n == self.at and not self.lost:
+            self.lost = True
+            raise DeviceError("RTDE lost")
+        return self.inner.move_joints(q, speed, accel)
+
+
+def test_log_times_come_from_one_clock_across_a_reconnect_and_a_controller_restart():
+    """Log time is the moment of acquisition (recording format). The reconnect event was stamped
+    with the wall clock while every other record used the robot's (virtual, in a time-scaled
+    simulation) clock, and a controller whose clock restarted put later records before earlier
+    ones. Now every record's log time comes in order, and a sample's log time less its
+    `elapsed_s` is the campaign's start throughout."""
+    from workcell.campaign.executor import CampaignControl
+
+    world, robot, tracker, cell = sim_cell("ur5e", "none", 4, beam_break_prob=0.0)
+    env = default_envelope(cell.spec)
+    flaky = LostOnceAndRestarted(robot, at=6)
+    records = []
+
+    class Sink:
+        def event(self, t, level, kind, msg):
+            records.append((t, kind, None))
+
+        def joint_state(self, t, *a):
+            records.append((t, "joint_state", None))
+
+        def tracker_measurement(self, t, *a):
+            records.append((t, "tracker", None))
+
+        def sample(self, t, s):
+            records.append((t, "sample", s["elapsed_s"]))
+
+    cfg = CampaignConfig(readings_per_pose=2, settle_s=0.1, reconnect_backoff_s=0.0)
+    gen, _ = make_plan("random", cell.spec, env, 5, seed=2, tool_m=cell.tool_m)
+    flaky.connect(), tracker.connect()
+    t0 = 10**18
+    ex = Executor(flaky, tracker, cell.spec, env, Sink(), tool_m=cell.tool_m, config=cfg,
+                  control=CampaignControl(), t_wall0_ns=t0, elapsed0_s=0.0)  # fmt: skip
+    res = ex.run(gen)
+    assert flaky.lost and "reconnect" in [k for _, k, _ in records]
+    assert res.measured == 5
+    times = [t for t, _, _ in records]
+    assert times == sorted(times), "a log time went back"
+    for t, _, e in records:
+        if e is not None:
+            assert abs(t - t0 - e * 1e9) < 1e3, (t - t0, e)

@@ -62,6 +62,27 @@ def test_kill9_then_resume(tmp_path):
     assert len(set(done) | set(more)) + skipped >= 40
     assert [s["index"] for s in second.samples][0] == len(done)
     assert any(e["kind"] == "resume_from" for e in second.events)
+    # one clock across the chain: the new file's records come after the old file's, and a
+    # sample's log time less its elapsed time is the campaign's start in both files
+    assert min(s["_log_time_ns"] for s in second.samples) > first.last_ns
+    starts = [s["_log_time_ns"] - s["elapsed_s"] * 1e9 for s in first.samples + second.samples]
+    assert max(starts) - min(starts) < 1e6, (min(starts), max(starts))
+
+
+def test_a_resume_counts_the_time_the_campaign_was_down():
+    """`elapsed_s` is the time since the campaign started: a resume an hour after the old file's
+    last record continues an hour later (it used to continue from the last value, as if the
+    arm had not cooled meanwhile), and starts after that record however the clocks stand."""
+    from workcell.campaign.run import _start_clock
+
+    now = time.time_ns()
+    hour = 3600 * 10**9
+    t0, e0 = _start_clock({"last_ns": now - hour, "start_ns": now - hour - 100 * 10**9}, 100.0)
+    assert t0 >= now and 3700 <= e0 < 3700 + (t0 - now) * 1e-9 + 1
+    # an old file whose log times run ahead of this clock (a time-scaled simulation): after it
+    t0, e0 = _start_clock({"last_ns": now + hour, "start_ns": now + hour - 50 * 10**9}, 50.0)
+    assert t0 == now + hour + 1 and abs(e0 - 50.0) < 1e-6
+    assert _start_clock(None, 0.0)[1] == 0.0
 
 
 def test_ctrl_c_finishes_the_recording_cleanly(tmp_path):

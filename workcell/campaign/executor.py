@@ -189,6 +189,11 @@ class Executor:
         self.result = CampaignResult()
         self._t_robot0: float | None = None
         self._t_wall0_ns = time.time_ns() if t_wall0_ns is None else t_wall0_ns
+        # the last elapsed time read from the robot, with the local monotonic clock then, and
+        # the last log time given out: every record's log time comes from the one clock
+        self._last_elapsed: float | None = None
+        self._last_mono = time.monotonic()
+        self._last_ns = 0
         self._last_cmd: np.ndarray | None = None  # the last target the arm arrived at
         self._elapsed0 = elapsed0_s
         self._last_js = -1e9
@@ -196,14 +201,32 @@ class Executor:
 
     # ------------------------------------------------------------------ time and records
     def elapsed(self) -> float:
+        """Seconds since the campaign started, on the robot's clock (virtual time for a
+        time-scaled simulation). A robot clock that went back (the controller restarted during a
+        reconnect) continues from the last reading plus the local time since."""
         t = self._robot_call(lambda: self.robot.state()).t_s
         if self._t_robot0 is None:
             self._t_robot0 = t
-        return self._elapsed0 + t - self._t_robot0
+        e = self._elapsed0 + t - self._t_robot0
+        if self._last_elapsed is not None and e < self._last_elapsed:
+            e = self._last_elapsed + (time.monotonic() - self._last_mono)
+            self._t_robot0 = t - (e - self._elapsed0)
+        self._last_elapsed, self._last_mono = e, time.monotonic()
+        return e
 
     def _t_ns(self, elapsed: float | None = None) -> int:
+        """The log time of a record acquired at `elapsed` (now when None): the campaign's start
+        plus the elapsed time, never before a log time already given out."""
         e = self.elapsed() if elapsed is None else elapsed
-        return self._t_wall0_ns + int(round((e - self._elapsed0) * 1e9))
+        t = self._t_wall0_ns + int(round((e - self._elapsed0) * 1e9))
+        self._last_ns = max(self._last_ns, t)
+        return self._last_ns
+
+    def _t_ns_offline(self) -> int:
+        """A log time while the robot cannot be asked for its clock: the last elapsed time
+        plus the local time since it was read."""
+        e = self._elapsed0 if self._last_elapsed is None else self._last_elapsed
+        return self._t_ns(e + time.monotonic() - self._last_mono)
 
     def event(self, level: str, kind: str, message: str) -> None:
         self.result.events += 1
@@ -215,7 +238,7 @@ class Executor:
         try:
             return self._t_ns()
         except Exception:  # robot unreachable while reporting it
-            return time.time_ns()
+            return self._t_ns_offline()
 
     def _record_state(self, force: bool = False):
         st = self._robot_call(lambda: self.robot.state())
@@ -247,7 +270,7 @@ class Executor:
                     raise err
                 wait = self.cfg.reconnect_backoff_s * 2 ** (attempt - 1)
                 self.sink.event(
-                    time.time_ns(),
+                    self._t_ns_offline(),
                     "warning",
                     "reconnect",
                     f"robot connection lost ({err}); reconnect {attempt} in {wait:.1f} s",

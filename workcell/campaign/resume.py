@@ -4,7 +4,8 @@ Reads what survived in OLD (a file cut short by a crash is fine), re-creates the
 the session's `campaign` block (plan, poses, seed, devices, readings, settle), skips every pose
 already measured (by `pose_id`) and records the rest into a new file whose session carries
 `chained_from` {path, sha256, samples}. The old file is never modified. Sample `index` continues
-from the old file's count; `elapsed_s` continues from its last value.
+from the old file's count; `elapsed_s` continues from its last value plus the time the campaign was down (on the old
+file's log-time scale), and every log time comes after the old file's last.
 """
 
 from __future__ import annotations
@@ -56,8 +57,25 @@ def resume_plan(old: str) -> dict:
         "history": history,
         "n_samples": len(rec.samples),
         "last_elapsed": max((float(s.get("elapsed_s") or 0.0) for s in rec.samples), default=0.0),
+        "clock": _recorded_clock(rec),
         "skipped_events": len(skipped_events),
     }
+
+
+def _recorded_clock(rec) -> dict:
+    """The old file's clock: the log time of its last record, and the campaign's start on the
+    log-time scale (a sample's log time less its `elapsed_s`), so that the new file's log times
+    come after the old one's and its `elapsed_s` counts the time the campaign was down."""
+    timed = [
+        (s["_log_time_ns"], float(s["elapsed_s"]))
+        for s in rec.samples
+        if isinstance(s.get("elapsed_s"), int | float) and not isinstance(s["elapsed_s"], bool)
+    ]
+    start = None
+    if timed:
+        t_ns, e = max(timed, key=lambda x: x[1])
+        start = t_ns - int(round(e * 1e9))
+    return {"last_ns": rec.last_ns or 0, "start_ns": start}
 
 
 def campaign_block_problem(camp: dict, session: dict) -> str | None:
@@ -128,6 +146,7 @@ def continuation(info: dict, old: str | Path) -> dict:
             "samples": info["n_samples"],
         },
         "elapsed0_s": info["last_elapsed"],
+        "clock": info["clock"],
         "watch_history": info["recording"].samples,
         "reference_every": recorded_reference_every(camp, str(old)),
     }

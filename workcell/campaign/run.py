@@ -65,6 +65,20 @@ def _first_target(plan, cell, env, poses, seed, cfg, plan_kwargs) -> PoseTarget:
         gen.close()
 
 
+def _start_clock(clock: dict | None, elapsed0_s: float) -> tuple[int, float]:
+    """The new run's log time at its start and its elapsed time then. A resume (`clock`: the old
+    file's last log time and campaign start, `resume.continuation`) starts after the old file's
+    last record and counts the time the campaign was down in its elapsed time."""
+    t0 = time.time_ns()
+    if not clock:
+        return t0, elapsed0_s
+    t0 = max(t0, int(clock.get("last_ns") or 0) + 1)
+    start = clock.get("start_ns")
+    if start is not None:
+        elapsed0_s = max(elapsed0_s, (t0 - int(start)) * 1e-9)
+    return t0, elapsed0_s
+
+
 def run_campaign(
     robot,
     tracker,
@@ -84,6 +98,7 @@ def run_campaign(
     index0: int = 0,
     chained_from: dict | None = None,
     elapsed0_s: float = 0.0,
+    clock: dict | None = None,
     plan_kwargs: dict | None = None,
     watch_history: list[dict] | None = None,
     reference_every: int = 0,
@@ -145,6 +160,7 @@ def run_campaign(
             )
     robot.connect()
     tracker.connect()
+    t_wall0_ns, elapsed0_s = _start_clock(clock, elapsed0_s)
     ex = None
     try:
         with RecordingWriter(out, session) as w:
@@ -160,7 +176,7 @@ def run_campaign(
                 on_sample=on_sample,
                 on_event=on_event,
                 index0=index0,
-                t_wall0_ns=time.time_ns(),
+                t_wall0_ns=t_wall0_ns,
                 elapsed0_s=elapsed0_s,
                 watch=watch,
             )
