@@ -39,6 +39,7 @@ from __future__ import annotations
 import argparse
 import copy
 import dataclasses
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -189,8 +190,8 @@ def record_trajectory(path: str | Path, traj: TrajectoryData) -> Path:
             "generator": "sim_devices.trajectory",
         }
     )
-    t0_ns = 1_700_000_000_000_000_000
     with RecordingWriter(path, session) as w:
+        t0_ns = time.time_ns()  # the trajectory starts now, after its session
         for i in range(len(traj)):
             t_ns = t0_ns + int(round(traj.t_s[i] * 1e9))
             w.sample(

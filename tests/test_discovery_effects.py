@@ -191,3 +191,18 @@ def test_augmented_prediction_cov_is_the_spread_over_its_covariance(poses):
     assert mc.max() > 1e-5
     m.residual = {"kind": "gp"}  # a non-parametric part: no propagated covariance
     assert m.prediction_cov(q[:5], **aux) is None
+
+
+def test_the_bench_simulator_counts_measured_samples_in_order(tmp_path):
+    """`index` is the order of measurement, from 0 (recording format): a pose lost to a broken
+    beam has no sample, and used to leave a gap in the indices. Its log times follow the
+    session's (they were stamped in 2023)."""
+    from sim_devices.truth import TrackerNoise, make_truth
+    from workcell.bench.discovery import simulate_recording
+    from workcell.recording.reader import read_recording
+
+    truth = make_truth("ur5e", "none", 3, noise=TrackerNoise(beam_break_prob=0.6))
+    rec = read_recording(simulate_recording(truth, 12, 3, tmp_path / "c.mcap"))
+    assert 0 < len(rec.samples) < 12
+    assert [s["index"] for s in rec.samples] == list(range(len(rec.samples)))
+    assert rec.samples[0]["_log_time_ns"] >= rec.session["_log_time_ns"]

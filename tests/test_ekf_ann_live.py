@@ -178,6 +178,10 @@ def test_trajectory_recording_in_shared_format(tmp_path):
     np.testing.assert_allclose(ds.p_tracker, tr.p_meas_m)
     rec = read_recording(p, streams=False)
     assert rec.closed_cleanly and not rec.problems
+    # log time is the moment of acquisition: the samples follow their session (they were
+    # stamped in 2023 while the session was stamped now) and span the trajectory's duration
+    assert rec.samples[0]["_log_time_ns"] >= rec.session["_log_time_ns"]
+    assert rec.duration_s < tr.t_s[-1] + 60.0, rec.duration_s
 
 
 def test_live_filter_predicts_new_poses_far_better_than_nominal(tmp_path):

@@ -166,10 +166,11 @@ def simulate_recording(
             "generator": "workcell bench discovery",
         }
     )
-    t0_ns = 1_700_000_000_000_000_000
     world.clock.advance(warmup_s)
     with RecordingWriter(out, session) as w:
-        for k, t in enumerate(targets):
+        t0_ns = time.time_ns()  # the campaign starts now, after its session; virtual time on
+        k = 0  # samples written: `index` is the order of measurement (a skipped pose has none)
+        for t in targets:
             pre = t.q_rad - np.sign(t.approach_sign) * 0.02
             for q in (pre, t.q_rad):
                 world.clock.advance(world.command_move(q, cfg.speed_rad_s, cfg.accel_rad_s2))
@@ -210,6 +211,7 @@ def simulate_recording(
                     "payload_kg": float(truth.payload_kg),
                 },
             )
+            k += 1
     return Path(out)
 
 
