@@ -252,3 +252,38 @@ def test_one_disturbed_pose_is_not_a_unit_mistake(base, tmp_path):
     sa[5]["tracker_sigma_m"] = [0.2, 0.0, 0.0]  # no tracker: corrupt, refused with the sample
     with pytest.raises(RecordingError, match=r"sample 5 .* \(no measurement has more than 0.1 m\)"):
         Dataset.from_recording(write_raw(tmp_path / "corrupt.mcap", session, sa, times))
+
+
+def test_fractional_approach_sign_is_a_problem(base):
+    """approach_sign is 6 ints, -1, 0 or +1 (recording format); 0.5 used to pass."""
+    session, samples, _, _ = base
+    robot = checks.session_robot(session)
+    s = copy.deepcopy(samples[0])
+    assert checks.sample_problems(s, 0, robot) == []
+    s["approach_sign"] = [0.5, -0.5, 1, 1, -1, 0]
+    assert any("approach_sign" in x for x in checks.sample_problems(s, 0, robot))
+
+
+def test_required_fields_missing_are_read_with_a_warning_that_says_what_was_assumed(base, tmp_path):
+    """A recording from another tool without tracker_sigma_m (and approach_sign, elapsed_s,
+    payload_kg) was fitted with stand-in values without a word, and fit printed its noise floor
+    as "the recorded sigmas". Now the data set carries what was assumed, and the commands print
+    it as a warning."""
+    from workcell.recording.dataset import read_warnings
+
+    session, samples, times, _ = base
+    drop = ("tracker_sigma_m", "approach_sign", "elapsed_s", "payload_kg")
+    bare = [{k: v for k, v in s.items() if k not in drop} for s in samples]
+    p = write_raw(tmp_path / "bare.mcap", session, bare, times)
+    ds = Dataset.from_recording(p)
+    lines = read_warnings(ds)
+    assert len(lines) == 4 and all(line.startswith("warning: ") for line in lines)
+    assert "no usable tracker_sigma_m" in lines[0] and "10 um" in lines[0]
+    np.testing.assert_allclose(ds.sigma_m, 1e-5)
+    # half of them lack sigma: the median of the recorded ones, said as such
+    half = [s if i % 2 else bare[i] for i, s in enumerate(samples)]
+    ds = Dataset.from_recording(write_raw(tmp_path / "half.mcap", session, half, times))
+    med = np.median([s["tracker_sigma_m"] for s in samples[1::2]])
+    assert f"{med * 1e6:.1f} um" in read_warnings(ds)[0]
+    # a complete recording has none
+    assert read_warnings(Dataset.from_recording(base[3])) == []

@@ -226,7 +226,7 @@ def sample_problems(smp: dict, k: int, robot: RobotSpec) -> list[str]:
                     f"deviation of a mean is micrometres (no measurement has more than "
                     f"{SIGMA_CORRUPT_M:g} m): repair or drop that sample"
                 )
-        elif key == "approach_sign" and any(abs(x) > 1 for x in v):
+        elif key == "approach_sign" and any(x not in (-1, 0, 1) for x in v):
             out.append(f"{where}: approach_sign values must be -1, 0 or +1")
     temps = smp.get("joint_temperature_c")
     if temps is not None:

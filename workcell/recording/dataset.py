@@ -77,6 +77,9 @@ class Dataset:
     # what the reader could not read (a damaged chunk, a cut-off end): the data set is what
     # came before or around it; commands print these as warnings
     read_problems: tuple[str, ...] = ()
+    # what the reader assumed for fields the format requires and the recording lacks (a file
+    # written by another tool): commands print these as warnings too
+    read_notes: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         n = len(self.q)
@@ -169,9 +172,26 @@ class Dataset:
         q = arr("q_measured_rad", 6, np.nan)
         sig = arr("tracker_sigma_m", 3, np.nan)
         bad = ~np.isfinite(sig) | (sig <= 0)
+        notes = []
         if bad.any():  # unknown sigma: use the median of the known ones, or 10 um
             good = sig[~bad]
             sig[bad] = np.median(good) if good.size else 1e-5
+            notes.append(
+                f"{int(bad.any(1).sum())} of {n} samples have no usable tracker_sigma_m; their "
+                + (
+                    f"weights use the median recorded sigma, {np.median(good) * 1e6:.1f} um"
+                    if good.size
+                    else "weights and the noise floor assume 10 um (none was recorded)"
+                )
+            )
+        for key, means in (
+            ("approach_sign", "backlash cannot be tested"),
+            ("elapsed_s", "drift over time cannot be tested"),
+            ("payload_kg", "the session's payload is assumed"),
+        ):
+            lacking = sum(1 for r in rows if r.get(key) is None)
+            if lacking:
+                notes.append(f"{lacking} of {n} samples have no {key}: {means} for those")
         payload = s.get("payload") or {}
         pkg = arr("payload_kg", 0, float(payload.get("mass_kg") or 0.0))
         com = payload.get("com_m")
@@ -194,16 +214,21 @@ class Dataset:
             source=os.path.abspath(rec.path),
             source_sha256=file_sha256(rec.path),
             read_problems=tuple(rec.problems),
+            read_notes=tuple(notes),
         )
 
 
 def read_warnings(ds: Dataset | Recording) -> list[str]:
     """One warning line per reader problem: data may be missing and the fit would not show it."""
+    notes: tuple[str, ...] = ()
     if isinstance(ds, Recording):
         source, problems, n = ds.path, ds.problems, len(ds.samples)
     else:
         source, problems, n = ds.source, ds.read_problems, len(ds)
-    return [f"warning: {source}: {p}; using the {n} samples that could be read" for p in problems]
+        notes = ds.read_notes
+    return [
+        f"warning: {source}: {p}; using the {n} samples that could be read" for p in problems
+    ] + [f"warning: {source}: {x}" for x in notes]
 
 
 def file_sha256(path: str | os.PathLike) -> str:
