@@ -135,8 +135,16 @@ def test_cli_writes_report_plots_and_a_replayable_model(clean, tmp_path, capsys)
 @pytest.mark.slow
 def test_effect_outside_the_library_is_unexplained_located_and_reduced(tmp_path):
     c, ds = _case(tmp_path, [("unknown", 3)], 404, 6.0)
-    r = diagnose(ds, DiagnoseConfig()).report
+    d = diagnose(ds, DiagnoseConfig())
+    r = d.report
     u = r["unexplained"]
+    # the saved GP-corrected model carries its own held-out figures (it carried the parametric
+    # model's, which `export` then stated), and says they are on the poses that accepted it
+    info = d.model_np.info
+    assert info["heldout_rms_m"] == u["np_model"]["heldout_rms_m"] == t_with(u)
+    assert info["heldout_rms_ci95_m"] == u["np_model"]["heldout_rms_ci95_m"]
+    assert info["heldout_rms_m"] < d.model.info["heldout_rms_m"]
+    assert "accepted on these held-out poses" in info["heldout_selection"]
     assert u["structured"]
     t = u["np_test"]
     assert t["heldout_rms_with_m"] < t["heldout_rms_without_m"]
@@ -147,6 +155,10 @@ def test_effect_outside_the_library_is_unexplained_located_and_reduced(tmp_path)
     # and not a drift: the poses are in random order, the joints predict it, the time does not
     assert u["drift_check"]["verdict"] == "joints" and not u["drift_check"]["time_adds"]
     assert "it follows the joints, not the recording order" in r["summary"]
+
+
+def t_with(u: dict) -> float:
+    return u["np_test"]["heldout_rms_with_m"]
 
 
 def test_harmonic_overlap_over_part_of_a_turn_is_said():

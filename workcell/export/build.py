@@ -270,6 +270,8 @@ def make_table(
                 f"  not in that 1-sigma: the model leaves {unexplained_text(u)} on its held-out "
                 "poses"
             )
+            if isinstance(sel := model.info.get("heldout_selection"), str):
+                log(f"  ({sel})")
         w = model_unexplained(model, without_outliers=True)
         if w is not None:
             tab.meta["model_unexplained_without_outliers"] = w
