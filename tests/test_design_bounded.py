@@ -95,6 +95,13 @@ def test_active_bounds_are_respected_and_optimal(sim_ds):
     assert set(viol) & set(m.info["active_bounds"])
     assert set(m.info["active_bounds"]) <= set(spec["bounds"])
     assert m.info["train_rms_m"] > free_fit.info["train_rms_m"]
+    # a parameter held by its bound has no Gaussian std: it was reported as 0 +- 0.0000
+    params = m.parameters()
+    for n in m.info["active_bounds"]:
+        assert params[n]["std"] is None and params[n]["at_bound"], params[n]
+    for n, v in params.items():
+        if v["estimated"] and n not in m.info["active_bounds"]:
+            assert v["std"] > 0 and "at_bound" not in v, (n, v)
     # the same bounded nonlinear problem solved independently (scipy trf with bounds) agrees
     w = 1.0 / pose_sigma(ds)
 

@@ -214,3 +214,48 @@ def test_tracker_mpe_sets_the_weights_floor(dh_only):
     coarse, _ = fit_dataset(ds, method="dh", tracker_mpe=(200e-6, 0.0))
     assert 0.3 < model.info["variance_factor"] < 3.0
     assert coarse.info["variance_factor"] < 0.05
+
+
+def test_the_robust_pass_refits_on_the_poses_it_keeps(tmp_path):
+    """A gross outlier hides a smaller one until it is set aside: the second robust pass then
+    set the smaller one aside too, but the fit was not solved again, so the geometry, its
+    covariance and `outliers_rejected` described different pose sets. Now the returned fit is
+    the fit of the kept poses."""
+    import dataclasses
+
+    from sim_devices.truth import make_truth
+    from workcell.bench.discovery import simulate_recording
+
+    ds = Dataset.from_recording(
+        simulate_recording(make_truth("ur5e", "none", 11), 60, 11, tmp_path / "r.mcap")
+    )
+    p = ds.p_tracker.copy()
+    p[0, 0] += 5e-3
+    p[1, 1] += 2e-4
+    m = fit_dh(dataclasses.replace(ds, p_tracker=p))
+    assert m.info["outliers_rejected"] == 2
+    clean = fit_dh(ds.subset(np.arange(2, len(ds))))
+    np.testing.assert_allclose(m.predict(ds.q), clean.predict(ds.q), atol=1e-9)
+    # the bounded fit (`fit --bounds`) had the same loop
+    from workcell.estimation.bounded import fit_dh_bounded
+
+    mb = fit_dh_bounded(dataclasses.replace(ds, p_tracker=p), bounds=None)
+    assert mb.info["outliers_rejected"] == 2
+    cb = fit_dh_bounded(ds.subset(np.arange(2, len(ds))), bounds=None)
+    np.testing.assert_allclose(mb.predict(ds.q), cb.predict(ds.q), atol=1e-8)
+
+
+def test_a_parameter_kept_for_a_dependent_group_says_it_stands_for_the_group(dh_only):
+    """One parameter of each dependent group stays free and takes up the whole group's effect
+    (its std is up to 250x too small for the parameter alone): the report marks it, and the
+    fit printed "first of each group kept free" where it was not the first."""
+    _, ds = dh_only
+    m = fit_dh(ds)
+    params = m.parameters()
+    marked = {n: v["stands_for"] for n, v in params.items() if "stands_for" in v}
+    for g in m.unidentifiable:
+        kept = [n for n in g if params[n]["estimated"]]
+        if len(g) > 1 and kept:
+            assert marked[kept[0]] == list(g)
+    assert marked and all(params[n]["estimated"] for n in marked)
+    assert "d4" in marked and marked["d4"] == ["d2", "d3", "d4"]

@@ -146,9 +146,15 @@ def print_report(r: dict) -> None:
         )
     print(f"fit time        {r['fit_seconds']:.2f} s")
     if r.get("unidentifiable"):
-        print("not separately identifiable (fixed at nominal, first of each group kept free):")
+        print(
+            "not separately identifiable (fixed at nominal; where one of a group is kept free, "
+            "marked *, it carries the whole group's effect):"
+        )
+        kept = {
+            n: k for k, v in (r.get("parameters") or {}).items() for n in v.get("stands_for") or ()
+        }
         for g in r["unidentifiable"]:
-            print("   {" + ", ".join(g) + "}")
+            print("   {" + ", ".join(f"{n}*" if kept.get(n) == n else n for n in g) + "}")
     if r.get("identifiability"):
         i = r["identifiability"]
         print(
@@ -192,7 +198,17 @@ def print_report(r: dict) -> None:
                 )
                 std_s = f"{why:>10}"
             d_s = f"{d * scale:12.4f}" if "nominal" in v else " " * 12
-            print(f"{k:>16} {v['value']:14.6f} {d_s} {std_s}  {unit}")
+            name = f"{k}*" if v.get("stands_for") else k
+            print(f"{name:>16} {v['value']:14.6f} {d_s} {std_s}  {unit}")
+        if any(v.get("stands_for") for _, v in shown):
+            print(
+                textwrap.fill(
+                    "*: value and std are those of the parameter's dependent group (listed "
+                    "above) taken together, not of the parameter alone: the poses cannot tell "
+                    "the group's members apart",
+                    width=100,
+                )
+            )
         if r.get("parameter_std_basis"):
             print(textwrap.fill(f"std: {r['parameter_std_basis']}", width=100))
     for k, v in (r.get("extra") or {}).items():

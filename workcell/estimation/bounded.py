@@ -252,12 +252,12 @@ def fit_dh_bounded(
         )
     keep = np.ones(len(ds), bool)
     n_rejected, iters, converged = 0, 0, False
-    for _ in range(2 if robust else 1):
+    for k in range(3 if robust else 1):  # at most two robust passes, each followed by a solve
         theta, it, converged = _iterate_qp(
             ds, keep, w, theta, base_ref, free, lo, hi, max_iter, xtol
         )
         iters += it
-        if not robust:
+        if not robust or k == 2:
             break
         new_keep = robust_keep(ds, theta, base_ref, w, keep, outlier_k)
         if new_keep is None:

@@ -97,6 +97,7 @@ class DHModel:
         nom = pack(self.nominal_dh, tool=self.info.get("nominal_tool_m", (0.0, 0.0, 0.0)))
         n_j = joints_of(self.theta)
         base = base_slice(n_j)
+        at_bound = set(self.info.get("active_bounds") or ())
         out = {}
         for i, n in enumerate(param_names(n_j)):
             out[n] = {
@@ -106,6 +107,14 @@ class DHModel:
                 "nominal": 0.0 if base.start <= i < base.stop else float(nom[i]),
                 "estimated": bool(self.free[i]),
             }
+            if self.free[i] and n in at_bound:  # held by its bound: no Gaussian std
+                out[n].update(std=None, at_bound=True)
+        for g in self.unidentifiable:
+            # the one parameter of a dependent group kept free carries the group's combined
+            # effect (the others are fixed at nominal): its value and std are the group's
+            kept = [n for n in g if n in out and out[n]["estimated"]]
+            if len(g) > 1 and len(kept) == 1:
+                out[kept[0]]["stands_for"] = list(g)
         return out
 
     def to_dict(self) -> dict:
@@ -208,8 +217,10 @@ def fit_dh(
     free[[IDX[n] for n in ident.identifiable]] = True
     keep = np.ones(len(ds), bool)
     n_rejected = 0
-    for _ in range(2):
+    for it in range(3):  # at most two robust passes, each followed by a solve on its poses
         theta, res = _solve(ds, keep, w, theta, base_ref, free, max_nfev)
+        if it == 2:
+            break
         new_keep = robust_keep(ds, theta, base_ref, w, keep, outlier_k)
         if new_keep is None:
             break
