@@ -113,7 +113,7 @@ def print_report(r: dict) -> None:
     ci = interval_um(r.get("heldout_rms_ci95_m"))
     print(
         f"calibrated      {on} {um(r['heldout_rms_m'])}   max {um(r['heldout_max_m'])}"
-        + (f"   ({ci}, resampling the poses)" if ci else "")
+        + (f"   ({ci}, from the spread over these poses)" if ci else "")
     )
     if r.get("stated_noise_floor_m"):
         print(

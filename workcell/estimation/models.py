@@ -278,9 +278,11 @@ def rms(e: np.ndarray) -> float:
 RMS_INTERVAL_LEVEL = 0.95
 RMS_INTERVAL_RESAMPLES = 2000
 RMS_INTERVAL_BASIS = (
-    "95 % interval of the RMS from resampling the evaluated poses (BCa bootstrap, 2,000 "
-    "resamples, seed 0): how much the figure depends on which poses were measured; it does not "
-    "cover a bias shared by all poses (tracker scale, temperature)"
+    "95 % interval of the RMS over the evaluated poses: the wider of a BCa bootstrap (2,000 "
+    "resamples, seed 0) and a chi-square interval for the mean square with Satterthwaite's "
+    "degrees of freedom (at most 3 a pose); the bootstrap alone covered the true RMS only "
+    "73-83 % of the time on 10-20 held-out poses. How much the figure depends on which poses "
+    "were measured; it does not cover a bias shared by all poses (tracker scale, temperature)"
 )
 
 
@@ -312,16 +314,37 @@ def _bootstrap_interval(data: tuple, stat, level: float, seed: int) -> tuple[flo
     return v, v
 
 
+def _chi2_rms_interval(e: np.ndarray, level: float, dims: int = 3) -> tuple[float, float]:
+    """Interval of the RMS from its mean square taken as a scaled chi-square whose degrees of
+    freedom come from the sample (Satterthwaite: nu = 2 n m^2 / var(e^2)), at most `dims` a
+    pose (exact for isotropic Gaussian errors in `dims` axes)."""
+    from scipy.stats import chi2
+
+    d2 = e * e
+    n, m, v = len(d2), float(d2.mean()), float(d2.var(ddof=1))
+    if m <= 0.0 or v <= (1e-9 * m) ** 2:  # no spread to go by (as the bootstrap)
+        return float(np.sqrt(m)), float(np.sqrt(m))
+    nu = min(2.0 * n * m * m / v, float(dims * n))
+    a = (1.0 - level) / 2.0
+    return (
+        float(np.sqrt(nu * m / chi2.ppf(1.0 - a, nu))),
+        float(np.sqrt(nu * m / chi2.ppf(a, nu))),
+    )
+
+
 def rms_interval(
     e_norm: np.ndarray, level: float = RMS_INTERVAL_LEVEL, seed: int = 0
 ) -> tuple[float, float]:
-    """Confidence interval of sqrt(mean(e^2)) over the poses: BCa bootstrap over the per-pose
-    error norms `e_norm` (N,) (scipy.stats.bootstrap, seeded so a report is reproducible).
-    (nan, nan) for fewer than 3 poses or a non-finite error."""
+    """Confidence interval of sqrt(mean(e^2)) over the poses, from the per-pose 3-D error norms
+    `e_norm` (N,): the wider of a BCa bootstrap (scipy.stats.bootstrap, seeded so a report is
+    reproducible) and a Satterthwaite chi-square interval (`RMS_INTERVAL_BASIS`). The bootstrap
+    alone undercovers with few poses. (nan, nan) for fewer than 3 poses or a non-finite error."""
     e = np.asarray(e_norm, float).ravel()
     if len(e) < 3 or not np.all(np.isfinite(e)):
         return float("nan"), float("nan")
-    return _bootstrap_interval((e,), _rms, level, seed)
+    b_lo, b_hi = _bootstrap_interval((e,), _rms, level, seed)
+    c_lo, c_hi = _chi2_rms_interval(e, level)
+    return min(b_lo, c_lo), max(b_hi, c_hi)
 
 
 def rms_gain_interval(
