@@ -195,3 +195,30 @@ def test_the_command_line_refuses_a_non_positive_interval(capsys):
     assert "reference: pose 0 measured again after every 8 poses and at the end (3 more" in (
         capsys.readouterr().out
     )
+
+
+def test_a_cell_without_drift_is_not_called_drifting_and_a_drift_is(tmp_path):
+    """The reference's displacement was compared with the recorded sigmas of the means alone,
+    which leave out the tracker's per-pose systematic error: a simulated cell with no effect
+    at all moved 3x "the readings' own scatter", and diagnose went on to speak of a drift.
+    Now the tracker's stated accuracy is the floor, as in the fits: that cell is within it, and
+    the same recording with a 60 um/repeat drift added to the reference's readings is not."""
+    import dataclasses
+
+    from workcell.campaign.executor import CampaignConfig
+    from workcell.campaign.run import run_campaign, sim_cell
+    from workcell.recording.dataset import Dataset
+    from workcell.recording.repeats import repeat_beyond_noise, repeat_drift
+
+    _, robot, tracker, cell = sim_cell("ur5e", "none", 77, beam_break_prob=0.0)
+    path = tmp_path / "ref.mcap"
+    cfg = CampaignConfig(readings_per_pose=3, settle_s=0.2)
+    run_campaign(robot, tracker, cell, path, poses=16, seed=77, config=cfg, reference_every=4)
+    ds = Dataset.from_recording(path)
+    (r,) = repeat_drift(ds)
+    assert r["measurements"] == 5 and not repeat_beyond_noise(r), r
+    idx = np.flatnonzero(ds.pose_id == 0)
+    p = ds.p_tracker.copy()
+    p[idx] += np.arange(len(idx))[:, None] * np.array([60e-6, 0.0, 0.0])
+    (r2,) = repeat_drift(dataclasses.replace(ds, p_tracker=p))
+    assert repeat_beyond_noise(r2), r2

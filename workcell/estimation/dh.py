@@ -44,6 +44,7 @@ from workcell.kinematics.chain import (
 from workcell.kinematics.frames import apply_transform, kabsch, quat_wxyz_from_matrix
 from workcell.kinematics.robots import DH, robot_by_name, robot_from_session
 from workcell.recording.dataset import Dataset
+from workcell.recording.tracker_spec import TRACKER_MPE_M, tracker_spec_sigma
 
 
 @dataclass
@@ -163,23 +164,9 @@ def pose_sigma(ds: Dataset) -> np.ndarray:
     return np.sqrt(np.mean(ds.sigma_m**2, axis=1))
 
 
-# A laser tracker's maximum permissible error, A [m] + B [m/m] * range (a Leica AT960's stated
-# MPE); 1 sigma per axis is taken as MPE / 4. The recorded sigma of a mean comes from the scatter
-# of the readings at one pose, which leaves out the tracker's per-pose systematic error.
-TRACKER_MPE_M: tuple[float, float] = (15e-6, 6e-6)
-
-
 def pose_sigma_model(ds: Dataset, mpe: tuple[float, float] = TRACKER_MPE_M) -> np.ndarray:
     """Per-pose isotropic 1-sigma per axis (N,): max(recorded, tracker MPE model / 4)."""
     return np.maximum(pose_sigma(ds), tracker_spec_sigma(ds.p_tracker, mpe))
-
-
-def tracker_spec_sigma(
-    p_tracker: np.ndarray, mpe: tuple[float, float] = TRACKER_MPE_M
-) -> np.ndarray:
-    """Per-axis 1-sigma (N,) of a tracker meeting its MPE (A + B x range) at the points
-    p_tracker (N, 3) in its frame: MPE / 4, the floor the fits weight by."""
-    return (mpe[0] + mpe[1] * np.linalg.norm(np.atleast_2d(p_tracker), axis=1)) / 4.0
 
 
 def register_base(ds: Dataset, theta: np.ndarray) -> np.ndarray:

@@ -86,7 +86,7 @@ from workcell.estimation.models import (
 )
 from workcell.kinematics.chain import PARAM_NAMES, PARAMETER_FRAMES, jac_joints
 from workcell.recording.dataset import Dataset, distinct_poses
-from workcell.recording.repeats import repeat_drift, repeat_line
+from workcell.recording.repeats import repeat_beyond_noise, repeat_drift, repeat_line
 
 
 @dataclass
@@ -1247,10 +1247,13 @@ def summary_text(r: dict) -> str:
             )
         lines.append(txt + ".")
     for rp in (r.get("repeats") or [])[:3]:
-        lines.append(
-            "Measured again (no model involved): " + repeat_line(rp) + "; a drift during the "
-            "recording shows here directly."
+        verdict = (
+            "more than the tracker alone explains: the arm's repeatability, or a drift during "
+            "the recording (arm, tracker or set-up)"
+            if repeat_beyond_noise(rp)
+            else "within what the tracker alone explains: no sign of a drift"
         )
+        lines.append(f"Measured again (no model involved): {repeat_line(rp)}; {verdict}.")
     return "\n".join(lines)
 
 

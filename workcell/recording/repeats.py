@@ -1,6 +1,6 @@
 """Poses measured more than once in a recording (`campaign --reference-every`, or another tool's
 repeat measurements): how far the measured position of a fixed pose moved during the campaign,
-against what the readings' own scatter gives. A drift of the whole measurement (temperature, the
+against what the tracker alone gives. A drift of the whole measurement (temperature, the
 tracker, the set-up) shows here directly, without any model."""
 
 from __future__ import annotations
@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from workcell.recording.dataset import Dataset
+from workcell.recording.tracker_spec import tracker_spec_sigma
 
 
 def repeat_drift(ds: Dataset) -> list[dict]:
@@ -15,11 +16,14 @@ def repeat_drift(ds: Dataset) -> list[dict]:
     in order of its first measurement: `pose_id`, `measurements`, `span_s` (first to last),
     `displacement_m` of each measurement from the first (3-D, m; the first is 0), `elapsed_s`,
     `max_m`, `last_m`, `rms_m` (over the repeats), and `noise_m`: the RMS 3-D difference the
-    recorded sigmas of the means alone would give."""
+    measurement alone would give, each reading's sigma per axis being max(recorded sigma of the
+    mean, the tracker's stated MPE / 4) as the fits weight them: the recorded sigma leaves out
+    the tracker's per-pose systematic error, and a cell without drift then looked 3x off. (The
+    arm's own repeatability comes on top.)"""
     groups = ds.pose_groups()
     _, first, counts = np.unique(groups, return_index=True, return_counts=True)
     t = np.asarray(ds.elapsed_s, float)
-    s = np.asarray(ds.sigma_m, float)
+    s = np.maximum(np.asarray(ds.sigma_m, float), tracker_spec_sigma(ds.p_tracker)[:, None])
     out = []
     for k in np.argsort(first):
         if counts[k] < 2:
@@ -44,6 +48,20 @@ def repeat_drift(ds: Dataset) -> list[dict]:
     return out
 
 
+def repeat_beyond_noise(r: dict, level: float = 0.99) -> bool:
+    """Whether a `repeat_drift` entry moved more than the tracker alone explains: its repeats'
+    mean square displacement beyond the `level` quantile of noise_m^2 chi-square(3 m) / (3 m),
+    m the number of repeats (taken as independent; they share the first reading, which makes
+    this a little lenient)."""
+    from scipy.stats import chi2
+
+    m = max(int(r["measurements"]) - 1, 1)
+    noise = float(r["noise_m"])
+    if not np.isfinite(noise) or noise <= 0:
+        return False
+    return bool(r["rms_m"] ** 2 > noise**2 * chi2.ppf(level, 3 * m) / (3 * m))
+
+
 def repeats_of(rec) -> list[dict]:
     """`repeat_drift` of a read recording; none when its samples do not make a dataset (a
     damaged or foreign file: its problems are reported elsewhere)."""
@@ -61,8 +79,8 @@ def repeat_line(r: dict) -> str:
     return (
         f"pose {r['pose_id']} measured {r['measurements']} times over {r['span_s'] / 60:.1f} "
         f"min: up to {r['max_m'] * um:.1f} um from its first reading (last {r['last_m'] * um:.1f}"
-        f" um, RMS {r['rms_m'] * um:.1f} um); the readings' own scatter would give about "
-        f"{r['noise_m'] * um:.1f} um"
+        f" um, RMS {r['rms_m'] * um:.1f} um); the tracker alone (its readings' scatter, at least "
+        f"its stated accuracy) would give about {r['noise_m'] * um:.1f} um"
     )
 
 
@@ -86,6 +104,8 @@ class RepeatWatch:
         p1 = np.asarray(sample["tracker_position_m"], float)
         s0 = np.asarray(first.get("tracker_sigma_m", [np.nan] * 3), float)
         s1 = np.asarray(sample.get("tracker_sigma_m", [np.nan] * 3), float)
+        s0 = np.fmax(s0, tracker_spec_sigma(p0)[0])  # as `repeat_drift`
+        s1 = np.fmax(s1, tracker_spec_sigma(p1)[0])
         return {
             "pose_id": pid,
             "elapsed_s": float(sample.get("elapsed_s", np.nan)),
@@ -97,7 +117,7 @@ class RepeatWatch:
 def repeat_event_line(r: dict) -> str:
     """One line for a `RepeatWatch.update` result."""
     noise = r["noise_m"]
-    scatter = f"; the readings' scatter alone gives ~{noise * 1e6:.1f} um" if noise == noise else ""
+    scatter = f"; the tracker alone gives ~{noise * 1e6:.1f} um" if noise == noise else ""
     return (
         f"pose {r['pose_id']} measured again at {r['elapsed_s'] / 60:.1f} min: "
         f"{r['displacement_m'] * 1e6:.1f} um from its first reading{scatter}"
