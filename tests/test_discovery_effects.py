@@ -206,3 +206,18 @@ def test_the_bench_simulator_counts_measured_samples_in_order(tmp_path):
     assert 0 < len(rec.samples) < 12
     assert [s["index"] for s in rec.samples] == list(range(len(rec.samples)))
     assert rec.samples[0]["_log_time_ns"] >= rec.session["_log_time_ns"]
+
+
+@pytest.mark.parametrize("readings", [1, 2])
+def test_the_bench_simulator_records_with_few_readings_a_pose(tmp_path, readings):
+    """It wanted 3 good readings a pose whatever was asked, so with 1 or 2 readings it wrote a
+    recording without a single sample."""
+    from sim_devices.truth import make_truth
+    from workcell.bench.discovery import simulate_recording
+    from workcell.recording.reader import read_recording
+
+    p = simulate_recording(make_truth("ur5e", "none", 3), 6, 3, tmp_path / "c.mcap",
+                           readings=readings)  # fmt: skip
+    rec = read_recording(p)
+    assert len(rec.samples) == 6
+    assert all(s["n_readings"] == readings for s in rec.samples)

@@ -185,13 +185,17 @@ def simulate_recording(
                     world.clock.advance(cfg.beam_retry_wait_s)
                     continue
                 good.append((p, world.stated_sigma_m(p)))
-            if len(good) < 3:
+            # as the campaign executor: at least half the readings (two when more than one)
+            if len(good) < (max(2, (readings + 1) // 2) if readings > 1 else 1):
                 continue
             P = np.array([g[0] for g in good])
             S = np.array([g[1] for g in good])
             keep = _reject_outliers(P, S, cfg.outlier_k)
             P, S = P[keep], S[keep]
-            sig = np.maximum(P.std(0, ddof=1), S.mean(0) / 4) / np.sqrt(len(P))
+            if len(P) > 1:
+                sig = np.maximum(P.std(0, ddof=1), S.mean(0) / 4) / np.sqrt(len(P))
+            else:
+                sig = S[0]
             q_meas = t.q_rad + rng.normal(0.0, 2e-6, (len(good), 6)).mean(0)
             e = world.clock.now() - warmup_s
             w.sample(
