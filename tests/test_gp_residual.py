@@ -65,13 +65,25 @@ def test_fit_gp_reports_every_hyperparameter_with_std_or_at_bound(tmp_path, caps
     assert len([r for r in rows if len(r) >= 4]) == 8
     for r in rows:
         if len(r) >= 4:
-            assert r[-2] == "bound" or float(r[-2]) > 0, r
+            assert r[-2] == "bound" or r[-3] == "x/" or float(r[-2]) > 0, r
     m = load_model(out)
     assert isinstance(m, GPResidualModel) and m.log_hyper_std is not None
     params = json.loads(json.dumps(m.parameters()))
     for j in range(6):
         p = params[f"gp_lengthscale_q{j + 1}"]
-        assert (p["std"] is None) == (p["at_bound"] or bool(p.get("no_std")))
+        loose = p.get("factor_95", 1.0) > np.exp(1.96 * 0.5)
+        assert (p["std"] is None) == (p["at_bound"] or bool(p.get("no_std")) or loose)
+    # a hyperparameter known only within a large factor gets its 95 % range, not a +- std
+    # (it printed "0.769 rad +- 42.9 rad")
+    import dataclasses
+
+    wide = dataclasses.replace(m, log_hyper_std=np.full(8, 3.0)).parameters()
+    q1 = wide["gp_lengthscale_q1"]
+    assert q1["std"] is None and q1["factor_95"] == pytest.approx(np.exp(1.96 * 3.0))
+    assert q1["range_95"] == pytest.approx([q1["value"] / q1["factor_95"],
+                                            q1["value"] * q1["factor_95"]])  # fmt: skip
+    tight = dataclasses.replace(m, log_hyper_std=np.full(8, 0.1)).parameters()
+    assert tight["gp_lengthscale_q1"]["std"] == pytest.approx(0.1 * q1["value"])
 
 
 def test_fit_report_prints_every_kind_of_parameter(capsys):

@@ -188,7 +188,9 @@ def print_report(r: dict) -> None:
                 std_s = f"{std * scale:10.4f}"
             else:  # a bound was hit, or a discrete (cross-validated) choice: no Gaussian std
                 why = (
-                    "at bound"
+                    (f"x/ {v['factor_95']:.3g}" if v["factor_95"] < 1e3 else "x/ >1000")
+                    if v.get("factor_95")
+                    else "at bound"
                     if v.get("at_bound")
                     else "CV grid"
                     if v.get("chosen_by")
@@ -200,6 +202,14 @@ def print_report(r: dict) -> None:
             d_s = f"{d * scale:12.4f}" if "nominal" in v else " " * 12
             name = f"{k}*" if v.get("stands_for") else k
             print(f"{name:>16} {v['value']:14.6f} {d_s} {std_s}  {unit}")
+        if any(v.get("std") is None and v.get("factor_95") for _, v in shown):
+            print(
+                textwrap.fill(
+                    "x/ F: 95 % range from value / F to value x F (the uncertainty is Gaussian "
+                    "in the log of the value; a +- std beyond half the value would say nothing)",
+                    width=100,
+                )
+            )
         if any(v.get("stands_for") for _, v in shown):
             print(
                 textwrap.fill(

@@ -78,12 +78,18 @@ class GPResidualModel:
         def entry(value: float, s_log: float, power: float, unit: str) -> dict:
             # value = exp(power * log_hyper): std(value) ~ value * power * std(log_hyper)
             ok = bool(np.isfinite(s_log))
-            return {
+            e = {
                 "value": value,
                 "std": float(value * power * s_log) if ok else None,
                 "unit": unit,
                 "at_bound": self.log_hyper_std is not None and not ok,
             }
+            if ok:  # the approximation is Gaussian in the log: a factor either way
+                f = float(np.exp(1.96 * power * s_log))
+                e["factor_95"], e["range_95"] = f, [value / f, value * f]
+                if power * s_log > 0.5:  # a std beyond half the value says nothing
+                    e["std"] = None
+            return e
 
         for j in range(6):
             out[f"gp_lengthscale_q{j + 1}"] = entry(
