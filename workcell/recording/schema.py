@@ -22,13 +22,28 @@ EVENT = "/campaign/event"
 _num = {"type": "number"}
 _vec = lambda n: {"type": "array", "items": _num, "minItems": n, "maxItems": n}  # noqa: E731
 _vec_or_null = lambda n: {"anyOf": [_vec(n), {"type": "null"}]}  # noqa: E731
+_vec_nullable_items = lambda n: {  # noqa: E731
+    "type": "array",
+    "items": {"type": ["number", "null"]},
+    "minItems": n,
+    "maxItems": n,
+}
 
 SCHEMAS: dict[str, tuple[str, dict]] = {
     SESSION: (
         "workcell.Session",
         {
             "type": "object",
-            "required": ["format_version", "robot", "tool", "tracker"],
+            "required": [
+                "format_version",
+                "created_utc",
+                "robot",
+                "tool",
+                "tracker",
+                "payload",
+                "campaign",
+                "software",
+            ],
             "properties": {
                 "format_version": {"type": "integer"},
                 "created_utc": {"type": "string"},
@@ -60,8 +75,9 @@ SCHEMAS: dict[str, tuple[str, dict]] = {
             "type": "object",
             "required": ["position_m", "sigma_m", "status"],
             "properties": {
-                "position_m": {"type": "array"},
-                "sigma_m": {"type": "array"},
+                # null components when the status is not ok (no position was read)
+                "position_m": _vec_nullable_items(3),
+                "sigma_m": _vec_nullable_items(3),
                 "status": {"enum": ["ok", "beam_broken", "out_of_range", "error"]},
             },
         },
@@ -79,14 +95,21 @@ SCHEMAS: dict[str, tuple[str, dict]] = {
                 "tracker_position_m",
                 "tracker_sigma_m",
                 "n_readings",
+                "joint_temperature_c",
                 "elapsed_s",
+                "payload_kg",
             ],
             "properties": {
                 "index": {"type": "integer"},
                 "pose_id": {"type": "integer"},
                 "q_commanded_rad": _vec(6),
                 "q_measured_rad": _vec(6),
-                "approach_sign": _vec(6),
+                "approach_sign": {
+                    "type": "array",
+                    "items": {"type": "integer", "enum": [-1, 0, 1]},
+                    "minItems": 6,
+                    "maxItems": 6,
+                },
                 "tracker_position_m": _vec(3),
                 "tracker_sigma_m": _vec(3),
                 "n_readings": {"type": "integer"},
