@@ -4,8 +4,8 @@ Reads what survived in OLD (a file cut short by a crash is fine), re-creates the
 the session's `campaign` block (plan, poses, seed, devices, readings, settle), skips every pose
 already measured (by `pose_id`) and records the rest into a new file whose session carries
 `chained_from` {path, sha256, samples}. The old file is never modified. Sample `index` continues
-from the old file's count; `elapsed_s` continues from its last value plus the time the campaign was down (on the old
-file's log-time scale), and every log time comes after the old file's last.
+from the old file's count; `elapsed_s` continues from its last value plus the time the campaign
+was down (on the old file's log-time scale), and every log time comes after the old file's last.
 """
 
 from __future__ import annotations
@@ -69,7 +69,9 @@ def _recorded_clock(rec) -> dict:
     timed = [
         (s["_log_time_ns"], float(s["elapsed_s"]))
         for s in rec.samples
-        if isinstance(s.get("elapsed_s"), int | float) and not isinstance(s["elapsed_s"], bool)
+        if isinstance(s.get("elapsed_s"), int | float)
+        and not isinstance(s["elapsed_s"], bool)
+        and np.isfinite(s["elapsed_s"])
     ]
     start = None
     if timed:
