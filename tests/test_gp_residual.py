@@ -80,6 +80,7 @@ def test_fit_gp_reports_every_hyperparameter_with_std_or_at_bound(tmp_path, caps
     wide = dataclasses.replace(m, log_hyper_std=np.full(8, 3.0)).parameters()
     q1 = wide["gp_lengthscale_q1"]
     assert q1["std"] is None and q1["factor_95"] == pytest.approx(np.exp(1.96 * 3.0))
+    assert "no_std" not in q1  # it has a maximum, only a loose one
     assert q1["range_95"] == pytest.approx([q1["value"] / q1["factor_95"],
                                             q1["value"] * q1["factor_95"]])  # fmt: skip
     tight = dataclasses.replace(m, log_hyper_std=np.full(8, 0.1)).parameters()

@@ -107,7 +107,7 @@ class GPResidualModel:
             for name, b in zip(names, at, strict=True):
                 e = out[name]
                 e["at_bound"] = bool(b) and e["std"] is None
-                if e["std"] is None and not b:
+                if e["std"] is None and not b and "factor_95" not in e:
                     e["no_std"] = (
                         "the log marginal likelihood's Hessian over the free hyperparameters is "
                         "not positive definite: no proper maximum, no Gaussian approximation"
