@@ -51,7 +51,7 @@ from workcell.estimation.dh import (
     nominal_theta,
     pose_sigma_model,
     register_base,
-    robust_keep,
+    robust_solve,
     weighted_covariance,
 )
 from workcell.estimation.identifiability import Identifiability, analyse, candidates_for
@@ -250,20 +250,16 @@ def fit_dh_bounded(
         raise UserError(
             f"bounds exclude the nominal value of parameters that are not estimated: {out}"
         )
-    keep = np.ones(len(ds), bool)
-    n_rejected, iters, converged = 0, 0, False
-    for k in range(3 if robust else 1):  # at most two robust passes, each followed by a solve
-        theta, it, converged = _iterate_qp(
-            ds, keep, w, theta, base_ref, free, lo, hi, max_iter, xtol
-        )
-        iters += it
-        if not robust or k == 2:
-            break
-        new_keep = robust_keep(ds, theta, base_ref, w, keep, outlier_k)
-        if new_keep is None:
-            break
-        keep = new_keep
-        n_rejected = int((~keep).sum())
+    runs = []  # (iterations, converged) of each solve
+
+    def solve(keep, th):
+        th, it, conv = _iterate_qp(ds, keep, w, th, base_ref, free, lo, hi, max_iter, xtol)
+        runs.append((it, conv))
+        return th
+
+    theta, keep = robust_solve(solve, ds, theta, base_ref, w, outlier_k, passes=2 if robust else 0)
+    iters, converged = sum(r[0] for r in runs), runs[-1][1]
+    n_rejected = int((~keep).sum())
     span = np.where(np.isfinite(hi - lo), hi - lo, 1.0)
     at_lo = free & np.isfinite(lo) & (theta - lo <= 1e-9 * np.maximum(span, 1e-12))
     at_hi = free & np.isfinite(hi) & (hi - theta <= 1e-9 * np.maximum(span, 1e-12))

@@ -202,17 +202,15 @@ def fit_dh(
     ident = analyse(J0.reshape(-1, N_PARAMS), candidates=candidates_for(ds.robot.dh, fixed))
     free = np.zeros(N_PARAMS, bool)
     free[[IDX[n] for n in ident.identifiable]] = True
-    keep = np.ones(len(ds), bool)
-    n_rejected = 0
-    for it in range(3):  # at most two robust passes, each followed by a solve on its poses
-        theta, res = _solve(ds, keep, w, theta, base_ref, free, max_nfev)
-        if it == 2:
-            break
-        new_keep = robust_keep(ds, theta, base_ref, w, keep, outlier_k)
-        if new_keep is None:
-            break
-        keep = new_keep
-        n_rejected = int((~keep).sum())
+    solved = []
+
+    def solve(keep, th):
+        th, res = _solve(ds, keep, w, th, base_ref, free, max_nfev)
+        solved.append(res)
+        return th
+
+    theta, keep = robust_solve(solve, ds, theta, base_ref, w, outlier_k)
+    res, n_rejected = solved[-1], int((~keep).sum())
     cov, s0_2 = weighted_covariance(ds, theta, base_ref, w, keep, free, int(free.sum()))
     stats = error_stats(p_tracker(theta, base_ref, ds.q[keep]), ds.p_tracker[keep])
     info = {
@@ -237,6 +235,21 @@ def fit_dh(
         unidentifiable=ident.groups,
         info=info,
     )
+
+
+def robust_solve(solve, ds, theta, base_ref, w, outlier_k: float, passes: int = 2):
+    """`solve(keep, theta) -> theta` on all poses, then up to `passes` robust passes
+    (`robust_keep`), each followed by a solve on the poses it keeps, so that the result is the
+    fit of the poses returned. Returns (theta, keep). Shared by the fits (dh, bounded)."""
+    keep = np.ones(len(ds), bool)
+    theta = solve(keep, theta)
+    for _ in range(passes):
+        new_keep = robust_keep(ds, theta, base_ref, w, keep, outlier_k)
+        if new_keep is None:
+            break
+        keep = new_keep
+        theta = solve(keep, theta)
+    return theta, keep
 
 
 def robust_keep(ds, theta, base_ref, w, keep, outlier_k: float) -> np.ndarray | None:

@@ -11,6 +11,14 @@ from workcell.recording.dataset import Dataset
 from workcell.recording.tracker_spec import tracker_spec_sigma
 
 
+def reading_sigma(sigma_m, p_tracker) -> np.ndarray:
+    """Per-axis sigma of recorded means (N, 3) or (3,) at `p_tracker`: at least the tracker's
+    stated MPE / 4 (an unknown, NaN, sigma is that floor), as the fits weight them."""
+    s = np.asarray(sigma_m, float)
+    floor = tracker_spec_sigma(p_tracker)
+    return np.fmax(s, floor[:, None] if s.ndim == 2 else floor[0])
+
+
 def repeat_drift(ds: Dataset) -> list[dict]:
     """One entry per pose measured at least twice (same pose_id and commanded configuration),
     in order of its first measurement: `pose_id`, `measurements`, `span_s` (first to last),
@@ -23,7 +31,7 @@ def repeat_drift(ds: Dataset) -> list[dict]:
     groups = ds.pose_groups()
     _, first, counts = np.unique(groups, return_index=True, return_counts=True)
     t = np.asarray(ds.elapsed_s, float)
-    s = np.maximum(np.asarray(ds.sigma_m, float), tracker_spec_sigma(ds.p_tracker)[:, None])
+    s = reading_sigma(ds.sigma_m, ds.p_tracker)
     out = []
     for k in np.argsort(first):
         if counts[k] < 2:
@@ -102,10 +110,8 @@ class RepeatWatch:
             return None
         p0 = np.asarray(first["tracker_position_m"], float)
         p1 = np.asarray(sample["tracker_position_m"], float)
-        s0 = np.asarray(first.get("tracker_sigma_m", [np.nan] * 3), float)
-        s1 = np.asarray(sample.get("tracker_sigma_m", [np.nan] * 3), float)
-        s0 = np.fmax(s0, tracker_spec_sigma(p0)[0])  # as `repeat_drift`
-        s1 = np.fmax(s1, tracker_spec_sigma(p1)[0])
+        s0 = reading_sigma(first.get("tracker_sigma_m", [np.nan] * 3), p0)
+        s1 = reading_sigma(sample.get("tracker_sigma_m", [np.nan] * 3), p1)
         return {
             "pose_id": pid,
             "elapsed_s": float(sample.get("elapsed_s", np.nan)),
