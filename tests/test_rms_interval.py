@@ -32,7 +32,8 @@ def test_interval_covers_the_true_rms_about_95_percent_of_the_time():
 @pytest.mark.parametrize("n", [8, 12])
 def test_interval_keeps_its_coverage_with_few_poses(n):
     """The BCa bootstrap alone covered the true RMS of Gaussian errors 87-88 % of the time at
-    n = 8-12 poses (and 80 % on 10-20 held-out poses of simulated DH fits); with the chi-square
+    n = 8-12 poses (and 75-78 % on 10-20 held-out poses of simulated DH fits,
+    docs/rms_interval_coverage.py); with the chi-square
     interval beside it the coverage is the stated 95 % (binomial sd over 400 trials: 1.1 %, so
     0.92 is 3 sd below it). Heteroscedastic errors (per-pose scale lognormal, sd 0.6) are
     covered about 0.85-0.90 at n = 10-20, the bootstrap alone 0.83-0.88: no interval from a few

@@ -281,8 +281,9 @@ RMS_INTERVAL_BASIS = (
     "95 % interval of the RMS over the evaluated poses: the wider of a BCa bootstrap (2,000 "
     "resamples, seed 0) and a chi-square interval for the mean square with Satterthwaite's "
     "degrees of freedom (at most 3 a pose); the bootstrap alone covered the true RMS only "
-    "73-80 % of the time on 10-20 held-out poses of simulated fits. How much the figure depends on which poses "
-    "were measured; it does not cover a bias shared by all poses (tracker scale, temperature)"
+    "75-78 % of the time on 10-20 held-out poses of simulated fits "
+    "(docs/rms_interval_coverage.py). How much the figure depends on which poses were "
+    "measured; it does not cover a bias shared by all poses (tracker scale, temperature)"
 )
 
 
