@@ -28,6 +28,10 @@ Pipeline (`diagnose(ds)`):
        (b) K-fold cross-validation (folds by pose) lowers the out-of-fold error by more than
            chance: one-sided paired t-test over poses of the per-pose CV squared error at
            level `cv_alpha`.
+     A candidate that passes (a) and fails (b) fits something carried by a few poses (gross
+     errors the outlier screen let through); it is set aside and the next best tested, so it
+     cannot hide a real effect. Set-aside candidates still count in the next steps' m. A
+     candidate that fails (a) ends the selection.
      After each acceptance, every earlier effect is re-tested given the others (F-test at
      `alpha`); those no longer significant are removed (backward pruning).
    Why greedy + pruning and not sparse regression over the library: the candidates come in groups
@@ -250,6 +254,7 @@ def select_effects(
     steps: list[Step] = []
     screen: dict[str, dict] = {}
     removed: set[str] = set()
+    aside: set[str] = set()  # passed the F-test, failed cross-validation
 
     def idx_of(cs: list[Candidate]) -> list[int]:
         return [i for c in cs for i in c.idx]
@@ -265,7 +270,7 @@ def select_effects(
         best = None
         tried = 0
         for c in cands:
-            if c in M or c.key in removed:
+            if c in M or c.key in removed or c.key in aside:
                 continue
             rho = lin.rho(list(c.idx), cur)
             if not M:
@@ -286,15 +291,20 @@ def select_effects(
         c, db, rss1, rho = best
         p1 = ng + len(cur) + len(c.idx)
         F, p = _ftest(rss0, rss1, len(c.idx), n, p1)
-        a_used = cfg.alpha / max(tried, 1)
+        a_used = cfg.alpha / max(tried + len(aside), 1)
         ratio, cv_p = _cv_test(lin.cv_errors(cur), lin.cv_errors(cur + list(c.idx)))
-        ok = p < a_used and cv_p < cfg.cv_alpha and ratio < 1.0
+        f_ok = p < a_used
+        ok = f_ok and cv_p < cfg.cv_alpha and ratio < 1.0
+        verdict = "accept" if ok else ("set aside (CV)" if f_ok else "stop")
         log(
             f"  candidate {c.key:34s} F={F:9.1f} p={p:.2e} (level {a_used:.1e}) "
-            f"CV ratio {ratio:.3f} p={cv_p:.2e} -> {'accept' if ok else 'stop'}"
+            f"CV ratio {ratio:.3f} p={cv_p:.2e} -> {verdict}"
         )
-        if not ok:
+        if not f_ok:
             break
+        if not ok:
+            aside.add(c.key)
+            continue
         M.append(c)
         steps.append(Step("add", c, F, p, a_used, ratio, cv_p, db, rho))
         # backward pruning
