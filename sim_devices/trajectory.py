@@ -167,17 +167,15 @@ def make_trajectory(
 
 def record_trajectory(path: str | Path, traj: TrajectoryData) -> Path:
     """Write the trajectory as a recording (shared format, one /campaign/sample per sample)."""
-    from workcell.campaign.run import CellSetup
+    from sim_devices.cell import declared_cell
     from workcell.recording.writer import RecordingWriter
 
     tr = traj.truth
-    cell = CellSetup(
-        spec=tr.nominal,
-        tool_m=NOMINAL_SMR_M.copy(),
-        base_in_tracker=traj.base_in_tracker_nominal,
+    cell = declared_cell(
+        tr,
+        0,
         tracker_model="simulated laser tracker (continuous)",
-        payload_kg=tr.payload_kg,
-        payload_com_m=tuple(tr.payload_com_m.tolist()),
+        base_in_tracker=traj.base_in_tracker_nominal,
     )
     session = cell.session(
         {
@@ -208,7 +206,7 @@ def record_trajectory(path: str | Path, traj: TrajectoryData) -> Path:
                     "joint_temperature_c": tr.joint_temperatures_c(traj.t_s[i]),
                     "ambient_temperature_c": tr.ambient_c,
                     "elapsed_s": float(traj.t_s[i]),
-                    "payload_kg": float(tr.payload_kg),
+                    "payload_kg": float(tr.declared_payload_kg),
                 },
                 flush=False,
             )

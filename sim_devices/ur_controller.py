@@ -931,8 +931,8 @@ class UrControllerSim:
                 "standard_analog_output0": 0.0,
                 "standard_analog_output1": 0.0,
                 "ft_raw_wrench": np.zeros(6),
-                "payload": float(truth.payload_kg),
-                "payload_cog": np.asarray(truth.payload_com_m, float),
+                "payload": float(truth.declared_payload_kg),  # as set on the controller
+                "payload_cog": np.asarray(truth.declared_payload_com_m, float),
                 "payload_inertia": np.zeros(6),
                 "elbow_position": np.zeros(3),
                 "elbow_velocity": np.zeros(3),

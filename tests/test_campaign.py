@@ -10,10 +10,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from sim_devices.cell import sim_cell
 from workcell.campaign.envelope import EnvelopeViolation, default_envelope, route
 from workcell.campaign.executor import ArmOutsideEnvelope, CampaignConfig, Executor
 from workcell.campaign.plans import PoseTarget, make_plan, random_configurations
-from workcell.campaign.run import run_campaign, sim_cell
+from workcell.campaign.run import run_campaign
 from workcell.kinematics.robots import UR5E
 from workcell.recording.reader import read_recording
 
@@ -437,8 +438,9 @@ def test_an_abort_before_the_first_pose_is_an_aborted_recording_not_an_exception
     """A UI's abort while the campaign is still planning runs through the executor as before
     (robot stopped, abort event, recording closed); only a command-line Ctrl-C that Python
     dropped (`errors.INTERRUPTED`) stops run_campaign before it connects."""
+    from sim_devices.cell import sim_cell
     from workcell.campaign.executor import CampaignConfig, CampaignControl
-    from workcell.campaign.run import run_campaign, sim_cell
+    from workcell.campaign.run import run_campaign
     from workcell.recording.reader import read_recording
 
     _, robot, tracker, cell = sim_cell("ur5e", "none", seed=1)

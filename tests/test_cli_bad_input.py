@@ -20,8 +20,9 @@ POSES = 20
 @pytest.fixture(scope="module")
 def cell(tmp_path_factory):
     """A small simulated recording and a DH model fitted to it."""
+    from sim_devices.cell import sim_cell
     from workcell.campaign.executor import CampaignConfig
-    from workcell.campaign.run import run_campaign, sim_cell
+    from workcell.campaign.run import run_campaign
 
     d = tmp_path_factory.mktemp("badinput")
     _, robot, tracker, c = sim_cell("ur5e", "none", seed=2)
@@ -394,8 +395,9 @@ def test_a_model_replaces_only_an_earlier_model_of_the_same_recording(cell, caps
 
 def _other_recording(tmp_path):
     """A different simulated campaign (another seed)."""
+    from sim_devices.cell import sim_cell
     from workcell.campaign.executor import CampaignConfig
-    from workcell.campaign.run import run_campaign, sim_cell
+    from workcell.campaign.run import run_campaign
 
     p = tmp_path / "seed3.mcap"
     if not p.exists():
@@ -437,8 +439,9 @@ def test_a_moved_model_still_finds_its_recording(cell, capsys, tmp_path, monkeyp
 def test_replay_save_twice_replaces_its_own_model(tmp_path, capsys):
     """`replay --save` records its recording in the model, so saving again is a re-fit of the
     same recording (replaced, said), not "a model of another recording"."""
+    from sim_devices.cell import sim_cell
     from workcell.campaign.executor import CampaignConfig
-    from workcell.campaign.run import run_campaign, sim_cell
+    from workcell.campaign.run import run_campaign
 
     rec = tmp_path / "r32.mcap"
     _, robot, tracker, c = sim_cell("ur5e", "none", seed=4)
@@ -552,8 +555,9 @@ def test_a_diagnose_report_folder_with_someone_elses_files(cell, capsys, tmp_pat
     assert (rep / "summary.txt").read_text() == "my notes\n"
     (rep / "summary.txt").unlink()
     # an earlier report of its own is replaced (diagnose needs 40 poses)
+    from sim_devices.cell import sim_cell
     from workcell.campaign.executor import CampaignConfig
-    from workcell.campaign.run import run_campaign, sim_cell
+    from workcell.campaign.run import run_campaign
 
     _, robot, tracker, c = sim_cell("ur5e", "realistic", seed=4)
     rec = tmp_path / "r40.mcap"
@@ -669,8 +673,9 @@ def test_the_tui_fit_keeps_a_read_only_archive_and_foreign_files(tmp_path, monke
     """The TUI's Fit screen (backend.fit) follows the command line: a recording in a read-only
     archive gets its model in the current folder, with a note; fitting again replaces the
     earlier model of the same recording (ekf-ann too); a file that is not one is refused."""
+    from sim_devices.cell import sim_cell
     from workcell.campaign.executor import CampaignConfig
-    from workcell.campaign.run import run_campaign, sim_cell
+    from workcell.campaign.run import run_campaign
     from workcell.errors import UserError
     from workcell.tui import backend
 

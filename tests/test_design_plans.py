@@ -10,6 +10,7 @@ import sys
 import numpy as np
 import pytest
 
+from sim_devices.cell import sim_cell
 from workcell.bench.design import _cell, drive_plan
 from workcell.campaign.adaptive import (
     candidate_poses,
@@ -20,7 +21,7 @@ from workcell.campaign.adaptive import (
 )
 from workcell.campaign.executor import CampaignConfig
 from workcell.campaign.plans import make_plan, random_configurations
-from workcell.campaign.run import run_campaign, sim_cell
+from workcell.campaign.run import run_campaign
 from workcell.estimation.bounded import jacobian_padded
 from workcell.estimation.identifiability import observability
 from workcell.kinematics.chain import pack

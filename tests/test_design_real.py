@@ -16,8 +16,9 @@ from workcell.recording.dataset import Dataset
 
 @pytest.fixture(scope="module")
 def sim_recording(tmp_path_factory):
+    from sim_devices.cell import sim_cell
     from workcell.campaign.executor import CampaignConfig
-    from workcell.campaign.run import run_campaign, sim_cell
+    from workcell.campaign.run import run_campaign
 
     _, robot, tracker, cell = sim_cell("ur5e", "none", seed=6)
     out = tmp_path_factory.mktemp("real") / "sim.mcap"

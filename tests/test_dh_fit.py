@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from workcell.campaign.run import run_campaign, sim_cell
+from sim_devices.cell import sim_cell
+from workcell.campaign.run import run_campaign
 from workcell.estimation.dh import fit_dh
 from workcell.estimation.fitting import fit_dataset
 from workcell.kinematics.chain import IDX
@@ -68,7 +69,7 @@ def test_identifiability_groups_named_for_ur(dh_only):
 
 
 def test_heldout_close_to_noise_and_far_below_nominal(dh_only):
-    from workcell.commands.demo import noise_floor
+    from workcell.bench.scoring import noise_floor
 
     truth, ds = dh_only
     model, rep = fit_dataset(ds, method="dh", holdout=0.25)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -81,14 +83,23 @@ def test_effect_physics_matches_an_independent_implementation(poses):
     tr = make_truth("ur5e", "all", 5)
     th = _truth_theta(tr)
     temps = np.array([tr.joint_temperatures_c(ti) for ti in t])
+    # the library given the truth's own inertia (the simulator's link masses and payload are
+    # not the catalogue's and the declaration; that mismatch is a model error, not tested here)
+    spec = dataclasses.replace(
+        tr.nominal, link_masses_kg=tr.link_masses_kg, link_coms_m=tr.link_coms_m
+    )
     fs = FeatureSpec(
-        spec=tr.nominal,
+        spec=spec,
         payload_com_m=tr.payload_com_m,
         thermal_source="joint",
         thermal_ref=np.full(6, tr.ambient_c),
     )
     x = fs.features(
-        th, q, approach_sign=sg, joint_temperature_c=temps, payload_kg=np.full(len(q), 0.5)
+        th,
+        q,
+        approach_sign=sg,
+        joint_temperature_c=temps,
+        payload_kg=np.full(len(q), tr.payload_kg),
     )
     p = p_aug(th, _truth_eff(tr.effects), tr.tracker_T_base, q, x)
     pt = np.array([tr.smr_in_tracker(q[i], sg[i], t[i]) for i in range(len(q))])

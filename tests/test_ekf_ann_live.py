@@ -16,8 +16,9 @@ from workcell.recording.reader import read_recording
 
 @pytest.fixture(scope="module")
 def campaign(tmp_path_factory):
+    from sim_devices.cell import sim_cell
     from workcell.campaign.executor import CampaignConfig
-    from workcell.campaign.run import run_campaign, sim_cell
+    from workcell.campaign.run import run_campaign
 
     _, robot, tracker, cell = sim_cell("ur5e", "realistic", seed=3)
     live = LiveFilter.for_cell(cell, n_init=8, hidden=6)
@@ -189,8 +190,9 @@ def test_live_filter_predicts_new_poses_far_better_than_nominal(tmp_path):
     simulated campaign: the a-priori innovations of the poses after initialisation are well below
     the prediction error of the nominal chain registered on the same 30 samples. (A network
     pre-fitted on those 30 samples extrapolated so badly that this failed: 0.67x nominal.)"""
+    from sim_devices.cell import sim_cell
     from workcell.campaign.executor import CampaignConfig
-    from workcell.campaign.run import run_campaign, sim_cell
+    from workcell.campaign.run import run_campaign
     from workcell.kinematics.chain import p_tracker
     from workcell.kinematics.frames import kabsch
 

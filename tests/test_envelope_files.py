@@ -9,9 +9,10 @@ import json
 import numpy as np
 import pytest
 
+from sim_devices.cell import sim_cell
 from workcell.campaign.envelope import load_envelope
 from workcell.campaign.executor import CampaignControl
-from workcell.campaign.run import run_campaign, sim_cell
+from workcell.campaign.run import run_campaign
 from workcell.cli import main
 from workcell.recording.reader import read_recording
 

@@ -65,11 +65,12 @@ def test_the_expected_figure_tracks_the_fitted_models_true_error():
     import tempfile
     from pathlib import Path
 
+    from sim_devices.cell import sim_cell
     from workcell.campaign.envelope import default_envelope
     from workcell.campaign.executor import CampaignConfig
     from workcell.campaign.identification import expected_after_fit
     from workcell.campaign.plans import random_configurations
-    from workcell.campaign.run import run_campaign, sim_cell
+    from workcell.campaign.run import run_campaign
     from workcell.estimation.fitting import fit_dataset
     from workcell.recording.dataset import Dataset
 

@@ -6,8 +6,8 @@ import dataclasses
 import numpy as np
 import pytest
 
+from sim_devices.cell import sim_cell
 from workcell.campaign.envelope import Guard, default_envelope
-from workcell.campaign.run import sim_cell
 from workcell.errors import UserError
 from workcell.estimation.dh import DHModel
 from workcell.export.build import make_table

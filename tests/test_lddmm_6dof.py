@@ -10,7 +10,8 @@ import json
 import numpy as np
 import pytest
 
-from workcell.campaign.run import run_campaign, sim_cell
+from sim_devices.cell import sim_cell
+from workcell.campaign.run import run_campaign
 from workcell.estimation.fitting import fit_dataset
 from workcell.estimation.lddmm_fit import EVAL_TOL_M, LddmmCalibration
 from workcell.estimation.models import error_stats, load_model, save_model

@@ -6,9 +6,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from sim_devices.cell import sim_cell
 from workcell.campaign.envelope import default_envelope
 from workcell.campaign.executor import CampaignConfig
-from workcell.campaign.run import run_campaign, sim_cell
+from workcell.campaign.run import run_campaign
 from workcell.campaign.watch import MIN_POSES, MarginWatch
 from workcell.cli import main
 from workcell.kinematics.robots import UR5E, robot_from_session

@@ -265,8 +265,9 @@ def test_every_message_of_a_campaign_meets_the_schema_written_with_it(tmp_path):
     joint temperatures and payload."""
     import jsonschema
 
+    from sim_devices.cell import sim_cell
     from workcell.campaign.executor import CampaignConfig
-    from workcell.campaign.run import run_campaign, sim_cell
+    from workcell.campaign.run import run_campaign
 
     _, robot, tracker, cell = sim_cell("ur5e", "realistic", 5, beam_break_prob=0.3)
     p = tmp_path / "c.mcap"

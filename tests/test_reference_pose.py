@@ -93,8 +93,9 @@ def test_a_campaign_with_a_reference_records_its_drift(tmp_path, capsys):
     the reference every 5: pose 0 is measured 4 times (start, after 5, after 10, at the end);
     `info` reports how far it moved against the readings' own scatter, fits keep the repeats on
     one side of the split, and a fit runs on the recording."""
+    from sim_devices.cell import sim_cell
     from workcell.campaign.executor import CampaignConfig
-    from workcell.campaign.run import run_campaign, sim_cell
+    from workcell.campaign.run import run_campaign
     from workcell.cli import main
     from workcell.recording.dataset import Dataset
     from workcell.recording.reader import read_recording
@@ -137,8 +138,9 @@ def test_a_resumed_campaign_goes_on_measuring_the_reference(tmp_path, capsys):
     """Aborted after 6 samples, resumed from the command line: the continuation records the
     interval again, re-measures the plan's first pose (not the first pose it measures itself),
     and together the two files hold each plan pose once plus the references."""
+    from sim_devices.cell import sim_cell
     from workcell.campaign.executor import CampaignConfig, CampaignControl
-    from workcell.campaign.run import run_campaign, sim_cell
+    from workcell.campaign.run import run_campaign
     from workcell.cli import main
     from workcell.recording.reader import read_recording
 
@@ -205,8 +207,9 @@ def test_a_cell_without_drift_is_not_called_drifting_and_a_drift_is(tmp_path):
     the same recording with a 60 um/repeat drift added to the reference's readings is not."""
     import dataclasses
 
+    from sim_devices.cell import sim_cell
     from workcell.campaign.executor import CampaignConfig
-    from workcell.campaign.run import run_campaign, sim_cell
+    from workcell.campaign.run import run_campaign
     from workcell.recording.dataset import Dataset
     from workcell.recording.repeats import repeat_beyond_noise, repeat_drift
 

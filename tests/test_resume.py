@@ -110,10 +110,11 @@ def test_resume_refuses_a_recording_whose_plan_this_version_would_not_recreate(
     import numpy as np
     import pytest
 
+    from sim_devices.cell import sim_cell
     from workcell.campaign import plans
     from workcell.campaign.envelope import default_envelope
     from workcell.campaign.resume import check_same_plan, resume_plan
-    from workcell.campaign.run import run_campaign, sim_cell
+    from workcell.campaign.run import run_campaign
     from workcell.errors import UserError
 
     rec = tmp_path / "c.mcap"
@@ -144,7 +145,7 @@ def test_tui_resume_continues_on_the_same_simulated_cell_only(tmp_path, monkeypa
     plan's) is refused in one line, as the command line adopts the recorded one. The recording
     keeps the simulation's seed (`sim_seed`) and the warm-up, which `validate --robot sim` and
     the resume then use."""
-    import workcell.campaign.run as run_mod
+    import sim_devices.cell as cell_mod
     from workcell.campaign.executor import CampaignControl
     from workcell.cli import main
     from workcell.errors import UserError
@@ -176,13 +177,13 @@ def test_tui_resume_continues_on_the_same_simulated_cell_only(tmp_path, monkeypa
     assert read_recording(path).session["campaign"]["sim_seed"] == 2
     # validate rebuilds the simulated arm the recording was made on: seed 2, not the plan's 5
     seeds = []
-    real = run_mod.sim_cell
+    real = cell_mod.sim_cell
 
     def spy(model, effects, seed, **kw):
         seeds.append(seed)
         return real(model, effects, seed, **kw)
 
-    monkeypatch.setattr(run_mod, "sim_cell", spy)
+    monkeypatch.setattr(cell_mod, "sim_cell", spy)
     assert main(["fit", "a.mcap", "--holdout", "0", "--out", "m.json"]) == 0
     assert main(["validate", "m.json", "--targets", "2", "--json"]) == 0
     assert seeds == [2]
@@ -244,8 +245,9 @@ def test_a_resume_measures_with_the_recorded_settings():
 @pytest.fixture(scope="module")
 def interrupted(tmp_path_factory):
     """A 6-pose simulated campaign aborted after 2 poses: (session, samples)."""
+    from sim_devices.cell import sim_cell
     from workcell.campaign.executor import CampaignConfig, CampaignControl
-    from workcell.campaign.run import run_campaign, sim_cell
+    from workcell.campaign.run import run_campaign
 
     _, robot, tracker, cell = sim_cell("ur5e", "none", 1, beam_break_prob=0.0)
     path = tmp_path_factory.mktemp("interrupted") / "i.mcap"

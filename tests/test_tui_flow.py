@@ -350,8 +350,9 @@ def test_the_fit_screen_names_weakly_identified_parameters(tmp_path, monkeypatch
 def test_the_fit_screen_names_heldout_outliers(tmp_path, monkeypatch):
     """A fit report with a held-out outlier (a planted 0.46 mm reading) shows it on the Fit
     screen, with the held-out RMS without it."""
+    from sim_devices.cell import sim_cell
     from workcell.campaign.executor import CampaignConfig
-    from workcell.campaign.run import run_campaign, sim_cell
+    from workcell.campaign.run import run_campaign
     from workcell.estimation.fitting import fit_dataset
     from workcell.recording.dataset import Dataset
 
@@ -464,9 +465,9 @@ def test_a_recording_read_in_part_is_said_on_the_fit_and_diagnose_screens(tmp_pa
     """A recording cut short (a crash while writing) is fitted and diagnosed on the samples
     that could be read, as on the command line, and the UI says so with a warning notice
     (before, it fitted the readable part without a word)."""
+    from sim_devices.cell import sim_cell
     from workcell.campaign.executor import CampaignConfig
     from workcell.campaign.run import run_campaign as run_engine
-    from workcell.campaign.run import sim_cell
 
     monkeypatch.chdir(tmp_path)
     _, robot, tracker, cell = sim_cell("ur5e", "none", 3)

@@ -48,8 +48,9 @@ def test_the_figure_matches_the_models_true_error_at_the_heldout_poses(effects, 
     """A DH fit of a cell with gravity compliance leaves tens of um unexplained; of a DH-only
     cell, only its estimation error. The stated figure must track the model's true error at the
     held-out poses (scored against the simulator's truth), and the upper end must cover it."""
+    from sim_devices.cell import sim_cell
     from workcell.campaign.executor import CampaignConfig
-    from workcell.campaign.run import run_campaign, sim_cell
+    from workcell.campaign.run import run_campaign
     from workcell.estimation.fitting import fit_recording
     from workcell.estimation.models import load_model
     from workcell.export.build import make_table
@@ -131,8 +132,9 @@ def test_an_outlier_reading_among_the_heldout_poses_is_named_and_set_aside(tmp_p
     disagreeing reading does) makes the held-out RMS several times the model's error. `fit`
     names that pose and gives the figures without it: with the training poses untouched the
     model is the same, so they must equal the clean recording's figures over the other poses."""
+    from sim_devices.cell import sim_cell
     from workcell.campaign.executor import CampaignConfig
-    from workcell.campaign.run import run_campaign, sim_cell
+    from workcell.campaign.run import run_campaign
     from workcell.estimation.fitting import fit_dataset
     from workcell.estimation.models import error_stats
     from workcell.recording.dataset import Dataset

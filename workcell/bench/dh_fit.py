@@ -23,8 +23,9 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--poses", type=int, default=500)
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
+    from sim_devices.cell import sim_cell
     from workcell.campaign.executor import CampaignConfig
-    from workcell.campaign.run import run_campaign, sim_cell
+    from workcell.campaign.run import run_campaign
     from workcell.estimation.dh import fit_dh
     from workcell.kinematics.chain import jac_params, p_tracker
     from workcell.recording.dataset import Dataset

@@ -139,23 +139,15 @@ def simulate_recording(
     """Drive a SimWorld through a random plan (pre-pose approach, settle, 5 readings) and write
     an MCAP recording in the shared format. Like the campaign executor, without its per-state
     gravity-torque polling (which dominates its run time in virtual time)."""
-    from sim_devices.truth import NOMINAL_SMR_M
+    from sim_devices.cell import declared_cell
     from sim_devices.world import SimWorld
     from workcell.campaign.executor import CampaignConfig, _reject_outliers
-    from workcell.campaign.run import CellSetup
     from workcell.recording.writer import RecordingWriter
 
     cfg = CampaignConfig()
     world = SimWorld(truth, seed=seed)
     rng = np.random.default_rng(seed + 5)
-    cell = CellSetup(
-        spec=truth.nominal,
-        tool_m=NOMINAL_SMR_M.copy(),
-        base_in_tracker=truth.session_nominal(np.random.default_rng(seed + 99)),
-        tracker_model="simulated laser tracker",
-        payload_kg=truth.payload_kg,
-        payload_com_m=tuple(truth.payload_com_m.tolist()),
-    )
+    cell = declared_cell(truth, seed)
     targets = plan_targets(truth.nominal, n_poses, seed) if targets is None else targets
     session = cell.session(
         {
@@ -212,7 +204,7 @@ def simulate_recording(
                     "joint_temperature_c": world.joint_temperatures_c().tolist(),
                     "ambient_temperature_c": None,
                     "elapsed_s": float(e),
-                    "payload_kg": float(truth.payload_kg),
+                    "payload_kg": float(truth.declared_payload_kg),
                 },
             )
             k += 1
@@ -312,7 +304,7 @@ def named_of(report: dict) -> list[tuple[str, int | None]]:
 
 def true_floor(ds, truth, diag) -> float:
     """Noise floor with the simulator's true noise model (for scoring only)."""
-    from workcell.commands.demo import noise_floor
+    from workcell.bench.scoring import noise_floor
 
     return noise_floor(ds, diag.dh_model, truth.noise)
 

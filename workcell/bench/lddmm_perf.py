@@ -57,7 +57,8 @@ def bench_pendulum() -> dict:
 
 
 def _recording(poses: int, seed: int, tmp: str):
-    from workcell.campaign.run import run_campaign, sim_cell
+    from sim_devices.cell import sim_cell
+    from workcell.campaign.run import run_campaign
     from workcell.recording.dataset import Dataset
 
     p = Path(tmp) / f"ur5e_{poses}.mcap"

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from workcell.campaign.envelope import default_envelope, load_envelope
-from workcell.campaign.run import CellSetup, sim_cell
+from workcell.campaign.run import CellSetup
 from workcell.errors import UserError
 from workcell.kinematics.robots import robot_by_name
 from workcell.recording.checks import SMR_OFFSET_MAX_M
@@ -49,6 +49,8 @@ def open_cell(args):
     declared = getattr(args, "smr_offset", None)
     tool_m = parse_smr_offset(declared)
     if args.robot == "sim" and args.tracker == "sim":
+        from sim_devices.cell import sim_cell  # the simulator only when asked for
+
         _, robot, tracker, cell = sim_cell(args.model, args.effects, args.seed)
         if declared:  # else the simulated cell's own nominal SMR
             cell.tool_m = tool_m

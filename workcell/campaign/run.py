@@ -220,35 +220,3 @@ def margin_stop(res: CampaignResult, path: str | Path) -> None:
             f"the campaign stopped after {res.measured} poses: the envelope's kinematic margin "
             f"does not hold (the margin event above says why); {path} is closed and keeps them"
         )
-
-
-def sim_cell(
-    robot: str = "ur5e",
-    effects: str | dict | None = "realistic",
-    seed: int = 0,
-    *,
-    beam_break_prob: float = 0.01,
-    outlier_prob: float = 0.005,
-    dh_error_scale=1.0,
-    noise=None,
-):
-    """An in-process simulated cell: (SimWorld, SimRobot, SimTracker, CellSetup).
-
-    Imports the simulator lazily: only `campaign --robot sim`, `demo` and tests use it.
-    """
-    from sim_devices.inprocess import SimRobot, SimTracker
-    from sim_devices.truth import NOMINAL_SMR_M, TrackerNoise, make_truth
-    from sim_devices.world import SimWorld
-
-    nz = noise or TrackerNoise(beam_break_prob=beam_break_prob, outlier_prob=outlier_prob)
-    truth = make_truth(robot, effects, seed, noise=nz, dh_error_scale=dh_error_scale)
-    world = SimWorld(truth, seed=seed)
-    cell = CellSetup(
-        spec=truth.nominal,
-        tool_m=NOMINAL_SMR_M.copy(),
-        base_in_tracker=truth.session_nominal(np.random.default_rng(seed + 99)),
-        tracker_model="simulated laser tracker",
-        payload_kg=truth.payload_kg,
-        payload_com_m=tuple(truth.payload_com_m.tolist()),
-    )
-    return world, SimRobot(world), SimTracker(world), cell
