@@ -200,8 +200,15 @@ def test_augmented_prediction_cov_is_the_spread_over_its_covariance(poses):
     mc = np.std(np.array(draws), axis=0)
     np.testing.assert_allclose(np.sqrt(np.einsum("nii->ni", C)), mc, rtol=0.1)
     assert mc.max() > 1e-5
-    m.residual = {"kind": "gp"}  # a non-parametric part: no propagated covariance
-    assert m.prediction_cov(q[:5], **aux) is None
+    # a residual GP adds its posterior variance per axis (it had no covariance at all)
+    from workcell.estimation.discovery_np import fit_residual_gp
+
+    r = 1e-5 * np.c_[np.sin(q[:, 1]), np.cos(q[:, 2]), q[:, 0]]
+    gp = fit_residual_gp(q, r + 1e-6 * rng.normal(size=r.shape))
+    m.residual = gp.to_dict()
+    v = gp.predict_var(q[:5])
+    assert np.all(v > 0)
+    np.testing.assert_allclose(m.prediction_cov(q[:5], **aux), C + v[:, :, None] * np.eye(3))
 
 
 def test_the_bench_simulator_counts_measured_samples_in_order(tmp_path):

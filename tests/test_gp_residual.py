@@ -113,3 +113,56 @@ def test_fit_report_prints_every_kind_of_parameter(capsys):
     rows = {ln.split()[0]: ln for ln in capsys.readouterr().out.splitlines() if ln.strip()}
     assert "0.0010" in rows["a2"] and "at bound" in rows["ls"]
     assert "CV grid" in rows["sig"] and rows["other"].split()[-2] == "-"
+
+
+def test_gp_prediction_covariance_is_the_posterior_variance_plus_the_geometry(tmp_path, capsys):
+    """The GP model's 1-sigma for a correction: its latent posterior variance (checked against
+    scikit-learn's, which adds the white noise at the test points) plus the geometry's; small
+    where it was measured, the GP's prior signal std far from every measured pose. A table
+    exported from it carries a 1-sigma per node (it carried none)."""
+    from workcell.export.build import make_table
+
+    rec = tmp_path / "c.mcap"
+    argv = ["campaign", "--robot", "sim", "--tracker", "sim", "--poses", "40", "--out", str(rec)]
+    assert main(argv) == 0
+    out = tmp_path / "m.json"
+    assert main(["fit", str(rec), "--method", "gp", "--out", str(out)]) == 0
+    capsys.readouterr()
+    m = load_model(out)
+    k = ConstantKernel(m.signal_var, "fixed") * RBF(m.lengthscales, "fixed")
+    k = k + WhiteKernel(m.noise_var, "fixed")
+    Xs = m.X / m.scale
+    g = GaussianProcessRegressor(k, alpha=1e-20, optimizer=None).fit(Xs, np.zeros(len(Xs)))
+    q = np.vstack([m.X[:5] + 0.05, m.X[:3] + 6.0 * m.scale * m.lengthscales])
+    _, sd = g.predict(q / m.scale, return_std=True)
+    assert m.predict_std(q) ** 2 + m.noise_var == pytest.approx(sd**2, rel=1e-6)
+    C, Cb = m.prediction_cov(q), m.base.prediction_cov(q)
+    extra = np.einsum("nii->ni", C - Cb)
+    assert extra == pytest.approx(np.repeat(m.predict_std(q)[:, None] ** 2, 3, 1))
+    assert np.all(m.predict_std(q[:5]) < 0.5 * np.sqrt(m.signal_var))  # measured there
+    assert m.predict_std(q[5:]) == pytest.approx(np.sqrt(m.signal_var), rel=1e-3)  # far away
+    tab, _ = make_table(m, model_path=str(out), spacing_m=0.15, target_error_m=1e-3)
+    assert tab.std_m is not None and np.all(tab.std_m > 0)
+    assert "Gaussian-process residual" in tab.meta["std_basis"]
+
+
+def test_augmented_models_residual_gp_variance_matches_scikit_learn():
+    """diagnose's residual GP (`ResidualGP`) gives the posterior variance of the residual in
+    metres^2 per axis: scikit-learn's for the same fixed kernel (less its white noise at the
+    test point), times the axis' normalisation squared."""
+    from workcell.estimation.discovery_np import fit_residual_gp
+
+    rng = np.random.default_rng(3)
+    q = rng.uniform(-2, 2, (60, 6))
+    r = 1e-5 * np.c_[np.sin(q[:, 1]), np.cos(q[:, 2]), q[:, 0]] + 2e-6 * rng.normal(size=(60, 3))
+    g = fit_residual_gp(q, r)
+    k = ConstantKernel(g.signal_var, "fixed") * RBF(g.lengthscales, "fixed")
+    k = k + WhiteKernel(g.noise_var, "fixed")
+    sk = GaussianProcessRegressor(k, alpha=1e-20, optimizer=None).fit(q, np.zeros(len(q)))
+    qt = np.vstack([q[:4] + 0.1, rng.uniform(-2, 2, (4, 6)), q[:2] + 50.0])
+    _, sd = sk.predict(qt, return_std=True)
+    want = (sd**2 - g.noise_var)[:, None] * g.y_std[None, :] ** 2
+    assert g.predict_var(qt) == pytest.approx(want, rel=1e-6, abs=1e-24)
+    assert g.predict_var(qt[-2:]) == pytest.approx(
+        np.tile(g.signal_var * g.y_std**2, (2, 1)), rel=1e-6
+    )

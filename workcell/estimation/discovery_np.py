@@ -39,6 +39,17 @@ class ResidualGP:
         q = np.atleast_2d(np.asarray(q, float))
         return (self.kernel(q, self.X) @ self.alpha) * self.y_std + self.y_mean
 
+    def predict_var(self, q: np.ndarray) -> np.ndarray:
+        """Posterior variance (N, 3) of the residual at joints q (m^2, per axis)."""
+        from scipy.linalg import cho_factor, cho_solve
+
+        q = np.atleast_2d(np.asarray(q, float))
+        K = self.kernel(self.X, self.X) + self.noise_var * np.eye(len(self.X))
+        Ks = self.kernel(q, self.X)
+        v = cho_solve(cho_factor(K, lower=True), Ks.T)
+        var = np.clip(self.signal_var - np.einsum("ij,ji->i", Ks, v), 0.0, None)
+        return var[:, None] * self.y_std[None, :] ** 2
+
     def to_dict(self) -> dict:
         return {
             "kind": "ard-rbf-gp",

@@ -437,14 +437,19 @@ class AugmentedModel:
 
     def prediction_cov(self, q: np.ndarray, **aux) -> np.ndarray | None:
         """Covariance (N, 3, 3) of `predict(q, **aux)` (tracker frame) from the covariance of the
-        geometry and the accepted effects, to first order (features held at their values); None
-        with a non-parametric residual model, whose own uncertainty is not propagated."""
-        if self.residual is not None:
-            return None
+        geometry and the accepted effects, to first order (features held at their values). With
+        a residual GP, plus its posterior variance per axis, added as if independent of the
+        parametric part (the GP was fitted to its residuals): an upper estimate."""
         q = np.atleast_2d(np.asarray(q, float))
         Jt, Je = jac_aug(self.theta, self.eff, self.base_ref, q, self.features(q, **aux))
         J = np.concatenate([Jt[:, :, self.free], Je[:, :, self.active]], axis=2)
-        return np.einsum("nip,pq,njq->nij", J, self.cov, J)
+        C = np.einsum("nip,pq,njq->nij", J, self.cov, J)
+        if self.residual is not None:
+            from workcell.estimation.discovery_np import ResidualGP
+
+            v = ResidualGP.from_dict(self.residual).predict_var(q)
+            C = C + v[:, :, None] * np.eye(3)[None]
+        return C
 
     def _std_of(self) -> tuple[np.ndarray, np.ndarray]:
         s = self.std
