@@ -17,7 +17,7 @@ from workcell.export.correction import (
     nominal_for,
     rotvec_to_matrix,
 )
-from workcell.export.table import CorrectionRefused, build_table
+from workcell.export.table import CorrectionRefused, build_table, node_std
 from workcell.kinematics.chain import pack
 from workcell.kinematics.robots import UR5E
 
@@ -171,6 +171,7 @@ def test_cli_targets_land_on_target_and_refuse_bad_rows(tmp_path, capsys):
     from workcell.cli import main
 
     m = make_model(8)
+    m.cov = np.diag(np.random.default_rng(4).uniform(1e-10, 1e-8, 39))  # a 1-sigma to carry
     path = save_model(m, tmp_path / "m.json")
     P = np.random.default_rng(3).uniform(LO, HI, (6, 3))
     good = tmp_path / "good.csv"
@@ -184,6 +185,10 @@ def test_cli_targets_land_on_target_and_refuse_bad_rows(tmp_path, capsys):
     q_cmd = np.array([[float(r[f"q{i}_cmd"]) for i in range(1, 7)] for r in rows])
     corr = Corrector(m, nominal_for(m))
     assert np.abs(corr.real_base(q_cmd) - P).max() < 1e-8
+    # each target carries the model's 1-sigma (it carried none): here the table's node formula
+    sd = np.array([[float(r[f"s{a}_m"]) for a in "xyz"] for r in rows])
+    assert np.all(sd > 1e-6)
+    assert sd == pytest.approx(node_std(corr, q_cmd), rel=1e-9)
     # as a spreadsheet saves it: a BOM, spaced and capitalised headers, a name column, blank rows
     sheet = tmp_path / "sheet.csv"
     sheet.write_text(

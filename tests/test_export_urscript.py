@@ -22,12 +22,18 @@ def table():
     return build_table(Corrector(m, nominal_for(m)), LO, HI, [DOWN, TILT], spacing_m=0.07)
 
 
+def _on_table(table, k: int) -> np.ndarray:
+    """Joints on the arm configuration orientation k's corrections were solved on."""
+    return table.q_nodes[k][0, 0, 0]
+
+
 def test_urscript_matches_python_table(table):
-    ns = run_urscript(generate_urscript(table))
+    text = generate_urscript(table)
     rng = np.random.default_rng(0)
     P = rng.uniform(LO, HI, (150, 3))
     for i, x in enumerate(P):
         rv = DOWN if i % 2 else TILT
+        ns = run_urscript(text, actual_joints=_on_table(table, 0 if i % 2 else 1))
         got = np.array(ns["wc_correct"](ns["_pose"]([*x, *rv])))
         want = table.correct(x[None], rv)[0]
         assert np.abs(got[:3] - want).max() < 1e-12
@@ -37,7 +43,7 @@ def test_urscript_matches_python_table(table):
 
 
 def test_urscript_halts_outside_volume_and_orientation(table):
-    ns = run_urscript(generate_urscript(table))
+    ns = run_urscript(generate_urscript(table), actual_joints=_on_table(table, 0))
     with pytest.raises(URScriptHalt, match="outside the correction volume"):
         ns["wc_correct"](ns["_pose"]([*(HI + 0.01), *DOWN]))
     with pytest.raises(URScriptHalt, match="orientation"):
@@ -48,4 +54,37 @@ def test_interpreter_refuses_unknown_constructs():
     with pytest.raises(ValueError, match="subset"):
         translate_urscript("def f(x):\n  movel(x)\nend\n")
     with pytest.raises(ValueError, match="unknown name"):
-        translate_urscript("def f(x):\n  return sin(x)\nend\n")
+        translate_urscript("def f(x):\n  return tan(x)\nend\n")
+
+
+def test_urscript_and_table_halt_on_another_arm_configuration(table):
+    """The corrections hold on the IK branch they were solved on: an arm on another (elbow
+    flipped, wrist flipped, or shoulder over) is refused by the script and by the table, on the
+    table's own joints and on the same joints with one branch changed."""
+    from workcell.errors import UserError
+    from workcell.export.correction import configuration
+    from workcell.export.table import CorrectionTable
+
+    text = generate_urscript(table)
+    x = (LO + HI) / 2
+    q0 = _on_table(table, 0)
+    th = np.zeros(39)
+    th[1], th[2], th[10] = table.configuration_dh_m
+    assert np.array_equal(configuration(th, q0)[0], table.configurations[0])
+    flips = {
+        "elbow": q0 * [1, 1, -1, 1, 1, 1] + [0, 0, 0, 0, 0, 0],
+        "wrist": q0 * [1, 1, 1, 1, -1, 1],
+        "shoulder": q0 + [0, np.pi, 0, 0, 0, 0],
+    }
+    for name, q in flips.items():
+        got = configuration(th, q)[0]
+        assert not np.array_equal(got, table.configurations[0]), name
+        ns = run_urscript(text, actual_joints=q)
+        with pytest.raises(URScriptHalt, match="configuration"):
+            ns["wc_correct"](ns["_pose"]([*x, *DOWN]))
+        with pytest.raises(UserError, match=name):
+            table.correct(x[None], DOWN, q_actual=q)
+    # the file keeps the configurations
+    back = CorrectionTable.from_dict(table.to_dict())
+    assert np.array_equal(back.configurations, table.configurations)
+    back.correct(x[None], DOWN, q_actual=q0)  # on the table's: no refusal

@@ -248,7 +248,7 @@ def _check_joints(src: Path, q: np.ndarray, nom, lines: list[int]) -> None:
 def _targets(args, model, cond, summary) -> int:
     from workcell.export.build import nominal_for_model
     from workcell.export.correction import Q_REF, Corrector, matrix_to_rotvec, rotvec_to_matrix
-    from workcell.export.table import check_corrections
+    from workcell.export.table import STD_BASIS, check_corrections, node_std
 
     if not args.targets_in:
         raise UserError("--format targets needs --in CSV")
@@ -342,6 +342,7 @@ def _targets(args, model, cond, summary) -> int:
         )
     check_corrections(c - P, P, args.max_correction, where="target")  # finite: checked above
     rv = matrix_to_rotvec(R)
+    sd = node_std(corr, q)  # (N, 3) or None: the model carries no covariance
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     with atomic_files(out, newline="") as (f,):
@@ -349,9 +350,14 @@ def _targets(args, model, cond, summary) -> int:
         w.writerow(
             ["x", "y", "z", "rx", "ry", "rz", "x_cmd", "y_cmd", "z_cmd"]
             + [f"{qc}_cmd" for qc in qcols]
+            + ([] if sd is None else ["sx_m", "sy_m", "sz_m"])
         )
         for i in range(len(P)):
-            w.writerow([repr(float(v)) for v in (*P[i], *rv[i], *c[i], *q[i])])
+            row = (*P[i], *rv[i], *c[i], *q[i], *(() if sd is None else sd[i]))
+            w.writerow([repr(float(v)) for v in row])
+    if sd is not None:  # the CSV stays plain (a header row, then numbers): the basis is here
+        summary["median_std_m"] = float(np.median(np.linalg.norm(sd, axis=1)))
+        summary["std_basis"] = STD_BASIS
     summary["files"] = [str(out)]
     summary["targets"] = len(P)
     summary["max_correction_m"] = float(np.max(np.linalg.norm(c - P, axis=1)))

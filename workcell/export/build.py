@@ -165,6 +165,13 @@ def conditions_note(model, cond: Conditions, strict: bool = False) -> list[str]:
             )
     elif cond.payload_kg is not None:
         lines.append("--payload changes nothing: the model has no payload-dependent effect")
+    if "backlash" in kinds:
+        sg = np.asarray(cond.approach_sign, int).tolist()
+        lines.append(
+            f"approach {sg} per joint (the direction each joint moves into its target from): "
+            "the model's backlash terms hold for that approach only; command a pre-pose so "
+            "every joint arrives that way (--approach for another)"
+        )
     src = fs.thermal_source if fs is not None and "thermal_drift" in kinds else None
     if src is None:
         if cond.joint_temperature_c is not None or cond.elapsed_s is not None:

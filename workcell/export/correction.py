@@ -32,6 +32,32 @@ from workcell.kinematics.chain import pack
 Q_REF = np.array([np.pi / 2, -2.0, 2.0, -np.pi / 2, -np.pi / 2, 0.0])
 
 
+CONFIGURATION_BASIS = (
+    "arm configuration (IK branch) as three signs: shoulder = sign(a2 cos q2 + a3 cos(q2 + q3) "
+    "+ d5 sin(q2 + q3 + q4)) (the wrist's reach in the arm's plane), elbow = sign(sin q3), "
+    "wrist = sign(sin q5), with the nominal a2, a3, d5 (`configuration_dh_m`). The correction "
+    "holds on that branch only: on another, the same target is reached with other joints and "
+    "the correction differs by up to millimetres"
+)
+
+
+def configuration(theta: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """(N, 3) signs (shoulder, elbow, wrist) of joints q (N, 6) (`CONFIGURATION_BASIS`) for the
+    packed nominal chain `theta`; 0 exactly at a singularity."""
+    th = np.asarray(theta, float)
+    a2, a3, d5 = configuration_dh(th)
+    q = np.atleast_2d(np.asarray(q, float))  # the controller's joint values, as URScript sees
+    reach = a2 * np.cos(q[:, 1]) + a3 * np.cos(q[:, 1] + q[:, 2])
+    reach = reach + d5 * np.sin(q[:, 1] + q[:, 2] + q[:, 3])
+    return np.sign(np.stack([reach, np.sin(q[:, 2]), np.sin(q[:, 4])], axis=1)).astype(int)
+
+
+def configuration_dh(theta: np.ndarray) -> tuple[float, float, float]:
+    """(a2, a3, d5) of a packed chain, the lengths `configuration` uses."""
+    th = np.asarray(theta, float)
+    return float(th[1]), float(th[2]), float(th[6 + 4])
+
+
 @dataclass
 class Conditions:
     """Operating conditions the correction is computed for (the model's aux inputs)."""

@@ -21,8 +21,11 @@ import numpy as np
 from workcell.atomic import atomic_files
 from workcell.errors import UserError
 from workcell.export.correction import (
+    CONFIGURATION_BASIS,
     Q_REF,
     Corrector,
+    configuration,
+    configuration_dh,
     matrix_to_rotvec,
     rotvec_to_matrix,
 )
@@ -60,6 +63,11 @@ class CorrectionTable:
     std_m: np.ndarray | None = None
     meta: dict = field(default_factory=dict)
     orientation_tol_rad: float = DEFAULT_ORIENTATION_TOL_RAD
+    # (K, 3) arm configuration signs (shoulder, elbow, wrist) each orientation's corrections were
+    # solved on, and the nominal (a2, a3, d5) that defines them (`CONFIGURATION_BASIS`); None in
+    # tables written before they were recorded
+    configurations: np.ndarray | None = None
+    configuration_dh_m: tuple[float, float, float] | None = None
 
     @property
     def spacing_m(self) -> np.ndarray:
@@ -127,11 +135,43 @@ class CorrectionTable:
             return None
         return self.interpolate(p, k, self.std_m[k])
 
-    def correct(self, p: np.ndarray, rotvec: np.ndarray | None = None) -> np.ndarray:
-        """Commanded positions for desired positions p (N, 3) at one tool orientation."""
+    def correct(
+        self,
+        p: np.ndarray,
+        rotvec: np.ndarray | None = None,
+        q_actual: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """Commanded positions for desired positions p (N, 3) at one tool orientation. With
+        `q_actual` (the arm's joints, 6), refuses an arm on another configuration than the
+        table's (`check_configuration`)."""
         k = self.orientation_index(rotvec)
+        if q_actual is not None:
+            self.check_configuration(q_actual, k)
         p = np.atleast_2d(np.asarray(p, float))
         return p + self.interpolate(p, k)
+
+    def check_configuration(self, q_actual: np.ndarray, k: int = 0) -> None:
+        """Raise UserError when joints q_actual are not on the arm configuration orientation k's
+        corrections were solved on (nothing to check in a table without configurations)."""
+        if self.configurations is None or self.configuration_dh_m is None:
+            return
+        a2, a3, d5 = self.configuration_dh_m
+        th = np.zeros(39)
+        th[1], th[2], th[10] = a2, a3, d5
+        got = configuration(th, np.asarray(q_actual, float).reshape(1, 6))[0]
+        want = self.configurations[k]
+        if not np.array_equal(got, want):
+            names = ("shoulder", "elbow", "wrist")
+            diff = ", ".join(
+                f"{n} {int(g):+d} (table {int(w):+d})"
+                for n, g, w in zip(names, got, want, strict=True)
+                if g != w
+            )
+            raise UserError(
+                f"the arm is on another configuration than the table's: {diff}; the correction "
+                "holds on the table's only: move the arm to that configuration, or export a "
+                "table for this one"
+            )
 
     def seed_for(self, p: np.ndarray, k: int = 0) -> np.ndarray:
         """Joint seeds (N, 6) for positions p: the corrected joints of the nearest node."""
@@ -160,6 +200,13 @@ class CorrectionTable:
             "orientation_tol_rad": self.orientation_tol_rad,
             "delta_m": self.delta_m.tolist(),
             "std_m": None if self.std_m is None else self.std_m.tolist(),
+            "configuration": None
+            if self.configurations is None
+            else {
+                "signs_shoulder_elbow_wrist": np.asarray(self.configurations, int).tolist(),
+                "dh_m": list(self.configuration_dh_m),
+                "basis": CONFIGURATION_BASIS,
+            },
         }
 
     @classmethod
@@ -179,6 +226,17 @@ class CorrectionTable:
             meta=d.get("meta", {}),
             orientation_tol_rad=float(d.get("orientation_tol_rad", DEFAULT_ORIENTATION_TOL_RAD)),
         )
+        cfg = d.get("configuration")
+        if cfg is not None:
+            signs = np.asarray(cfg["signs_shoulder_elbow_wrist"], float)
+            dh = np.asarray(cfg["dh_m"], float)
+            K = len(tab.orientations_rotvec)
+            if signs.shape != (K, 3) or not np.all(np.isin(signs, (-1.0, 1.0))):
+                raise ValueError(f"configuration signs must be {K} triples of -1/+1")
+            if dh.shape != (3,) or not np.all(np.isfinite(dh)):
+                raise ValueError("configuration dh_m must be 3 finite lengths (a2, a3, d5)")
+            tab.configurations = signs.astype(int)
+            tab.configuration_dh_m = tuple(float(x) for x in dh)
         tab.check()
         return tab
 
@@ -208,6 +266,47 @@ class CorrectionTable:
                 raise ValueError("std_m must be finite and non-negative")
         if not (np.isfinite(self.orientation_tol_rad) and self.orientation_tol_rad > 0):
             raise ValueError("orientation_tol_rad must be a positive number")
+        # units: a controller moves the arm by these numbers, so a table in millimetres or
+        # degrees (a hand edit, another tool's file) is refused, not used
+        again = "export the table again with `workcell export`"
+        far = float(np.max(np.abs(np.r_[lo, hi])))
+        if far > 10.0:  # no arm reaches 10 m (recording.checks.DH_LENGTH_MAX_M)
+            raise ValueError(
+                f"grid bound {far:.4g} m from the base, beyond any arm's reach: "
+                + ("it looks like millimetres; the table wants metres" if far <= 1e4 else "corrupt")
+                + f"; {again}"
+            )
+        turn = np.linalg.norm(self.orientations_rotvec, axis=1)
+        if np.any(turn > 2 * np.pi + 1e-9):
+            k = int(np.argmax(turn))
+            raise ValueError(
+                f"orientation {k} is a rotation vector of {turn[k]:.4g} rad, more than a full "
+                f"turn: it looks like degrees, give radians (UR rotation vectors); {again}"
+            )
+        meta = self.meta if isinstance(self.meta, dict) else {}
+        bound = meta.get("correction_bound_m")
+        if bound is None:
+            bound, what = 0.1, "0.1 m, more than any calibration corrects"
+        else:
+            ok = isinstance(bound, (int, float)) and not isinstance(bound, bool)
+            if not (ok and math.isfinite(bound) and 0.0 < bound <= 0.1):
+                raise ValueError(
+                    f"meta correction_bound_m must be a number of metres in (0, 0.1], got "
+                    f"{bound!r}; {again}"
+                )
+            what = f"the bound {bound * 1e3:g} mm it was built with"
+        mag = np.linalg.norm(self.delta_m.reshape(-1, 3), axis=1)
+        i = int(np.argmax(mag))
+        if mag[i] > bound * (1.0 + 1e-9):
+            unit = (
+                "it looks like millimetres; the table wants metres"
+                if mag[i] / 1000.0 <= bound
+                else "not a correction in metres or millimetres (corrupt?)"
+            )
+            raise ValueError(
+                f"delta_m reaches {mag[i]:.4g} m (node {i} of {mag.size}), beyond {what}: "
+                f"{unit}; {again}"
+            )
 
     def save(self, path: str | os.PathLike) -> tuple[Path, Path]:
         """Write PATH.json (everything) and PATH.csv (one row per node). Returns both paths."""
@@ -352,8 +451,11 @@ STD_BASIS = (
     "(geometry, and for an augmented model its accepted effects), propagated to first order: "
     "the covariance of the model's predicted SMR position at the corrected joints, which is the "
     "correction's to first order (the commanded position moves opposite to the prediction); the "
-    "model's own basis for that covariance holds (see `workcell fit`). Between nodes, trilinear "
-    "interpolation of these stds bounds the interpolated correction's std from above"
+    "model's own basis for that covariance holds (see `workcell fit`). A model with a "
+    "Gaussian-process residual (gp, or augmented with a residual) adds the GP's posterior "
+    "variance of that residual, as if independent of the parametric part (an upper estimate); "
+    "it grows away from the measured poses. Between nodes, trilinear interpolation of these "
+    "stds bounds the interpolated correction's std from above"
 )
 
 
@@ -365,6 +467,49 @@ def node_std(corr: Corrector, q_nodes: np.ndarray) -> np.ndarray | None:
         return None
     sd = np.sqrt(np.clip(np.einsum("nii->ni", C), 0.0, None))
     return sd.reshape(*np.shape(q_nodes)[:-1], 3)
+
+
+def approach_sensitivity(corr: Corrector, q_nodes: np.ndarray) -> dict | None:
+    """How far the model's SMR moves at the nodes' joints when every joint approaches from the
+    other side than the table's conditions declare (a joint declared 0 stays 0); None when the
+    model does not depend on the approach (no backlash terms)."""
+    from dataclasses import replace
+
+    q = np.asarray(q_nodes, float).reshape(-1, 6)
+    flipped = replace(
+        corr.conditions, approach_sign=-np.asarray(corr.conditions.approach_sign, float)
+    )
+    d = np.linalg.norm(
+        Corrector(corr.model, corr.nominal, flipped).real_base(q) - corr.real_base(q), axis=1
+    )
+    if not np.all(np.isfinite(d)) or d.max() < 1e-9:
+        return None
+    return {
+        "rms_m": float(np.sqrt(np.mean(d**2))),
+        "max_m": float(d.max()),
+        "basis": "SMR displacement the model predicts at the table's node joints if every joint "
+        "arrived from the other side than declared (conditions.approach_sign): the correction "
+        "holds for the declared approach only",
+    }
+
+
+def _configurations(corr: Corrector, tab: CorrectionTable) -> tuple[np.ndarray, tuple]:
+    """The one arm configuration each orientation's nodes were solved on (continuation from the
+    reference configuration keeps them on one); refuses a grid whose nodes span several (it
+    crosses a singularity: no table entry there is continuous with its neighbours)."""
+    th = corr.nominal.theta
+    out = []
+    for k in range(len(tab.orientations_rotvec)):
+        c = configuration(th, tab.q_nodes[k].reshape(-1, 6))
+        uniq = np.unique(c, axis=0)
+        if len(uniq) != 1 or np.any(uniq == 0):
+            raise CorrectionRefused(
+                f"refused: orientation {k}'s grid spans {len(uniq)} arm configurations (shoulder/"
+                "elbow/wrist) or touches a singularity; shrink the volume (--volume) so the arm "
+                "stays on one"
+            )
+        out.append(uniq[0])
+    return np.asarray(out, int), configuration_dh(th)
 
 
 def build_table(
@@ -459,6 +604,14 @@ def build_table(
             break
         h /= 1.5
     mags = np.linalg.norm(tab.delta_m.reshape(-1, 3), axis=1)
+    tab.configurations, tab.configuration_dh_m = _configurations(corr, tab)
+    approach = approach_sensitivity(corr, tab.q_nodes)
+    if approach is not None:
+        log(
+            f"  approach: if every joint arrived from the other side than declared, the model "
+            f"moves the SMR by {approach['rms_m'] * 1e6:.1f} um RMS, {approach['max_m'] * 1e6:.1f}"
+            " um at most over the nodes (its backlash terms): approach as declared"
+        )
     tab.std_m = node_std(corr, tab.q_nodes)
     std_meta: dict = {"std_basis": "none: the model carries no covariance of its prediction"}
     if tab.std_m is not None:
@@ -492,6 +645,7 @@ def build_table(
         "max_correction_m": float(mags.max()),
         **std_meta,
         "correction_bound_m": float(max_correction_m),
+        **({"approach_sensitivity": approach} if approach is not None else {}),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
     }
     return tab
