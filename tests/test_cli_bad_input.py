@@ -808,3 +808,45 @@ def test_demo_interrupted_stops_instead_of_fitting_a_partial_campaign(
     assert main(["demo", "--out", str(tmp_path), "--poses", "20"]) == 130
     err = capsys.readouterr().err
     assert "interrupted after 3 poses" in err and "fit" not in err
+
+
+def test_validate_refuses_a_table_it_cannot_trust(cell, capsys, tmp_path):
+    """`validate --table` moved the (simulated) arm with any table: one built from another
+    model's recording (its 1-sigma reported as this model's), one in millimetres, and it
+    ignored --volume. Each is now one line and exit 2; the model's own table is used."""
+    d, rec, model = cell
+    own = tmp_path / "own"
+    argv = ["--format", "table", "--spacing", "0.15", "--json"]
+    assert main(["export", str(model), *argv, "--out", str(own)]) == 0
+    v = ["validate", str(model), "--targets", "2", "--sim-seed", "2", "--effects", "none"]
+    assert main([*v, "--table", f"{own}.json"]) == 0
+    # a table of a model of another recording
+    other = tmp_path / "m3.json"
+    other_rec = _other_recording(tmp_path)
+    assert main(["fit", str(other_rec), "--method", "dh", "--out", str(other)]) == 0
+    assert main(["export", str(other), *argv, "--out", str(tmp_path / "t3")]) == 0
+    v.append("--table")
+    one_line_refusal(capsys, [*v, str(tmp_path / "t3.json")], "a model of another recording")
+    # the model's own table with its corrections in millimetres
+    t = json.loads(own.with_suffix(".json").read_text())
+    t["delta_m"] = json.loads(json.dumps(t["delta_m"]), parse_float=lambda x: float(x) * 1000)
+    (tmp_path / "mm.json").write_text(json.dumps(t))
+    one_line_refusal(capsys, [*v, str(tmp_path / "mm.json")], "it looks like millimetres")
+    # an option the table mode ignores
+    one_line_refusal(
+        capsys, [*v, f"{own}.json", "--volume=-0.1,-0.5,0.2,0.1,-0.3,0.4"], "--volume: not used"
+    )
+
+
+def test_a_model_with_its_tcp_in_millimetres_is_not_exported_as_ros_yaml(cell, capsys, tmp_path):
+    """A model whose SMR offset is 60 (millimetres) was written as a ROS YAML with a 60 m TCP
+    and exit 0; now one line and exit 2, and no file."""
+    _, _, model = cell
+    d = json.loads(model.read_text())
+    d["theta"][38] = 60.0
+    p = tmp_path / "tool_mm.json"
+    p.write_text(json.dumps(d))
+    out = tmp_path / "y.yaml"
+    argv = ["export", str(p), "--format", "ros-yaml", "--out", str(out)]
+    one_line_refusal(capsys, argv, "60 m from the flange")
+    assert not out.exists()

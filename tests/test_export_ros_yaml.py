@@ -231,3 +231,95 @@ def test_augmented_model_yaml_std_is_its_geometry_marginal(tmp_path):
     m.cov = cov2
     std2 = kinematics_std(m)
     assert all(std2[n][x] == pytest.approx(std[n][x], rel=1e-12) for n in LINKS for x in K)
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory):
+    """A small simulated recording (its poses and conditions: approach signs, temperatures)."""
+    from sim_devices.cell import sim_cell
+    from workcell.campaign.executor import CampaignConfig
+    from workcell.campaign.run import run_campaign
+
+    rec = tmp_path_factory.mktemp("rosyaml") / "r.mcap"
+    _, robot, tracker, c = sim_cell("ur5e", "none", seed=5)
+    cfg = CampaignConfig(readings_per_pose=2, settle_s=0.2)
+    run_campaign(robot, tracker, c, rec, plan="random", poses=12, seed=5, config=cfg)
+    return rec
+
+
+def _augmented_with_effects(recording):
+    """An augmented model of the calibrated geometry with backlash of joint 3 and compliance of
+    joint 2 accepted (non-zero): what the YAML cannot carry."""
+    from workcell.estimation.effects import N_EFF, AugmentedModel, FeatureSpec, library
+
+    dh = _calibrated_model(4)
+    acc = [c for c in library() if c.key in ("joint_compliance/joint2", "backlash/joint3")]
+    eff = np.zeros(N_EFF)
+    for c, v in zip(acc, (2e-6, 2e-4), strict=True):  # rad/Nm, rad
+        eff[c.idx[0]] = v
+    return AugmentedModel(
+        features_spec=FeatureSpec(spec=UR5E, payload_com_m=np.zeros(3), payload_kg_default=0.0),
+        theta=dh.theta,
+        base_ref=dh.base_ref,
+        eff=eff,
+        accepted=acc,
+        free=np.ones(39, bool),
+        cov=np.zeros((39 + 2, 39 + 2)),
+        nominal_tool_m=np.array([0, 0, 0.06]),
+        info={"recording": str(recording)},
+    )
+
+
+def test_the_header_states_the_size_of_what_the_yaml_drops(tmp_path, recording):
+    """An augmented model's non-geometric part is not in the YAML: the header says how large it
+    is (RMS and max over the recording's poses at their recorded conditions), the same figures
+    as the model's prediction minus what the written YAML itself gives there."""
+    from workcell.estimation.models import aux_from_dataset
+    from workcell.recording.dataset import Dataset
+
+    m = _augmented_with_effects(recording)
+    path, info = export_ros_yaml(m, tmp_path / "aug.yaml")
+    text = path.read_text()
+    head = [line for line in text.splitlines() if line.startswith("# not carried")]
+    assert len(head) == 1, text
+    got = re.search(
+        r"over the (\d+) poses of the recording.*RMS ([\d.]+) um, max ([\d.]+) um", head[0]
+    )
+    assert got, head[0]
+    # independently: the YAML as a driver reads it, the SMR through tcp_in_tool0, in the tracker
+    ds = Dataset.from_recording(recording)
+    kin = read_ros_yaml(text)
+    smr_base = (fk_tool0(kin, ds.q) @ np.asarray(info["tcp_in_tool0"]))[:, :3, 3]
+    smr_yaml = smr_base @ m.base_ref[:3, :3].T + m.base_ref[:3, 3]
+    d = np.linalg.norm(m.predict(ds.q, **aux_from_dataset(ds)) - smr_yaml, axis=1)
+    assert int(got[1]) == len(ds.q)
+    assert float(got[2]) == pytest.approx(np.sqrt(np.mean(d**2)) * 1e6, abs=0.06)
+    assert float(got[3]) == pytest.approx(d.max() * 1e6, abs=0.06)
+    assert d.max() > 20e-6  # the effects are there: the figure is not a zero by construction
+    assert info["not_carried"]["max_m"] == pytest.approx(d.max(), rel=1e-6)
+    # without its recording the figure cannot be had: said, not left out
+    m.info = {"recording": None, "recording_unusable": "the model's recording r.mcap was not found"}
+    text = export_ros_yaml(m, tmp_path / "aug2.yaml")[0].read_text()
+    assert "their size could not be evaluated: the model's recording r.mcap was not found" in text
+    # a dh model drops nothing, and says so
+    text = export_ros_yaml(_calibrated_model(4), tmp_path / "dh.yaml")[0].read_text()
+    assert "# not carried: nothing (a dh model is geometric only)" in text
+
+
+@pytest.mark.parametrize(
+    "change, match",
+    [
+        (lambda th: th.__setitem__(38, 60.0), "SMR/TCP 60 m from the flange .* millimetres"),
+        (lambda th: th.__setitem__(38, 1.2), "SMR/TCP 1.2 m from the flange"),
+        (lambda th: th.__setitem__(1, -425.0), "link length a2 is 425 m .* millimetres"),
+    ],
+)
+def test_a_geometry_in_millimetres_is_refused_not_written(tmp_path, change, match):
+    """A controller uses the YAML's TCP and links as given: a 60 m TCP (millimetres in the
+    model file) was written with exit 0; now refused, and no file written."""
+    m = _calibrated_model(1)
+    export_ros_yaml(m, tmp_path / "ok.yaml")  # the plausible one is written
+    change(m.theta)
+    with pytest.raises(UserError, match=match):
+        export_ros_yaml(m, tmp_path / "bad.yaml")
+    assert not (tmp_path / "bad.yaml").exists()

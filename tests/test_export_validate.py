@@ -192,3 +192,96 @@ def test_the_tui_closed_loop_check_validates_as_the_command_line(tmp_path, monke
     assert "warning: the table is for another thermal state" in lines
     assert len(seen) == 1 and seen[0][1] and seen[0][0].shape == (6,)
     assert np.all(np.isfinite([res["after"]["rms_m"], res["before"]["rms_m"]]))
+
+
+def _saved_variant(tmp_path, table, name, change):
+    import json
+
+    d = json.loads(json.dumps(table.to_dict()))
+    change(d)
+    p = tmp_path / f"{name}.json"
+    p.write_text(json.dumps(d))
+    return p
+
+
+@pytest.mark.parametrize(
+    "name, change, match",
+    [
+        (
+            "mm",
+            lambda d: d.__setitem__("delta_m", (np.asarray(d["delta_m"]) * 1000).tolist()),
+            r"delta_m reaches .* beyond the bound 5 mm it was built with: it looks like millimetres",
+        ),
+        (
+            "deg",
+            lambda d: d.__setitem__("orientations_rotvec", [[0, 180, 0]]),
+            "180 rad, more than a full turn: it looks like degrees, give radians",
+        ),
+        (
+            "nobound",  # no bound in the meta: 0.1 m, more than any calibration corrects
+            lambda d: (
+                d["meta"].pop("correction_bound_m"),
+                d.__setitem__("delta_m", (np.asarray(d["delta_m"]) * 1000).tolist()),
+            ),
+            "beyond 0.1 m, more than any calibration corrects: it looks like millimetres",
+        ),
+        (
+            "bound",  # a bound edited up does not let millimetres through
+            lambda d: d["meta"].__setitem__("correction_bound_m", 5.0),
+            r"correction_bound_m must be a number of metres in \(0, 0.1\]",
+        ),
+        (
+            "grid",
+            lambda d: d["grid"].update(
+                lo_m=[x * 1000 for x in d["grid"]["lo_m"]],
+                hi_m=[x * 1000 for x in d["grid"]["hi_m"]],
+            ),
+            "beyond any arm's reach: it looks like millimetres",
+        ),
+    ],
+)
+def test_a_table_in_millimetres_or_degrees_is_refused(tmp_path, name, change, match):
+    """`validate --table` moves the arm by the table's numbers: a table in millimetres (the
+    corrected RMS was 293 mm) or degrees was accepted; now refused on loading, in one line."""
+    from workcell.export.table import load_table
+
+    _, _, table, _ = _cell_and_table()
+    load_table(_saved_variant(tmp_path, table, "ok", lambda d: None))  # as written: accepted
+    with pytest.raises(UserError, match=match) as e:
+        load_table(_saved_variant(tmp_path, table, name, change))
+    assert "\n" not in str(e.value) and "workcell export" in str(e.value)
+
+
+def test_a_table_of_another_model_is_refused():
+    """A table carries what it was built from (recording, arm, registered base, SMR): one of
+    another model is named by the first field that differs; its own model's matches exactly
+    (and within 1e-9 relative, not beyond)."""
+    from workcell.export.validate import table_model_mismatch
+
+    _, _, table, corr = _cell_and_table()
+    nom = corr.nominal
+    table.meta["recording_sha256"] = "ab" * 32
+    assert table_model_mismatch(table, nom, "ab" * 32) is None
+    assert table_model_mismatch(table, nom, None) is None  # a model without one: not compared
+    w = table_model_mismatch(table, nom, "cd" * 32)
+    assert "a model of another recording" in w and "workcell export" in w
+    w = table_model_mismatch(table, nom, "cd" * 32, ui=True)  # the terminal UI's remedy
+    assert w.endswith("export the table from this model on the Export screen")
+
+    def moved(key, f):
+        n2 = dataclasses.replace(nom, theta=nom.theta.copy(), base_ref=nom.base_ref.copy())
+        f(n2)
+        return table_model_mismatch(table, n2, "ab" * 32)
+
+    assert "'ur5e' arm, this model is of a 'ur10'" in moved(
+        "robot", lambda n: setattr(n, "robot", "ur10")
+    )
+    w = moved("base_ref", lambda n: n.base_ref.__setitem__((0, 3), n.base_ref[0, 3] + 1e-6))
+    assert w.startswith("the table's base_ref (the registered base") and "another model" in w
+    assert "table's tcp_m" in moved("tcp_m", lambda n: n.theta.__setitem__(38, n.theta[38] + 1e-6))
+    tiny = 1e-10 * np.abs(nom.base_ref).max()
+    assert (
+        moved("base_ref", lambda n: n.base_ref.__setitem__((0, 3), n.base_ref[0, 3] + tiny)) is None
+    )
+    table.meta.pop("base_ref")  # a table without the field: not compared
+    assert moved("base_ref", lambda n: n.base_ref.__setitem__((0, 3), 5.0)) is None

@@ -61,3 +61,27 @@ def test_export_refuses_a_malformed_model_in_one_line(dh_model, tmp_path, capsys
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and err[0].startswith("workcell export: error: "), err
     assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    "edit, match",
+    [
+        (lambda m: m["nominal_dh"].__setitem__("a", [x * 1e3 for x in m["nominal_dh"]["a"]]),
+         "nominal_dh a.* millimetres"),
+        (lambda m: m["nominal_dh"].__setitem__("alpha", [57.3 * x for x in m["nominal_dh"]["alpha"]]),
+         "nominal_dh alpha.* degrees"),
+        (lambda m: m["info"].__setitem__("nominal_tool_m", [0, 0, 60.0]), "nominal_tool_m .*60 m"),
+        (lambda m: m["theta"].__setitem__(38, 60.0), "fitted SMR offset"),
+    ],
+    ids=["a in mm", "alpha in degrees", "tool in mm", "fitted SMR in mm"],
+)  # fmt: skip
+def test_a_model_in_millimetres_or_degrees_is_refused_on_loading(dh_model, tmp_path, edit, match):
+    """A model file whose nominal chain or SMR is in mm or degrees used to load, then fail in
+    export as "no finite correction ... shrink the volume" or write a 60 m TCP."""
+    m = copy.deepcopy(dh_model)
+    edit(m)
+    f = tmp_path / "m.json"
+    f.write_text(json.dumps(m))
+    with pytest.raises(UserError, match=match) as e:
+        load_model(f)
+    assert "\n" not in str(e.value)

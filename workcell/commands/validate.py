@@ -48,6 +48,11 @@ def check_options(args: argparse.Namespace) -> None:
             raise UserError(f"--{name.replace('_', '-')} must be a non-negative integer, got {v}")
     if args.readings is not None and not 1 <= args.readings <= MAX_READINGS:
         raise UserError(f"--readings must be 1..{MAX_READINGS}, got {args.readings}")
+    if args.table and args.volume:
+        raise UserError(
+            "--volume: not used with --table, whose volume is the table's own grid (it is for "
+            "the table validate builds from the model); leave one of them out"
+        )
     sim = args.robot == "sim" and args.tracker == "sim"
     if sim and (args.readings is not None or args.robot_model):
         given = [
@@ -79,6 +84,7 @@ def run(args: argparse.Namespace) -> int:
         robot_mover,
         run_validation,
         sim_measure,
+        table_model_mismatch,
         thermal_mismatch,
         tracker_measure,
         validation_envelope,
@@ -87,11 +93,19 @@ def run(args: argparse.Namespace) -> int:
     check_options(args)
     model = load_model(args.model)
     log = (lambda m: None) if args.json else print
-    rec, _ = model_recording(model)
+    rec, sha = model_recording(model)
+    table = vol = None
+    if args.table:  # a table of another model, or in other units, is refused before any device
+        table = load_table(args.table)
+        nominal = nominal_for_model(model)
+        if (why := table_model_mismatch(table, nominal, sha)) is not None:
+            raise UserError(f"{args.table}: {why}")
+    elif args.volume:
+        vol = parse_vec(args.volume, 6, "--volume")
     session, missing = model_session(model)
     camp = session.get("campaign", {}) or {}
     if args.robot == "sim" and args.tracker == "sim":
-        from workcell.campaign.run import sim_cell
+        from sim_devices.cell import sim_cell
 
         seed = args.sim_seed if args.sim_seed is not None else recorded_sim_seed(camp)
         effects = args.effects or camp.get("effects")
@@ -132,14 +146,11 @@ def run(args: argparse.Namespace) -> int:
         warnings: list[str] = []
         # the arm's joint temperatures now (the controller reports them; None if it does not)
         temps = robot.state().temperature_c
-        if args.table:
-            table = load_table(args.table)
-            nominal = nominal_for_model(model)
+        if table is not None:
             if (w := thermal_mismatch(model, table, temps)) is not None:
                 log(f"warning: {w}")
                 warnings.append(w)
         else:
-            vol = parse_vec(args.volume, 6, "--volume") if args.volume else None
             cond = Conditions(
                 approach_sign=np.ones(6),
                 joint_temperature_c=None if temps is None else np.asarray(temps, float),

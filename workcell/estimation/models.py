@@ -217,6 +217,7 @@ def model_from_dict(d: dict, source: str = "model") -> FittedModel:
             "(a parameter of the file is out of range); fit it again with `workcell fit`"
         )
     _check_derived_fields(d, model, source, method)
+    _check_nominal_units(model, source, method)
     # a std may be "not given" (None/NaN: a hyperparameter at its bound, a CV-chosen one), but
     # a covariance with a negative variance (beyond rounding) is malformed
     for attr in ("cov", "geometric_cov"):
@@ -447,3 +448,63 @@ def error_stats(p_pred: np.ndarray, p_meas: np.ndarray, *, interval: bool = Fals
     if interval:
         out["rms_ci95_m"] = list(rms_interval(e))
     return out
+
+
+def _check_nominal_units(model, source: str, method: str) -> None:
+    """The nominal chain and SMR a model file carries (what `export` and `validate` command the
+    arm with: `export.correction.nominal_for`) in the format's units, with the recording's
+    limits (`recording.checks`): link lengths and the SMR offset in metres, angles in radians.
+    A file in millimetres or degrees otherwise fails later as "no finite correction ... shrink
+    the volume", or exports a 60 m TCP."""
+    from workcell.recording.checks import DH_LENGTH_MAX_M, SMR_OFFSET_MAX_M, _length_hint
+
+    again = "fit it again with `workcell fit`"
+    for attr in (None, "base", "base_model", "dh_model", "dh", "geometric"):
+        m = model if attr is None else getattr(model, attr, None)
+        nd = getattr(m, "nominal_dh", None)
+        if m is None or isinstance(m, np.ndarray) or nd is None:
+            continue
+        where = "" if attr is None else f"{attr} "
+        for name, lim, unit, other in (
+            ("a", DH_LENGTH_MAX_M, "m", "millimetres; the format wants metres"),
+            ("d", DH_LENGTH_MAX_M, "m", "millimetres; the format wants metres"),
+            ("alpha", 2 * np.pi, "rad", "degrees; the format wants radians"),
+            ("theta_offset", 2 * np.pi, "rad", "degrees; the format wants radians"),
+        ):
+            v = np.abs(np.asarray(getattr(nd, name), float))
+            if v.size and np.any(v > lim):
+                j = int(np.argmax(v))
+                raise UserError(
+                    f"{source}: the {method} model's {where}nominal_dh {name}[{j}] is "
+                    f"{v[j]:.4g} {unit} (more than {lim:.4g} {unit}): it looks like {other}; "
+                    f"{again}"
+                )
+        info = getattr(m, "info", None)
+        tool = info.get("nominal_tool_m") if isinstance(info, dict) else None
+        if tool is not None:
+            r = float(np.linalg.norm(np.asarray(tool, float)))
+            if r > SMR_OFFSET_MAX_M:
+                raise UserError(
+                    f"{source}: the {method} model's {where}nominal_tool_m is {r:.4g} m from "
+                    f"the flange (more than {SMR_OFFSET_MAX_M:g} m): "
+                    f"{_length_hint(r, SMR_OFFSET_MAX_M)}; {again}"
+                )
+        th = getattr(m, "theta", None)
+        th = None if th is None else np.asarray(th, float)
+        if th is not None and th.shape == (39,):  # the fitted geometry: lengths and SMR too
+            lengths = np.abs(np.r_[th[0:6], th[6:12]])
+            j = int(np.argmax(lengths))
+            if lengths[j] > DH_LENGTH_MAX_M:
+                raise UserError(
+                    f"{source}: the {method} model's {where}theta {'ad'[j // 6]}{j % 6 + 1} is "
+                    f"{lengths[j]:.4g} m (more than {DH_LENGTH_MAX_M:g} m): "
+                    f"{_length_hint(lengths[j], DH_LENGTH_MAX_M)}; {again}"
+                )
+            r = float(np.linalg.norm(th[36:39]))
+            if r > SMR_OFFSET_MAX_M:
+                raise UserError(
+                    f"{source}: the {method} model's {where}fitted SMR offset (theta 36..38) is "
+                    f"{r:.4g} m from the flange (more than {SMR_OFFSET_MAX_M:g} m): "
+                    f"{_length_hint(r, SMR_OFFSET_MAX_M)}; {again}"
+                )
+        return

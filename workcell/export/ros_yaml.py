@@ -19,7 +19,12 @@ What this export adds and what it cannot carry:
 - a6, alpha6, beta6 (seg2_6) cannot be written in the six frames; with the SMR offset they form
   the TCP (`tcp_in_tool0` in the header comment), which reproduces the SMR exactly.
 - Anything non-geometric (compliance, backlash, thermal, data-driven residuals of lddmm/gp models)
-  cannot be carried: use the correction table or URScript export for those.
+  cannot be carried: use the correction table or URScript export for those. The header states
+  its size: RMS and max of the model's prediction minus its geometric part's over the poses of
+  the recording the model was fitted on, at their recorded conditions (the YAML has no volume:
+  the export takes no --volume).
+- A TCP farther than `TCP_MAX_M` from the flange, or a link length beyond `DH_LENGTH_MAX_M`,
+  is a model in the wrong unit (millimetres): refused, not written for a controller.
 - Euler angles: ur_calibration writes Eigen's eulerAngles(0, 1, 2) (R = Rx Ry Rz) as roll, pitch,
   yaw. That agrees with URDF rpy only when the rotation is about one axis (all nominal frames); we
   keep its numbers where they are a valid URDF rpy (so the nominal file matches the published one)
@@ -37,6 +42,7 @@ import numpy as np
 
 from workcell.atomic import write_text
 from workcell.errors import UserError
+from workcell.recording.checks import SMR_OFFSET_MAX_M as TCP_MAX_M  # the recordings' limit
 
 LINKS = ("shoulder", "upper_arm", "forearm", "wrist_1", "wrist_2", "wrist_3")
 KEYS = ("x", "y", "z", "roll", "pitch", "yaw")
@@ -284,6 +290,76 @@ def kinematics_std(model, step: float = 1e-7) -> dict | None:
     return {n: {k: float(next(it)) for k in KEYS} for n in LINKS}
 
 
+def check_units(th: np.ndarray, tcp: np.ndarray, method: str) -> None:
+    """Refuse a geometry in the wrong unit (one line): a link length beyond any arm or a TCP
+    (SMR) farther than `TCP_MAX_M` from the flange, which a controller would use as given."""
+    from workcell.recording.checks import DH_LENGTH_MAX_M
+
+    again = (
+        "it looks like millimetres; the model file wants metres: fit it again with `workcell fit`"
+    )
+    lengths = np.abs(np.r_[th[0:6], th[6:12]])
+    i = int(np.argmax(lengths))
+    if lengths[i] > DH_LENGTH_MAX_M:
+        name = f"{'ad'[i // 6]}{i % 6 + 1}"
+        raise UserError(
+            f"the {method} model's link length {name} is {lengths[i]:.4g} m (more than "
+            f"{DH_LENGTH_MAX_M:g} m): {again}"
+        )
+    r = float(np.linalg.norm(tcp[:3, 3]))
+    if not r <= TCP_MAX_M:
+        raise UserError(
+            f"the {method} model puts the SMR/TCP {r:.4g} m from the flange (more than "
+            f"{TCP_MAX_M:g} m), which the controller would use as its TCP: "
+            + (again if r <= 1000 * TCP_MAX_M else "a corrupt value; fit it again")
+        )
+
+
+def dropped_part(model, th: np.ndarray, base_ref: np.ndarray) -> tuple[dict | None, str]:
+    """Size of what the YAML does not carry: the model's prediction minus its geometric part's
+    (`p_tracker(th, base_ref, q)`, which the YAML reproduces), over the poses of the recording
+    the model was fitted on, at their recorded conditions (approach, temperatures, payload,
+    time) -> ({"rms_m", "max_m", "poses"}, "") or (None, why it could not be evaluated)."""
+    from workcell.estimation.models import aux_from_dataset
+    from workcell.kinematics.chain import p_tracker
+    from workcell.recording.dataset import Dataset
+
+    info = getattr(model, "info", None)
+    info = info if isinstance(info, dict) else {}
+    rec = info.get("recording")
+    if not rec:
+        why = info.get("recording_unusable") or "the model names no recording"
+        return None, f"{why}; put the recording beside the model to have it stated"
+    try:
+        ds = Dataset.from_recording(rec)
+        p_full = np.asarray(model.predict(ds.q, **aux_from_dataset(ds)), float)
+        p_geo = np.asarray(p_tracker(th, base_ref, ds.q), float)
+    except Exception as e:  # noqa: BLE001 - the figure is a comment; the geometry is written
+        return None, f"the model's recording {rec} could not be evaluated ({str(e)[:120]})"
+    d = np.linalg.norm(p_full - p_geo, axis=1)
+    if len(d) == 0 or not np.all(np.isfinite(d)):
+        return None, f"the model does not predict finite positions on its recording {rec}"
+    return {"rms_m": float(np.sqrt(np.mean(d**2))), "max_m": float(d.max()), "poses": len(d)}, ""
+
+
+def _dropped_line(model, th: np.ndarray, base_ref: np.ndarray) -> tuple[str, dict | None]:
+    what = (
+        "not carried: non-geometric effects (compliance, backlash, thermal, data-driven residuals)"
+    )
+    if getattr(model, "method", None) == "dh":
+        return "not carried: nothing (a dh model is geometric only)", None
+    size, why = dropped_part(model, th, base_ref)
+    if size is None:
+        return f"{what}; their size could not be evaluated: {why}", None
+    return (
+        f"{what}: model prediction minus its geometric part, over the {size['poses']} poses of "
+        f"the recording it was fitted on at their recorded conditions (the YAML has no volume), "
+        f"RMS {size['rms_m'] * 1e6:.1f} um, max {size['max_m'] * 1e6:.1f} um; the table or "
+        "URScript export carries them",
+        size,
+    )
+
+
 def export_ros_yaml(model, path, meta: dict | None = None) -> tuple[Path, dict]:
     from workcell.export.correction import matrix_to_rotvec
 
@@ -291,6 +367,8 @@ def export_ros_yaml(model, path, meta: dict | None = None) -> tuple[Path, dict]:
     kin = ros_kinematics(th, B)
     S6 = segments(th, B)[6]
     tcp = S6 @ _T(np.eye(3), th[36:39])
+    check_units(th, tcp, getattr(model, "method", "?"))
+    dropped, size = _dropped_line(model, th, base_ref)
     meta = meta or {}
     comments = [
         "UR calibration kinematics generated by workcell (ur_description kinematics_params_file)",
@@ -299,7 +377,7 @@ def export_ros_yaml(model, path, meta: dict | None = None) -> tuple[Path, dict]:
         "base_link_inertia = the model's registered robot base (controller base frame)",
         f"tcp_in_tool0 (SMR, incl. a6/alpha6/beta6): xyz {np.round(tcp[:3, 3], 9).tolist()} m, "
         f"rotvec {np.round(matrix_to_rotvec(tcp[:3, :3]), 12).tolist()} rad",
-        "not carried: non-geometric effects (compliance, backlash, thermal, data-driven residuals)",
+        dropped,
     ]
     std = kinematics_std(model)
     method = getattr(model, "method", "?")
@@ -319,4 +397,9 @@ def export_ros_yaml(model, path, meta: dict | None = None) -> tuple[Path, dict]:
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     write_text(p, to_yaml(kin, comments=comments, std=std))
-    return p, {"kinematics": kin, "kinematics_std": std, "tcp_in_tool0": tcp.tolist()}
+    return p, {
+        "kinematics": kin,
+        "kinematics_std": std,
+        "tcp_in_tool0": tcp.tolist(),
+        "not_carried": size,  # {"rms_m", "max_m", "poses"} or None (dh, or not evaluated)
+    }

@@ -232,6 +232,63 @@ def robot_mover(robot, speed: float = 0.5, accel: float = 1.0, settle_s: float =
     return move
 
 
+TABLE_MATCH_RTOL = 1e-9  # base_ref / tcp_m: a table written from the model carries them exactly
+
+
+def table_model_mismatch(
+    table: CorrectionTable,
+    nominal: Nominal,
+    recording_sha256: str | None = None,
+    *,
+    ui: bool = False,
+) -> str | None:
+    """One line when a given table was not built from the model being validated, else None.
+
+    Compared, where both the table's meta (`build_table`, `make_table`) and the model give
+    them: the recording the model was fitted on (`recording_sha256`), the arm (`robot`), the
+    registered base the table corrects in (`base_ref`) and the SMR/TCP on the flange (`tcp_m`),
+    the last two within `TABLE_MATCH_RTOL` of their largest entry. A table of another model
+    would move the arm by another model's corrections and report that model's 1-sigma. The
+    remedy is said for the command line, or with `ui` for the terminal UI's Export screen."""
+    meta = table.meta if isinstance(table.meta, dict) else {}
+    remedy = (
+        "export the table from this model on the Export screen"
+        if ui
+        else "build the table from this model with `workcell export MODEL --format table` (or "
+        "leave --table out: validate then builds it)"
+    )
+    sha = meta.get("recording_sha256")
+    if sha and recording_sha256 and sha != recording_sha256:
+        return (
+            f"the table was built from a model of another recording (recording_sha256 "
+            f"{str(sha)[:12]}..., this model's {str(recording_sha256)[:12]}...); {remedy}"
+        )
+    robot = meta.get("robot")
+    if robot and nominal.robot and robot != nominal.robot:
+        return f"the table was built for a {robot!r} arm, this model is of a {nominal.robot!r}; {remedy}"
+    for key, mine, what in (
+        ("base_ref", nominal.base_ref, "the registered base it corrects in"),
+        ("tcp_m", nominal.tool_m, "the SMR/TCP on the flange"),
+    ):
+        if meta.get(key) is None:
+            continue
+        mine = np.asarray(mine, float)
+        try:
+            theirs = np.asarray(meta[key], float)
+        except (TypeError, ValueError):
+            theirs = None
+        if theirs is None or theirs.shape != mine.shape or not np.all(np.isfinite(theirs)):
+            return f"the table's meta {key} is not a {mine.shape} array of numbers; {remedy}"
+        scale = max(float(np.abs(mine).max()), float(np.abs(theirs).max()))
+        diff = float(np.abs(theirs - mine).max())
+        if diff > TABLE_MATCH_RTOL * scale:
+            return (
+                f"the table's {key} ({what}) differs from this model's by {diff:.3g} "
+                f"({diff / scale:.2g} relative): it was built from another model; {remedy}"
+            )
+    return None
+
+
 THERMAL_MISMATCH_K = 2.0
 
 

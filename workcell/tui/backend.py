@@ -842,6 +842,11 @@ def closed_loop(
     model = load_model(model_path)
     table = load_table(table_path)
     nominal = nominal_for_model(model)
+    from workcell.export.validate import table_model_mismatch
+
+    why = table_model_mismatch(table, nominal, model_recording(model)[1], ui=True)
+    if why is not None:
+        raise UserError(f"{table_path}: {why}")
     spec = dev.cell.spec
     rec, _ = model_recording(model)
     session, _ = model_session(model)
