@@ -68,16 +68,15 @@ def test_urscript_and_table_halt_on_another_arm_configuration(table):
     text = generate_urscript(table)
     x = (LO + HI) / 2
     q0 = _on_table(table, 0)
-    th = np.zeros(39)
-    th[1], th[2], th[10] = table.configuration_dh_m
-    assert np.array_equal(configuration(th, q0)[0], table.configurations[0])
+    dh_m = table.configuration_dh_m
+    assert np.array_equal(configuration(q0, dh_m)[0], table.configurations[0])
     flips = {
         "elbow": q0 * [1, 1, -1, 1, 1, 1] + [0, 0, 0, 0, 0, 0],
         "wrist": q0 * [1, 1, 1, 1, -1, 1],
         "shoulder": q0 + [0, np.pi, 0, 0, 0, 0],
     }
     for name, q in flips.items():
-        got = configuration(th, q)[0]
+        got = configuration(q, dh_m)[0]
         assert not np.array_equal(got, table.configurations[0]), name
         ns = run_urscript(text, actual_joints=q)
         with pytest.raises(URScriptHalt, match="configuration"):
@@ -88,3 +87,20 @@ def test_urscript_and_table_halt_on_another_arm_configuration(table):
     back = CorrectionTable.from_dict(table.to_dict())
     assert np.array_equal(back.configurations, table.configurations)
     back.correct(x[None], DOWN, q_actual=q0)  # on the table's: no refusal
+
+
+def test_the_shoulder_sign_is_the_ur_ik_shoulder_branch():
+    """The shoulder sign is (minus) the branch of the UR analytic IK's q1 = atan2(p5y, p5x) +
+    pi/2 +- acos(d4 / r), p5 the wrist point (DH frame 5), on 20,000 random joint vectors of
+    the UR5e and the UR10 (the README quotes this)."""
+    from workcell.export.correction import _frames_np, configuration, configuration_dh
+    from workcell.kinematics.chain import pack
+    from workcell.kinematics.robots import UR5E, UR10
+
+    for spec in (UR5E, UR10):
+        th = np.asarray(pack(spec.dh), float)
+        q = np.random.default_rng(1).uniform(-2 * np.pi, 2 * np.pi, (20000, 6))
+        p5 = _frames_np(th, q)[:, 5, :3, 3]
+        d = q[:, 0] - np.arctan2(p5[:, 1], p5[:, 0]) - np.pi / 2
+        branch = np.sign(np.sin(d))
+        assert np.array_equal(configuration(q, configuration_dh(th))[:, 0], -branch), spec.model

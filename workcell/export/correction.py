@@ -41,11 +41,10 @@ CONFIGURATION_BASIS = (
 )
 
 
-def configuration(theta: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """(N, 3) signs (shoulder, elbow, wrist) of joints q (N, 6) (`CONFIGURATION_BASIS`) for the
-    packed nominal chain `theta`; 0 exactly at a singularity."""
-    th = np.asarray(theta, float)
-    a2, a3, d5 = configuration_dh(th)
+def configuration(q: np.ndarray, dh_m: tuple[float, float, float]) -> np.ndarray:
+    """(N, 3) signs (shoulder, elbow, wrist) of joints q (N, 6) (`CONFIGURATION_BASIS`), with
+    dh_m = (a2, a3, d5) of the nominal chain (`configuration_dh`); 0 exactly at a singularity."""
+    a2, a3, d5 = dh_m
     q = np.atleast_2d(np.asarray(q, float))  # the controller's joint values, as URScript sees
     reach = a2 * np.cos(q[:, 1]) + a3 * np.cos(q[:, 1] + q[:, 2])
     reach = reach + d5 * np.sin(q[:, 1] + q[:, 2] + q[:, 3])

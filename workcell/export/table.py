@@ -155,10 +155,7 @@ class CorrectionTable:
         corrections were solved on (nothing to check in a table without configurations)."""
         if self.configurations is None or self.configuration_dh_m is None:
             return
-        a2, a3, d5 = self.configuration_dh_m
-        th = np.zeros(39)
-        th[1], th[2], th[10] = a2, a3, d5
-        got = configuration(th, np.asarray(q_actual, float).reshape(1, 6))[0]
+        got = configuration(np.asarray(q_actual, float).reshape(1, 6), self.configuration_dh_m)[0]
         want = self.configurations[k]
         if not np.array_equal(got, want):
             names = ("shoulder", "elbow", "wrist")
@@ -497,10 +494,10 @@ def _configurations(corr: Corrector, tab: CorrectionTable) -> tuple[np.ndarray, 
     """The one arm configuration each orientation's nodes were solved on (continuation from the
     reference configuration keeps them on one); refuses a grid whose nodes span several (it
     crosses a singularity: no table entry there is continuous with its neighbours)."""
-    th = corr.nominal.theta
+    dh_m = configuration_dh(corr.nominal.theta)
     out = []
     for k in range(len(tab.orientations_rotvec)):
-        c = configuration(th, tab.q_nodes[k].reshape(-1, 6))
+        c = configuration(tab.q_nodes[k].reshape(-1, 6), dh_m)
         uniq = np.unique(c, axis=0)
         if len(uniq) != 1 or np.any(uniq == 0):
             raise CorrectionRefused(
@@ -509,7 +506,7 @@ def _configurations(corr: Corrector, tab: CorrectionTable) -> tuple[np.ndarray, 
                 "stays on one"
             )
         out.append(uniq[0])
-    return np.asarray(out, int), configuration_dh(th)
+    return np.asarray(out, int), dh_m
 
 
 def build_table(
