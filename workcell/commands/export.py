@@ -248,7 +248,13 @@ def _check_joints(src: Path, q: np.ndarray, nom, lines: list[int]) -> None:
 def _targets(args, model, cond, summary) -> int:
     from workcell.export.build import nominal_for_model
     from workcell.export.correction import Q_REF, Corrector, matrix_to_rotvec, rotvec_to_matrix
-    from workcell.export.table import STD_BASIS, check_corrections, node_std
+    from workcell.export.table import (
+        DEGREES_HINT,
+        STD_BASIS,
+        beyond_full_turn,
+        check_corrections,
+        node_std,
+    )
 
     if not args.targets_in:
         raise UserError("--format targets needs --in CSV")
@@ -308,12 +314,11 @@ def _targets(args, model, cond, summary) -> int:
         _check_reach(src, P, nom, lines)
         if {"rx", "ry", "rz"} <= cols:
             rv = np.stack([num["rx"], num["ry"], num["rz"]], 1)
-            turn = np.linalg.norm(rv, axis=1)
-            if np.any(turn > 2 * np.pi + 1e-9):
-                i = int(np.argmax(turn))
+            if (turn := beyond_full_turn(rv)) is not None:
+                i, ang = turn
                 raise UserError(
-                    f"{src}: line {lines[i]}: rotation vector of {turn[i]:.4g} rad, more than a full "
-                    "turn; it looks like degrees, give radians (UR rotation vectors)"
+                    f"{src}: line {lines[i]}: rotation vector of {ang:.4g} rad, more than a full "
+                    f"turn; {DEGREES_HINT}"
                 )
             R = rotvec_to_matrix(rv)
         else:

@@ -71,14 +71,12 @@ class GPResidualModel:
         var = self.signal_var - np.einsum("ij,ji->i", Ks, v)
         return np.sqrt(np.clip(var, 0.0, None))
 
-    def prediction_cov(self, q: np.ndarray, **aux) -> np.ndarray | None:
+    def prediction_cov(self, q: np.ndarray, **aux) -> np.ndarray:
         """Covariance (N, 3, 3) of `predict(q)` (tracker frame): the geometry's from its parameter
         covariance plus the GP's posterior variance of the residual on each axis. The two are
         added as if independent (the GP was fitted to that geometry's residuals, so their errors
         are partly opposed): an upper estimate."""
         C = self.base.prediction_cov(q)
-        if C is None:
-            return None
         return C + (self.predict_std(q) ** 2)[:, None, None] * np.eye(3)
 
     def parameters(self) -> dict[str, dict]:

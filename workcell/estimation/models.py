@@ -459,12 +459,12 @@ def _check_nominal_units(model, source: str, method: str) -> None:
     from workcell.recording.checks import DH_LENGTH_MAX_M, SMR_OFFSET_MAX_M, _length_hint
 
     again = "fit it again with `workcell fit`"
-    for attr in (None, "base", "base_model", "dh_model", "dh", "geometric"):
-        m = model if attr is None else getattr(model, attr, None)
+    # a dh model carries its nominal chain; gp and lddmm models carry it in their dh `base`;
+    # augmented and ekf-ann models take theirs from the recording, checked when it was read
+    for m, where in ((model, ""), (getattr(model, "base", None), "base ")):
         nd = getattr(m, "nominal_dh", None)
-        if m is None or isinstance(m, np.ndarray) or nd is None:
+        if nd is None:
             continue
-        where = "" if attr is None else f"{attr} "
         for name, lim, unit, other in (
             ("a", DH_LENGTH_MAX_M, "m", "millimetres; the format wants metres"),
             ("d", DH_LENGTH_MAX_M, "m", "millimetres; the format wants metres"),
@@ -507,4 +507,3 @@ def _check_nominal_units(model, source: str, method: str) -> None:
                     f"{r:.4g} m from the flange (more than {SMR_OFFSET_MAX_M:g} m): "
                     f"{_length_hint(r, SMR_OFFSET_MAX_M)}; {again}"
                 )
-        return

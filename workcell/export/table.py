@@ -29,12 +29,27 @@ from workcell.export.correction import (
     matrix_to_rotvec,
     rotvec_to_matrix,
 )
+from workcell.recording.checks import DH_LENGTH_MAX_M
 
 TABLE_FORMAT = "workcell-correction-table/1"
 DEFAULT_MAX_CORRECTION_M = 5e-3
 MAX_FIXED_NODES = 100_000  # per orientation, for a fixed --spacing (each node is an IK solve)
 DEFAULT_INTERP_ERROR_M = 5e-6
 DEFAULT_ORIENTATION_TOL_RAD = 0.05
+MAX_CORRECTION_BOUND_M = 0.1  # no calibration corrects by more: beyond, a unit mistake
+DEGREES_HINT = "it looks like degrees, give radians (UR rotation vectors)"
+
+
+def beyond_full_turn(rotvec: np.ndarray) -> tuple[int, float] | None:
+    """(index, angle in rad) of the first rotation vector (N, 3) longer than a full turn (one
+    in degrees), else None."""
+    turn = np.linalg.norm(np.asarray(rotvec, float).reshape(-1, 3), axis=1)
+    if not np.any(turn > 2 * np.pi + 1e-9):
+        return None
+    i = int(np.argmax(turn))
+    return i, float(turn[i])
+
+
 OUTSIDE_TOL_M = 1e-6  # targets this far outside the box are still accepted (clamped cell)
 
 
@@ -267,28 +282,29 @@ class CorrectionTable:
         # degrees (a hand edit, another tool's file) is refused, not used
         again = "export the table again with `workcell export`"
         far = float(np.max(np.abs(np.r_[lo, hi])))
-        if far > 10.0:  # no arm reaches 10 m (recording.checks.DH_LENGTH_MAX_M)
+        if far > DH_LENGTH_MAX_M:  # no arm reaches that far
             raise ValueError(
                 f"grid bound {far:.4g} m from the base, beyond any arm's reach: "
                 + ("it looks like millimetres; the table wants metres" if far <= 1e4 else "corrupt")
                 + f"; {again}"
             )
-        turn = np.linalg.norm(self.orientations_rotvec, axis=1)
-        if np.any(turn > 2 * np.pi + 1e-9):
-            k = int(np.argmax(turn))
+        if (turn := beyond_full_turn(self.orientations_rotvec)) is not None:
+            k, ang = turn
             raise ValueError(
-                f"orientation {k} is a rotation vector of {turn[k]:.4g} rad, more than a full "
-                f"turn: it looks like degrees, give radians (UR rotation vectors); {again}"
+                f"orientation {k} is a rotation vector of {ang:.4g} rad, more than a full "
+                f"turn: {DEGREES_HINT}; {again}"
             )
         meta = self.meta if isinstance(self.meta, dict) else {}
         bound = meta.get("correction_bound_m")
         if bound is None:
-            bound, what = 0.1, "0.1 m, more than any calibration corrects"
+            bound = MAX_CORRECTION_BOUND_M
+            what = f"{bound:g} m, more than any calibration corrects"
         else:
             ok = isinstance(bound, (int, float)) and not isinstance(bound, bool)
-            if not (ok and math.isfinite(bound) and 0.0 < bound <= 0.1):
+            if not (ok and math.isfinite(bound) and 0.0 < bound <= MAX_CORRECTION_BOUND_M):
                 raise ValueError(
-                    f"meta correction_bound_m must be a number of metres in (0, 0.1], got "
+                    f"meta correction_bound_m must be a number of metres in "
+                    f"(0, {MAX_CORRECTION_BOUND_M:g}], got "
                     f"{bound!r}; {again}"
                 )
             what = f"the bound {bound * 1e3:g} mm it was built with"
@@ -540,16 +556,15 @@ def build_table(
             f"interpolation error target {target_error_m:g} m is beyond any calibration (they "
             "are micrometres); give metres (5e-6 for 5 um)"
         )
-    if max_correction_m > 0.1:
+    if max_correction_m > MAX_CORRECTION_BOUND_M:
         raise UserError(
             f"max correction {max_correction_m:g} m is beyond any calibration (they are mm); "
             "give metres"
         )
-    rv_norm = np.linalg.norm(np.asarray(orientations_rotvec, float).reshape(-1, 3), axis=1)
-    if np.any(rv_norm > 2 * np.pi + 1e-9):
+    if (turn := beyond_full_turn(orientations_rotvec)) is not None:
         raise UserError(
-            f"orientation rotation vector of {rv_norm.max():.4g} rad: more than a full turn; "
-            "it looks like degrees, give radians (UR rotation vectors)"
+            f"orientation rotation vector of {turn[1]:.4g} rad: more than a full turn; "
+            f"{DEGREES_HINT}"
         )
     if spacing_m is not None:
         if not (np.isfinite(spacing_m) and spacing_m > 0):
