@@ -541,3 +541,26 @@ def test_a_dotted_output_name_keeps_its_dots():
     assert output_files("urscript", Path("c")) == [
         Path("c.script"), Path("c.json"), Path("c.csv"),
     ]  # fmt: skip
+
+
+def test_joint_coverage_counts_the_nodes_outside_the_fitted_range():
+    from workcell.export.table import coverage_line, joint_coverage
+
+    m = make_model(4)
+    corr = Corrector(m, nominal_for(m))
+    tab = build_table(corr, LO, HI, [DOWN], spacing_m=0.1, n_check=20)
+    assert tab.meta["joint_coverage"]["basis"].startswith("unknown")  # the model says nothing
+    q = tab.q_nodes.reshape(-1, 6)
+    lo, hi = q.min(0), q.max(0)
+    m.info["joint_range_rad"] = np.stack([lo - 0.01, hi + 0.01], 1).tolist()
+    cov = joint_coverage(corr, tab.q_nodes)
+    assert cov["nodes_outside"] == 0 and cov["per_joint"] == {}
+    assert "inside" in coverage_line(cov)
+    # narrow joint 2's range to its middle: the nodes beyond it, counted independently
+    mid = 0.5 * (lo[1] + hi[1])
+    m.info["joint_range_rad"][1] = [lo[1] - 0.01, mid]
+    cov = joint_coverage(corr, tab.q_nodes)
+    assert cov["nodes_outside"] == int(np.sum(q[:, 1] > mid)) > 0
+    assert list(cov["per_joint"]) == ["2"]
+    assert cov["per_joint"]["2"]["max_beyond_rad"] == pytest.approx(hi[1] - mid)
+    assert coverage_line(cov).startswith("WARNING") and "joint 2" in coverage_line(cov)

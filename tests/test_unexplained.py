@@ -146,6 +146,10 @@ def test_an_outlier_reading_among_the_heldout_poses_is_named_and_set_aside(tmp_p
     clean = Dataset.from_recording(path)
     model, rep = fit_dataset(clean, method="dh")
     assert rep["heldout_outliers"] is None  # nothing to name in a clean recording
+    # the model file carries the joint range it was fitted on (export compares its nodes)
+    train, _ = clean.holdout_split(0.25)
+    qt = clean.q[train]
+    assert model.info["joint_range_rad"] == np.stack([qt.min(0), qt.max(0)], 1).tolist()
 
     bad = Dataset.from_recording(path)
     _, test = bad.holdout_split(0.25)

@@ -83,6 +83,7 @@ from workcell.estimation.models import (
     RMS_INTERVAL_BASIS,
     error_stats,
     interval_um,
+    note_joint_range,
     rms_gain_interval,
     rms_interval,
     unexplained_error,
@@ -743,6 +744,7 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
     model.info.update(
         heldout_rms_m=after["rms_m"], heldout_rms_ci95_m=after["rms_ci95_m"], unexplained=excess
     )
+    note_joint_range(model, dfit.q)
     unexplained["serial_correlation"] = _serial_correlation(res_tr, dfit.elapsed_s)
     model_np = None
     if cfg.nonparametric:
@@ -751,6 +753,8 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
             serial=unexplained["serial_correlation"]["significant"], floor=floor,
         )  # fmt: skip
         unexplained.update(unexplained_np)
+        if model_np is not None:
+            note_joint_range(model_np, dfit.q)
 
     geometry = _geometry_items(dh)
     report = {

@@ -25,6 +25,7 @@ from workcell.estimation.models import (
     RMS_INTERVAL_BASIS,
     aux_from_dataset,
     error_stats,
+    note_joint_range,
     save_model,
     unexplained_error,
 )
@@ -169,6 +170,7 @@ def fit_dataset(
     t0 = time.perf_counter()
     model, extra = fit_fn(dtr, on=on, bounds=bounds, progress=progress, tracker_mpe=tracker_mpe)
     fit_s = time.perf_counter() - t0
+    note_joint_range(model, dtr.q)
     th_nom, base_nom = nominal_registered(dtr)
     ev = dte if len(dte) else dtr
     nominal = error_stats(

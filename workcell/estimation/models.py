@@ -57,6 +57,15 @@ def aux_from_dataset(ds) -> dict:
     }
 
 
+def note_joint_range(model: FittedModel, q: np.ndarray) -> None:
+    """Record in the model's `info["joint_range_rad"]` the per-joint [min, max] of the joints
+    q (N, 6) it was fitted on: `export` warns about table nodes outside it (extrapolation)."""
+    info = getattr(model, "info", None)
+    q = np.atleast_2d(np.asarray(q, float))
+    if isinstance(info, dict) and len(q) and np.all(np.isfinite(q)):
+        info["joint_range_rad"] = np.stack([q.min(0), q.max(0)], 1).tolist()
+
+
 def default_model_out(recording: str | os.PathLike, suffix: str) -> tuple[Path, str | None]:
     """Where a model of `recording` goes when no output is named: beside it, with `suffix`; or,
     when that folder takes no new file (an archive of recordings: kept as it is), under the same

@@ -334,6 +334,8 @@ class CorrectionTable:
                     f.write(f"# {key}: {self.meta[key]}\n")
             f.write(f"# grid: lo {self.lo_m.tolist()} hi {self.hi_m.tolist()} shape {self.shape}\n")
             f.write(f"# max_interp_error_m: {self.meta.get('max_interp_error_m')}\n")
+            if isinstance(self.meta.get("joint_coverage"), dict):
+                f.write(f"# {coverage_line(self.meta['joint_coverage'])}\n")
             w = csv.writer(f)
             if self.std_m is not None and "std_basis" in self.meta:
                 f.write(f"# sx_m, sy_m, sz_m: {self.meta['std_basis']}\n")
@@ -506,6 +508,53 @@ def approach_sensitivity(corr: Corrector, q_nodes: np.ndarray) -> dict | None:
     }
 
 
+def joint_coverage(corr: Corrector, q_nodes: np.ndarray) -> dict:
+    """Which of the nodes' joints (..., 6) lie outside the joint range the model was fitted on
+    (`info["joint_range_rad"]`, written by fit/diagnose/replay since 2026-11-26): there the
+    correction is the model's extrapolation. Joint values are compared as they are (a joint
+    2 pi away from the measured range counts as outside: a non-geometric model sees it so)."""
+    info = getattr(corr.model, "info", None)
+    rng = info.get("joint_range_rad") if isinstance(info, dict) else None
+    try:
+        lohi = np.asarray(rng, float).reshape(6, 2)
+    except (TypeError, ValueError):
+        lohi = None
+    if lohi is None or not np.all(np.isfinite(lohi)) or np.any(lohi[:, 1] < lohi[:, 0]):
+        return {"basis": "unknown: the model file does not say which joints it was fitted on"}
+    q = np.asarray(q_nodes, float).reshape(-1, 6)
+    beyond = np.maximum(lohi[:, 0] - q, q - lohi[:, 1]).clip(0.0, None)  # (N, 6) rad
+    out = beyond > 0
+    return {
+        "basis": "nodes whose corrected joints lie outside the joint range of the poses the "
+        "model was fitted on (the correction there is an extrapolation)",
+        "measured_range_rad": lohi.tolist(),
+        "nodes": int(len(q)),
+        "nodes_outside": int(np.any(out, axis=1).sum()),
+        "per_joint": {
+            str(j + 1): {"nodes_outside": int(out[:, j].sum()), "max_beyond_rad": float(b)}
+            for j, b in enumerate(beyond.max(axis=0))
+            if b > 0
+        },
+    }
+
+
+def coverage_line(cov: dict) -> str:
+    """One line for the export log / CSV header from `joint_coverage`'s result."""
+    if "nodes_outside" not in cov:
+        return f"joint coverage {cov['basis']}"
+    if cov["nodes_outside"] == 0:
+        return f"all {cov['nodes']} nodes' joints lie inside the range the model was fitted on"
+    worst = ", ".join(
+        f"joint {j} by up to {v['max_beyond_rad']:.3f} rad ({v['nodes_outside']} nodes)"
+        for j, v in cov["per_joint"].items()
+    )
+    return (
+        f"WARNING: {cov['nodes_outside']} of {cov['nodes']} nodes need joints outside the range "
+        f"the model was fitted on ({worst}): their corrections are extrapolations; measure "
+        "poses there or shrink the volume (--volume)"
+    )
+
+
 def _configurations(corr: Corrector, tab: CorrectionTable) -> tuple[np.ndarray, tuple]:
     """The one arm configuration each orientation's nodes were solved on (continuation from the
     reference configuration keeps them on one); refuses a grid whose nodes span several (it
@@ -624,6 +673,8 @@ def build_table(
             f"moves the SMR by {approach['rms_m'] * 1e6:.1f} um RMS, {approach['max_m'] * 1e6:.1f}"
             " um at most over the nodes (its backlash terms): approach as declared"
         )
+    coverage = joint_coverage(corr, tab.q_nodes)
+    log("  " + coverage_line(coverage))
     tab.std_m = node_std(corr, tab.q_nodes)
     std_meta: dict = {"std_basis": "none: the model carries no covariance of its prediction"}
     if tab.std_m is not None:
@@ -658,6 +709,7 @@ def build_table(
         **std_meta,
         "correction_bound_m": float(max_correction_m),
         **({"approach_sensitivity": approach} if approach is not None else {}),
+        "joint_coverage": coverage,
         "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
     }
     return tab

@@ -34,6 +34,7 @@ from workcell.estimation.ekf_ann import ann as A
 from workcell.estimation.ekf_ann.filter import EkfAnnFilter, FilterConfig, prefit_weights
 from workcell.estimation.ekf_ann.model import EkfAnnModel
 from workcell.estimation.identifiability import analyse, candidates_for
+from workcell.estimation.models import note_joint_range
 from workcell.kinematics.chain import (
     N_PARAMS,
     PARAM_NAMES,
@@ -270,9 +271,11 @@ class LiveFilter:
         if self.filter is None:
             raise ValueError(f"not initialised yet: {self.n} of {self.n_init} samples seen")
         s0, _ = self.variance_test()
-        return EkfAnnModel.from_filter(
+        model = EkfAnnModel.from_filter(
             self.filter,
             self.robot.model,
             self.robot.dh,
             info={"variance_factor": s0} if np.isfinite(s0) else {},
         )
+        note_joint_range(model, self.filter.q_seen())
+        return model
