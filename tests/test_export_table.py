@@ -564,3 +564,22 @@ def test_joint_coverage_counts_the_nodes_outside_the_fitted_range():
     assert list(cov["per_joint"]) == ["2"]
     assert cov["per_joint"]["2"]["max_beyond_rad"] == pytest.approx(hi[1] - mid)
     assert coverage_line(cov).startswith("WARNING") and "joint 2" in coverage_line(cov)
+
+
+def test_a_correction_no_larger_than_its_1_sigma_is_flagged():
+    """A model whose SMR offset along the tool is uncertain by 10 mm (as a fit whose poses cannot
+    tell tool_z from a base offset): every node's correction is undetermined, and export says
+    so; with 0.1 um stds none is."""
+    m = make_model(4)
+    m.cov = np.eye(39) * 1e-14
+    corr = Corrector(m, nominal_for(m))
+    lines = []
+    tab = build_table(corr, LO, HI, [DOWN], spacing_m=0.1, log=lines.append)
+    assert tab.meta["nodes_std_exceeds_correction"] == 0
+    assert not any("1-sigma is as large" in x for x in lines)
+    m.cov[38, 38] = 0.01**2  # tool_z
+    lines = []
+    tab = build_table(corr, LO, HI, [DOWN], spacing_m=0.1, log=lines.append)
+    n = tab.delta_m[..., 0].size
+    assert tab.meta["nodes_std_exceeds_correction"] == n
+    assert any(x.strip().startswith(f"WARNING: at {n} of {n} nodes") for x in lines)
