@@ -72,8 +72,8 @@ def _simulate(cfg: FilterConfig, seed: int):
     return EkfAnnFilter.create(cfg, spec, theta0, base, w0), q, y, sigma
 
 
-# Extra ANN iterations off here: this test is about the filter itself (a kept retrain is a batch
-# fit, not a Kalman update; `test_a_kept_retrain_leaves_the_filter_consistent` covers it).
+# Extra ANN iterations off: they replace the weights by a batch fit without touching P, which is
+# not a Kalman update (and measurably not consistent); this test is about the filter itself.
 CONFIGS = {
     # geometric + network states, joint noise in the data and in R (J_q Q_uu J_q^T)
     "adaptive": FilterConfig(mode="adaptive", geometric=GEOMETRY, ann_iter_every=0),
@@ -120,21 +120,6 @@ def test_mean_nis_matches_the_measurement_size(mode):
         f"{hi:.3f}]: the filter's innovation covariance S = H P H^T + R does not match its "
         "innovations (R misstated, or P over/under-confident)"
     )
-
-
-def test_a_kept_retrain_leaves_the_filter_consistent():
-    """The extra ANN iteration (every 200 samples) replaces the weights by a batch fit; the
-    filter then widens P_ww by the jump (P_ww + d d^T). The same band as above must hold, with
-    at least one retrain kept (else the test says nothing). Paper mode, where this data makes
-    retrains win the validation; with P left as it was, mean NIS/3 was 1.43 on this seed."""
-    from dataclasses import replace
-
-    f, q, y, sigma = _simulate(replace(CONFIGS["paper"], ann_iter_every=200), seed=0)
-    nis = np.asarray(f.process(q, y, sigma).nis)
-    assert f.ann_accepted >= 1
-    ratio = float(nis[SKIP:].mean()) / M
-    lo, hi = nis_band(N_SAMPLES - SKIP)
-    assert lo < ratio < hi, f"mean NIS / {M} = {ratio:.3f} outside [{lo:.3f}, {hi:.3f}]"
 
 
 def test_band_is_what_the_docstring_states():
