@@ -38,19 +38,17 @@ DEFAULT_INTERP_ERROR_M = 5e-6
 DEFAULT_ORIENTATION_TOL_RAD = 0.05
 MAX_CORRECTION_BOUND_M = 0.1  # no calibration corrects by more: beyond, a unit mistake
 DEGREES_HINT = "it looks like degrees, give radians (UR rotation vectors)"
+OUTSIDE_TOL_M = 1e-6  # targets this far outside the box are still accepted (clamped cell)
 
 
 def beyond_full_turn(rotvec: np.ndarray) -> tuple[int, float] | None:
-    """(index, angle in rad) of the first rotation vector (N, 3) longer than a full turn (one
-    in degrees), else None."""
+    """(index, angle in rad) of the longest of the rotation vectors (N, 3) when it is longer
+    than a full turn (one in degrees), else None."""
     turn = np.linalg.norm(np.asarray(rotvec, float).reshape(-1, 3), axis=1)
     if not np.any(turn > 2 * np.pi + 1e-9):
         return None
     i = int(np.argmax(turn))
     return i, float(turn[i])
-
-
-OUTSIDE_TOL_M = 1e-6  # targets this far outside the box are still accepted (clamped cell)
 
 
 class CorrectionRefused(UserError):

@@ -362,7 +362,7 @@ class EkfAnnFilter:
 
     def corrections_m(self) -> tuple[np.ndarray, np.ndarray]:
         """(q, position corrections in the base frame) of all samples so far (eq. 22)."""
-        q = np.concatenate(self._q) if self._q else np.zeros((0, 6))
+        q = self.q_seen()
         if self.cfg.mode == "paper":
             d = np.concatenate(self._d) * self.spec.out_scale_m if self._d else np.zeros((0, 3))
             return q, d
