@@ -104,7 +104,7 @@ def test_non_finite_correction_is_refused_with_where():
         build_table(corr, LO, HI, [DOWN], spacing_m=0.1)
 
 
-def test_cli_export_refuses_and_writes(tmp_path):
+def test_cli_export_refuses_and_writes(tmp_path, capsys):
     from workcell.cli import main
 
     path = save_model(make_model(6), tmp_path / "m.json")
@@ -140,6 +140,10 @@ def test_cli_export_refuses_and_writes(tmp_path):
         ]
     )
     assert rc == 0
+    summary = json.loads(capsys.readouterr().out)
+    # a model without a recorded joint range: the summary says the coverage is unknown
+    assert summary["joint_coverage"]["basis"].startswith("unknown")
+    assert summary["nodes_std_exceeds_correction"] == 0  # zero covariance: nothing flagged
     d = json.loads((tmp_path / "t.json").read_text())
     assert d["meta"]["robot"] == "ur5e" and d["meta"]["max_interp_error_m"] > 0
     assert (tmp_path / "t.csv").read_text().count("\n") > 20
@@ -566,7 +570,7 @@ def test_joint_coverage_counts_the_nodes_outside_the_fitted_range():
     assert coverage_line(cov).startswith("WARNING") and "joint 2" in coverage_line(cov)
 
 
-def test_a_correction_no_larger_than_its_1_sigma_is_flagged():
+def test_a_correction_smaller_than_its_1_sigma_is_flagged():
     """A model whose SMR offset along the tool is uncertain by 10 mm (as a fit whose poses cannot
     tell tool_z from a base offset): every node's correction is undetermined, and export says
     so; with 0.1 um stds none is."""
@@ -576,7 +580,7 @@ def test_a_correction_no_larger_than_its_1_sigma_is_flagged():
     lines = []
     tab = build_table(corr, LO, HI, [DOWN], spacing_m=0.1, log=lines.append)
     assert tab.meta["nodes_std_exceeds_correction"] == 0
-    assert not any("1-sigma is as large" in x for x in lines)
+    assert not any("1-sigma is larger" in x for x in lines)
     m.cov[38, 38] = 0.01**2  # tool_z
     lines = []
     tab = build_table(corr, LO, HI, [DOWN], spacing_m=0.1, log=lines.append)

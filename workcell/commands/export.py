@@ -173,6 +173,9 @@ def run(args: argparse.Namespace) -> int:
     summary["max_correction_m"] = table.meta["max_correction_m"]
     summary["interp_error_target_met"] = table.meta["interp_error_target_met"]
     summary["target_interp_error_m"] = table.meta["target_interp_error_m"]
+    summary["joint_coverage"] = table.meta["joint_coverage"]
+    if "nodes_std_exceeds_correction" in table.meta:
+        summary["nodes_std_exceeds_correction"] = table.meta["nodes_std_exceeds_correction"]
     if args.format == "table":
         summary["files"] = [str(p) for p in table.save(out)]
     else:

@@ -687,13 +687,13 @@ def build_table(
             f"  correction 1-sigma (model uncertainty, 3-D): median {np.median(s3) * 1e6:.1f} um, "
             f"max {s3.max() * 1e6:.1f} um at {np.round(X.reshape(-1, 3)[i % X[..., 0].size], 3).tolist()} m"
         )
-        # a correction no larger than its own 1-sigma is not determined by the measurements
-        undetermined = int(np.sum(s3 >= mags))
+        # a correction smaller than its own 1-sigma is not determined by the measurements
+        undetermined = int(np.sum(s3 > mags))
         std_meta["nodes_std_exceeds_correction"] = undetermined
         if undetermined:
             log(
-                f"  WARNING: at {undetermined} of {s3.size} nodes the correction's 1-sigma is as "
-                f"large as the correction itself (median 1-sigma {np.median(s3) * 1e3:.3g} mm, "
+                f"  WARNING: at {undetermined} of {s3.size} nodes the correction's 1-sigma is "
+                f"larger than the correction itself (median 1-sigma {np.median(s3) * 1e3:.3g} mm, "
                 f"median correction {np.median(mags) * 1e3:.3g} mm): the measured poses do not "
                 "determine it there (see `fit`'s weakly identified groups); measure poses in this "
                 "volume and orientation"
