@@ -90,3 +90,23 @@ def test_a_closed_output_pipe_is_not_reported_as_an_error(monkeypatch, capsys):
     monkeypatch.setattr(sys, "stdout", ClosedPipe())
     assert main(["envelope", "--robot", "ur5e"]) == 141
     assert capsys.readouterr().err == ""
+
+
+def test_fit_notes_an_smr_far_from_the_declared_one(capsys):
+    """`fit` notes a fitted SMR more than 1 mm and 3 std from the declared offset (the real UR10
+    recordings declare the T-Mac's nominal 109 mm; series B fits 93.2 mm: the printed note is
+    checked on it in tests/test_dh_fit.py), and nothing within its std or below 1 mm."""
+    from workcell.commands.fit import smr_change
+
+    def params(dz, std):
+        return {
+            n: {"value": v, "nominal": nom, "std": std, "unit": "m"}
+            for n, v, nom in (("tool_x", 0.0, 0.0), ("tool_y", 0.0, 0.0), ("tool_z", 0.109 + dz, 0.109))
+        }  # fmt: skip
+
+    far = smr_change(params(-0.0158, 5e-5))
+    assert far is not None and abs(far["change_m"] - 0.0158) < 1e-12
+    assert abs(far["std_m"] - 5e-5) < 1e-12 and far["fitted_m"][2] == 0.109 - 0.0158
+    assert smr_change(params(-0.0165, 0.027)) is None  # series D: std 27 mm, says nothing
+    assert smr_change(params(-0.0007, 2e-5)) is None  # below 1 mm (the demo's 0.7 mm)
+    assert smr_change({"tool_x": {"value": 0.0}}) is None  # a model without the SMR terms

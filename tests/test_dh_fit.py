@@ -2,6 +2,7 @@
 reported uncertainty, identifiability groups, held-out numbers against the noise floor."""
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -172,13 +173,23 @@ def load_model_info(path) -> dict:
 
 
 @pytest.mark.skipif(not REAL_B.exists(), reason="shared real data not present")
-def test_real_ur10_series_b_fits():
+def test_real_ur10_series_b_fits(capsys):
+    from workcell.commands.fit import print_report
+
     ds = Dataset.from_recording(REAL_B)
     model, rep = fit_dataset(ds, method="dh", holdout=0.25)
     assert rep["heldout_poses"] > 300
     # the rough base pose must have been registered: nominal is mm-level, not metres
     assert rep["nominal_rms_m"] < 0.02
     assert rep["heldout_rms_m"] < rep["nominal_rms_m"]
+    # the recording declares the T-Mac's nominal 109 mm; the fit finds the SMR ~16 mm closer
+    # to the flange, which `fit` states with the offset to declare
+    rep["model"] = None
+    print_report(rep)
+    out = " ".join(capsys.readouterr().out.split())
+    assert re.search(
+        r"note: the fitted SMR is 1[5-6]\.\d mm .* \(-?0\.000\d, 0\.000\d, 0\.093\d\) m", out
+    )
 
 
 @pytest.mark.parametrize("worse", [1.0, 3.0])
