@@ -80,6 +80,7 @@ def run(args: argparse.Namespace) -> int:
         progress=None if args.json else lambda m: print(m, file=sys.stderr),
         warn=lambda m: print(m, file=sys.stderr),
     )
+    report["smr_change"] = smr_change(report.get("parameters") or {})
     if args.json:
         print(json.dumps(report, default=_json_default))
     else:
@@ -250,7 +251,7 @@ def print_report(r: dict) -> None:
             )
         if r.get("parameter_std_basis"):
             print(textwrap.fill(f"std: {r['parameter_std_basis']}", width=100))
-    smr = smr_change(params)
+    smr = r.get("smr_change") or smr_change(params)
     if smr is not None:
         print(
             textwrap.fill(
