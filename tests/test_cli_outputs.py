@@ -96,7 +96,7 @@ def test_fit_notes_an_smr_far_from_the_declared_one(capsys):
     """`fit` notes a fitted SMR more than 1 mm and 3 std from the declared offset (the real UR10
     recordings declare the T-Mac's nominal 109 mm; series B fits 93.2 mm: the printed note is
     checked on it in tests/test_dh_fit.py), and nothing within its std or below 1 mm."""
-    from workcell.commands.fit import smr_change
+    from workcell.estimation.fitting import smr_change
 
     def params(dz, std):
         return {

@@ -80,7 +80,6 @@ def run(args: argparse.Namespace) -> int:
         progress=None if args.json else lambda m: print(m, file=sys.stderr),
         warn=lambda m: print(m, file=sys.stderr),
     )
-    report["smr_change"] = smr_change(report.get("parameters") or {})
     if args.json:
         print(json.dumps(report, default=_json_default))
     else:
@@ -96,33 +95,8 @@ def _json_default(o):
     raise TypeError(type(o))
 
 
-SMR_NOTE_M = 1e-3  # a fitted SMR this far (and 3 std) from the declared one gets a note
-
-
 def _vec_m(v) -> str:
     return "(" + ", ".join(f"{x:.4f}" for x in v) + ") m"
-
-
-def smr_change(params: dict) -> dict | None:
-    """The fitted SMR offset against the declared one (`tool_x/y/z` of a fit report's
-    parameters), when they differ by more than SMR_NOTE_M and 3 std; else None."""
-    names = ("tool_x", "tool_y", "tool_z")
-    if not all(n in params and "nominal" in params[n] for n in names):
-        return None
-    fitted = np.array([params[n]["value"] for n in names], float)
-    declared = np.array([params[n]["nominal"] for n in names], float)
-    d = fitted - declared
-    change = float(np.linalg.norm(d))
-    stds = np.array([params[n].get("std") or 0.0 for n in names], float)
-    std = float(np.sqrt(np.sum((d / max(change, 1e-12)) ** 2 * stds**2)))  # along the change
-    if not (np.all(np.isfinite(fitted)) and change > SMR_NOTE_M and change > 3.0 * std):
-        return None
-    return {
-        "change_m": change,
-        "std_m": std,
-        "declared_m": declared.tolist(),
-        "fitted_m": fitted.tolist(),
-    }
 
 
 def um(x: float) -> str:
@@ -251,7 +225,7 @@ def print_report(r: dict) -> None:
             )
         if r.get("parameter_std_basis"):
             print(textwrap.fill(f"std: {r['parameter_std_basis']}", width=100))
-    smr = r.get("smr_change") or smr_change(params)
+    smr = r.get("smr_change")
     if smr is not None:
         print(
             textwrap.fill(

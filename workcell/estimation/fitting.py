@@ -225,6 +225,7 @@ def fit_dataset(
         "outliers_rejected": info.get("outliers_rejected", 0),
         "extra": extra,
     }
+    report["smr_change"] = smr_change(params)
     return model, report
 
 
@@ -263,6 +264,31 @@ def fit_recording(
     return report
 
 
+SMR_NOTE_M = 1e-3  # a fitted SMR this far (and 3 std) from the declared one gets a note
+
+
+def smr_change(params: dict) -> dict | None:
+    """The fitted SMR offset against the declared one (`tool_x/y/z` of a fit report's
+    parameters), when they differ by more than SMR_NOTE_M and 3 std; else None."""
+    names = ("tool_x", "tool_y", "tool_z")
+    if not all(n in params and "nominal" in params[n] for n in names):
+        return None
+    fitted = np.array([params[n]["value"] for n in names], float)
+    declared = np.array([params[n]["nominal"] for n in names], float)
+    d = fitted - declared
+    change = float(np.linalg.norm(d))
+    stds = np.array([params[n].get("std") or 0.0 for n in names], float)
+    std = float(np.sqrt(np.sum((d / max(change, 1e-12)) ** 2 * stds**2)))  # along the change
+    if not (np.all(np.isfinite(fitted)) and change > SMR_NOTE_M and change > 3.0 * std):
+        return None
+    return {
+        "change_m": change,
+        "std_m": std,
+        "declared_m": declared.tolist(),
+        "fitted_m": fitted.tolist(),
+    }
+
+
 def keep_in_model(model, ds: Dataset, report: dict) -> None:
     """Put what the model file should carry into the model's `info`: its recording (path and
     sha256) and the held-out figures of `report` (RMS, its interval, what it leaves unexplained,
@@ -292,6 +318,7 @@ def keep_in_model(model, ds: Dataset, report: dict) -> None:
 
 __all__ = [
     "fit_dataset",
+    "smr_change",
     "fit_recording",
     "keep_in_model",
     "heldout_outliers",

@@ -166,6 +166,13 @@ class FitScreen(WorkcellScreen):
                     f"{'/'.join(g['parameters'])} (std {g['std_inflation']:.0f}x)" for g in weak[:2]
                 ),
             )
+        smr = r.get("smr_change")
+        if smr:
+            t.add_row(
+                "SMR vs declared",
+                f"{smr['change_m'] * 1e3:.1f} mm off (std {smr['std_m'] * 1e3:.2f} mm)",
+                "declare " + ", ".join(f"{x:.4f}" for x in smr["fitted_m"]) + " m, fit again",
+            )
         res = r.get("residuals") or {}
         if res:
             before = [x * 1e6 for x in res.get("before_m", [])]
