@@ -781,8 +781,10 @@ def export(cfg: ExportConfig, log: Callable[[str], None] | None = None) -> dict:
             "correction_bound_m",
             "median_std_m",
             "max_std_m",
+            "nodes_std_exceeds_correction",
         )
     }
+    summary["joint_coverage"] = table.meta.get("joint_coverage")
     summary["conditions"] = list(table.meta.get("conditions_note") or [])
     # what the model leaves out, not in the table's 1-sigma (as `workcell export` prints it)
     summary["unexplained"] = table.meta.get("model_unexplained")

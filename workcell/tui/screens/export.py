@@ -14,6 +14,7 @@ from textual.widgets import Button, Input, Label, Select, Static
 
 from workcell.errors import UserError
 from workcell.estimation.models import interval_um, unexplained_text
+from workcell.export.table import coverage_line
 from workcell.export.validate import DEFAULT_TARGETS, MAX_TARGETS
 from workcell.tui.backend import ExportConfig
 from workcell.tui.messages import ExportRequested, ValidateRequested
@@ -202,6 +203,16 @@ class ExportScreen(WorkcellScreen):
             )
         elif "grid" in s:
             rows.append(("Uncertainty", "not given: the model carries no covariance"))
+        if v.get("nodes_std_exceeds_correction"):
+            rows.append(
+                (
+                    "Undetermined",
+                    f"[red]{v['nodes_std_exceeds_correction']} nodes[/red]: the correction's "
+                    "1-sigma is larger than the correction (the poses do not determine it)",
+                )
+            )
+        if isinstance(s.get("joint_coverage"), dict):
+            rows.append(("Coverage", escape(coverage_line(s["joint_coverage"]))))
         if s.get("unexplained"):
             rows.append(
                 (
