@@ -693,8 +693,9 @@ def build_table(
         if undetermined:
             log(
                 f"  WARNING: at {undetermined} of {s3.size} nodes the correction's 1-sigma is "
-                f"larger than the correction itself (median 1-sigma {np.median(s3) * 1e3:.3g} mm, "
-                f"median correction {np.median(mags) * 1e3:.3g} mm): the measured poses do not "
+                "larger than the correction itself (median 1-sigma "
+                f"{np.median(s3) * 1e3:.3g} mm, median correction {np.median(mags) * 1e3:.3g} "
+                "mm): the measured poses do not "
                 "determine it there (see `fit`'s weakly identified groups); measure poses in this "
                 "volume and orientation"
             )

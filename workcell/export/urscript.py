@@ -6,7 +6,8 @@ the pose with its position shifted by the trilinearly interpolated correction. I
 the arm is not on the arm configuration (shoulder, elbow, wrist) the table was solved on: `movel`
 keeps the configuration the arm is in, and on another branch the correction is wrong by up to
 millimetres. Include it in a UR program and write `movel(wc_correct(p_target))`. The table is
-three flat lists (x, y, z deltas), index ((k * nx + i) * ny + j) * nz + l; numbers are written with 17 significant digits.
+three flat lists (x, y, z deltas), index ((k * nx + i) * ny + j) * nz + l; numbers are written
+with 17 significant digits.
 
 `run_urscript(text)` translates the emitted subset line by line into Python (refusing anything
 else) so that tests can run the interpolation exactly as written in the file.
