@@ -14,9 +14,12 @@ Proof of discrepancy discovery on simulated recordings where the effect is conce
 - 300 random poses (random approach direction per joint), a random warm-up of 0-15 min;
 - recordings are written as MCAP and read back like any recording; diagnosis sees only the file.
 Extra reported cases (not in the accuracy): `tracker_scale` (not identifiable with a point-only
-tracker; the correct answer is "absorbed, not claimed") and `unknown` (an effect outside the
-library: joint 3's angle shifted by A sin(2 q2), a cross-coupling): it must be reported as
-unexplained, located, and reduced by the non-parametric model.
+tracker; the correct answer is "absorbed, not claimed"), `unknown` (an effect outside the
+library: joint 3's angle shifted by A sin(2 q2), a cross-coupling) and `pedestal_tilt` (the
+simulator's pedestal yielding to the arm's overturning moment, also outside the library): they
+should be reported as unexplained, located, and reduced by the non-parametric model; library
+terms that stand in for them are flagged (a sign the physics excludes, or a final model whose
+held-out RMS interval stays above the noise floor).
 
 Scoring: a single case is right when the named non-geometric effects are exactly the true one
 (kind and joint); a pair is right when both true effects are named (extra claims make it wrong);
@@ -69,6 +72,8 @@ def unit_effect(kind: str, joint: int | None, rng: np.random.Generator) -> dict:
         return {"alpha_per_k": 23e-6, "warmup_k": [6.0, 8.0, 7.0, 4.0, 4.0, 3.0], "tau_s": 1200.0}
     if kind == "tracker_scale":
         return {"scale": 15e-6}
+    if kind == "pedestal_tilt":
+        return {"k_rad_per_nm": 1e-6, "pivot_below_m": 0.5}
     raise ValueError(kind)
 
 
@@ -86,6 +91,8 @@ def scale_effect(kind: str, params: dict, s: float) -> dict:
         p["alpha_per_k"] = s * p["alpha_per_k"]
     elif kind == "tracker_scale":
         p["scale"] = s * p["scale"]
+    elif kind == "pedestal_tilt":
+        p["k_rad_per_nm"] = s * p["k_rad_per_nm"]
     elif kind == "unknown":
         p["amp_rad"] = s * p["amp_rad"]
     return p
@@ -335,6 +342,10 @@ def run_case(kinds, seed, n_poses, ratio, tmp: Path, rng, log, np_check: bool = 
         "noise_floor_reported_m": r["noise_floor_m"],
         "before_over_floor": r["rms_before_m"] / floor,
         "after_over_floor": r["rms_after_m"] / floor,
+        "floor_reached": r.get("floor_reached"),
+        "set_aside_sign": [
+            st["candidate"] for st in r["selection"] if st["action"] == "set aside (sign)"
+        ],
         "unexplained": {
             "structured": r["unexplained"].get("structured", False),
             "where": r["unexplained"].get("where", []),
@@ -423,6 +434,9 @@ def main(argv: list[str]) -> int:
             run_case([("tracker_scale", None)], new_seed(), a.poses, 1.0, tmp, rng, log)
         )
         res["extra"].append(run_case([("unknown", 3)], new_seed(), a.poses, 5.0, tmp, rng, log))
+        res["extra"].append(
+            run_case([("pedestal_tilt", None)], new_seed(), a.poses, 5.0, tmp, rng, log)
+        )
     summary = score(res)
     summary["master_seed"] = master
     summary["poses"] = a.poses
@@ -463,7 +477,8 @@ def score(res: dict) -> dict:
                     continue
                 row[n] = row.get(n, 0) + 1
     named_cases = [c for c in res["single"] + res["pairs"] if c["named"]]
-    ratios = [c["after_over_floor"] for c in named_cases if norm(c["named"]) == norm(c["true"])]
+    right = [c for c in named_cases if norm(c["named"]) == norm(c["true"])]
+    ratios = [c["after_over_floor"] for c in right]
     extra = {}
     for c in res["extra"]:
         extra[_key(c["true"][0])] = {
@@ -474,6 +489,8 @@ def score(res: dict) -> dict:
             "where": c["unexplained"]["where"],
             "np_heldout_rms_m": c["unexplained"]["np"],
             "rms_after_m": c["rms_after_m"],
+            "floor_reached": c.get("floor_reached"),
+            "set_aside_sign": c.get("set_aside_sign", []),
         }
     return {
         "single": {
@@ -498,6 +515,13 @@ def score(res: dict) -> dict:
             "median": float(np.median(ratios)) if ratios else float("nan"),
             "max": float(np.max(ratios)) if ratios else float("nan"),
             "cases": len(ratios),
+        },
+        # how often the "named effects do not reach the floor" caveat is printed where every
+        # named effect is right, and how often a term was set aside for its sign there
+        "caveats_when_right": {
+            "floor_not_reached": sum(1 for c in right if c.get("floor_reached") is False),
+            "set_aside_sign": sum(1 for c in right if c.get("set_aside_sign")),
+            "cases": len(right),
         },
         "confusion": confusion,
         "extra": extra,
@@ -542,6 +566,11 @@ def print_table(s: dict) -> None:
     print(
         f"held-out RMS after / noise floor (correctly named): median {r['median']:.2f}, max {r['max']:.2f}"
     )
+    cw = s["caveats_when_right"]
+    print(
+        f"correctly named cases still said not to reach the floor: {cw['floor_not_reached']} of "
+        f"{cw['cases']}; with a term set aside for its sign: {cw['set_aside_sign']}"
+    )
     print("\nconfusion (true -> named: count)")
     for t, row in sorted(s["confusion"].items()):
         cells = ", ".join(f"{n}: {c}" for n, c in sorted(row.items(), key=lambda x: -x[1]))
@@ -551,6 +580,10 @@ def print_table(s: dict) -> None:
             f"\n{k}: named {v['named'] or 'nothing'}; before {v['before_over_floor']:.2f}x, after "
             f"{v['after_over_floor']:.2f}x floor; unexplained structure: "
             f"{v['unexplained_structured']} {'; '.join(v['where'])}"
+        )
+        print(
+            f"   floor reached: {v['floor_reached']}; set aside for their sign: "
+            f"{', '.join(v['set_aside_sign']) or 'none'}"
         )
         if v["np_heldout_rms_m"]:
             print(

@@ -30,8 +30,11 @@ Pipeline (`diagnose(ds)`):
            level `cv_alpha`.
      A candidate that passes (a) and fails (b) fits something carried by a few poses (gross
      errors the outlier screen let through); it is set aside and the next best tested, so it
-     cannot hide a real effect. Set-aside candidates still count in the next steps' m. A
-     candidate that fails (a) ends the selection.
+     cannot hide a real effect. A compliance or a link flexibility estimated negative (a joint
+     stiffening against gravity's pull, a link bending against its load: `SIGN_FIXED_KINDS`) is
+     set aside the same way: it fits the pattern of some cause outside the library (a pedestal
+     yielding under the arm's moment did that in simulation), and the report says so. Set-aside
+     candidates still count in the next steps' m. A candidate that fails (a) ends the selection.
      After each acceptance, every earlier effect is re-tested given the others (F-test at
      `alpha`); those no longer significant are removed (backward pruning).
    Why greedy + pruning and not sparse regression over the library: the candidates come in groups
@@ -67,7 +70,9 @@ from workcell.errors import UserError
 from workcell.estimation.dh import TRACKER_MPE_M, DHModel, fit_dh, pose_sigma_model
 from workcell.estimation.effects import (
     EFF_NAMES,
+    EFF_UNITS,
     N_EFF,
+    SIGN_FIXED_KINDS,
     AugmentedModel,
     Candidate,
     FeatureSpec,
@@ -108,6 +113,7 @@ class DiagnoseConfig:
     np_min_gain: float = 0.05
     nonparametric: bool = True
     seed: int = 0
+    physical_signs: bool = True  # set aside a compliance or flexibility fitted negative
 
 
 @dataclass
@@ -234,7 +240,7 @@ def _cv_test(e0: np.ndarray, e1: np.ndarray) -> tuple[float, float]:
 # ----------------------------------------------------------------------------- selection
 @dataclass
 class Step:
-    action: str  # "add" | "remove"
+    action: str  # "add" | "remove" | "set aside (sign)"
     cand: Candidate
     f: float
     p: float
@@ -243,6 +249,7 @@ class Step:
     cv_p: float
     bic_change: float
     rho: float
+    value: float | None = None  # the linear estimate, for a term set aside for its sign
 
 
 def select_effects(
@@ -255,7 +262,7 @@ def select_effects(
     steps: list[Step] = []
     screen: dict[str, dict] = {}
     removed: set[str] = set()
-    aside: set[str] = set()  # passed the F-test, failed cross-validation
+    aside: set[str] = set()  # passed the F-test, failed cross-validation or the physical sign
 
     def idx_of(cs: list[Candidate]) -> list[int]:
         return [i for c in cs for i in c.idx]
@@ -295,8 +302,14 @@ def select_effects(
         a_used = cfg.alpha / max(tried + len(aside), 1)
         ratio, cv_p = _cv_test(lin.cv_errors(cur), lin.cv_errors(cur + list(c.idx)))
         f_ok = p < a_used
-        ok = f_ok and cv_p < cfg.cv_alpha and ratio < 1.0
-        verdict = "accept" if ok else ("set aside (CV)" if f_ok else "stop")
+        est = lin.coef(cur + list(c.idx))[1]
+        sign_ok = not cfg.physical_signs or physical_sign_ok(c, est)
+        ok = f_ok and sign_ok and cv_p < cfg.cv_alpha and ratio < 1.0
+        verdict = (
+            "accept"
+            if ok
+            else ("stop" if not f_ok else "set aside (CV)" if sign_ok else "set aside (sign)")
+        )
         log(
             f"  candidate {c.key:34s} F={F:9.1f} p={p:.2e} (level {a_used:.1e}) "
             f"CV ratio {ratio:.3f} p={cv_p:.2e} -> {verdict}"
@@ -305,6 +318,10 @@ def select_effects(
             break
         if not ok:
             aside.add(c.key)
+            if not sign_ok:  # recorded: the report says which term was refused and why
+                steps.append(
+                    Step("set aside (sign)", c, F, p, a_used, ratio, cv_p, db, rho, float(est[-1]))
+                )
             continue
         M.append(c)
         steps.append(Step("add", c, F, p, a_used, ratio, cv_p, db, rho))
@@ -328,6 +345,14 @@ def select_effects(
                 log(f"  prune     {d.key:34s} F={F_d:9.1f} p={p_d:.2e} -> removed")
                 changed = True
     return M, steps, screen
+
+
+def physical_sign_ok(c: Candidate, coef: np.ndarray) -> bool:
+    """False when the candidate's estimate (the last ``len(c.idx)`` of ``coef``) has the sign its
+    physics excludes (`SIGN_FIXED_KINDS`): the term would fit some other cause's pattern."""
+    if c.kind not in SIGN_FIXED_KINDS:
+        return True
+    return bool(np.all(np.asarray(coef, float)[-len(c.idx) :] >= 0.0))
 
 
 _FREE_NAMES_ATTR = "_free_names"
@@ -704,6 +729,8 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
                     "heldout_confirms": bool(wo["rms_m"] > after["rms_m"]),
                     "heldout_gain_m": gain,
                     "heldout_gain_ci95_m": gain_ci,
+                    # after the joint refit with the other terms (the selection checked its own)
+                    "physical_sign_ok": physical_sign_ok(c, model.eff[list(c.idx)]),
                 },
             }
         )
@@ -770,6 +797,8 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
         "max_before_m": before["max_m"],
         "rms_after_m": after["rms_m"],
         "rms_after_ci95_m": after["rms_ci95_m"],
+        # does the final model's held-out RMS reach the noise floor within its 95 % interval?
+        "floor_reached": _floor_reached(after["rms_ci95_m"], floor),
         "max_after_m": after["max_m"],
         "rms_interval_basis": RMS_INTERVAL_BASIS,
         "parameter_std_basis": PARAMETER_STD_BASIS,
@@ -790,6 +819,11 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
                 "test_level": s.alpha_used,
                 "cv_mse_ratio": s.cv_ratio,
                 "cv_p_value": s.cv_p,
+                **(
+                    {"value": s.value, "unit": EFF_UNITS[s.cand.idx[0]]}
+                    if s.value is not None
+                    else {}
+                ),
             }
             for s in steps
         ],
@@ -820,6 +854,14 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
         plots["res_np"] = dte.p_tracker - model_np.predict(dte.q, **aux(dte))
     log(f"diagnosis done in {report['seconds']:.1f} s")
     return Diagnosis(report=report, dh_model=dh, model=model, model_np=model_np, plots=plots)
+
+
+def _floor_reached(ci, floor: float) -> bool | None:
+    """False when the whole 95 % interval of the held-out RMS lies above the noise floor (None
+    without an interval)."""
+    if ci is None or not np.all(np.isfinite(ci)):
+        return None
+    return bool(ci[0] <= floor)
 
 
 def _serial_correlation(res: np.ndarray, t: np.ndarray) -> dict:
@@ -1067,18 +1109,25 @@ def _geometry_items(dh: DHModel) -> list[dict]:
 
 
 # ----------------------------------------------------------------------------- plain language
+_DISPLAY_UNITS = {  # SI unit -> (factor, unit shown)
+    "rad/(N m)": (1e6, "urad/(N m)"),
+    "rad": (1e6, "urad"),
+    "m/N": (1e6, "um/N"),
+    "1/K": (1e6, "ppm/K"),
+    "1/h": (1e6, "ppm/h"),
+    "1": (1e6, "ppm"),
+    "m": (1e6, "um"),
+}
+
+
 def _fmt_value(v: float, sd: float, unit: str) -> str:
-    scales = {
-        "rad/(N m)": (1e6, "urad/(N m)"),
-        "rad": (1e6, "urad"),
-        "m/N": (1e6, "um/N"),
-        "1/K": (1e6, "ppm/K"),
-        "1/h": (1e6, "ppm/h"),
-        "1": (1e6, "ppm"),
-        "m": (1e6, "um"),
-    }
-    k, u = scales.get(unit, (1.0, unit))
+    k, u = _DISPLAY_UNITS.get(unit, (1.0, unit))
     return f"{v * k:.3g} +- {sd * k:.2g} {u}"
+
+
+def _fmt_plain(v: float, unit: str) -> str:
+    k, u = _DISPLAY_UNITS.get(unit, (1.0, unit))
+    return f"{v * k:.3g} {u}"
 
 
 def effect_sentence(e: dict) -> str:
@@ -1104,6 +1153,11 @@ def effect_sentence(e: dict) -> str:
             f", a held-out gain of {ev['heldout_gain_m'] * 1e6:.1f} um (95 % CI "
             f"{ci[0] * 1e6:.1f} to {ci[1] * 1e6:.1f} um"
             + ("; within chance)" if ci[0] <= 0.0 else ")")
+        )
+    if ev.get("physical_sign_ok") is False:
+        conf += (
+            f" - its sign is not physical ({SIGN_FIXED_KINDS[e['kind']]}) after the joint refit: "
+            "the term stands in for a cause outside the library"
         )
     return (
         f"{e['description']}: {size}; explains {100 * e['explained_fraction']:.0f} % of the "
@@ -1175,8 +1229,8 @@ def summary_text(r: dict) -> str:
         )
     if r["effects"]:
         lines.append(
-            "Physics left out of the nominal model (each accepted by an F test and by "
-            "cross-validation):"
+            "Physics left out of the nominal model (each accepted by an F test, by "
+            "cross-validation and, for a compliance or a flexibility, by its physical sign):"
         )
         for e in r["effects"]:
             lines.append("  - " + effect_sentence(e))
@@ -1199,6 +1253,23 @@ def summary_text(r: dict) -> str:
             f"({_ci(r, 'rms_after_ci95_m')}max "
             f"{um(r['max_after_m'])}), {r['rms_after_m'] / r['noise_floor_m']:.2f}x the noise floor."
         )
+        if r.get("floor_reached") is False:
+            lo = r["rms_after_ci95_m"][0]
+            lines.append(
+                f"  The named effects do not bring the held-out error down to the noise floor (the "
+                f"95 % interval starts at {um(lo)}, above the floor's {um(r['noise_floor_m'])}): "
+                "something the library does not hold remains, and the terms named above may "
+                "partly stand in for it. Read their sizes as the library's best description of "
+                "this recording, not as measurements of those mechanisms."
+            )
+        for st in r.get("selection", []):
+            if st["action"] == "set aside (sign)":
+                c = next(c for c in library() if c.key == st["candidate"])
+                lines.append(
+                    f"  Set aside: {c.describe()}, fitted at {_fmt_plain(st['value'], st['unit'])} "
+                    f"(F test p = {st['p_value']:.1g}): {SIGN_FIXED_KINDS[c.kind]}, so the pattern "
+                    "it fitted belongs to a cause outside the library."
+                )
     else:
         lines.append(
             "No physical effect of the library improves the fit by more than chance: the geometric "

@@ -60,6 +60,15 @@ PHYSICAL_KINDS = (
     "tracker_scale",
 )
 GEOMETRIC_KINDS = ("joint_offset", "link_geometry", "base_frame", "tool_offset")
+# Kinds whose parameter has a sign fixed by the physics: a joint yields to the torque gravity puts
+# on it (c_j >= 0: tau_j is that torque, positive towards increasing q) and a link bends the way
+# its load pulls (f_L >= 0). A fitted value of the other sign is not that mechanism: the term
+# stands in for something else. Backlash (its sign depends on where the encoder sits), thermal
+# drift (the time source may carry a shrinking) and the harmonics have no fixed sign.
+SIGN_FIXED_KINDS = {
+    "joint_compliance": "a joint cannot stiffen against gravity's pull",
+    "link_deflection": "a link cannot bend against its load",
+}
 
 # layout of the effect vector `eff` (52,)
 SL_COMP = slice(0, 6)
@@ -584,6 +593,7 @@ __all__ = [
     "GEOMETRIC_KINDS",
     "N_EFF",
     "PHYSICAL_KINDS",
+    "SIGN_FIXED_KINDS",
     "candidate_from_list",
     "jac_aug",
     "library",
