@@ -121,3 +121,16 @@ def test_diagnosis_of_a_pedestal_does_not_claim_it_is_all_explained(tmp_path: Pa
     for st in r["selection"]:
         if st["action"] == "set aside (sign)":
             assert st["value"] < 0 and "Set aside: " in text
+    # a recording where the only terms that help are of the wrong sign says so, not "chance"
+    only_aside = dict(
+        r,
+        effects=[],
+        selection=[
+            {"action": "set aside (sign)", "candidate": "link_deflection/link2", "p_value": 1e-9,
+             "value": -1.2e-7, "unit": "m/N"}
+        ],
+    )  # fmt: skip
+    text = summary_text(only_aside)
+    assert "No physical effect of the library is accepted" in text
+    assert "Set aside: link 2 deflection under gravity, fitted at -0.12 um/N" in text
+    assert "more than chance" not in text

@@ -1227,6 +1227,7 @@ def summary_text(r: dict) -> str:
         lines.append(
             "Where the residual concentrates: " + "; ".join(r["locate"]["statements"][:3]) + "."
         )
+    aside_sign = [st for st in r.get("selection", []) if st["action"] == "set aside (sign)"]
     if r["effects"]:
         lines.append(
             "Physics left out of the nominal model (each accepted by an F test, by "
@@ -1262,14 +1263,11 @@ def summary_text(r: dict) -> str:
                 "partly stand in for it. Read their sizes as the library's best description of "
                 "this recording, not as measurements of those mechanisms."
             )
-        for st in r.get("selection", []):
-            if st["action"] == "set aside (sign)":
-                c = next(c for c in library() if c.key == st["candidate"])
-                lines.append(
-                    f"  Set aside: {c.describe()}, fitted at {_fmt_plain(st['value'], st['unit'])} "
-                    f"(F test p = {st['p_value']:.1g}): {SIGN_FIXED_KINDS[c.kind]}, so the pattern "
-                    "it fitted belongs to a cause outside the library."
-                )
+    elif aside_sign:
+        lines.append(
+            "No physical effect of the library is accepted: the only ones that improve the fit "
+            "have a sign their physics excludes."
+        )
     else:
         lines.append(
             "No physical effect of the library improves the fit by more than chance: the geometric "
@@ -1279,6 +1277,13 @@ def summary_text(r: dict) -> str:
                 if r["rms_before_m"] < 1.3 * r["noise_floor_m"]
                 else "as well as any candidate does."
             )
+        )
+    for st in aside_sign:
+        c = next(c for c in library() if c.key == st["candidate"])
+        lines.append(
+            f"  Set aside: {c.describe()}, fitted at {_fmt_plain(st['value'], st['unit'])} "
+            f"(F test p = {st['p_value']:.1g}): {SIGN_FIXED_KINDS[c.kind]}, so the pattern it "
+            "fitted belongs to a cause outside the library."
         )
     ni = [x["candidate"] for x in r["not_identifiable"]]
     if ni:
