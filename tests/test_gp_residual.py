@@ -85,6 +85,16 @@ def test_fit_gp_reports_every_hyperparameter_with_std_or_at_bound(tmp_path, caps
                                             q1["value"] * q1["factor_95"]])  # fmt: skip
     tight = dataclasses.replace(m, log_hyper_std=np.full(8, 0.1)).parameters()
     assert tight["gp_lengthscale_q1"]["std"] == pytest.approx(0.1 * q1["value"])
+    # a log std so large that exp(1.96 s) overflows (series D's joint 5 length scale did on
+    # 2026-11-26: "RuntimeWarning: overflow", range_95 [0, inf]): finite, no warning, "x/ >1000"
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        huge = dataclasses.replace(m, log_hyper_std=np.full(8, 1e3)).parameters()
+    h = huge["gp_lengthscale_q1"]
+    assert np.isfinite(h["factor_95"]) and h["factor_95"] > 1e3
+    assert np.all(np.isfinite(h["range_95"])) and h["std"] is None
 
 
 def test_fit_report_prints_every_kind_of_parameter(capsys):

@@ -93,7 +93,7 @@ class GPResidualModel:
                 "at_bound": self.log_hyper_std is not None and not ok,
             }
             if ok:  # the approximation is Gaussian in the log: a factor either way
-                f = float(np.exp(1.96 * power * s_log))
+                f = float(np.exp(min(1.96 * power * s_log, 700.0)))  # no overflow: >1000 shown
                 e["factor_95"], e["range_95"] = f, [value / f, value * f]
                 if power * s_log > 0.5:  # a std beyond half the value says nothing
                     e["std"] = None
