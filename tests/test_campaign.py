@@ -129,6 +129,47 @@ def test_warm_up_never_leaves_the_envelope():
     assert all(v is None for v in env.violations(UR5E, np.array(robot.moves), tool))
 
 
+class StillRobot(ClockRobot):
+    """Robot time advances only with the distance moved (1 rad/s): a move to where the arm
+    already is takes no time, as on the simulated controller."""
+
+    def state(self):
+        from workcell.drivers.protocols import RobotState
+
+        q = self.moves[-1] if self.moves else self.q0
+        path = np.vstack([self.q0, *self.moves]) if self.moves else self.q0[None]
+        t = float(np.abs(np.diff(path, axis=0)).max(axis=1).sum()) if len(path) > 1 else 0.0
+        return RobotState(t_s=t, q_rad=q, qd_rad_s=np.zeros(6))
+
+
+def test_warm_up_scales_its_swing_to_the_envelope_and_never_spins():
+    """A first target whose full swing leaves the envelope on both sides (joint 2 near its upper
+    limit one way, joint 4 near its lower limit the other): the warm-up used to "move" to the
+    centre it was already at, robot time never advanced, and `campaign --warmup 60` spun forever
+    (seed 0). It now swings a quarter as far, inside the envelope, and ends."""
+    import threading
+
+    env = default_envelope(UR5E)
+    tool = np.array([0, 0, 0.06])
+    centre = np.array([0.0, -0.2, 0.6, -4.3, -1.5, 0.0])
+    robot, sink = StillRobot(q0=centre), NullSink()
+    ex = Executor(robot, None, UR5E, env, sink, tool_m=tool, config=CampaignConfig(warmup_s=8.0))
+    run = threading.Thread(target=ex.warm_up, args=(centre,), daemon=True)
+    run.start()
+    run.join(timeout=30.0)
+    assert not run.is_alive(), "the warm-up did not end"
+    assert robot.state().t_s >= 8.0
+    assert all(v is None for v in env.violations(UR5E, np.array(robot.moves), tool))
+    swing = np.abs(np.array(robot.moves) - centre).max()
+    assert 0.05 < swing < 0.4  # scaled down from the full 0.5 rad swing
+    # no waypoint fits at all: skipped with one line, no move
+    robot, sink = StillRobot(q0=centre), NullSink()
+    ex = Executor(robot, None, UR5E, env, sink, tool_m=tool, config=CampaignConfig(warmup_s=8.0))
+    ex._warmup_cycle = lambda q: None  # noqa: SLF001 (as if every scale left the envelope)
+    ex.warm_up(centre)
+    assert robot.moves == [] and "warm-up skipped" in sink.events[-1][1]
+
+
 def test_sim_campaign_records_every_pose_or_an_event(tmp_path):
     world, robot, tracker, cell = sim_cell("ur5e", "realistic", seed=4, beam_break_prob=0.15)
     p = tmp_path / "c.mcap"

@@ -285,3 +285,25 @@ def test_a_table_of_another_model_is_refused():
     )
     table.meta.pop("base_ref")  # a table without the field: not compared
     assert moved("base_ref", lambda n: n.base_ref.__setitem__((0, 3), 5.0)) is None
+
+
+def test_a_table_of_another_fit_of_the_same_recording_is_refused(tmp_path):
+    """Recording, arm, base and SMR can all agree while the model differs (the augmented model's
+    table given to validate the DH model of the same recording was accepted and reported the
+    augmented table's 1-sigma): the table carries the model's fingerprint. Its own model, saved
+    and loaded again, matches; any other parameter vector does not."""
+    from workcell.estimation.models import load_model, model_fingerprint, save_model
+    from workcell.export.validate import table_model_mismatch
+
+    _, _, table, corr = _cell_and_table()
+    model = corr.model
+    assert table.meta["model_fingerprint"] == model_fingerprint(model)
+    again = load_model(save_model(model, tmp_path / "m.json"))
+    assert table_model_mismatch(table, corr.nominal, None, model=again) is None
+    other = dataclasses.replace(model, theta=model.theta.copy())
+    other.theta[3] += 1e-9  # another fit: base, SMR and recording unchanged
+    w = table_model_mismatch(table, corr.nominal, None, model=other)
+    assert "another model of this recording (dh model" in w and "workcell export" in w
+    assert table_model_mismatch(table, corr.nominal, None) is None  # no model given: not compared
+    table.meta.pop("model_fingerprint")  # a table from before: not compared
+    assert table_model_mismatch(table, corr.nominal, None, model=other) is None

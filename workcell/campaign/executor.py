@@ -577,24 +577,45 @@ class Executor:
         if why is not None:  # the warm-up moves around the first target: never outside
             self.event("error", "refused", f"warm-up skipped: its centre (first target): {why}")
             return
+        cycle = self._warmup_cycle(np.asarray(q_centre, float))
+        if cycle is None:
+            self.event(
+                "warning",
+                "refused",
+                "warm-up skipped: no move of even 0.04 rad around the first target stays inside "
+                "the envelope; give the joints their working temperature another way",
+            )
+            return
         self.event("info", "warmup", f"warming up for {self.cfg.warmup_s:.0f} s before measuring")
         start = self.elapsed()
         k = 0
-        offsets = np.array([0.4, -0.3, 0.3, -0.4, 0.4, 0.5])
         while self.elapsed() - start < self.cfg.warmup_s:
             if self.control.abort.is_set():
                 raise KeyboardInterrupt
-            q = q_centre + (offsets if k % 2 == 0 else -offsets)
-            if self.env.violations(self.spec, q, self.tool_m)[0] is not None:
-                q = q_centre
+            before = self.elapsed()
             try:
-                if not self._move_along(q, "the warm-up"):
+                if not self._move_along(cycle[k % len(cycle)], "the warm-up"):
                     break
             except _MoveInterrupted as e:  # the next warm-up move is planned from where it is
                 self.event("warning", "retry", f"the warm-up: {e}")
             self._record_state(force=False)
             k += 1
+            if k >= len(cycle) and self.elapsed() <= before:  # no robot time passes: never spin
+                self.event("warning", "warmup", "warm-up stopped: its moves take no time")
+                break
         self.event("info", "warmup", f"warm-up done after {k} moves")
+
+    def _warmup_cycle(self, q_centre: np.ndarray) -> list[np.ndarray] | None:
+        """The warm-up's waypoints around q_centre: +-offsets (0.3-0.5 rad a joint) scaled down
+        until at least one side lies inside the envelope; a side outside is replaced by the
+        centre. None when no scale down to a tenth fits."""
+        offsets = np.array([0.4, -0.3, 0.3, -0.4, 0.4, 0.5])
+        for scale in (1.0, 0.5, 0.25, 0.1):
+            sides = [q_centre + scale * offsets, q_centre - scale * offsets]
+            inside = [self.env.violations(self.spec, q, self.tool_m)[0] is None for q in sides]
+            if any(inside):
+                return [q if ok else q_centre for q, ok in zip(sides, inside, strict=True)]
+        return None
 
     def run(self, plan: Plan) -> CampaignResult:
         sample = None

@@ -98,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
     if args.table:  # a table of another model, or in other units, is refused before any device
         table = load_table(args.table)
         nominal = nominal_for_model(model)
-        if (why := table_model_mismatch(table, nominal, sha)) is not None:
+        if (why := table_model_mismatch(table, nominal, sha, model=model)) is not None:
             raise UserError(f"{args.table}: {why}")
     elif args.volume:
         vol = parse_vec(args.volume, 6, "--volume")

@@ -128,6 +128,16 @@ def save_model(model: FittedModel, path: str | os.PathLike) -> Path:
     return write_text(path, json.dumps(d, indent=1, allow_nan=False))
 
 
+def model_fingerprint(model: FittedModel) -> str:
+    """sha256 of what the model predicts with: its serialised form without `info` (which holds
+    where its recording is and its held-out figures). Equal for a model and its saved and
+    reloaded copy; different for another fit, even of the same recording and method."""
+    import hashlib
+
+    d = {k: v for k, v in model.to_dict().items() if k != "info"}
+    return hashlib.sha256(json.dumps(d, sort_keys=True, allow_nan=True).encode()).hexdigest()
+
+
 def load_model(path: str | os.PathLike) -> FittedModel:
     p = Path(path)
     if not p.exists():

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from workcell.errors import UserError
-from workcell.estimation.models import unexplained_text
+from workcell.estimation.models import model_fingerprint, unexplained_text
 from workcell.export.correction import Conditions, Corrector, Nominal, nominal_for
 from workcell.export.table import (
     DEFAULT_INTERP_ERROR_M,
@@ -253,6 +253,7 @@ def make_table(
     meta = {
         "model": model_path or "(in memory)",
         "method": getattr(model, "method", "?"),
+        "model_fingerprint": model_fingerprint(model),
         "recording": rec,
         "recording_sha256": sha,
         "robot": nominal.robot,

@@ -21,7 +21,7 @@ import numpy as np
 
 from workcell.campaign.envelope import Guard
 from workcell.errors import UserError
-from workcell.estimation.models import interval_um, rms_interval
+from workcell.estimation.models import interval_um, model_fingerprint, rms_interval
 from workcell.export.correction import Q_REF, Nominal, rotvec_to_matrix
 from workcell.export.table import CorrectionTable
 
@@ -240,6 +240,7 @@ def table_model_mismatch(
     nominal: Nominal,
     recording_sha256: str | None = None,
     *,
+    model=None,
     ui: bool = False,
 ) -> str | None:
     """One line when a given table was not built from the model being validated, else None.
@@ -247,7 +248,8 @@ def table_model_mismatch(
     Compared, where both the table's meta (`build_table`, `make_table`) and the model give
     them: the recording the model was fitted on (`recording_sha256`), the arm (`robot`), the
     registered base the table corrects in (`base_ref`) and the SMR/TCP on the flange (`tcp_m`),
-    the last two within `TABLE_MATCH_RTOL` of their largest entry. A table of another model
+    the last two within `TABLE_MATCH_RTOL` of their largest entry, and, given the `model`, the
+    model itself (`model_fingerprint`: another fit of the same recording, another method). A table of another model
     would move the arm by another model's corrections and report that model's 1-sigma. The
     remedy is said for the command line, or with `ui` for the terminal UI's Export screen."""
     meta = table.meta if isinstance(table.meta, dict) else {}
@@ -262,6 +264,14 @@ def table_model_mismatch(
         return (
             f"the table was built from a model of another recording (recording_sha256 "
             f"{str(sha)[:12]}..., this model's {str(recording_sha256)[:12]}...); {remedy}"
+        )
+    fp = meta.get("model_fingerprint")
+    if fp and model is not None and fp != model_fingerprint(model):
+        return (
+            f"the table was built from another model of this recording ("
+            f"{meta.get('method', '?')} model, fingerprint {str(fp)[:12]}..., this "
+            f"{getattr(model, 'method', '?')} model's {model_fingerprint(model)[:12]}...); "
+            f"{remedy}"
         )
     robot = meta.get("robot")
     if robot and nominal.robot and robot != nominal.robot:

@@ -846,7 +846,7 @@ def closed_loop(
     nominal = nominal_for_model(model)
     from workcell.export.validate import table_model_mismatch
 
-    why = table_model_mismatch(table, nominal, model_recording(model)[1], ui=True)
+    why = table_model_mismatch(table, nominal, model_recording(model)[1], model=model, ui=True)
     if why is not None:
         raise UserError(f"{table_path}: {why}")
     spec = dev.cell.spec
