@@ -59,6 +59,20 @@ def write(path, n=30, close=True, seed=0):
     return samples
 
 
+def test_a_reading_that_is_not_ok_is_recorded_without_position_or_sigma(tmp_path):
+    """The simulated tracker returned its stated sigma beside a broken beam, and it was recorded
+    as if a position had been read with that sigma; the format's raw reading has none."""
+    p = tmp_path / "r.mcap"
+    with RecordingWriter(p, SESSION) as w:
+        w.tracker_measurement(10**18, [1.0, 2.0, 3.0], [1e-5] * 3, "ok")
+        w.tracker_measurement(10**18 + 1, [float("nan")] * 3, [6.75e-6] * 3, "beam_broken")
+        w.tracker_measurement(10**18 + 2, [1.0, 2.0, 3.0], [1e-5] * 3, "out_of_range")
+    m = read_recording(p).tracker_measurements
+    assert m[0]["position_m"] == [1.0, 2.0, 3.0] and m[0]["sigma_m"] == [1e-5] * 3
+    for r in m[1:]:
+        assert r["position_m"] == [None] * 3 and r["sigma_m"] == [None] * 3
+
+
 def test_round_trip(tmp_path):
     p = tmp_path / "r.mcap"
     samples = write(p)

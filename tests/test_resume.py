@@ -65,6 +65,9 @@ def test_kill9_then_resume(tmp_path):
     # one clock across the chain: the new file's records come after the old file's, and a
     # sample's log time less its elapsed time is the campaign's start in both files
     assert min(s["_log_time_ns"] for s in second.samples) > first.last_ns
+    # every record, the session included (it was stamped with the wall clock, 272 s before the
+    # old file's last record in a time-scaled simulation)
+    assert second.first_ns > first.last_ns
     starts = [s["_log_time_ns"] - s["elapsed_s"] * 1e9 for s in first.samples + second.samples]
     assert max(starts) - min(starts) < 1e6, (min(starts), max(starts))
 

@@ -163,7 +163,7 @@ def run_campaign(
     t_wall0_ns, elapsed0_s = _start_clock(clock, elapsed0_s)
     ex = None
     try:
-        with RecordingWriter(out, session) as w:
+        with RecordingWriter(out, session, session_t_ns=t_wall0_ns) as w:
             ex = Executor(
                 robot,
                 tracker,

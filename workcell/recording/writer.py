@@ -38,14 +38,23 @@ def _clean(v):
 class RecordingWriter:
     """Write a campaign recording. Use as a context manager; `close()` writes the summary."""
 
-    def __init__(self, path: str | os.PathLike, session: dict, *, compression: str = "zstd"):
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        session: dict,
+        *,
+        compression: str = "zstd",
+        session_t_ns: int | None = None,
+    ):
+        """`session_t_ns`: the session's log time (default now); a resume gives one after the
+        old file's last record, so the continued campaign's log times never go back."""
         self.path = Path(path)
         if self.path.exists():
             raise FileExistsError(f"{self.path} already exists; refusing to overwrite a recording")
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._f = open(self.path, "xb")  # never over a file that appeared meanwhile
         try:
-            self._start(session, compression)
+            self._start(session, compression, session_t_ns)
         except BaseException:
             # nothing measured yet (a full disk, an unwritable session): leave no header-only
             # file behind, which would block the same path and could not be resumed
@@ -53,7 +62,7 @@ class RecordingWriter:
             self.path.unlink(missing_ok=True)
             raise
 
-    def _start(self, session: dict, compression: str) -> None:
+    def _start(self, session: dict, compression: str, session_t_ns: int | None) -> None:
         comp = {
             "zstd": CompressionType.ZSTD,
             "lz4": CompressionType.LZ4,
@@ -77,7 +86,7 @@ class RecordingWriter:
             **session,
         }
         sess.setdefault("software", {"name": "workcell", "version": _version()})
-        self._write(S.SESSION, sess, _now_ns())
+        self._write(S.SESSION, sess, _now_ns() if session_t_ns is None else session_t_ns)
         self.flush()
 
     def _write(self, topic: str, msg: dict, t_ns: int) -> None:
@@ -111,6 +120,10 @@ class RecordingWriter:
         )
 
     def tracker_measurement(self, t_ns: int, position_m, sigma_m, status: str) -> None:
+        """One raw reading. A reading whose status is not `ok` read no position: its position and
+        sigma are recorded as nulls whatever the device returned beside the status."""
+        if status != "ok":
+            position_m = sigma_m = [None, None, None]
         self._write(
             S.TRACKER, {"position_m": position_m, "sigma_m": sigma_m, "status": status}, t_ns
         )
