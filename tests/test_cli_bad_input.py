@@ -225,6 +225,9 @@ def test_an_unmet_interpolation_target_is_said(cell, capsys):
         (["--robot", "ftp://x"], "expected sim or ur://HOST"),
         (["--tracker", "bogus"], "expected sim or serial:///dev/ttyX"),
         (["--out", "{file}/c.mcap"], "is a file, not a folder"),
+        (["--sim", "--sim-host", "10.0.0.1"], "only listens on loopback"),
+        (["--sim", "--robot", "ur://127.0.0.9"], "--robot and --tracker are not used with it"),
+        (["--time-scale", "inf"], "must be a finite number > 0"),
     ],
 )
 def test_tui_options_refused_before_it_starts(tmp_path, capsys, argv, match):
@@ -232,6 +235,12 @@ def test_tui_options_refused_before_it_starts(tmp_path, capsys, argv, match):
     f = tmp_path / "afile"
     f.write_text("x")
     one_line_refusal(capsys, ["tui", *[a.format(file=f) for a in argv]], match)
+
+
+def test_sim_time_scale_must_be_finite(capsys):
+    """`sim --time-scale inf` failed inside the tracker simulator, quoting 0.0 and "inf: no
+    delays" as if inf were meant."""
+    one_line_refusal(capsys, ["sim", "--time-scale", "inf"], "must be a finite number > 0")
 
 
 def test_bench_ekf_ann_counts(capsys):

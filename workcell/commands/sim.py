@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 
 from workcell.errors import UserError
@@ -74,8 +75,10 @@ def parse_faults(text: str) -> tuple[dict, dict]:
 
 
 def run(args: argparse.Namespace) -> int:
-    if not args.time_scale > 0:
-        raise UserError(f"--time-scale must be > 0, got {args.time_scale}")
+    if not (math.isfinite(args.time_scale) and args.time_scale > 0):
+        raise UserError(
+            f"--time-scale must be a finite number > 0 (e.g. 50), got {args.time_scale}"
+        )
     if not args.host.startswith("127."):
         raise UserError(f"--host {args.host}: the simulator only listens on loopback (127.x.y.z)")
     robot_faults, tracker_faults = parse_faults(args.faults)

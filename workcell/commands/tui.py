@@ -6,6 +6,7 @@ in-process simulation."""
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 from workcell.errors import UserError
@@ -44,8 +45,8 @@ def run(args: argparse.Namespace) -> int:
     from workcell.tui.backend import PlanConfig
 
     scale = args.time_scale if args.time_scale is not None else (10.0 if args.sim else 1.0)
-    if not scale > 0:
-        raise UserError(f"--time-scale must be > 0, got {scale}")
+    if not (math.isfinite(scale) and scale > 0):
+        raise UserError(f"--time-scale must be a finite number > 0 (e.g. 10), got {scale}")
     if args.poses <= 0:
         raise UserError(f"--poses must be positive, got {args.poses}")
     check_args(args)
@@ -84,6 +85,15 @@ def check_args(args: argparse.Namespace) -> None:
         robot_by_name(args.model)
     except ValueError as e:
         raise UserError(f"--model: {e}") from None
+    if args.sim and (args.robot != "sim" or args.tracker != "sim"):
+        raise UserError(
+            "--sim starts its own simulated devices: --robot and --tracker are not used with it "
+            "(leave them out, or drop --sim to connect to those devices)"
+        )
+    if args.sim and not args.sim_host.startswith("127."):
+        raise UserError(
+            f"--sim-host {args.sim_host}: the simulator only listens on loopback (127.x.y.z)"
+        )
     if args.sim or args.robot == "sim":
         from sim_devices.truth import parse_effects
 
