@@ -249,9 +249,10 @@ def table_model_mismatch(
     them: the recording the model was fitted on (`recording_sha256`), the arm (`robot`), the
     registered base the table corrects in (`base_ref`) and the SMR/TCP on the flange (`tcp_m`),
     the last two within `TABLE_MATCH_RTOL` of their largest entry, and, given the `model`, the
-    model itself (`model_fingerprint`: another fit of the same recording, another method). A table of another model
-    would move the arm by another model's corrections and report that model's 1-sigma. The
-    remedy is said for the command line, or with `ui` for the terminal UI's Export screen."""
+    model itself (`model_fingerprint`: another fit of the same recording, another method). A
+    table of another model would move the arm by another model's corrections and report that
+    model's 1-sigma. The remedy is said for the command line, or with `ui` for the terminal
+    UI's Export screen."""
     meta = table.meta if isinstance(table.meta, dict) else {}
     remedy = (
         "export the table from this model on the Export screen"
