@@ -267,12 +267,12 @@ def table_model_mismatch(
             f"{str(sha)[:12]}..., this model's {str(recording_sha256)[:12]}...); {remedy}"
         )
     fp = meta.get("model_fingerprint")
-    if fp and model is not None and fp != model_fingerprint(model):
+    mine = model_fingerprint(model) if fp and model is not None else None
+    if mine is not None and fp != mine:
         return (
             f"the table was built from another model of this recording ("
             f"{meta.get('method', '?')} model, fingerprint {str(fp)[:12]}..., this "
-            f"{getattr(model, 'method', '?')} model's {model_fingerprint(model)[:12]}...); "
-            f"{remedy}"
+            f"{getattr(model, 'method', '?')} model's {mine[:12]}...); {remedy}"
         )
     robot = meta.get("robot")
     if robot and nominal.robot and robot != nominal.robot:
