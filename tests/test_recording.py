@@ -24,14 +24,27 @@ SESSION = {
 }
 
 
+def p_nominal(q):
+    """Where the session's nominal UR5e puts the SMR in the tracker frame: the readings of a
+    recording must follow the arm (`Dataset.from_recording` refuses random positions)."""
+    from workcell.kinematics.chain import p_tracker, pack
+    from workcell.kinematics.robots import UR5E
+
+    T = np.eye(4)
+    T[:3, 3] = SESSION["tracker"]["base_in_tracker"]["translation_m"]
+    th = pack(UR5E.dh, tool=SESSION["tool"]["smr_offset_m"])
+    return np.asarray(p_tracker(th, T, np.atleast_2d(q)))[0]
+
+
 def sample(i, rng):
+    q = rng.normal(size=6)
     return {
         "index": i,
         "pose_id": i,
         "q_commanded_rad": rng.normal(size=6).tolist(),
-        "q_measured_rad": rng.normal(size=6).tolist(),
+        "q_measured_rad": q.tolist(),
         "approach_sign": [1, -1, 1, 1, -1, 1],
-        "tracker_position_m": rng.normal(size=3).tolist(),
+        "tracker_position_m": (p_nominal(q) + rng.normal(size=3) * 1e-4).tolist(),
         "tracker_sigma_m": [1e-5] * 3,
         "n_readings": 5,
         "joint_temperature_c": [25.0] * 6,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 
 import numpy as np
 
@@ -21,9 +22,24 @@ def _get(d, key):
     return d.get(key) if isinstance(d, dict) else None
 
 
-def value_problems(rec: Recording) -> list[str]:
-    """What `Dataset.from_recording` would refuse in this file (wrong units, bad types...)."""
-    return checks.problems_of(rec.session, rec.samples)
+def value_problems(rec: Recording) -> tuple[list[str], list[str]]:
+    """(what `Dataset.from_recording` would refuse in this file: wrong units, bad types, tracker
+    positions that do not follow the arm; what it would set aside and use: gross readings,
+    exact copies of samples)."""
+    out = checks.problems_of(rec.session, rec.samples)
+    if out or not rec.samples:
+        return out, []
+    from workcell.recording.dataset import Dataset
+    from workcell.recording.reader import RecordingError
+
+    try:
+        ds = Dataset.from_recording(rec)
+    except RecordingError as e:
+        msg = str(e)
+        for where in (str(rec.path), os.path.abspath(rec.path)):
+            msg = msg.removeprefix(f"{where}: ")
+        return [msg], []
+    return [], [n for n in ds.read_notes if "set aside" in n or "exact copies" in n]
 
 
 def summary(path: str) -> dict:
@@ -47,7 +63,7 @@ def summary(path: str) -> dict:
         "closed_cleanly": rec.closed_cleanly,
         "trailing_bytes": rec.trailing_bytes,
         "problems": rec.problems,
-        "value_problems": value_problems(rec),
+        **dict(zip(("value_problems", "set_aside"), value_problems(rec), strict=True)),
         "plan": _get(s.get("campaign"), "plan"),
         "envelope": _get(s.get("campaign"), "envelope"),
         "chained_from": s.get("chained_from"),
@@ -84,6 +100,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"repeated    ... and {len(d['repeats']) - 3} more poses measured more than once")
     for p in d["problems"]:
         print(f"problem     {p}")
+    for n in d["set_aside"]:
+        print(f"set aside   {n}")
     vp = d["value_problems"]
     for p in vp[:20]:
         print(f"bad value   {p}")

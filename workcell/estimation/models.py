@@ -308,7 +308,11 @@ RMS_INTERVAL_BASIS = (
 
 
 def _rms(x, axis=-1):
-    return np.sqrt(np.mean(x**2, axis=axis))
+    """sqrt(mean(x^2)) along `axis`, scaled by max|x| so huge errors do not overflow."""
+    x = np.asarray(x, float)
+    s = np.max(np.abs(x), axis=axis, keepdims=True)
+    s = np.where(np.isfinite(s) & (s > 0), s, 1.0)
+    return np.squeeze(s, axis=axis) * np.sqrt(np.mean((x / s) ** 2, axis=axis))
 
 
 def _bootstrap_interval(data: tuple, stat, level: float, seed: int) -> tuple[float, float]:
@@ -341,15 +345,21 @@ def _chi2_rms_interval(e: np.ndarray, level: float, dims: int = 3) -> tuple[floa
     pose (exact for isotropic Gaussian errors in `dims` axes)."""
     from scipy.stats import chi2
 
-    d2 = e * e
+    # the interval scales with the errors: work on e / max|e| so that squares neither overflow
+    # (errors of 1e200 m from a diverged fit) nor underflow
+    scale = float(np.max(np.abs(e))) if len(e) else 0.0
+    if not (np.isfinite(scale) and scale > 0.0):
+        r = float(np.sqrt(np.mean(e * e))) if len(e) else float("nan")
+        return r, r
+    d2 = (e / scale) ** 2
     n, m, v = len(d2), float(d2.mean()), float(d2.var(ddof=1))
     if m <= 0.0 or v <= (1e-9 * m) ** 2:  # no spread to go by (as the bootstrap)
-        return float(np.sqrt(m)), float(np.sqrt(m))
+        return scale * float(np.sqrt(m)), scale * float(np.sqrt(m))
     nu = min(2.0 * n * m * m / v, float(dims * n))
     a = (1.0 - level) / 2.0
     return (
-        float(np.sqrt(nu * m / chi2.ppf(1.0 - a, nu))),
-        float(np.sqrt(nu * m / chi2.ppf(a, nu))),
+        scale * float(np.sqrt(nu * m / chi2.ppf(1.0 - a, nu))),
+        scale * float(np.sqrt(nu * m / chi2.ppf(a, nu))),
     )
 
 

@@ -62,6 +62,10 @@ class DH:
             raise ValueError(f"DH parameters: missing field {e.args[0]!r}") from None
 
 
+# no revolute joint of a serial arm turns more than two turns each way (UR: +-2 pi)
+JOINT_LIMIT_MAX_RAD = 4 * PI + 1e-6
+
+
 @dataclass(frozen=True)
 class RobotSpec:
     """An n-joint arm (n = 6 for the catalogue): nominal geometry, limits and inertial data used
@@ -79,8 +83,28 @@ class RobotSpec:
     def __post_init__(self) -> None:
         n = self.dh.n_joints
         lim = np.asarray(self.joint_limits_rad, dtype=float)
-        if lim.shape != (n, 2) or np.any(lim[:, 0] >= lim[:, 1]):
-            raise ValueError(f"joint_limits_rad: expected {n} [lo, hi] pairs, got {lim.tolist()}")
+        if lim.shape != (n, 2):
+            raise ValueError(
+                f"joint_limits_rad: expected {n} [lo, hi] pairs, got shape {lim.shape}"
+            )
+        if not np.all(np.isfinite(lim)):
+            raise ValueError("joint_limits_rad: every limit must be a finite number (radians)")
+        if np.any(lim[:, 0] >= lim[:, 1]):
+            j = int(np.argmax(lim[:, 0] >= lim[:, 1]))
+            raise ValueError(
+                f"joint_limits_rad: joint {j + 1}'s pair is [{lim[j, 0]:.4g}, {lim[j, 1]:.4g}]; "
+                "write [lo, hi] with lo < hi"
+            )
+        if np.max(np.abs(lim)) > JOINT_LIMIT_MAX_RAD:
+            hint = (
+                "it looks like degrees; the format wants radians"
+                if np.max(np.abs(lim)) <= 1080.0
+                else "not an angle in radians"
+            )
+            raise ValueError(
+                f"joint_limits_rad: a limit of {np.max(np.abs(lim)):.4g} is beyond two turns "
+                f"({JOINT_LIMIT_MAX_RAD:.4g} rad): {hint}"
+            )
         object.__setattr__(self, "joint_limits_rad", lim)
         if self.max_joint_speed_rad_s is None:
             object.__setattr__(self, "max_joint_speed_rad_s", np.full(n, PI))

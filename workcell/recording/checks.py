@@ -190,8 +190,8 @@ def sample_problems(smp: dict, k: int, robot: RobotSpec) -> list[str]:
     where = f"sample {idx if _number(idx) else k} (pose_id {smp.get('pose_id')!r})"
     out: list[str] = []
     pid = smp.get("pose_id")
-    if not (_number(pid) and float(pid) == int(pid)):
-        out.append(f"{where}: pose_id must be an integer")
+    if not (_number(pid) and float(pid) == int(pid) and abs(pid) < 2**53):
+        out.append(f"{where}: pose_id must be an integer (below 2^53)")
     for key, width, required in (
         ("q_measured_rad", n, True),
         ("tracker_position_m", 3, True),

@@ -14,7 +14,7 @@ import numpy as np
 
 from workcell.kinematics.frames import matrix_from_quat_wxyz, transform_from
 from workcell.kinematics.robots import RobotSpec
-from workcell.recording import checks
+from workcell.recording import checks, consistency
 from workcell.recording.reader import Recording, RecordingError, is_finite_list, read_recording
 
 HOLDOUT_SEED = 20240601
@@ -156,6 +156,15 @@ class Dataset:
         problems = checks.recording_problems(s, rows, robot)
         if problems:
             raise RecordingError(f"{rec.path}: {checks.first_problem(problems)}")
+        notes = []
+        copies = consistency.exact_copies(rows)
+        if copies:
+            notes.append(
+                f"{len(copies)} of {len(rows)} samples are exact copies of earlier ones (same "
+                "pose_id, joints and tracker position: a stream written twice?); each is used once"
+            )
+            drop = set(copies)
+            rows = [r for i, r in enumerate(rows) if i not in drop]
         tool = s["tool"]["smr_offset_m"]
         bit = s["tracker"]["base_in_tracker"]
         t, qw = bit["translation_m"], bit["quaternion_wxyz"]
@@ -172,7 +181,6 @@ class Dataset:
         q = arr("q_measured_rad", 6, np.nan)
         sig = arr("tracker_sigma_m", 3, np.nan)
         bad = ~np.isfinite(sig) | (sig <= 0)
-        notes = []
         if bad.any():  # unknown sigma: use the median of the known ones, or 10 um
             good = sig[~bad]
             sig[bad] = np.median(good) if good.size else 1e-5
@@ -195,7 +203,7 @@ class Dataset:
         payload = s.get("payload") or {}
         pkg = arr("payload_kg", 0, float(payload.get("mass_kg") or 0.0))
         com = payload.get("com_m")
-        return cls(
+        ds = cls(
             robot=robot,
             tool_offset_m=np.asarray(tool, float),
             tracker_T_base_nominal=T,
@@ -216,6 +224,26 @@ class Dataset:
             read_problems=tuple(rec.problems),
             read_notes=tuple(notes),
         )
+        return ds.screened()
+
+    def screened(self) -> Dataset:
+        """Refuse data that does not follow the arm; set gross readings aside, with a note
+        (`workcell.recording.consistency`)."""
+        n = len(self)
+        if n < consistency.MIN_SAMPLES:
+            return self
+        dist = consistency.nominal_distances(self.robot, self.tool_offset_m, self.q, self.p_tracker)
+        med = float(np.median(dist))
+        if not med <= consistency.GROSS_M:
+            raise RecordingError(
+                f"{self.source}: {consistency.mismatch_message(self.robot, med, n)}"
+            )
+        gross = dist > consistency.GROSS_M
+        if not gross.any():
+            return self
+        note = consistency.gross_note(self.pose_id[gross], dist[gross], n)
+        kept = self.subset(np.flatnonzero(~gross))
+        return replace(kept, read_notes=(*self.read_notes, note))
 
 
 def read_warnings(ds: Dataset | Recording) -> list[str]:

@@ -39,6 +39,9 @@ class Recording:
     first_ns: int | None = None
     last_ns: int | None = None
     size_bytes: int = 0
+    # why the session or samples cannot be read (their channel is not JSON); read_recording
+    # refuses the file with it
+    encoding_refusal: str = ""
 
     @property
     def duration_s(self) -> float:
@@ -112,6 +115,8 @@ def read_recording(path: str | os.PathLike, *, streams: bool = True) -> Recordin
             rec.problems.append(f"unreadable data after byte {f.tell()} ({type(e).__name__}: {e})")
     if not rec.closed_cleanly and not any("ends" in x for x in rec.problems):
         rec.problems.append("no summary/footer: the writer did not finish (crash or still open)")
+    if rec.encoding_refusal:
+        raise RecordingError(f"{p}: {rec.encoding_refusal}; write it with JSON messages")
     if not rec.session:
         if rec.problems and not rec.channel_counts:
             damage = rec.problems[0].split("; read everything")[0]
@@ -146,10 +151,15 @@ def _message(rec: Recording, channels, schemas, m: Message, streams: bool) -> No
     if topic not in S.SCHEMAS:
         return  # extension channels are allowed
     if ch.message_encoding != "json":
-        raise RecordingError(
-            f"{rec.path}: channel {topic} uses encoding {ch.message_encoding!r}; format v1 "
-            "requires json"
-        )
+        # the format's messages are JSON; a stream in another encoding cannot be read. Without
+        # the session or the samples nothing is usable (refused after the pass, naming the
+        # encoding); another stream is skipped with one note
+        what = f"channel {topic} uses encoding {ch.message_encoding!r}; format v1 requires json"
+        if topic in (S.SESSION, S.SAMPLE):
+            rec.encoding_refusal = rec.encoding_refusal or what
+        elif not any(x.startswith(what) for x in rec.problems):
+            rec.problems.append(f"{what}: its messages were skipped")
+        return
     try:
         msg = json.loads(m.data)
     except (ValueError, UnicodeDecodeError):
