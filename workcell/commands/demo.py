@@ -45,7 +45,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from sim_devices.cell import sim_cell
     from workcell.campaign.run import margin_stop, run_campaign
-    from workcell.estimation.fitting import fit_dataset
+    from workcell.estimation.fitting import fit_dataset, keep_in_model
     from workcell.estimation.models import save_model
     from workcell.recording.dataset import Dataset
 
@@ -113,6 +113,7 @@ def run(args: argparse.Namespace) -> int:
             log(f"  fit {m}: skipped ({e})")
             continue
         models[m] = model
+        keep_in_model(model, ds, rep)  # recording and held-out figures, as `fit --out` keeps
         save_model(model, out / f"{rec_path.stem}.{m}.json")
         results[m] = rep
         log(
@@ -172,6 +173,7 @@ def run(args: argparse.Namespace) -> int:
                 {"kind": e["kind"], "joint": e["joint"]} for e in diagnosis.report["effects"]
             ],
             "summary": diagnosis.report["summary"],
+            "noise_floor_m": diagnosis.report["noise_floor_m"],
         }
     if not args.no_correction:
         try:
@@ -199,6 +201,8 @@ def run(args: argparse.Namespace) -> int:
             + (f"   {ci}" if ci else "")
         )
     print(f"{'noise floor (sim noise)':24}{um(floor):>14}")
+    if diagnosis is not None:  # the floor the tool states without the truth
+        print(f"{'noise floor (diagnose)':24}{um(diagnosis.report['noise_floor_m']):>14}")
     print(f"  (noise floor: {NOISE_FLOOR_BASIS})")
     best = min(results.values(), key=lambda r: r["heldout_rms_m"])
     print(

@@ -58,6 +58,11 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--on must be dh, nominal or auto, got {args.on!r}")
     if args.on != "auto" and args.method == "dh":
         raise UserError("--on chooses the base model of lddmm and gp; --method dh has none")
+    if args.on == "nominal" and args.method == "gp":
+        raise UserError(
+            "--method gp always sits on the DH fit (its GP models the DH fit's residual); drop "
+            "--on nominal, or use --method lddmm --on nominal"
+        )
     mpe = parse_tracker_mpe(args.tracker_mpe)
     if args.out:
         out = Path(args.out)
@@ -242,4 +247,10 @@ def print_report(r: dict) -> None:
         if k.startswith("gp_") and isinstance(v, (int, float, list)):
             continue  # the GP's hyperparameters: in the table above, with their std
         print(f"{k:>16} {v}")
+    if (r.get("extra") or {}).get("converged") is False:
+        print(
+            "warning: the LDDMM optimiser stopped before its convergence test held "
+            f"({r['extra'].get('optimizer_message')}); the deformation may be short of its "
+            "optimum: compare train_rms_after_m with train_rms_linear_m"
+        )
     print(f"model           {r['model']}")

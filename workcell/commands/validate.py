@@ -65,6 +65,21 @@ def check_options(args: argparse.Namespace) -> None:
         )
 
 
+def recorded_end_s(rec: str | None) -> float | None:
+    """The last sample's elapsed_s in the recording (s), None when unreadable or absent."""
+    if not rec:
+        return None
+    try:
+        from workcell.recording.reader import read_recording
+
+        e = [s.get("elapsed_s") for s in read_recording(rec, streams=False).samples]
+    except Exception:  # noqa: BLE001 - the recording is optional here
+        return None
+    e = [float(x) for x in e if isinstance(x, int | float) and not isinstance(x, bool)]
+    e = [x for x in e if np.isfinite(x) and x >= 0]
+    return max(e) if e else None
+
+
 def run(args: argparse.Namespace) -> int:
     from workcell.campaign.devices import envelope_from_args
     from workcell.campaign.envelope import Guard
@@ -119,8 +134,18 @@ def run(args: argparse.Namespace) -> int:
             model, "robot_model", "ur5e"
         )
         world, robot, tracker, cell = sim_cell(robot_name, effects, int(seed))
-        # the recording's robot was warm: warm-up plus the campaign
-        world.clock.advance(float(camp.get("warmup_s") or 0.0) + 3600.0)
+        # the simulated arm is as warm as at the recording's last sample (its clock started
+        # with the campaign, warm-up included)
+        end_s = recorded_end_s(rec)
+        if end_s is None:
+            end_s = float(camp.get("warmup_s") or 0.0) + 3600.0
+            log(
+                f"simulated clock set to {end_s:.0f} s (warm-up + 1 h: the recording's sample "
+                "times are not readable)"
+            )
+        else:
+            log(f"simulated clock set to {end_s:.1f} s, the recording's last sample")
+        world.clock.advance(end_s)
         measure = sim_measure(world)
         spec = cell.spec
     else:

@@ -760,7 +760,7 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
     res_te = dte.p_tracker - pred_te
     excess = unexplained_error(after["rms_m"], after["rms_ci95_m"], floor)
     unexplained = {
-        "rms_m": after["rms_m"],
+        "heldout_rms_m": after["rms_m"],  # the excess over the floor is below (as `fit`'s rms_m)
         "excess_over_floor_m": excess["rms_m"] if excess else float("nan"),
         "excess_over_floor_upper_m": excess["upper_m"] if excess else None,
         "excess_basis": excess["basis"] if excess else None,
@@ -783,7 +783,12 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
         if model_np is not None:
             note_joint_range(model_np, dfit.q)
 
-    geometry = _geometry_items(dh)
+    from workcell.estimation.identifiability import weak_directions
+
+    # the final model's geometry (refit jointly with the accepted effects: the values and stds
+    # `parameter_std_basis` describes), and the groups its poses barely tell apart
+    geometry = _geometry_items(model)
+    weak = weak_directions(model.theta_cov(), PARAM_NAMES)
     report = {
         "recording": ds.source,
         "recording_sha256": ds.source_sha256,
@@ -837,6 +842,11 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
         "not_identifiable": not_identifiable,
         "locate": loc,
         "geometry": geometry,
+        "geometry_basis": (
+            "the final model's geometric parameters, estimated jointly with the accepted "
+            "effects (deviations from the session's nominal chain)"
+        ),
+        "weakly_identified": weak,
         "unexplained": unexplained,
         "thermal_source": src,
         "joints_tied_to_time": _joints_tied_to_time(dfit),
@@ -1059,9 +1069,10 @@ def _deviation(v: dict) -> dict:
     }
 
 
-def _geometry_items(dh: DHModel) -> list[dict]:
-    """Geometric kinds: the estimated deviations from nominal, grouped."""
-    params = dh.parameters()
+def _geometry_items(model) -> list[dict]:
+    """Geometric kinds of a DH or augmented model: the estimated deviations from nominal,
+    grouped."""
+    params = model.parameters()
     items = []
     for j in range(1, 7):
         n = f"theta{j}_offset"
@@ -1284,6 +1295,13 @@ def summary_text(r: dict) -> str:
             f"  Set aside: {c.describe()}, fitted at {_fmt_plain(st['value'], st['unit'])} "
             f"(F test p = {st['p_value']:.1g}): {SIGN_FIXED_KINDS[c.kind]}, so the pattern it "
             "fitted belongs to a cause outside the library."
+        )
+    for g in r.get("weakly_identified") or []:
+        lines.append(
+            "Weakly identified geometry: the poses barely tell {"
+            + ", ".join(g["parameters"])
+            + f"}} apart (std {g['std_inflation']:.0f}x what it would be with the others known); "
+            "only their combination is meaningful."
         )
     ni = [x["candidate"] for x in r["not_identifiable"]]
     if ni:

@@ -196,6 +196,8 @@ def fit_dataset(
         )
         if len(test)
         else "no hold-out: numbers are on the training poses",
+        # with --holdout 0 the heldout_* figures are on the training poses (no held-out ones)
+        "evaluated_on": "held-out poses" if len(dte) else "training poses (no hold-out)",
         "nominal_rms_m": nominal["rms_m"],
         "nominal_rms_ci95_m": nominal["rms_ci95_m"],
         "nominal_max_m": nominal["max_m"],
@@ -298,6 +300,13 @@ def keep_in_model(model, ds: Dataset, report: dict) -> None:
     if isinstance(info, dict):
         info.setdefault("recording", ds.source)
         info.setdefault("recording_sha256", ds.source_sha256)
+        if not report.get("heldout_poses"):
+            # no held-out poses (--holdout 0): training figures say nothing of what the model
+            # leaves unexplained elsewhere; `export` then states none
+            for k in ("heldout_rms_m", "heldout_rms_ci95_m", "unexplained", "heldout_outliers"):
+                info.pop(k, None)
+            info["heldout"] = "none: fitted with --holdout 0"
+            return
         info["heldout_rms_m"] = report["heldout_rms_m"]
         info["heldout_rms_ci95_m"] = report["heldout_rms_ci95_m"]
         info["unexplained"] = report["unexplained"]

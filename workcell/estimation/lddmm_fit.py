@@ -189,6 +189,9 @@ def fit_method(
         "train_rms_linear_m": fi.rms_train_linear if fi else None,
         "train_rms_after_m": fi.rms_train_after if fi else None,
         "iterations": fi.n_iter if fi else None,
+        # L-BFGS-B's own verdict: False when it stopped at its iteration or evaluation limit
+        "converged": (fi.message.upper().startswith("CONVERGENCE")) if fi else None,
+        "optimizer_message": fi.message if fi else None,
         "lddmm_fit_seconds": fi.fit_seconds if fi else None,
         "evaluation": ev,
         "identifiability": bases[on].info.get("identifiability"),
