@@ -77,10 +77,13 @@ def test_estimate_gives_each_geometric_state_with_a_scaled_std(campaign):
     s0 = est["variance_factor"]
     geo = est["geometric"]
     assert len(geo) > 0 and set(geo) == set(est["geometric_std"])
+    assert est["std_scale"] == pytest.approx(np.sqrt(max(s0, 1.0)))
     for name, g in geo.items():
-        assert g["std_filter"] == est["geometric_std"][name]
+        # the top-level geometric_std is the same scaled figure (it was the unscaled one)
+        assert est["geometric_std"][name] == g["std"]
         assert g["std"] == pytest.approx(g["std_filter"] * np.sqrt(max(s0, 1.0)))
         assert g["unit"] in ("m", "rad")
+        assert g["determined_by"] in ("data", "prior")
     assert "std_filter" in est["geometric_std_basis"]
 
 

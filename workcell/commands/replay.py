@@ -33,8 +33,57 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--every", type=int, default=1, help="print every Nth progress line")
 
 
-def run(args: argparse.Namespace) -> int:
+def geometric_lines(est: dict) -> list[str]:
+    """The text report of an initialised estimate's geometric states (`LiveFilter.estimate`).
+
+    A state the data did not determine (`determined_by` "prior": its filter std stayed above
+    `held_by_prior_ratio` of its starting std) is printed as held by its prior, not with a +-.
+    """
     from workcell.commands.options import display_unit
+
+    s0 = est.get("variance_factor", float("nan"))
+    out = [
+        f"geometric estimate at the last sample (variance factor s0^2 {s0:.3g}, "
+        f"{'passes' if est.get('variance_test_ok') else 'fails'} the 95 % chi^2 test):"
+    ]
+    for n, g in est["geometric"].items():
+        k, u = display_unit(g["unit"])
+        head = f"  {n:>14} {g['value'] * k:12.4f}"
+        if g.get("determined_by") != "prior":
+            out.append(
+                f"{head} +- {g['std'] * k:.3g} {u}   (filter alone +- {g['std_filter'] * k:.3g})"
+            )
+            continue
+        cfg_name = "sigma_g0_rad" if g["unit"] == "rad" else "sigma_g0_m"
+        out.append(
+            f"{head} {u}   held by its prior ({cfg_name} = {g['std_prior'] * k:.3g} {u}), "
+            "not measured"
+        )
+        why = (
+            f"filter std {g['std_filter'] * k:.3g} {u} = {g['std_filter_over_prior']:.2f} of the "
+            "prior"
+        )
+        partners = g.get("correlated_with") or {}
+        if partners:
+            why += "; the data measured only its combination with " + ", ".join(
+                f"{m} (correlation {c:+.2f})" if len(partners) > 1 else f"{m}, correlation {c:+.2f}"
+                for m, c in partners.items()
+            )
+        out.extend(textwrap.wrap(f"({why})", width=100, initial_indent=" " * 30,
+                                 subsequent_indent=" " * 31))  # fmt: skip
+    out += textwrap.wrap(f"std: {est['geometric_std_basis']}", width=100)
+    held = est.get("held_by_prior") or []
+    if held:
+        r = est.get("held_by_prior_ratio", 0.5)
+        out += textwrap.wrap(
+            f"held by its prior: {', '.join(held)} - not measured (std_filter / std_prior > "
+            f"{r}); `workcell fit` on the recording says which combination is weakly identified",
+            width=100,
+        )
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
     from workcell.estimation.ekf_ann.live import LiveFilter
     from workcell.recording import checks
     from workcell.recording.dataset import read_warnings
@@ -107,16 +156,6 @@ def run(args: argparse.Namespace) -> int:
                 f"recording has {len(rec.samples)}"
             )
         elif geo:
-            s0 = est.get("variance_factor", float("nan"))
-            print(
-                f"geometric estimate at the last sample (variance factor s0^2 {s0:.3g}, "
-                f"{'passes' if est.get('variance_test_ok') else 'fails'} the 95 % chi^2 test):"
-            )
-            for n, g in geo.items():
-                k, u = display_unit(g["unit"])
-                print(
-                    f"  {n:>14} {g['value'] * k:12.4f} +- {g['std'] * k:.3g} {u}"
-                    f"   (filter alone +- {g['std_filter'] * k:.3g})"
-                )
-            print(textwrap.fill(f"std: {est['geometric_std_basis']}", width=100))
+            for line in geometric_lines(est):
+                print(line)
     return 0

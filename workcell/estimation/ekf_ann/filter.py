@@ -33,7 +33,14 @@ import numpy as np
 from workcell._jax import jax, jnp
 from workcell.estimation.ekf_ann import ann as A
 from workcell.estimation.ekf_ann.core import Step, blocked_scan, symmetrise
-from workcell.kinematics.chain import IDX, N_PARAMS, PARAM_NAMES, p_tracker, tracker_T_base
+from workcell.kinematics.chain import (
+    IDX,
+    N_PARAMS,
+    PARAM_NAMES,
+    PARAM_UNITS,
+    p_tracker,
+    tracker_T_base,
+)
 from workcell.kinematics.chain import p_tracker_single as _pts
 
 MODES = ("paper", "adaptive")
@@ -66,6 +73,13 @@ class FilterConfig:
             raise ValueError(f"block must be >= 1, got {self.block}")
         if self.mode == "paper" and self.geometric:
             raise ValueError("geometric states need mode='adaptive' (the paper's filter has none)")
+
+
+def geometric_prior_std(cfg: FilterConfig, name: str) -> float:
+    """The adaptive filter's starting (prior) std of geometric state `name`, in its unit:
+    `sigma_g0_rad` for an angle (alpha*, theta*_offset, beta*, base_r*), `sigma_g0_m` for a length
+    or position (a*, d*, base_t*, tool_*)."""
+    return cfg.sigma_g0_rad if PARAM_UNITS[name] == "rad" else cfg.sigma_g0_m
 
 
 @partial(jax.jit, static_argnames=("k",))
@@ -233,12 +247,7 @@ class EkfAnnFilter:
             x = np.concatenate([w0, p0])
             Pd = np.concatenate([Pw, np.full(3, cfg.sigma_p0_m**2)])
         else:
-            g_sd = [
-                cfg.sigma_g0_rad
-                if n.startswith(("alpha", "theta", "beta", "base_r"))
-                else cfg.sigma_g0_m
-                for n in cfg.geometric
-            ]
+            g_sd = [geometric_prior_std(cfg, n) for n in cfg.geometric]
             x = np.concatenate([w0, np.zeros(len(cfg.geometric))])
             Pd = np.concatenate([Pw, np.square(g_sd)])
         return cls(cfg, spec, theta0, np.asarray(base_ref, float), x, np.diag(Pd), seed=seed)
@@ -265,7 +274,16 @@ class EkfAnnFilter:
             return self.theta0 + self.E @ self.x[self.n_weights :]
         return self.theta0
 
+    def geometric_prior_std(self) -> dict[str, float]:
+        """The starting std of each adaptive geometric state (`geometric_prior_std`); empty in
+        paper mode, whose position state is set from the first sample and walks with the joint
+        noise, so its std is no prior to compare with."""
+        if self.cfg.mode == "paper":
+            return {}
+        return {n: geometric_prior_std(self.cfg, n) for n in self.cfg.geometric}
+
     def geometric_std(self) -> dict[str, float]:
+        """sqrt(diag P) of the geometric states (paper mode: the position state), unscaled."""
         K = self.n_weights
         sd = np.sqrt(np.clip(np.diag(self.P)[K:], 0, None))
         if self.cfg.mode == "paper":
@@ -426,4 +444,11 @@ def prefit_weights(
     return A.lm_fit(w0, q, d, spec, steps=steps, max_samples=max_samples, rng=seed)
 
 
-__all__ = ["FilterConfig", "EkfAnnFilter", "StepLog", "prefit_weights", "PARAM_NAMES"]
+__all__ = [
+    "FilterConfig",
+    "EkfAnnFilter",
+    "StepLog",
+    "geometric_prior_std",
+    "prefit_weights",
+    "PARAM_NAMES",
+]

@@ -47,11 +47,37 @@ from workcell.kinematics.chain import (
 from workcell.kinematics.frames import kabsch
 from workcell.kinematics.robots import DH, RobotSpec, robot_from_session
 
+# A geometric state is "held by its prior" when the data left its (unscaled) filter std above
+# PRIOR_HELD_RATIO of its starting std. Why 0.5: with the diagonal starting covariance P0 of the
+# filter, the linear-Gaussian estimate is P P0^-1 x0 + P H^T R^-1 y, so the coefficient of a
+# state's own starting value in its estimate is P_ii / P0_ii = (std_filter / std_prior)^2; above
+# 0.5 the prior carries more than 25 % of the value. A state of which only a combination with one
+# other state of the same prior is measured - however well - ends at 1/sqrt(2) = 0.71 (series D,
+# iso cubes: base_ty and tool_z, 0.708 each, which `workcell fit` flags as weakly identified), so
+# the threshold sits below that; the states the data determine end far below it (series D: the
+# largest of the other 23 is alpha5 at 0.16).
+PRIOR_HELD_RATIO = 0.5
+# a held state's partners: the estimated geometric states it is correlated with at least this much
+# in the final covariance (what the data measured is then their combination)
+PARTNER_CORRELATION = 0.9
+
 GEOMETRIC_STD_BASIS = (
-    "std_filter: sqrt(diag P) of the filter, right only if the stated measurement noise is; std: "
-    "that times sqrt(max(1, s0^2)), s0^2 the innovation variance factor over the window "
-    "(variance_factor; above 1 the innovations are larger than the stated noise)"
+    "std_filter: sqrt(diag P) of the filter, right only if the stated measurement noise is; std "
+    "(and geometric_std): that times std_scale = sqrt(max(1, s0^2)), s0^2 the innovation variance "
+    "factor over the window (variance_factor; above 1 the innovations are larger than the stated "
+    "noise); std_prior: the filter's starting std of the state (sigma_g0_m, sigma_g0_rad); "
+    f"determined_by 'prior' (the states in held_by_prior): std_filter / std_prior > "
+    f"{PRIOR_HELD_RATIO} (the prior carries more than {PRIOR_HELD_RATIO**2 * 100:.0f} % of the "
+    "value): the data did not determine the state; its value is its start (nominal DH, declared "
+    "SMR offset, registered base) moved only by its prior's share of a combination the data "
+    "measured (correlated_with), and its std reflects the prior's spread, not a measurement "
+    "uncertainty"
 )
+
+
+def _std_scale(s0: float) -> float:
+    """sqrt(max(1, s0^2)) (1 when s0^2 is not known yet): the factor on the filter's stds."""
+    return float(np.sqrt(max(s0, 1.0))) if np.isfinite(s0) else 1.0
 
 
 def identifiable_geometry(
@@ -235,6 +261,8 @@ class LiveFilter:
             "initialised": f is not None,
         }
         if f is not None:
+            k = _std_scale(s0)
+            geo = self._geometric(f, s0)
             out.update(
                 {
                     "mode": f.cfg.mode,
@@ -242,8 +270,15 @@ class LiveFilter:
                     "geometric_states": list(f.cfg.geometric),
                     "theta": f.theta.tolist(),
                     "theta_names": list(PARAM_NAMES),
-                    "geometric_std": f.geometric_std(),
-                    "geometric": self._geometric(f, s0),
+                    # the same scaled std as geometric.*.std (until 2026-11-26 this was the
+                    # unscaled std_filter, with nothing saying so)
+                    "geometric_std": {n: g["std"] for n, g in geo.items()},
+                    "std_scale": k,
+                    "held_by_prior": [
+                        n for n, g in geo.items() if g.get("determined_by") == "prior"
+                    ],
+                    "held_by_prior_ratio": PRIOR_HELD_RATIO,
+                    "geometric": geo,
                     "geometric_std_basis": GEOMETRIC_STD_BASIS,
                     "ann_iterations": f.ann_iterations,
                     "ann_iterations_accepted": f.ann_accepted,
@@ -254,17 +289,42 @@ class LiveFilter:
 
     @staticmethod
     def _geometric(f: EkfAnnFilter, s0: float) -> dict[str, dict]:
-        """Each estimated geometric state: value, the filter's std, and that std scaled by the
-        innovation variance factor (`GEOMETRIC_STD_BASIS`)."""
-        k = float(np.sqrt(max(s0, 1.0))) if np.isfinite(s0) else 1.0
+        """Each estimated geometric state: value, the filter's std, that std scaled by the
+        innovation variance factor, and (adaptive mode) the starting std and whether the data
+        or the prior determined the state (`GEOMETRIC_STD_BASIS`, `PRIOR_HELD_RATIO`)."""
+        k = _std_scale(s0)
         x_geo = f.x[f.n_weights :]
+        prior = f.geometric_prior_std()
+        sd_all = f.geometric_std()
+        names = list(sd_all)
+        C = np.asarray(f.P[f.n_weights :, f.n_weights :], float)
+        d = np.sqrt(np.clip(np.diag(C), 0, None))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            corr = C / np.outer(d, d)
         out = {}
-        for i, (n, sd) in enumerate(f.geometric_std().items()):
+        for i, (n, sd) in enumerate(sd_all.items()):
             if n in PARAM_NAMES:
                 value, unit = float(f.theta[PARAM_NAMES.index(n)]), PARAM_UNITS[n]
             else:  # paper mode: the position state, tracker frame
                 value, unit = float(x_geo[i]), "m"
-            out[n] = {"value": value, "std": sd * k, "std_filter": sd, "unit": unit}
+            g = {"value": value, "std": sd * k, "std_filter": sd, "unit": unit}
+            if n in prior:
+                r = sd / prior[n]
+                held = bool(r > PRIOR_HELD_RATIO)
+                g.update(
+                    std_prior=prior[n],
+                    std_filter_over_prior=r,
+                    determined_by="prior" if held else "data",
+                )
+                if held:
+                    g["correlated_with"] = {
+                        m: float(corr[i, j])
+                        for j, m in enumerate(names)
+                        if j != i
+                        and np.isfinite(corr[i, j])
+                        and abs(corr[i, j]) >= PARTNER_CORRELATION
+                    }
+            out[n] = g
         return out
 
     def model(self) -> EkfAnnModel:
@@ -277,5 +337,12 @@ class LiveFilter:
             self.robot.dh,
             info={"variance_factor": s0} if np.isfinite(s0) else {},
         )
+        # which states only the prior holds (`PRIOR_HELD_RATIO`): their covariance in the model is
+        # the prior's spread, not a measurement uncertainty
+        model.info["geometric_held_by_prior"] = [
+            n
+            for n, g in self._geometric(self.filter, s0).items()
+            if g.get("determined_by") == "prior"
+        ]
         note_joint_range(model, self.filter.q_seen())
         return model
