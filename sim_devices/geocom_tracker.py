@@ -17,9 +17,10 @@ DoMeasure yet, or after TMC_CLEAR) also answers TMC_ANGLE_OK.
 Faults (`faults` dict; rates are probabilities per request, drawn from `seed`):
     beam_break_rate   a TMC_DoMeasure yields "angles ok, no distance" regardless of the world
     slow_rate         the reply is delayed by slow_delay_s (default 2.0 s)
-    garbage_rate      random bytes (1..garbage_len, default 24) go out before the reply
-                      (garbage_mode "before"), instead of it ("instead"), or either ("mixed",
-                      the default)
+    slow_delay_s      0..3600 simulated seconds
+    garbage_rate      random bytes (1..garbage_len, default 24, at most 4096) go out before the
+                      reply (garbage_mode "before"), instead of it ("instead"), or either
+                      ("mixed", the default)
     drop_rate         no reply at all (a dropped line)
     vanish_after      after this many requests the pty is closed: the port disappears
 `inject(kind, count, rpc=None)` forces a fault on the next `count` requests (of RPC `rpc` only, if
@@ -80,32 +81,58 @@ _STATUS_RC = {
 _TRID_RE = re.compile(rb"%R1Q,\d{1,5},(\d{1,10})")
 
 
-def _validate_faults(faults: dict | None) -> dict:
+GARBAGE_LEN_MAX = gc.MAX_LINE_BYTES  # a longer burst is dropped by any client as one line
+SLOW_DELAY_MAX_S = 3600.0  # simulated seconds
+
+
+def _number(key: str, v: object, *, integer: bool = False) -> float:
+    """A fault setting as a finite number (an integer if `integer`); ValueError naming it."""
+    ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+    if not ok or (integer and float(v) != int(v)):
+        kind = "a whole number" if integer else "a finite number"
+        raise ValueError(f"tracker fault {key} must be {kind}, got {v!r}")
+    return int(v) if integer else float(v)
+
+
+def validate_faults(faults: dict | None) -> dict:
+    """The tracker fault settings checked and completed with defaults (module doc); a bad one
+    raises ValueError with one line naming it."""
     f = dict(faults or {})
     unknown = set(f) - FAULT_KEYS
     if unknown:
         raise ValueError(f"unknown fault keys {sorted(unknown)}; known: {sorted(FAULT_KEYS)}")
     for key in ("beam_break_rate", "slow_rate", "garbage_rate", "drop_rate"):
-        rate = float(f.get(key, 0.0))
+        rate = _number(key, f.get(key, 0.0))
         if not 0.0 <= rate <= 1.0:
             raise ValueError(f"fault rate {key} must be in [0, 1], got {rate!r}")
         f[key] = rate
-    f["slow_delay_s"] = float(f.get("slow_delay_s", 2.0))
-    if f["slow_delay_s"] < 0:
-        raise ValueError(f"slow_delay_s must be >= 0, got {f['slow_delay_s']!r}")
-    f["garbage_len"] = int(f.get("garbage_len", 24))
-    if f["garbage_len"] < 1:
-        raise ValueError(f"garbage_len must be >= 1, got {f['garbage_len']!r}")
-    f["garbage_mode"] = str(f.get("garbage_mode", "mixed"))
+    f["slow_delay_s"] = _number("slow_delay_s", f.get("slow_delay_s", 2.0))
+    if not 0 <= f["slow_delay_s"] <= SLOW_DELAY_MAX_S:
+        raise ValueError(
+            f"slow_delay_s must be in [0, {SLOW_DELAY_MAX_S:g}] simulated seconds, "
+            f"got {f['slow_delay_s']!r}"
+        )
+    f["garbage_len"] = _number("garbage_len", f.get("garbage_len", 24), integer=True)
+    if not 1 <= f["garbage_len"] <= GARBAGE_LEN_MAX:
+        raise ValueError(
+            f"garbage_len must be 1..{GARBAGE_LEN_MAX} bytes (a GeoCOM line's limit), "
+            f"got {f['garbage_len']!r}"
+        )
+    f["garbage_mode"] = f.get("garbage_mode", "mixed")
     if f["garbage_mode"] not in ("before", "instead", "mixed"):
         raise ValueError(
             f"garbage_mode must be 'before', 'instead' or 'mixed', got {f['garbage_mode']!r}"
         )
     va = f.get("vanish_after")
-    if va is not None and int(va) < 1:
-        raise ValueError(f"vanish_after must be >= 1 request, got {va!r}")
-    f["vanish_after"] = None if va is None else int(va)
+    if va is not None:
+        va = _number("vanish_after", va, integer=True)
+        if va < 1:
+            raise ValueError(f"vanish_after must be >= 1 request, got {va!r}")
+    f["vanish_after"] = va
     return f
+
+
+_validate_faults = validate_faults  # the old private name
 
 
 class SimGeoComTracker:
@@ -128,7 +155,7 @@ class SimGeoComTracker:
         if not 0 <= precision <= 15:
             raise ValueError(f"precision must be in 0..15, got {precision!r}")
         self.measure_fn = measure_fn
-        self.faults = _validate_faults(faults)
+        self.faults = validate_faults(faults)
         self.time_scale = float(time_scale)
         self.instrument_name = instrument_name
         self.serial_number = int(serial_number)

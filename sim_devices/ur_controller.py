@@ -8,7 +8,8 @@ works against it. It serves, on one host address (use a loopback alias such as 1
   input recipes may name the input registers. `U` packets stream at the requested frequency in
   simulated time (500 Hz for the client's default) but never faster than `max_stream_hz` of wall
   time, so a time-scaled run stays cheap.
-- Dashboard, port 29999: greeting, PolyscopeVersion, get serial number, power on/off, brake
+- Dashboard, port 29999: greeting, PolyscopeVersion, get serial number, get robot model (the
+  family name of the simulated arm, "UR5" for a UR5e, "UR10" for a UR10), power on/off, brake
   release, robotmode, safetymode/safetystatus, programState, running, play, stop, pause, unlock
   protective stop, close (safety) popup, is in remote control (-> true), load, quit, ...
 - Primary script port, port 30003: a program (`def name(): ... end`) uploaded there starts to
@@ -75,6 +76,15 @@ SCRIPT_PORT = 30003
 
 CONTROLLER_VERSION = (5, 15, 0, 11820)
 SERIAL_NUMBER = "20235500001"
+
+
+def dashboard_model_name(model: str) -> str:
+    """What `get robot model` answers for an arm: the family name, as a real controller does
+    (a UR5e and a CB3 UR5 both answer "UR5", a UR10 or UR10e "UR10"); any other model name
+    upper-cased."""
+    m = re.fullmatch(r"\s*ur\s*(\d+)\s*(?:e|cb3)?\s*", str(model), re.IGNORECASE)
+    return f"UR{m.group(1)}" if m else str(model).strip().upper()
+
 
 # robot_mode
 ROBOT_MODES = {
@@ -1130,7 +1140,7 @@ class UrControllerSim:
             if low == "get serial number":
                 return SERIAL_NUMBER, False
             if low == "get robot model":
-                return "UR5", False
+                return dashboard_model_name(self.spec.model), False
             if low == "is in remote control":
                 return "true", False
             if low == "robotmode":

@@ -48,7 +48,15 @@ def build_sim(
     tracker_faults: dict | None = None,
     log: Callable[[str], None] | None = None,
 ):
-    """-> (world, controller, tracker or None), all started."""
+    """-> (world, controller, tracker or None), all started. Every setting (fault settings
+    included) is checked before anything listens: a bad one raises ValueError and leaves no
+    port open."""
+    if with_tracker:
+        try:
+            from sim_devices.geocom_tracker import SimGeoComTracker, validate_faults
+        except ImportError as e:  # pragma: no cover - depends on the other engineer's module
+            raise RuntimeError(f"simulated tracker not available: {e}") from None
+        validate_faults(tracker_faults)
     truth = make_truth(robot, effects, seed)
     world = SimWorld(truth, clock=ScaledClock(time_scale), seed=seed)
     ctrl = UrControllerSim(world, host, time_scale=time_scale, faults=faults, seed=seed, log=log)
@@ -56,15 +64,15 @@ def build_sim(
     tracker = None
     if with_tracker:
         try:
-            from sim_devices.geocom_tracker import SimGeoComTracker
-        except ImportError as e:  # pragma: no cover - depends on the other engineer's module
+            # the same clock as the world's: a simulated delay d takes d / time_scale wall
+            # seconds (until 2026-11-27 it got 1 / time_scale: d * time_scale wall seconds)
+            tracker = SimGeoComTracker(
+                world.read_tracker, faults=tracker_faults, seed=seed, time_scale=time_scale
+            )
+            tracker.start()
+        except BaseException:
             ctrl.stop()
-            raise RuntimeError(f"simulated tracker not available: {e}") from None
-        # the tracker's time_scale multiplies simulated durations into wall seconds
-        tracker = SimGeoComTracker(
-            world.read_tracker, faults=tracker_faults, seed=seed, time_scale=1.0 / time_scale
-        )
-        tracker.start()
+            raise
     return world, ctrl, tracker
 
 

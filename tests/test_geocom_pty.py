@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import sys
 import time
 
@@ -324,3 +325,153 @@ def test_geocompy_client_reads_a_coordinate(
         assert tps.tmc.do_measurement().error == GeoComCode.OK
         assert tps.tmc.get_coordinate(wait=1).error == GeoComCode.TMC_ANGLE_OK
     assert sim.stats["bad_request"] == 0 and sim.stats["bad_request_crc"] == 0
+
+
+# ----------------------------------------------------------------------------- odd instruments
+
+
+class _OddInstrument:
+    """A GeoCOM-ish responder on a pty that misbehaves in one way (`mode`):
+    `wrong_trid` answers every request with another transaction id, `no_lf` answers without a
+    line end, `coord` answers TMC_GetCoordinate with the coordinate text `coord`."""
+
+    def __init__(self, mode: str, coord: str = "1.0") -> None:
+        import threading
+        import tty
+
+        self.mode, self.coord = mode, coord
+        self.master, self.slave = os.openpty()
+        tty.setraw(self.master)
+        tty.setraw(self.slave)
+        self.port = os.ttyname(self.slave)
+        self._stop = threading.Event()
+        self._t = threading.Thread(target=self._serve, daemon=True)
+        self._t.start()
+
+    def _reply(self, rpc: int, trid: int) -> bytes:
+        body = "0"
+        if rpc == 108:
+            body = "0,15"
+        elif rpc == 5004:
+            body = '0,"ODD"'
+        elif rpc == 2082:
+            c = self.coord
+            body = f"0,{c},{c},{c},5,{c},{c},{c},5"
+        if self.mode == "wrong_trid":
+            trid = trid % 32767 + 7
+        end = b"" if self.mode == "no_lf" else b"\r\n"
+        return f"%R1P,0,{trid}:{body}".encode() + end
+
+    def _serve(self) -> None:
+        import re
+        import select
+
+        buf = b""
+        while not self._stop.is_set():
+            r, _, _ = select.select([self.master], [], [], 0.02)
+            if not r:
+                continue
+            try:
+                buf += os.read(self.master, 4096)
+            except OSError:
+                continue
+            while b"\n" in buf:
+                line, buf = buf.split(b"\n", 1)
+                m = re.match(rb"%R1Q,(\d+),(\d+):", line.strip())
+                if m:
+                    os.write(self.master, self._reply(int(m.group(1)), int(m.group(2))))
+
+    def close(self) -> None:
+        self._stop.set()
+        self._t.join(2.0)
+        for fd in (self.master, self.slave):
+            os.close(fd)
+
+
+@pytest.mark.parametrize(
+    "mode, what",
+    [("wrong_trid", "another transaction id"), ("no_lf", "without a line end (LF)")],
+)
+def test_an_instrument_answering_wrongly_is_not_called_silent(mode: str, what: str) -> None:
+    """Replies that are not GeoCOM answers to our requests (another transaction id, no line end)
+    are told apart from silence: until 2026-11-27 both read "is silent ... check the instrument
+    is on", which sends the operator to the power switch of an instrument that is talking."""
+    odd = _OddInstrument(mode)
+    try:
+        t = SerialTracker(odd.port, timeout_s=0.1, retries=1)
+        with pytest.raises(DeviceUnreachable) as ei:
+            t.connect()
+        msg = str(ei.value)
+        assert "\n" not in msg and odd.port in msg
+        assert "answers, but not with GeoCOM replies to our requests" in msg and what in msg
+        assert "silent" not in msg and "is on" not in msg
+    finally:
+        odd.close()
+
+
+def test_silence_is_still_called_silent(world: World) -> None:
+    with SimGeoComTracker(world, faults={"drop_rate": 1.0}) as s:
+        t = SerialTracker(s.port, timeout_s=0.1, retries=1)
+        with pytest.raises(DeviceUnreachable, match="is silent.*check the instrument is on"):
+            t.connect()
+
+
+@pytest.mark.parametrize(
+    "p, why",
+    [
+        ((1e300, 1e300, 1e300), "1.732e\\+300 m from the instrument"),
+        ((150.0, 160.0, 0.0), "219.3 m"),
+    ],
+)
+def test_a_coordinate_no_tracker_measures_is_a_bad_reading(
+    world: World, p: tuple, why: str
+) -> None:
+    """A fake tracker answering 1e300 had 7 poses recorded with that value. A coordinate beyond
+    200 m (no laser tracker reaches 160 m; the recording checks' bound) is a bad reading: status
+    not ok, the reason in `extra` and in a `bad_reading` fault; the next good one is ok."""
+    world.status = "ok"
+    with SimGeoComTracker(lambda: (np.array(p), "ok"), time_scale=1.0) as s:
+        t = SerialTracker(s.port, timeout_s=TIMEOUT_S)
+        t.connect()
+        r = t.measure()
+        assert r.status == "error" and np.all(np.isnan(r.position_m))
+        assert "no laser tracker measures beyond 200 m" in r.extra["message"]
+        assert re.search(why, r.extra["message"]), r.extra["message"]
+        assert [k for k, _ in t.pop_faults()] == ["bad_reading"]
+        s.measure_fn = world
+        _assert_reading_is_latest(t.measure(), world)
+        t.close()
+
+
+def test_a_coordinate_too_large_for_a_float_is_a_bad_reading() -> None:
+    """'1e999' is well-formed GeoCOM that overflows to inf: a bad reading (not finite), not a
+    garbled line re-requested three times."""
+    odd = _OddInstrument("coord", coord="1e999")
+    try:
+        t = SerialTracker(odd.port, timeout_s=0.2)
+        t.connect()
+        r = t.measure()
+        assert r.status == "error" and np.all(np.isnan(r.position_m))
+        assert "not finite" in r.extra["message"]
+        assert [k for k, _ in t.pop_faults()] == ["bad_reading"]
+        t.close()
+    finally:
+        odd.close()
+
+
+def test_sim_fault_settings_are_bounded(world: World) -> None:
+    """garbage_len 1e12 made the simulator draw a terabyte of garbage; a non-finite or huge
+    slow_delay_s killed its server thread (a wait beyond threading's limit)."""
+    for faults, match in [
+        ({"garbage_len": 1e12}, r"garbage_len must be 1\.\.4096"),
+        ({"garbage_len": 2.5}, "garbage_len must be a whole number"),
+        ({"garbage_mode": "sideways"}, "garbage_mode must be"),
+        ({"slow_delay_s": float("nan")}, "slow_delay_s must be a finite number"),
+        ({"slow_delay_s": 1e12}, r"slow_delay_s must be in \[0, 3600\]"),
+        ({"garbage_rate": "often"}, "garbage_rate must be a finite number"),
+        ({"vanish_after": 0}, "vanish_after must be >= 1"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            SimGeoComTracker(world, faults=faults)
+    faults = {"garbage_rate": 1.0, "garbage_mode": "before", "garbage_len": 4096}
+    assert SimGeoComTracker(world, faults=faults).faults["garbage_mode"] == "before"

@@ -25,7 +25,7 @@ from workcell.drivers.protocols import (  # noqa: E402
     ProtectiveStop,
     Robot,
 )
-from workcell.drivers.ur_robot import UrRobot  # noqa: E402
+from workcell.drivers.ur_robot import UrRobot, WrongRobotModel  # noqa: E402
 
 TS = 10.0  # simulated seconds per wall second
 HOME = np.array([0.0, -1.57, 1.57, -1.57, -1.57, 0.0])
@@ -48,7 +48,7 @@ def robot_factory():
     made: list[UrRobot] = []
 
     def make(host: str) -> UrRobot:
-        r = UrRobot(host, time_scale=TS)
+        r = UrRobot(host, time_scale=TS, model="ur5e")  # the simulators' default arm
         made.append(r)
         return r
 
@@ -106,6 +106,7 @@ def test_control_interface_movej_arrives_and_dashboard_answers(sim):
         assert db.safetystatus() == "Safetystatus: NORMAL"
         assert db.isInRemoteControl()
         assert db.polyscopeVersion().startswith("5.15.0")
+        assert db.getRobotModel() == "UR5"  # a UR5e answers its family name
         assert db.running()
         assert db.programState().startswith("PLAYING")
         rc.stopScript()
@@ -159,6 +160,59 @@ def test_speed_limit_enforced_on_ur10():
         finally:
             rc.disconnect()
             rr.disconnect()
+
+
+def test_a_controller_of_another_arm_is_refused_before_anything_moves():
+    """A UR10 controller and `--model ur5e` (the default): the driver asks the dashboard which
+    arm it is and refuses in one line before powering, uploading or moving anything; with
+    `--model ur10` it connects. Until 2026-11-27 the simulator answered "UR5" whatever its arm
+    and the driver never asked: a UR10 campaign was planned and envelope-checked with UR5e
+    kinematics (5 recorded postures put the SMR 39 mm above the envelope box)."""
+    with SimProcess("127.0.0.31", robot="ur10", time_scale=TS) as sp:
+        db = dashboard_client.DashboardClient("127.0.0.31")
+        db.connect()
+        try:
+            assert db.getRobotModel() == "UR10"
+        finally:
+            db.disconnect()
+        warned: list[str] = []
+        r = UrRobot("127.0.0.31", time_scale=TS, model="ur5e", on_warning=warned.append)
+        try:
+            with pytest.raises(WrongRobotModel) as ei:
+                r.connect()
+        finally:
+            r.close()
+        msg = str(ei.value)
+        assert "\n" not in msg and "127.0.0.31" in msg
+        assert "the controller says it is a UR10 but --model is ur5e" in msg
+        assert "give --model ur10" in msg
+        st = sp.state()
+        assert st["moves"] == 0 and st["stats"]["script_uploads"] == 0
+        r = UrRobot("127.0.0.31", time_scale=TS, model="ur10", on_warning=warned.append)
+        try:
+            r.connect()
+            assert r.controller_model == "UR10"
+            r.move_joints(QA, 1.0, 2.0)
+            assert np.max(np.abs(r.state().q_rad - QA)) < 1e-4
+        finally:
+            r.close()
+        assert warned == []
+        # a powered-off arm: what the operator does, not a Python argument
+        db = dashboard_client.DashboardClient("127.0.0.31")
+        db.connect()
+        try:
+            db.powerOff()
+        finally:
+            db.disconnect()
+        r = UrRobot("127.0.0.31", time_scale=TS, model="ur10")
+        try:
+            with pytest.raises(DeviceError) as ei:
+                r.connect()
+        finally:
+            r.close()
+        msg = str(ei.value)
+        assert "POWER_OFF" in msg and "on the teach pendant" in msg
+        assert "auto_power_on" not in msg and "\n" not in msg
 
 
 def test_protective_stop_surfaces_and_unlock_recovers(robot_factory):
@@ -256,6 +310,28 @@ def test_tracker_measures_the_arm_the_controller_moved():
         finally:
             tr.close()
             r.close()
+
+
+def test_tracker_delays_run_on_the_simulated_clock():
+    """A reply 1 simulated second late at --time-scale 20 takes 0.05 s of wall time. Until
+    2026-11-27 the simulator handed the tracker 1 / time_scale, so it took 20 s and a tracker
+    with slow faults was unusable."""
+    from workcell.drivers.serial_tracker import SerialTracker
+
+    faults = {"slow_rate": 1.0, "slow_delay_s": 1.0}
+    with SimProcess(
+        "127.0.0.32", time_scale=20.0, effects="none", with_tracker=True, tracker_faults=faults
+    ) as sp:
+        t = SerialTracker(sp.info["tracker_port"], timeout_s=1.0, retries=0)
+        try:
+            t0 = time.monotonic()
+            t.connect()  # 3 requests
+            r = t.measure()  # 2 more
+            elapsed = time.monotonic() - t0
+            assert r.status == "ok" and t.pop_faults() == []
+            assert 5 * 0.05 <= elapsed < 2.0, elapsed
+        finally:
+            t.close()
 
 
 def test_fault_due_half_way_stops_there_even_when_the_tick_is_late():

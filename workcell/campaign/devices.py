@@ -77,7 +77,11 @@ def open_cell(args):
         raise UserError(f"real drivers not available in this build ({e.name})") from None
     spec = robot_by_name(args.model)
     env = envelope_from_args(args, spec)  # refused before any connection
-    robot = UrRobot(args.robot[len("ur://") :], time_scale=getattr(args, "time_scale", 1.0))
+    # the driver asks the controller which arm it is and refuses another family before any
+    # motion: plans and envelope checks use `spec`'s kinematics
+    robot = UrRobot(
+        args.robot[len("ur://") :], time_scale=getattr(args, "time_scale", 1.0), model=spec.model
+    )
     tracker = SerialTracker(args.tracker[len("serial://") :])
     cell = CellSetup(
         spec=spec,

@@ -66,6 +66,8 @@ def parse_faults(text: str) -> tuple[dict, dict]:
                     f'--faults "{dev}" must be an object of fault settings, got {block!r}'
                 )
             for k, v in (block or {}).items():
+                if (dev, k) == ("tracker", "garbage_mode") and isinstance(v, str):
+                    continue  # "before" / "instead" / "mixed", checked by the simulator
                 items = v if isinstance(v, list) else [v]
                 if not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in items):
                     raise UserError(

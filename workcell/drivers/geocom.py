@@ -351,12 +351,14 @@ def decode_long(text: str) -> int:
     return int(t, 0) if "x" in t.lower() else int(t)
 
 
-def decode_double(text: str) -> float:
+def decode_double(text: str, *, finite: bool = True) -> float:
+    """A GeoCOM double. A well-formed number too large for a float (1e999) is a parse error,
+    or inf with `finite=False` (the caller then judges the value, not the line)."""
     t = text.strip()
     if not _DOUBLE_RE.fullmatch(t):
         raise GeoComParseError(f"expected a GeoCOM double, got {text!r}")
     x = float(t)
-    if not math.isfinite(x):
+    if finite and not math.isfinite(x):
         raise GeoComParseError(f"GeoCOM double out of range: {text!r}")
     return x
 
@@ -611,19 +613,20 @@ class Coordinate:
     time_cont_ms: int
 
 
-def decode_coordinate(reply: Reply) -> Coordinate:
-    """Values of a TMC_GetCoordinate reply (E, N, H, CoordTime, E_c, N_c, H_c, CoordContTime)."""
+def decode_coordinate(reply: Reply, *, finite: bool = True) -> Coordinate:
+    """Values of a TMC_GetCoordinate reply (E, N, H, CoordTime, E_c, N_c, H_c, CoordContTime).
+    `finite=False`: a well-formed coordinate too large for a float decodes as inf."""
     v = reply.values
     if len(v) != 8:
         raise GeoComParseError(f"TMC_GetCoordinate reply needs 8 values, got {len(v)}: {v!r}")
     return Coordinate(
-        e_m=decode_double(v[0]),
-        n_m=decode_double(v[1]),
-        h_m=decode_double(v[2]),
+        e_m=decode_double(v[0], finite=finite),
+        n_m=decode_double(v[1], finite=finite),
+        h_m=decode_double(v[2], finite=finite),
         time_ms=decode_long(v[3]),
-        e_cont_m=decode_double(v[4]),
-        n_cont_m=decode_double(v[5]),
-        h_cont_m=decode_double(v[6]),
+        e_cont_m=decode_double(v[4], finite=finite),
+        n_cont_m=decode_double(v[5], finite=finite),
+        h_cont_m=decode_double(v[6], finite=finite),
         time_cont_ms=decode_long(v[7]),
     )
 

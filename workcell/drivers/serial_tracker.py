@@ -11,6 +11,9 @@ Status of a reading (from the TMC return code of either call):
   TMC_ANGLE_NO_ACC_GUARANTY (1289), and TMC_DIST_ERROR (1292, no target found); position and
   sigma are nan;
 - `error`: any other non-zero procedure code (angle error, busy, ...); position and sigma nan.
+  Also a coordinate that no laser tracker measures: non-finite, or farther than
+  `TRACKER_RANGE_M` (200 m, the bound the recording checks use) from the instrument
+  (`extra["message"]` says which, and a `bad_reading` fault is logged).
 Procedure codes are instrument answers, so `measure()` returns them as a reading; it raises only
 for the link: `DeviceError` when no valid reply came after the retries, `DeviceUnreachable` when
 the port cannot be opened or vanished.
@@ -25,8 +28,10 @@ same id is accepted (late replies to earlier requests are skipped and logged as 
 A malformed line, a CRC mismatch, a transient COM error code or a time-out triggers a resync --
 flush the input, send a bare LF (clears the instrument's receive buffer), then COM_NullProc until
 one clean reply with a matching id -- and the request is sent again, up to `retries` times.
-If a time-out is followed by a failed resync (not even COM_NullProc answers), the instrument is
-silent and `DeviceError` is raised at once instead of re-sending. A non-transient COM code (e.g.
+If a time-out is followed by a failed resync (not even COM_NullProc answers), `DeviceError` is
+raised at once instead of re-sending: "is silent" when no byte came back, "answers, but not with
+GeoCOM replies to our requests" when something did (replies carrying another transaction id,
+lines that are not GeoCOM, bytes without a line end). A non-transient COM code (e.g.
 COM_PROC_UNAVAIL, COM_SRVR_IS_SLEEPING) raises `DeviceError` with its name. Worst cases with the
 defaults (timeout_s=2, retries=2): a silent instrument costs 4 x 2 s = 8 s per call; a port that
 vanished fails at the next read/write, immediately, with `DeviceUnreachable`; after that
@@ -34,11 +39,12 @@ vanished fails at the next read/write, immediately, with `DeviceUnreachable`; af
 
 Everything handled is appended to `fault_log` as `(kind, message)`; drain it with `pop_faults()`.
 Kinds: `timeout`, `garbage`, `checksum`, `stale_reply`, `com_error`, `resync`, `resync_failed`,
-`gave_up`, `port_vanished`. `fault_counts` keeps running totals per kind (never drained).
+`gave_up`, `port_vanished`, `bad_reading`. `fault_counts` keeps running totals per kind (never drained).
 """
 
 from __future__ import annotations
 
+import math
 import os
 import threading
 import time
@@ -51,6 +57,7 @@ import serial
 
 from workcell.drivers import geocom as gc
 from workcell.drivers.protocols import DeviceError, DeviceUnreachable, TrackerReading
+from workcell.recording.checks import TRACKER_RANGE_M
 
 try:  # pyserial's POSIX backend lets termios.error (not an OSError) escape from flush()
     import termios
@@ -68,6 +75,10 @@ BEAM_BROKEN_CODES: frozenset[int] = gc.ANGLE_ONLY_CODES | {gc.Grc.TMC_DIST_ERROR
 
 class _Timeout(Exception):
     pass
+
+
+class NotGeoComReplies(DeviceError):
+    """Bytes come back from the port, but no GeoCOM reply to our request among them."""
 
 
 class SerialTracker:
@@ -126,6 +137,9 @@ class SerialTracker:
         self.fault_log: list[tuple[str, str]] = []
         self.fault_counts: Counter[str] = Counter()
         self.requests_sent = 0
+        # what came back that was not the awaited reply (told apart from silence in errors)
+        self._rx = Counter()  # bytes, stale (other transaction id), junk lines, unterminated
+        self._rx_tail = b""
         self._lost = False  # the port vanished under us; cleared by a successful connect()
 
     # ------------------------------------------------------------------ Tracker protocol
@@ -146,15 +160,29 @@ class SerialTracker:
             self._buf.clear()
             try:
                 self._write(b"\n")  # a leading LF clears the instrument's receive buffer
+                rx0 = self._rx.copy()
                 try:
                     self._call(gc.Rpc.COM_NullProc)
                 except DeviceUnreachable:
                     raise
+                except NotGeoComReplies as exc:
+                    raise DeviceUnreachable(f"no GeoCOM answer: {exc}") from exc
                 except DeviceError as exc:
+                    if self._rx["bytes"] > rx0["bytes"]:
+                        hint = (
+                            f"something answers on the port, but not GeoCOM: check this is the "
+                            f"tracker's port, that the instrument is in GeoCOM/online mode and "
+                            f"its RS-232 settings (baud rate, 8N1, CR/LF terminator); "
+                            f"received {self._rx_summary(rx0)}"
+                        )
+                    else:
+                        hint = (
+                            "check the instrument is on, in GeoCOM/online mode, and its RS-232 "
+                            "settings (baud rate, 8N1, CR/LF terminator)"
+                        )
                     raise DeviceUnreachable(
                         f"no GeoCOM answer from the tracker on {self.port!r} at {self.baudrate} "
-                        f"baud ({exc}); check the instrument is on, in GeoCOM/online mode, and "
-                        f"its RS-232 settings (baud rate, 8N1, CR/LF terminator)"
+                        f"baud ({exc}); {hint}"
                     ) from exc
                 prec = self._call_value(gc.Rpc.COM_GetDoublePrecision, gc.decode_long)
                 if prec < self.min_precision:
@@ -212,8 +240,24 @@ class SerialTracker:
             t_s = self._wall_clock()
             if rep.rc != gc.Grc.OK and rep.rc not in gc.COORDINATE_WARNING_CODES:
                 return self._reading_without_coordinate(rep.rc, "TMC_GetCoordinate", faults_before)
-            coord = gc.decode_coordinate(rep)
+            coord = gc.decode_coordinate(rep, finite=False)
             p = gc.p_tracker_from_enh(coord.e_m, coord.n_m, coord.h_m)
+            bad = _implausible(p)
+            if bad is not None:
+                self._fault("bad_reading", f"tracker on {self.port!r}: {bad}; reading refused")
+                nan3 = np.full(3, np.nan)
+                return TrackerReading(
+                    position_m=nan3,
+                    sigma_m=nan3.copy(),
+                    status="error",
+                    t_s=t_s,
+                    extra={
+                        "rc": int(rep.rc),
+                        "rc_name": "bad_reading",
+                        "message": f"TMC_GetCoordinate: {bad}",
+                        "faults": len(self.fault_log) - faults_before,
+                    },
+                )
             extra: dict[str, Any] = {
                 "rc": int(rep.rc),
                 "rc_name": gc.return_code_name(rep.rc),
@@ -286,6 +330,23 @@ class SerialTracker:
             },
         )
 
+    def _rx_summary(self, rx0: Counter) -> str:
+        """What came back since `rx0` that was not the awaited reply, for an error message."""
+        d = self._rx - rx0
+        parts = []
+        if d["stale"]:
+            parts.append(
+                f"{d['stale']} GeoCOM replies carrying another transaction id (late replies, "
+                "or replies to another program's requests)"
+            )
+        if d["junk"]:
+            parts.append(f"{d['junk']} lines that are not GeoCOM replies")
+        loose = d["unterminated"] + len(self._buf)
+        if loose:
+            parts.append(f"{loose} bytes without a line end (LF)")
+        parts.append(f"{d['bytes']} bytes in all, the last {self._rx_tail[-40:]!r}")
+        return ", ".join(parts)
+
     def _fault(self, kind: str, message: str) -> None:
         self.fault_log.append((kind, message))
         self.fault_counts[kind] += 1
@@ -327,6 +388,7 @@ class SerialTracker:
 
     def _flush_input(self) -> None:
         ser = self._require_open()
+        self._rx["unterminated"] += len(self._buf)  # bytes that never became a line
         self._buf.clear()
         try:
             ser.reset_input_buffer()
@@ -355,6 +417,8 @@ class SerialTracker:
                 raise self._vanished("read", exc) from exc
             if chunk:
                 self._buf.extend(chunk)
+                self._rx["bytes"] += len(chunk)
+                self._rx_tail = (self._rx_tail + chunk)[-40:]
 
     def _read_reply(self, trid: int, deadline: float, *, skip_garbage: bool) -> gc.Reply:
         """The reply carrying `trid`; skips stale replies (and garbage if `skip_garbage`)."""
@@ -365,12 +429,14 @@ class SerialTracker:
             try:
                 rep = gc.parse_reply(line, expect_crc=self.use_crc)
             except gc.GeoComParseError:
+                self._rx["junk"] += 1
                 if not skip_garbage:
                     raise
                 if self._clock() >= deadline:
                     raise _Timeout() from None
                 continue
             if rep.trid != trid:
+                self._rx["stale"] += 1
                 self._fault(
                     "stale_reply",
                     f"skipped a reply with transaction id {rep.trid} while waiting for {trid}",
@@ -408,6 +474,7 @@ class SerialTracker:
     ) -> gc.Reply:
         name = gc.rpc_name(rpc)
         last = "no attempt"
+        rx0 = self._rx.copy()
         for attempt in range(self.retries + 1):
             trid = self._next_trid()
             req = gc.format_request(
@@ -425,11 +492,23 @@ class SerialTracker:
                 self._fault("timeout", f"{name} (attempt {attempt + 1}): {last}")
                 if not self._resync(f"a time-out on {name}"):
                     # not even COM_NullProc answers: re-sending the request is pointless
+                    waited = (
+                        f"no reply to {name} within {self.timeout_s + extra_timeout_s:.3g} s "
+                        f"and none to {self.retries + 1} COM_NullProc tries"
+                    )
+                    if self._rx["bytes"] > rx0["bytes"]:
+                        msg = (
+                            f"tracker on {self.port!r} answers, but not with GeoCOM replies to "
+                            f"our requests ({waited}; received {self._rx_summary(rx0)}): check "
+                            f"this is the tracker's port, that the instrument is in GeoCOM "
+                            f"(online) mode with a CR/LF terminator, and that no other program "
+                            f"talks on the port"
+                        )
+                        self._fault("gave_up", msg)
+                        raise NotGeoComReplies(msg) from None
                     msg = (
-                        f"tracker on {self.port!r} is silent: no reply to {name} within "
-                        f"{self.timeout_s + extra_timeout_s:.3g} s and none to "
-                        f"{self.retries + 1} COM_NullProc tries; check the instrument is on and "
-                        f"awake, and the cable"
+                        f"tracker on {self.port!r} is silent: {waited}; check the instrument "
+                        f"is on and awake, and the cable"
                     )
                     self._fault("gave_up", msg)
                     raise DeviceError(msg) from None
@@ -461,6 +540,20 @@ class SerialTracker:
 
 
 def _decode_coordinate_if_valid(rep: gc.Reply) -> None:
-    """A coordinate reply whose code says 'valid' must carry 8 decodable values."""
+    """A coordinate reply whose code says 'valid' must carry 8 decodable values (well-formed;
+    whether the values are plausible is the reading's business, `_implausible`)."""
     if rep.com_rc == 0 and (rep.rc == gc.Grc.OK or rep.rc in gc.COORDINATE_WARNING_CODES):
-        gc.decode_coordinate(rep)
+        gc.decode_coordinate(rep, finite=False)
+
+
+def _implausible(p: np.ndarray) -> str | None:
+    """Why a coordinate is no laser-tracker measurement, or None."""
+    if not np.all(np.isfinite(p)):
+        return f"coordinate {p.tolist()} is not finite"
+    dist = math.hypot(*(float(x) for x in p))  # no overflow warning at 1e300
+    if dist > TRACKER_RANGE_M:
+        return (
+            f"coordinate {dist:.4g} m from the instrument (no laser tracker measures beyond "
+            f"{TRACKER_RANGE_M:g} m; a unit or precision setting?)"
+        )
+    return None

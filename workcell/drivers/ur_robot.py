@@ -15,6 +15,11 @@ Errors (all `DeviceError`, the campaign fault policy decides):
   control program.
 - `DeviceError`: connection lost, controller restarted, program stopped, move timed out. Call
   `reconnect()` (the campaign executor does, with back-off).
+- `WrongRobotModel`: given `model` (the arm the campaign plans and checks the envelope with), the
+  controller's dashboard answers `get robot model` with another family ("UR10" for `ur5e`):
+  refused at every connect, before anything powers on or moves. A controller that does not
+  answer the question (software before 5.6 / 3.12) or answers something unreadable is a warning
+  (`warnings`, and `on_warning`, by default one stderr line), not a refusal.
 
 Time: `time_scale` is the simulated-controller speed-up (1.0 for a real robot). `sleep(s)` waits
 s / time_scale wall seconds and move timeouts are scaled the same way.
@@ -35,12 +40,14 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import select
 import socket
 import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 
 import numpy as np
 
@@ -108,6 +115,26 @@ def _import_ur_rtde():
 
 def _one_line(e: BaseException) -> str:
     return " ".join(str(e).split()) or type(e).__name__
+
+
+class WrongRobotModel(DeviceError):
+    """The controller is another arm than the one the caller plans with (`UrRobot(model=)`)."""
+
+
+_UR_NAME_RE = re.compile(r"\s*ur\s*(\d+)\s*(?:e|cb3)?\s*", re.IGNORECASE)
+
+
+def ur_family(name: str) -> str | None:
+    """'ur5e', 'UR5', 'UR5e', 'ur5cb3' -> 'UR5'; 'UR10' -> 'UR10'; None if not a UR model name.
+
+    The family is what a controller's dashboard answers to `get robot model` (e-Series and CB3
+    alike: a UR5e says "UR5")."""
+    m = _UR_NAME_RE.fullmatch(str(name))
+    return f"UR{int(m.group(1))}" if m else None
+
+
+def _stderr_warning(msg: str) -> None:
+    print(f"warning: {msg}", file=sys.stderr, flush=True)
 
 
 class _ControlWorker:
@@ -256,6 +283,8 @@ class UrRobot:
         settle_speed_rad_s: float = 1e-3,
         auto_power_on: bool = False,
         poll_s: float = 0.002,
+        model: str | None = None,
+        on_warning: Callable[[str], None] | None = None,
     ) -> None:
         if not host or not isinstance(host, str):
             raise ValueError(f"host must be a non-empty string, got {host!r}")
@@ -265,7 +294,13 @@ class UrRobot:
             raise ValueError(
                 f"frequency must be > 0 Hz or -1 (controller default), got {frequency}"
             )
+        if model is not None and ur_family(model) is None:
+            raise ValueError(f"model {model!r} is not a Universal Robots arm (ur5e, ur10, ...)")
         self.host = host
+        self.model = model  # the arm the caller plans with; checked against the controller
+        self.controller_model: str | None = None  # its answer to `get robot model`
+        self.warnings: list[str] = []
+        self._on_warning = _stderr_warning if on_warning is None else on_warning
         self.frequency = float(frequency)
         self.time_scale = float(time_scale)
         self.reconnect_backoff_s = float(reconnect_backoff_s)
@@ -288,7 +323,9 @@ class UrRobot:
             if self._db is None:
                 self._db = dashboard_client.DashboardClient(self.host)
             self._db_connect()
-            self._check_powered()
+            mode = self._robotmode()
+            self._check_model()  # before anything powers on or moves
+            self._check_powered(mode)
             if self._rr is None or not self._rr.isConnected():
                 self._bury("_rr")
                 try:
@@ -501,10 +538,9 @@ class UrRobot:
             self._db_connect()
         return self._db
 
-    def _check_powered(self) -> None:
-        db = self._db
+    def _robotmode(self) -> str:
         try:
-            mode = db.robotmode().strip()
+            mode = self._db.robotmode().strip()
         except RuntimeError as e:
             raise DeviceError(f"UR {self.host}: dashboard robotmode: {_one_line(e)}") from None
         if not mode.startswith("Robotmode:"):  # every UR dashboard server answers this way
@@ -513,12 +549,62 @@ class UrRobot:
                 f"dashboard server (robotmode -> {mode[:40]!r}); is this the robot controller's "
                 "address?"
             )
+        return mode
+
+    def _warn(self, msg: str) -> None:
+        if msg in self.warnings:  # once per driver, not at every reconnect
+            return
+        self.warnings.append(msg)
+        try:
+            self._on_warning(msg)
+        except Exception:  # noqa: BLE001 - a failing warning sink must not stop the connect
+            pass
+
+    def _check_model(self) -> None:
+        """Refuse a controller of another arm family than `self.model` (nothing moves)."""
+        if self.model is None:
+            return
+        try:
+            answer = " ".join(str(self._db.getRobotModel()).split())
+        except Exception as e:  # noqa: BLE001 - an unknown answer only warns
+            answer = ""
+            why = _one_line(e)
+        else:
+            why = f"it answered {answer[:60]!r}"
+        self.controller_model = answer or None
+        said = ur_family(answer) if answer else None
+        want = ur_family(self.model)
+        if said is None:
+            self._warn(
+                f"UR {self.host}: could not read the robot model from the controller "
+                f"(dashboard `get robot model`: {why}; software before 5.6 / 3.12 does not "
+                f"know it); make sure the arm is a {want}, the model the campaign plans with "
+                f"(--model {self.model})"
+            )
+            return
+        if said == want:
+            return
+        from workcell.kinematics.robots import CATALOGUE  # only for the hint
+
+        known = [name for name in sorted(CATALOGUE) if ur_family(name) == said]
+        if known:
+            hint = f"give --model {' or '.join(known)}"
+        else:
+            hint = f"this build has no kinematics for a {said} (known: {', '.join(CATALOGUE)})"
+        raise WrongRobotModel(
+            f"UR {self.host}: the controller says it is a {said} but --model is {self.model}: "
+            f"plans and envelope checks would use the wrong arm's kinematics; {hint} "
+            "(nothing moves until they agree)"
+        )
+
+    def _check_powered(self, mode: str) -> None:
+        db = self._db
         if mode.endswith("RUNNING"):
             return
         if not self.auto_power_on:
             raise DeviceError(
-                f"UR {self.host}: {mode}; power the arm on and release the brakes "
-                "(or use auto_power_on=True)"
+                f"UR {self.host}: {mode}; on the teach pendant, power the arm on and release "
+                "the brakes (the Initialize screen: ON, then START), then start again"
             )
         try:
             db.powerOn()
