@@ -85,3 +85,19 @@ def test_a_model_in_millimetres_or_degrees_is_refused_on_loading(dh_model, tmp_p
     with pytest.raises(UserError, match=match) as e:
         load_model(f)
     assert "\n" not in str(e.value)
+
+
+def test_a_saved_model_states_the_units_and_frames_of_its_arrays(dh_model, tmp_path):
+    from workcell.estimation.models import model_fingerprint, save_model
+    from workcell.kinematics.chain import PARAM_NAMES
+
+    c = dh_model["conventions"]
+    assert set(c["theta_units"]) == set(PARAM_NAMES)
+    assert c["theta_units"]["a2"] == "m" and c["theta_units"]["alpha2"] == "rad"
+    assert "tracker_T_base" in c["base_ref"] and c["parameter_frames"]
+    f = tmp_path / "m.json"
+    f.write_text(json.dumps(dh_model))
+    m = load_model(f)
+    assert model_fingerprint(load_model(save_model(m, tmp_path / "m2.json"))) == model_fingerprint(
+        m
+    )

@@ -123,9 +123,27 @@ def check_model_output(
 def save_model(model: FittedModel, path: str | os.PathLike) -> Path:
     from workcell.atomic import write_text
 
-    d = {"format": MODEL_FORMAT, **model.to_dict()}
+    d = {"format": MODEL_FORMAT, **model.to_dict(), "conventions": model_conventions()}
     # whole or not at all: a temporary name beside the output, then an atomic rename
     return write_text(path, json.dumps(d, indent=1, allow_nan=False))
+
+
+def model_conventions() -> dict:
+    """Units and frames of a model file's arrays, written beside them (readers ignore it)."""
+    from workcell.kinematics.chain import PARAM_NAMES, PARAM_UNITS, PARAMETER_FRAMES
+
+    return {
+        "theta": "geometric parameters in the order of parameter_names; units in theta_units",
+        "theta_units": {n: PARAM_UNITS[n] for n in PARAM_NAMES},
+        "parameter_frames": PARAMETER_FRAMES,
+        "cov": "covariance of the estimated parameters, in the products of their units (m^2, "
+        "m rad, rad^2; effects in the units `workcell fit`/`diagnose` print beside them)",
+        "base_ref": "4x4 homogeneous transform tracker_T_base_ref (rotation, translation in m)",
+        "nominal_dh": "a, d in m; alpha, theta_offset in rad",
+        "thermal.ref": "reference link temperature in degC (source joint or ambient), hours "
+        "(source time)",
+        "positions": "SMR positions in m, tracker frame unless named otherwise",
+    }
 
 
 def model_fingerprint(model: FittedModel) -> str:
