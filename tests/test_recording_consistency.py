@@ -180,3 +180,13 @@ def test_info_lists_what_fits_refuse_or_set_aside(base, tmp_path):
     s3[2]["tracker_position_m"] = [0.0, 0.0, 0.0]
     d = summary(str(_write(tmp_path, "zero.mcap", session, s3, times)))
     assert d["value_problems"] == [] and "gross readings" in d["set_aside"][0]
+
+
+def test_replay_refuses_what_the_fits_refuse(base, tmp_path, capsys):
+    session, samples, times, _ = base
+    s2 = copy.deepcopy(samples)
+    for s in s2:
+        s["tracker_position_m"] = list(samples[0]["tracker_position_m"])
+    p = _write(tmp_path, "constant.mcap", session, s2, times)
+    rc, err = run_cli(["replay", str(p), "--online", "ekf-ann"], capsys)
+    assert rc != 0 and len(err) == 1 and "do not follow" in err[0]
