@@ -130,3 +130,33 @@ def test_protective_stop_pauses_and_resumes(tmp_path):
     kinds = [e["kind"] for e in rec.events]
     assert "protective_stop" in kinds and "pause" in kinds and "resume" in kinds, kinds
     assert {s["pose_id"] for s in rec.samples} == set(range(4))
+
+
+def test_ask_with_no_operator_does_not_release_a_protective_stop(tmp_path):
+    """`--on-protective-stop ask < /dev/null`: the prompt read an empty line at once and the
+    stop was released with nobody there (exit 0). Now the end of input stops the campaign: the
+    arm is not unlocked, the recording closed with an `abort` event, one line, exit 2."""
+    out = tmp_path / "ask.mcap"
+    with SimProcess(
+        "127.0.0.44",
+        seed=2,
+        time_scale=TIME_SCALE,
+        with_tracker=True,
+        faults={"protective_stop_at_move": [3]},
+    ) as sim:
+        r = subprocess.run(
+            campaign_cmd(sim.info, out, 4, "--on-protective-stop", "ask"),
+            stdin=subprocess.DEVNULL,
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
+    assert r.returncode == 2, r.stderr[-3000:]
+    last = r.stderr.strip().splitlines()[-1]
+    assert "not acknowledged" in last and f"--resume {out}" in last, last
+    assert "Traceback" not in r.stderr
+    rec = read_recording(out)
+    assert rec.closed_cleanly
+    kinds = [e["kind"] for e in rec.events]
+    assert "protective_stop" in kinds and "resume" not in kinds, kinds
+    assert kinds[-1] == "abort"

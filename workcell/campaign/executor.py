@@ -6,11 +6,17 @@ MCAP. Faults become `/campaign/event` records and are handled by a small policy:
 - beam break / no distance: wait and retry up to `max_beam_retries`, then skip the pose (event);
 - tracker I/O error: the driver resyncs; the executor retries, then skips the pose;
 - robot connection lost: reconnect with exponential back-off (if the driver can), then continue;
-- protective stop: pause, event, and resume when `resume_protective_stop()` says so;
+- protective stop: pause, event, and resume when `resume_protective_stop()` says so; the
+  `MAX_PROTECTIVE_STOPS_IN_A_ROW`-th stop with no pose recorded since the first ends the campaign
+  with the arm left stopped (`CampaignResult.stopped_by == "protective_stop"`);
+- a tracker that gives not one usable reading at `MAX_TRACKER_SKIPS_IN_A_ROW` poses in a row (no
+  pose recorded between them) ends the campaign (`stopped_by == "tracker"`): it has stopped measuring;
 - a move cut short by either is never sent again as it was: the arm may have been jogged or
   freedriven meanwhile, so the pose starts over from where the arm is, every path checked again
   (`_MoveInterrupted`; after `max_reconnects` such restarts the pose is skipped);
-- Ctrl-C / abort: stop the robot, record an `abort` event; the caller closes the recording;
+- Ctrl-C / SIGTERM / SIGHUP / abort: stop the robot, record an `abort` event; the caller closes
+  the recording. Back-off waits and the tracker's retries look at the abort flag (and a signal
+  interrupts a tracker reading itself), so an abort never waits for them to run out;
 - the kinematic margin does not hold (`watch.MarginWatch`, when given): stop the robot, record
   a `margin` event saying why, end the campaign (`CampaignResult.stopped_by == "margin"`).
 Safety: every target (and its approach pre-pose) is checked against the envelope before any
@@ -23,6 +29,7 @@ import signal
 import threading
 import time
 from collections.abc import Callable
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -38,6 +45,16 @@ from workcell.drivers.protocols import (
 )
 from workcell.errors import INTERRUPTED, UserError
 from workcell.kinematics.robots import RobotSpec
+
+# A campaign that meets the same fault again and again with nothing measured in between is not
+# going to get anywhere by itself: it stops, the arm stopped, for a person to look (one line).
+MAX_PROTECTIVE_STOPS_IN_A_ROW = 3  # protective stops with no pose recorded between them
+MAX_TRACKER_SKIPS_IN_A_ROW = 3  # poses skipped for want of tracker readings, none recorded between
+
+# the signals a command line campaign handles as Ctrl-C (`CampaignControl.install_sigint`)
+ABORT_SIGNALS = tuple(
+    getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, n)
+)
 
 
 class ArmOutsideEnvelope(UserError):
@@ -124,21 +141,60 @@ class CampaignControl:
     # set while an executor runs: before it (planning, connecting) nothing moves and nothing is
     # recorded, so Ctrl-C may stop at once; while it runs, Ctrl-C stops after the current step
     running: threading.Event = field(default_factory=threading.Event)
+    # the first abort signal received (0: none; the abort came from a UI or `stop_reason`)
+    signum: int = 0
+    # why the campaign was stopped when it was not the operator's abort (e.g. a protective stop
+    # nobody acknowledged): the `abort` event says it, and the result's `stop_message`
+    stop_reason: str = ""
+    # the main thread is inside a call a signal may cut short (`interruptible`)
+    _interruptible: bool = False
 
     def install_sigint(self) -> None:
-        """Make Ctrl-C this campaign's `on_sigint`; a Ctrl-C that came earlier and that Python
-        dropped (`errors.INTERRUPTED`) stops here, before anything connects or moves."""
-        signal.signal(signal.SIGINT, self.on_sigint)
+        """Make Ctrl-C, SIGTERM and SIGHUP (`ABORT_SIGNALS`: what `kill`, `timeout` and a closed
+        terminal send) this campaign's `on_sigint`; a Ctrl-C that came earlier and that Python
+        dropped (`errors.INTERRUPTED`) stops here, before anything connects or moves. Returns
+        the handlers it replaced, by signal."""
+        old = {}
+        for sig in ABORT_SIGNALS:
+            old[sig] = signal.signal(sig, self.on_sigint)
         if INTERRUPTED.is_set():
             raise KeyboardInterrupt
+        return old
 
-    def on_sigint(self, *_) -> None:
-        """SIGINT handler for a command line: abort at once before the campaign starts (a plan
-        of many poses takes minutes), cleanly (robot stopped, recording closed) once it runs."""
+    def on_sigint(self, signum: int = signal.SIGINT, *_) -> None:
+        """Abort-signal handler for a command line: abort at once before the campaign starts (a
+        plan of many poses takes minutes), cleanly (robot stopped, recording closed) once it
+        runs; inside an `interruptible` call (a tracker reading) at once, cleanly too."""
+        if not self.signum:
+            self.signum = int(signum)
         INTERRUPTED.set()  # also before the run: a dropped KeyboardInterrupt still stops it
         self.abort.set()
-        if not self.running.is_set():
+        if not self.running.is_set() or self._interruptible:
             raise KeyboardInterrupt
+
+    @contextmanager
+    def interruptible(self):
+        """A block that an abort signal may cut short with KeyboardInterrupt (it records
+        nothing and commands no motion: a tracker reading, a wait). Only in the main thread,
+        where signal handlers run; elsewhere (a UI's worker) the block runs as it is."""
+        if threading.current_thread() is not threading.main_thread():
+            yield
+            return
+        self._interruptible = True
+        try:
+            if self.abort.is_set():
+                raise KeyboardInterrupt
+            yield
+        finally:
+            self._interruptible = False
+
+    def abort_message(self) -> str:
+        """What the `abort` event says stopped the campaign."""
+        if self.stop_reason:
+            return f"campaign stopped: {self.stop_reason}; recording closed"
+        if self.signum and self.signum != signal.SIGINT:
+            return f"campaign aborted by {signal.Signals(self.signum).name}; recording closed"
+        return "campaign aborted by the operator; recording closed"
 
 
 @dataclass
@@ -148,11 +204,24 @@ class CampaignResult:
     aborted: bool = False
     events: int = 0
     skipped_ids: list[int] = field(default_factory=list)
-    stopped_by: str = ""  # "operator" (abort, Ctrl-C) or "margin" (the margin watch)
+    # "operator" (abort, Ctrl-C, SIGTERM, SIGHUP), "margin" (the margin watch),
+    # "unacknowledged" (a protective stop nobody acknowledged), "protective_stop" (too many in a
+    # row), "tracker" (no tracker readings at too many poses in a row) or "error"
+    stopped_by: str = ""
+    stop_message: str = ""  # for the last three: one line on why
 
 
 class _MarginStop(Exception):
     """Raised after a sample when the margin watch finds the kinematic margin does not hold."""
+
+
+class _CampaignStop(Exception):
+    """A fault the campaign will not get past by itself (`MAX_..._IN_A_ROW`): stop the arm,
+    close the recording, say why. `kind`: `CampaignResult.stopped_by`."""
+
+    def __init__(self, kind: str, message: str) -> None:
+        super().__init__(message)
+        self.kind = kind
 
 
 class Executor:
@@ -198,6 +267,9 @@ class Executor:
         self._elapsed0 = elapsed0_s
         self._last_js = -1e9
         self.watch = watch  # a watch.MarginWatch, or None
+        # faults since the last recorded pose (`MAX_..._IN_A_ROW`)
+        self._pstops_in_a_row = 0
+        self._tracker_skips_in_a_row = 0
 
     # ------------------------------------------------------------------ time and records
     def elapsed(self) -> float:
@@ -237,7 +309,9 @@ class Executor:
     def _t_ns_safe(self) -> int:
         try:
             return self._t_ns()
-        except Exception:  # robot unreachable while reporting it
+        except (Exception, KeyboardInterrupt):
+            # robot unreachable while reporting it (KeyboardInterrupt: its reconnect back-off
+            # cut short by an abort, while the abort itself is being recorded)
             return self._t_ns_offline()
 
     def _record_state(self, force: bool = False):
@@ -267,6 +341,8 @@ class Executor:
                 attempt += 1
                 reconnect = getattr(self.robot, "reconnect", None)
                 if reconnect is None or attempt > self.cfg.max_reconnects:
+                    if self.control.abort.is_set():
+                        raise KeyboardInterrupt  # an abort during the last try: it is one
                     raise err
                 wait = self.cfg.reconnect_backoff_s * 2 ** (attempt - 1)
                 self.sink.event(
@@ -278,7 +354,7 @@ class Executor:
                 self.result.events += 1
                 if self.on_event:
                     self.on_event({"level": "warning", "kind": "reconnect", "message": str(err)})
-                time.sleep(wait)
+                self._pause(wait)
                 try:
                     reconnect()
                     break
@@ -298,13 +374,26 @@ class Executor:
                 "reconnect",
                 f"tracker unreachable ({err}); reconnect {attempt} in {wait:.1f} s",
             )
-            time.sleep(wait)
+            self._pause(wait)
             try:
                 reconnect()
                 return True
             except DeviceError as e:
                 err = e
         return False
+
+    def _pause(self, seconds: float) -> None:
+        """Wait `seconds` of wall time (a back-off) in small slices; an abort ends the wait at
+        once (KeyboardInterrupt). Slices, not `Event.wait`: a signal handler that sets the
+        event while this thread holds the event's lock would deadlock."""
+        end = time.monotonic() + seconds
+        while True:
+            if self.control.abort.is_set():
+                raise KeyboardInterrupt
+            left = end - time.monotonic()
+            if left <= 0:
+                return
+            time.sleep(min(left, 0.05))
 
     def _move(self, q: np.ndarray) -> None:
         """One joint move whose path the caller has checked from where the arm is. Cut short
@@ -315,6 +404,15 @@ class Executor:
             self._robot_call(lambda: self.robot.move_joints(q, speed, accel), repeat=False)
         except ProtectiveStop as e:
             self.event("error", "protective_stop", f"protective stop during a move: {e}")
+            self._pstops_in_a_row += 1
+            if self._pstops_in_a_row >= MAX_PROTECTIVE_STOPS_IN_A_ROW:
+                msg = (
+                    f"{self._pstops_in_a_row} protective stops in a row with no pose measured "
+                    "between them; the arm is left stopped: find out why the cell stops it "
+                    "(a collision, a payload or speed setting)"
+                )
+                self.event("error", "stopped", msg)
+                raise _CampaignStop("protective_stop", msg) from None
             self._wait_protective_stop()
             raise _MoveInterrupted("protective stop during a move") from None
         self._last_cmd = np.array(q, float)
@@ -329,7 +427,7 @@ class Executor:
                     time.sleep(0.05)
             finally:
                 self.control.waiting_for_resume.clear()
-        if self.control.abort.is_set():
+        if self.control.abort.is_set():  # Ctrl-C, or nobody acknowledged (`stop_reason`)
             raise KeyboardInterrupt
         unlock = getattr(self.robot, "unlock_protective_stop", None)
         if unlock is not None:
@@ -481,10 +579,15 @@ class Executor:
         n = self.cfg.readings_per_pose
         good, qs, temps = [], [], []
         failures = 0
+        problem = ""  # the last reason a reading was not usable
         while len(good) < n:
+            if self.control.abort.is_set():  # a tracker that fails slowly must not hold it up
+                raise KeyboardInterrupt
             try:
-                r = self.tracker.measure()
+                with self.control.interruptible():
+                    r = self.tracker.measure()
             except DeviceUnreachable as e:
+                problem = str(e)
                 failures += 1
                 for kind, msg in _pop_faults(self.tracker):
                     self.event("warning", kind, msg)
@@ -492,6 +595,7 @@ class Executor:
                     break
                 continue
             except DeviceError as e:
+                problem = str(e)
                 failures += 1
                 for kind, msg in _pop_faults(self.tracker):
                     self.event("warning", kind, msg)
@@ -503,6 +607,7 @@ class Executor:
                 self.event("warning", kind, msg)
             self.sink.tracker_measurement(self._t_ns(), r.position_m, r.sigma_m, r.status)
             if r.status != "ok" or not np.all(np.isfinite(r.position_m)):
+                problem = f"status {r.status}" if r.status != "ok" else "non-finite coordinates"
                 failures += 1
                 self.event(
                     "warning",
@@ -527,6 +632,15 @@ class Executor:
             )
             self.result.skipped += 1
             self.result.skipped_ids.append(t.pose_id)
+            # no reading at all: the tracker may have stopped measuring (some: it measures)
+            self._tracker_skips_in_a_row = self._tracker_skips_in_a_row + 1 if not good else 0
+            if self._tracker_skips_in_a_row >= MAX_TRACKER_SKIPS_IN_A_ROW:
+                msg = (
+                    f"tracker gave no usable reading at {self._tracker_skips_in_a_row} poses in a "
+                    f"row (last problem: {problem or 'too few readings'})"[:600]
+                )
+                self.event("error", "stopped", f"{msg}; the campaign stops, the arm stopped")
+                raise _CampaignStop("tracker", msg)
             return None
         P = np.array([g[0] for g in good])
         S = np.array([g[1] for g in good])
@@ -559,6 +673,7 @@ class Executor:
         self.sink.sample(self._t_ns(e), sample)
         self.index += 1
         self.result.measured += 1
+        self._pstops_in_a_row = self._tracker_skips_in_a_row = 0
         if self.on_sample:
             self.on_sample(sample)
         if self.watch is not None:
@@ -634,12 +749,20 @@ class Executor:
             self._margin_summary()
         except KeyboardInterrupt:
             self.result.aborted, self.result.stopped_by = True, "operator"
+            if self.control.stop_reason:
+                self.result.stopped_by = "unacknowledged"
+                self.result.stop_message = self.control.stop_reason
             self._stop_robot()
             self._margin_summary()
-            self.event("warning", "abort", "campaign aborted by the operator; recording closed")
+            self.event("warning", "abort", self.control.abort_message())
         except _MarginStop:
             self.result.aborted, self.result.stopped_by = True, "margin"
             self._stop_robot()
+        except _CampaignStop as e:  # its `stopped` event is recorded
+            self.result.aborted, self.result.stopped_by = True, e.kind
+            self.result.stop_message = str(e)
+            self._stop_robot()
+            self._margin_summary()
         except BaseException as e:
             # anything else (a device fault beyond the retries, the arm found outside the
             # envelope, a closed output pipe, a bug): the arm is stopped and the recording

@@ -21,7 +21,7 @@ import numpy as np
 from workcell.campaign.devices import open_cell
 from workcell.campaign.envelope import envelope_of_session
 from workcell.campaign.executor import CampaignConfig, CampaignControl
-from workcell.campaign.run import margin_stop, progress, run_campaign
+from workcell.campaign.run import campaign_stop, exit_code, progress, run_campaign, summary
 from workcell.errors import UserError, check_output_path
 from workcell.recording import checks
 from workcell.recording.dataset import file_sha256
@@ -29,9 +29,41 @@ from workcell.recording.reader import read_recording
 from workcell.recording.repeats import RepeatWatch
 
 
+def _read_for_resume(old: str):
+    """The old recording, or one line for a file with nothing to resume: empty (0 bytes), or
+    an MCAP header with no session after it (a campaign that stopped before recording
+    anything: a full disk, a crash at its start)."""
+    from workcell.errors import MCAP_MAGIC
+    from workcell.recording import schema as S
+    from workcell.recording.reader import RecordingError
+
+    nothing = (
+        "a campaign that stopped before recording anything (a full disk, a crash at its "
+        f"start?); there is nothing to resume: delete {old} and start the campaign again"
+    )
+    p = Path(old)
+    if p.is_file() and p.stat().st_size == 0:
+        raise UserError(f"{old} is empty (0 bytes): {nothing}")
+    try:
+        return read_recording(old)
+    except RecordingError as e:
+        try:
+            with open(p, "rb") as f:
+                head = f.read(len(MCAP_MAGIC))
+        except OSError:
+            raise e from None
+        if head == MCAP_MAGIC and (
+            "before its session" in str(e) or f"no {S.SESSION} message" in str(e)
+        ):
+            raise UserError(
+                f"{old} holds no campaign session ({p.stat().st_size} bytes): {nothing}"
+            ) from None
+        raise
+
+
 def resume_plan(old: str) -> dict:
     """What a resume needs from the old recording."""
-    rec = read_recording(old)
+    rec = _read_for_resume(old)
     camp = rec.session.get("campaign") or {}
     if not isinstance(camp, dict):
         raise UserError(f"{old}: session campaign block is not an object; cannot resume it")
@@ -304,7 +336,15 @@ def resume_campaign(args: argparse.Namespace, control: CampaignControl) -> int:
     out = Path(args.out) if args.out else default_out(old)
     if out.exists():
         raise UserError(f"{out} already exists; choose a new file with --out")
-    check_output_path(out, "recording", inputs=[old])
+    try:
+        check_output_path(out, "recording", inputs=[old])
+    except UserError as e:
+        if args.out:
+            raise
+        raise UserError(
+            f"{e} (by default the continuation goes beside {old}; `--out DIR/NEW.mcap` writes "
+            "it elsewhere)"
+        ) from None
     if remaining <= 0:
         print(f"{old}: all {camp['poses']} poses already measured; nothing to resume")
         return 0
@@ -380,6 +420,9 @@ def resume_campaign(args: argparse.Namespace, control: CampaignControl) -> int:
         on_sample=count_repeats,
     )
     again = f" (and the reference {repeats[0]} more times)" if repeats[0] else ""
-    print(f"recorded {res.measured - repeats[0]} more poses{again}, skipped {res.skipped} -> {out}")
-    margin_stop(res, out)
-    return 130 if res.aborted else 0
+    summary(
+        f"recorded {res.measured - repeats[0]} more poses{again}, skipped {res.skipped} -> {out}",
+        control,
+    )
+    campaign_stop(res, out)
+    return exit_code(res, control)

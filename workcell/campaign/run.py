@@ -5,6 +5,7 @@ from __future__ import annotations
 import sys
 import time
 from collections.abc import Callable
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -20,7 +21,7 @@ from workcell.campaign.executor import (
 )
 from workcell.campaign.plans import PoseTarget, make_plan, with_reference
 from workcell.campaign.watch import MarginWatch
-from workcell.drivers.protocols import close_quietly
+from workcell.drivers.protocols import DeviceError, close_quietly
 from workcell.errors import INTERRUPTED, UserError
 from workcell.kinematics.robots import RobotSpec
 from workcell.recording.writer import RecordingWriter
@@ -187,6 +188,10 @@ def run_campaign(
                     f"continues {chained_from.get('path')} ({chained_from.get('samples')} samples)",
                 )
             result = ex.run(gen)
+    except DeviceError as e:
+        if ex is not None:  # the recording was opened, is closed now and keeps what it has
+            e.recording = (Path(out), ex.result.measured)
+        raise
     except ArmOutsideEnvelope as e:
         if ex is not None and ex.result.measured == 0 and not ex.result.skipped:
             # found outside before its first motion: a session header and no sample, nothing
@@ -220,3 +225,66 @@ def margin_stop(res: CampaignResult, path: str | Path) -> None:
             f"the campaign stopped after {res.measured} poses: the envelope's kinematic margin "
             f"does not hold (the margin event above says why); {path} is closed and keeps them"
         )
+
+
+def resume_hint(path: str | Path, measured: int) -> str:
+    """The end of a line for a campaign that stopped with its recording closed."""
+    return (
+        f"{path} is closed and keeps {measured} poses: `workcell campaign --resume {path}` "
+        "continues it"
+    )
+
+
+def campaign_stop(res: CampaignResult, path: str | Path) -> None:
+    """A campaign that stopped itself (the margin watch, `margin_stop`; a protective stop
+    nobody acknowledged; protective stops or a tracker without readings again and again,
+    `executor.MAX_..._IN_A_ROW`) is one line and a non-zero exit, raised after its recording
+    was closed with what it measured."""
+    margin_stop(res, path)
+    if res.stopped_by == "tracker":
+        raise UserError(
+            f"{res.stop_message}; the arm is stopped and {path} is closed and keeps "
+            f"{res.measured} poses: fix the tracker, then `workcell campaign --resume {path}`",
+            exit_code=3,
+        )
+    if res.stopped_by == "protective_stop":
+        raise UserError(
+            f"{res.stop_message}; {resume_hint(path, res.measured)} once it is fixed",
+            exit_code=3,
+        )
+    if res.stopped_by == "unacknowledged":
+        raise UserError(
+            f"{res.stop_message}; the arm is left stopped; {resume_hint(path, res.measured)}"
+        )
+
+
+@contextmanager
+def device_errors_say_resume():
+    """A device error that ended a campaign whose recording was open (`run_campaign` notes it
+    on the error) says which file keeps the poses and how to continue it (one line, exit 3)."""
+    try:
+        yield
+    except DeviceError as e:
+        rec = getattr(e, "recording", None)
+        if rec is None:
+            raise
+        raise UserError(f"{e}; {resume_hint(*rec)}", exit_code=3) from None
+
+
+def summary(line: str, control: CampaignControl) -> None:
+    """The closing line on stdout; best effort after SIGHUP (the terminal is gone: the
+    recording is closed already, and the exit code says what happened)."""
+    try:
+        print(line, flush=True)
+    except OSError:
+        if not control.signum:
+            raise
+
+
+def exit_code(res, control: CampaignControl) -> int:
+    """0, or for an aborted campaign 128 + the signal that stopped it (130 Ctrl-C, 143
+    SIGTERM, 129 SIGHUP; 130 for an abort without a signal), what a shell reports for a
+    process a signal ended."""
+    if not res.aborted:
+        return 0
+    return 128 + control.signum if control.signum else 130

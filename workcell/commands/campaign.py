@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
 from pathlib import Path
 
@@ -12,7 +13,14 @@ import numpy as np
 from workcell.campaign.devices import open_cell
 from workcell.campaign.executor import CampaignConfig, CampaignControl
 from workcell.campaign.plans import MAX_POSES, reference_line
-from workcell.campaign.run import margin_stop, progress, run_campaign
+from workcell.campaign.run import (
+    campaign_stop,
+    device_errors_say_resume,
+    exit_code,
+    progress,
+    run_campaign,
+    summary,
+)
 from workcell.errors import UserError, check_output_path
 from workcell.recording.repeats import RepeatWatch
 
@@ -86,7 +94,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         choices=["ask", "resume"],
         default=None,
         help="after a protective stop: ask on the terminal before resuming (default "
-        "when interactive) or resume at once",
+        "when interactive; the end of input, e.g. < /dev/null, stops the campaign) or resume at "
+        "once; 3 protective stops in a row with no pose measured between them stop it",
     )
 
 
@@ -137,8 +146,8 @@ def _check_resume_options(args: argparse.Namespace) -> None:
 
 
 def _control(args: argparse.Namespace) -> CampaignControl:
-    """Ctrl-C aborts cleanly; after a protective stop, ask on the terminal (default when
-    interactive) or resume at once."""
+    """Ctrl-C, SIGTERM and SIGHUP abort cleanly; after a protective stop, ask on the terminal
+    (default when interactive) or resume at once."""
     control = CampaignControl()
     control.install_sigint()
     mode = args.on_protective_stop or ("ask" if sys.stdin.isatty() else "resume")
@@ -155,7 +164,9 @@ def run(args: argparse.Namespace) -> int:
         _check_resume_options(args)
         for k in ("readings", "settle", "effects", "model"):
             setattr(args, k, DEFAULTS[k])  # for recordings that do not say (older ones)
-        return resume_campaign(args, _control(args))
+        control = _control(args)
+        with device_errors_say_resume():
+            return resume_campaign(args, control)
     for k, v in DEFAULTS.items():
         if getattr(args, k) is None:
             setattr(args, k, v)
@@ -189,6 +200,11 @@ def run(args: argparse.Namespace) -> int:
     if not args.out:
         raise UserError("--out REC.mcap is required (the recording to write)")
     if Path(args.out).exists():
+        if Path(args.out).is_file() and Path(args.out).stat().st_size == 0:
+            raise UserError(
+                f"{args.out} already exists and is empty (0 bytes: a campaign that stopped "
+                "before recording anything, on a full disk?); delete it or choose a new file"
+            )
         raise UserError(f"{args.out} already exists; choose a new file or use --resume")
     check_output_path(args.out, "recording")
     control = _control(args)
@@ -223,48 +239,92 @@ def run(args: argparse.Namespace) -> int:
             progress("  " + online.update(s))
 
     _say_planning(args)
-    path, res = run_campaign(
-        robot,
-        tracker,
-        cell,
-        args.out,
-        plan=args.plan,
-        poses=args.poses,
-        seed=args.seed,
-        envelope=env,
-        config=cfg,
-        control=control,
-        on_sample=on_sample,
-        on_event=on_event,
-        extra_campaign={
-            "robot_url": args.robot,
-            "tracker_url": args.tracker,
-            "effects": args.effects if args.robot == "sim" else None,
-            "sim_seed": args.seed if args.robot == "sim" else None,
-        },
-        reference_every=args.reference_every or 0,
-    )
+    with device_errors_say_resume():
+        path, res = run_campaign(
+            robot,
+            tracker,
+            cell,
+            args.out,
+            plan=args.plan,
+            poses=args.poses,
+            seed=args.seed,
+            envelope=env,
+            config=cfg,
+            control=control,
+            on_sample=on_sample,
+            on_event=on_event,
+            extra_campaign={
+                "robot_url": args.robot,
+                "tracker_url": args.tracker,
+                "effects": args.effects if args.robot == "sim" else None,
+                "sim_seed": args.seed if args.robot == "sim" else None,
+            },
+            reference_every=args.reference_every or 0,
+        )
     again = f" (and the reference {res.measured - n[0]} more times)" if res.measured > n[0] else ""
-    print(f"recorded {n[0]} poses{again}, skipped {res.skipped}, events {res.events} -> {path}")
-    margin_stop(res, path)
-    return 130 if res.aborted else 0
+    summary(
+        f"recorded {n[0]} poses{again}, skipped {res.skipped}, events {res.events} -> {path}",
+        control,
+    )
+    campaign_stop(res, path)
+    return exit_code(res, control)
 
 
-def _ask_on_protective_stop(control: CampaignControl) -> None:
-    """A thread that asks the operator on the terminal when the campaign waits to resume."""
+NOT_ACKNOWLEDGED = (
+    "the protective stop was not acknowledged: standard input ended (no operator to press "
+    "Enter; run on a terminal to be asked)"
+)
+
+
+def _ask_on_protective_stop(control: CampaignControl, stdin=None) -> None:
+    """A thread that asks the operator on the terminal when the campaign waits to resume. Only
+    an Enter typed after the question releases the stop: what was typed before (type-ahead)
+    is flushed from a terminal first. The end of input (Ctrl-D, `< /dev/null`, a closed pipe)
+    is no acknowledgement: the campaign stops (`control.stop_reason`), the arm left stopped."""
+    import select
     import threading
+
+    stream = sys.stdin if stdin is None else stdin
+    try:
+        fd = stream.fileno()
+    except (AttributeError, OSError, ValueError):
+        fd = None
+
+    def flush_type_ahead() -> None:
+        if fd is not None and os.isatty(fd):
+            import termios
+
+            try:
+                termios.tcflush(fd, termios.TCIFLUSH)
+            except (OSError, termios.error):
+                pass
+
+    def answer() -> bool | None:
+        """True: a line (Enter); False: the end of input; None: the campaign was aborted."""
+        if fd is None:
+            return bool(stream.readline())
+        while not control.abort.is_set():
+            ready, _, _ = select.select([fd], [], [], 0.2)
+            if ready:
+                return bool(os.read(fd, 4096))  # unbuffered: nothing kept for the next stop
+        return None
 
     def loop() -> None:
         while not control.abort.is_set():
             if control.waiting_for_resume.wait(0.2):
-                print(
-                    "protective stop: check the cell, then press Enter to resume (Ctrl-C aborts)",
-                    file=sys.stderr,
-                    flush=True,
+                flush_type_ahead()
+                progress(
+                    "protective stop: check the cell, then press Enter to resume (Ctrl-C aborts)"
                 )
                 try:
-                    sys.stdin.readline()
+                    got = answer()
                 except (OSError, ValueError):
+                    got = False
+                if got is None:
+                    return
+                if not got:
+                    control.stop_reason = NOT_ACKNOWLEDGED
+                    control.abort.set()
                     return
                 control.resume.set()
                 while control.waiting_for_resume.is_set():

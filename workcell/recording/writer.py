@@ -57,9 +57,14 @@ class RecordingWriter:
             self._start(session, compression, session_t_ns)
         except BaseException:
             # nothing measured yet (a full disk, an unwritable session): leave no header-only
-            # file behind, which would block the same path and could not be resumed
-            self._f.close()
-            self.path.unlink(missing_ok=True)
+            # file behind, which would block the same path and could not be resumed. Closing
+            # flushes what is buffered, and on a full disk that fails too: remove it anyway
+            try:
+                self._f.close()
+            except OSError:
+                pass
+            finally:
+                self.path.unlink(missing_ok=True)
             raise
 
     def _start(self, session: dict, compression: str, session_t_ns: int | None) -> None:
