@@ -301,9 +301,10 @@ def test_the_header_states_the_size_of_what_the_yaml_drops(tmp_path, recording):
     m.info = {"recording": None, "recording_unusable": "the model's recording r.mcap was not found"}
     text = export_ros_yaml(m, tmp_path / "aug2.yaml")[0].read_text()
     assert "their size could not be evaluated: the model's recording r.mcap was not found" in text
-    # a dh model drops nothing, and says so
+    # a dh model drops no term of its own, and says so (what it leaves unexplained is another
+    # line: tests/test_export_outputs.py)
     text = export_ros_yaml(_calibrated_model(4), tmp_path / "dh.yaml")[0].read_text()
-    assert "# not carried: nothing (a dh model is geometric only)" in text
+    assert "# not carried: no term of the model (a dh model is geometric only)" in text
 
 
 @pytest.mark.parametrize(

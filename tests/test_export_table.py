@@ -185,8 +185,8 @@ def test_cli_targets_land_on_target_and_refuse_bad_rows(tmp_path, capsys):
         main(["export", str(path), "--format", "targets", "--in", str(good), "--out", str(out)])
         == 0
     )
-    rows = list(csv.DictReader(open(out)))
-    q_cmd = np.array([[float(r[f"q{i}_cmd"]) for i in range(1, 7)] for r in rows])
+    rows = list(csv.DictReader(x for x in open(out) if not x.startswith("#")))
+    q_cmd = np.array([[float(r[f"q{i}_cmd_rad"]) for i in range(1, 7)] for r in rows])
     corr = Corrector(m, nominal_for(m))
     assert np.abs(corr.real_base(q_cmd) - P).max() < 1e-8
     # each target carries the model's 1-sigma (it carried none): here the table's node formula

@@ -13,6 +13,14 @@ from workcell.atomic import atomic_files
 from workcell.errors import UserError, check_output_path, refuse_overwrite
 
 FORMATS = ("table", "urscript", "ros-yaml", "targets")
+# the targets CSV: comment lines (`# ...`: model, frame, units, coverage, 1-sigma basis), then
+# one header row with each column's unit, then numbers
+TARGETS_COLUMNS = (
+    [f"{a}_m" for a in "xyz"]
+    + [f"r{a}_rad" for a in "xyz"]
+    + [f"{a}_cmd_m" for a in "xyz"]
+    + [f"q{i}_cmd_rad" for i in range(1, 7)]
+)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -113,6 +121,7 @@ def run(args: argparse.Namespace) -> int:
         parse_vec,
     )
     from workcell.export.files import check_export_outputs, output_files
+    from workcell.export.table import is_warning
 
     check_unused_options(args)
     if args.interp_error is None:
@@ -134,7 +143,14 @@ def run(args: argparse.Namespace) -> int:
         args.approach or "1,1,1,1,1,1", args.payload, args.joint_temperature, args.elapsed
     )
     model = load_model(args.model)
-    summary: dict = {"format": args.format, "model": args.model}
+    summary: dict = {"format": args.format, "model": args.model, "warnings": []}
+    logged: list[str] = []  # what the table build logs: its warnings go in the JSON too
+
+    def log(line: str) -> None:
+        logged.append(line)
+        if not args.json:
+            print(line)
+
     if args.format == "ros-yaml":
         from workcell.export.build import model_recording
         from workcell.export.ros_yaml import export_ros_yaml
@@ -144,18 +160,18 @@ def run(args: argparse.Namespace) -> int:
             model, out, meta={"model": args.model, "recording_sha256": sha}
         )
         summary["files"] = [str(path)]
+        _copy_unexplained(info, summary)
         return _report(args, summary)
     summary["conditions"] = conditions_note(model, cond, strict=True)
     if not args.json:
         for line in summary["conditions"]:
             print(f"conditions: {line}")
     if args.format == "targets":
-        return _targets(args, model, cond, summary)
+        return _targets(args, model, cond, summary, log, logged)
     volume = parse_vec(args.volume, 6, "--volume") if args.volume else None
     oris = (
         [parse_vec(o, 3, "--orientation") for o in args.orientation] if args.orientation else None
     )
-    log = (lambda m: None) if args.json else print
     table, _ = make_table(
         model,
         model_path=args.model,
@@ -176,6 +192,14 @@ def run(args: argparse.Namespace) -> int:
     summary["joint_coverage"] = table.meta["joint_coverage"]
     if "nodes_std_exceeds_correction" in table.meta:
         summary["nodes_std_exceeds_correction"] = table.meta["nodes_std_exceeds_correction"]
+    # the 1-sigma (None: the model carries no covariance) and what the model leaves out, as
+    # printed and as the table's meta holds them
+    summary["median_std_m"] = table.meta.get("median_std_m")
+    summary["max_std_m"] = table.meta.get("max_std_m")
+    _copy_unexplained(table.meta, summary)
+    summary["warnings"] = [line.strip() for line in logged if is_warning(line)]
+    if (w := _interp_warning(args, summary)) is not None:
+        summary["warnings"].append(w)
     if args.format == "table":
         summary["files"] = [str(p) for p in table.save(out)]
     else:
@@ -186,6 +210,28 @@ def run(args: argparse.Namespace) -> int:
         files += [str(p) for p in table.save(script)]  # X.script -> X.json, X.csv
         summary["files"] = files
     return _report(args, summary)
+
+
+def _copy_unexplained(meta: dict, summary: dict) -> None:
+    """What the model leaves unexplained on its held-out poses (metres), as `meta` holds it."""
+    for key in ("model_unexplained", "model_unexplained_without_outliers"):
+        if meta.get(key) is not None:
+            summary[key] = meta[key]
+
+
+def _interp_warning(args, summary: dict) -> str | None:
+    """The line saying the table's interpolation error target is not met, or None."""
+    if summary.get("interp_error_target_met", True):
+        return None
+    why = (
+        "with the --spacing given (a finer one lowers the error)"
+        if args.spacing is not None
+        else "(node limit reached); a smaller volume or fewer orientations give a finer grid"
+    )
+    return (
+        f"warning: the interpolation error target {summary['target_interp_error_m'] * 1e6:.3g} "
+        f"um is not met {why}; the table holds the error above"
+    )
 
 
 def _report(args, summary: dict) -> int:
@@ -200,18 +246,13 @@ def _report(args, summary: dict) -> int:
                 f"{summary['max_interp_error_m'] * 1e6:.2f} um, max correction "
                 f"{summary['max_correction_m'] * 1e3:.3f} mm"
             )
-            if not summary.get("interp_error_target_met", True):
-                why = (
-                    "with the --spacing given (a finer one lowers the error)"
-                    if args.spacing is not None
-                    else "(node limit reached); a smaller volume or fewer orientations give a "
-                    "finer grid"
-                )
-                print(
-                    f"warning: the interpolation error target "
-                    f"{summary['target_interp_error_m'] * 1e6:.3g} um is not met {why}; the "
-                    "table holds the error above"
-                )
+            if (w := _interp_warning(args, summary)) is not None:
+                print(w)
+        elif "targets" in summary:
+            print(
+                f"{summary['targets']} targets, max correction "
+                f"{summary['max_correction_m'] * 1e3:.3f} mm"
+            )
     return 0
 
 
@@ -248,15 +289,22 @@ def _check_joints(src: Path, q: np.ndarray, nom, lines: list[int]) -> None:
             raise UserError(p[0])
 
 
-def _targets(args, model, cond, summary) -> int:
-    from workcell.export.build import nominal_for_model
+def _targets(args, model, cond, summary, log, logged: list[str]) -> int:
+    from workcell.export.build import model_recording, nominal_for_model, note_unexplained
     from workcell.export.correction import Q_REF, Corrector, matrix_to_rotvec, rotvec_to_matrix
+    from workcell.export.files import TARGETS_CSV_MARK
     from workcell.export.table import (
         DEGREES_HINT,
+        NO_STD_LINE,
         STD_BASIS,
         beyond_full_turn,
         check_corrections,
+        coverage_line,
+        is_warning,
+        joint_coverage,
         node_std,
+        undetermined_line,
+        unexplained_lines,
     )
 
     if not args.targets_in:
@@ -350,23 +398,54 @@ def _targets(args, model, cond, summary) -> int:
         )
     check_corrections(c - P, P, args.max_correction, where="target")  # finite: checked above
     rv = matrix_to_rotvec(R)
+    mags = np.linalg.norm(c - P, axis=1)
+    # as a table's export says them: extrapolated targets, the 1-sigma, what the model leaves out
+    coverage = joint_coverage(corr, q, what="targets")
+    log("  " + coverage_line(coverage, what="targets"))
+    summary["joint_coverage"] = coverage
     sd = node_std(corr, q)  # (N, 3) or None: the model carries no covariance
+    summary["median_std_m"] = summary["max_std_m"] = None
+    summary["std_basis"] = "none: the model carries no covariance of its prediction"
+    if sd is not None:
+        s3 = np.linalg.norm(sd, axis=1)
+        summary["median_std_m"], summary["max_std_m"] = float(np.median(s3)), float(s3.max())
+        summary["std_basis"] = STD_BASIS
+        summary["targets_std_exceeds_correction"] = int(np.sum(s3 > mags))
+        log(
+            f"  correction 1-sigma (model uncertainty, 3-D): median {np.median(s3) * 1e6:.1f} um, "
+            f"max {s3.max() * 1e6:.1f} um"
+        )
+        if (line := undetermined_line(s3, mags, what="targets")) is not None:
+            log(f"  {line}")
+    else:
+        log(f"  {NO_STD_LINE}")
+    note_unexplained(model, summary, log)
+    summary["warnings"] = [line.strip() for line in logged if is_warning(line)]
+    rec_sha = model_recording(model)[1]
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     with atomic_files(out, newline="") as (f,):
+        f.write(f"{TARGETS_CSV_MARK} (workcell export --format targets)\n")
+        for line in (
+            f"model: {args.model} ({getattr(model, 'method', '?')})",
+            f"recording_sha256: {rec_sha}",
+            f"robot: {nom.robot}",
+            "frame: base = the model's registered nominal base (tracker_T_base = base_ref); "
+            "positions are the SMR/TCP in base; x_m..rz_rad the desired pose, *_cmd_* what to "
+            "command (the nominal orientation is kept)",
+            "units: m, rad (UR rotation vectors)",
+            *(f"conditions: {x}" for x in summary["conditions"]),
+            coverage_line(coverage, what="targets"),
+            f"sx_m, sy_m, sz_m: {STD_BASIS}" if sd is not None else NO_STD_LINE,
+            *unexplained_lines(summary),
+        ):
+            f.write(f"# {' '.join(line.split())}\n")
         w = csv.writer(f)
-        w.writerow(
-            ["x", "y", "z", "rx", "ry", "rz", "x_cmd", "y_cmd", "z_cmd"]
-            + [f"{qc}_cmd" for qc in qcols]
-            + ([] if sd is None else ["sx_m", "sy_m", "sz_m"])
-        )
+        w.writerow(TARGETS_COLUMNS + (["sx_m", "sy_m", "sz_m"] if sd is not None else []))
         for i in range(len(P)):
             row = (*P[i], *rv[i], *c[i], *q[i], *(() if sd is None else sd[i]))
             w.writerow([repr(float(v)) for v in row])
-    if sd is not None:  # the CSV stays plain (a header row, then numbers): the basis is here
-        summary["median_std_m"] = float(np.median(np.linalg.norm(sd, axis=1)))
-        summary["std_basis"] = STD_BASIS
     summary["files"] = [str(out)]
     summary["targets"] = len(P)
-    summary["max_correction_m"] = float(np.max(np.linalg.norm(c - P, axis=1)))
+    summary["max_correction_m"] = float(mags.max())
     return _report(args, summary)

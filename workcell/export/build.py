@@ -270,26 +270,30 @@ def make_table(
         meta=meta,
         log=log,
     )
-    u = model_unexplained(model)
-    if u is not None:
-        tab.meta["model_unexplained"] = u
-        if log:
-            log(
-                f"  not in that 1-sigma: the model leaves {unexplained_text(u)} on its held-out "
-                "poses"
-            )
-            if isinstance(sel := model.info.get("heldout_selection"), str):
-                log(f"  ({sel})")
-        w = model_unexplained(model, without_outliers=True)
-        if w is not None:
-            tab.meta["model_unexplained_without_outliers"] = w
-            if log:
-                ids = ", ".join(str(i) for i in w["pose_ids"])
-                log(
-                    f"  without the held-out outlier pose(s) {ids} ({w['rule']}): "
-                    f"{unexplained_text(w)}"
-                )
+    note_unexplained(model, tab.meta, log)
     return tab, corr
+
+
+def note_unexplained(model, meta: dict, log=None) -> None:
+    """Put the model file's figure of what it leaves unexplained on its held-out poses (not in
+    the correction's 1-sigma) in `meta` (`model_unexplained`, and `..._without_outliers` when
+    `fit` named held-out outliers) and tell `log` (the lines `export` prints)."""
+    u = model_unexplained(model)
+    if u is None:
+        return
+    meta["model_unexplained"] = u
+    if log:
+        log(f"  not in that 1-sigma: the model leaves {unexplained_text(u)} on its held-out poses")
+        if isinstance(sel := model.info.get("heldout_selection"), str):
+            log(f"  ({sel})")
+    w = model_unexplained(model, without_outliers=True)
+    if w is not None:
+        meta["model_unexplained_without_outliers"] = w
+        if log:
+            ids = ", ".join(str(i) for i in w["pose_ids"])
+            log(
+                f"  without the held-out outlier pose(s) {ids} ({w['rule']}): {unexplained_text(w)}"
+            )
 
 
 def model_unexplained(model, *, without_outliers: bool = False) -> dict | None:

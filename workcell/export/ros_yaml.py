@@ -183,9 +183,11 @@ def to_yaml(
     comments: list[str] | None = None,
     hash_: str | None = None,
     std: dict | None = None,
+    fixed: dict | None = None,
 ) -> str:
     """The calibration YAML; `std` ({link: {key: 1-sigma}}) goes beside each value as a comment,
-    which every YAML reader ignores (the drivers read the values only)."""
+    which every YAML reader ignores (the drivers read the values only); a value in `fixed`
+    ({link: {key: [parameter names]}}, `fixed_values`) is marked not estimated instead."""
     if hash_ is None:
         h = hashlib.sha256(repr([[kin[n][k] for k in KEYS] for n in LINKS]).encode()).digest()
         hash_ = f"calib_{int.from_bytes(h[:8], 'big')}"
@@ -195,7 +197,11 @@ def to_yaml(
         lines.append(f"  {n}:")
         for k in KEYS:
             line = f"    {k}: {_fmt(kin[n][k])}"
-            if std is not None:
+            held = (fixed or {}).get(n, {}).get(k)
+            if held is not None:
+                why = f"{', '.join(held)} at nominal" if held else "no parameter moves it"
+                line = f"{line:<33} # fixed, not estimated ({why})"
+            elif std is not None:
                 unit = "m" if k in "xyz" else "rad"
                 line = f"{line:<33} # +- {std[n][k]:.2g} {unit}"
             lines.append(line)
@@ -233,23 +239,30 @@ def read_ros_yaml(text: str) -> dict:
     return kin
 
 
+def _geometric_part(model) -> tuple[object, str | None]:
+    """(the object holding the model's geometry (`theta`, `base_ref`), the attribute it is
+    under, None for the model itself); refuses models without one."""
+    for attr in (None, "base", "base_model", "dh_model", "geometric"):
+        m = model if attr is None else getattr(model, attr, None)
+        if m is not None and hasattr(m, "theta") and hasattr(m, "base_ref"):
+            return m, attr
+    raise UserError(
+        f"model {getattr(model, 'method', '?')!r} has no geometric (DH) part to write as ROS "
+        "calibration YAML; use --format table or urscript"
+    )
+
+
 def model_geometry(model) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
     """(theta (39,), base offset (4x4, registered base -> calibrated base), base_ref, note) of the
     geometric part of a model; refuses models without one."""
     from workcell.kinematics.chain import tracker_T_base
 
-    for attr in (None, "base", "base_model", "dh_model", "geometric"):
-        m = model if attr is None else getattr(model, attr, None)
-        if m is not None and hasattr(m, "theta") and hasattr(m, "base_ref"):
-            th = np.asarray(m.theta, float)
-            base_ref = np.asarray(m.base_ref, float)
-            B = np.linalg.solve(base_ref, np.asarray(tracker_T_base(th, base_ref)))
-            note = "" if attr is None else f"geometric part ({attr}) of a {model.method} model"
-            return th, B, base_ref, note
-    raise UserError(
-        f"model {getattr(model, 'method', '?')!r} has no geometric (DH) part to write as ROS "
-        "calibration YAML; use --format table or urscript"
-    )
+    m, attr = _geometric_part(model)
+    th = np.asarray(m.theta, float)
+    base_ref = np.asarray(m.base_ref, float)
+    B = np.linalg.solve(base_ref, np.asarray(tracker_T_base(th, base_ref)))
+    note = "" if attr is None else f"geometric part ({attr}) of a {model.method} model"
+    return th, B, base_ref, note
 
 
 def _flat(kin: dict) -> np.ndarray:
@@ -260,8 +273,6 @@ def kinematics_std(model, step: float = 1e-7) -> dict | None:
     """1-sigma of every YAML value ({link: {key: std}}), the geometric part's parameter
     covariance propagated to first order (central differences, angles wrapped); None when the
     model carries no covariance."""
-    from workcell.kinematics.chain import tracker_T_base
-
     th, _, base_ref, _ = model_geometry(model)
     cov = None
     for attr in (None, "base", "base_model", "dh_model", "geometric"):
@@ -272,22 +283,121 @@ def kinematics_std(model, step: float = 1e-7) -> dict | None:
             break
     if cov is None or cov.shape != (len(th), len(th)) or not np.all(np.isfinite(cov)):
         return None
+    J = _yaml_jacobian(th, base_ref, np.flatnonzero(np.diag(cov) > 0), step)
+    sd = np.sqrt(np.clip(np.einsum("ij,jk,ik->i", J, cov, J), 0.0, None))
+    it = iter(sd)
+    return {n: {k: float(next(it)) for k in KEYS} for n in LINKS}
+
+
+def _yaml_jacobian(th: np.ndarray, base_ref: np.ndarray, cols, step: float = 1e-7) -> np.ndarray:
+    """d(YAML values, `_flat` order) / d(theta[cols]) (36, len(theta)), zero in the other
+    columns: central differences, angles wrapped."""
+    from workcell.kinematics.chain import tracker_T_base
 
     def f(t):
         B = np.linalg.solve(base_ref, np.asarray(tracker_T_base(t, base_ref)))
         return _flat(ros_kinematics(t, B))
 
     J = np.zeros((len(LINKS) * len(KEYS), len(th)))
-    for i in np.flatnonzero(np.diag(cov) > 0):
+    ang = np.tile([False, False, False, True, True, True], len(LINKS))
+    for i in cols:
         e = np.zeros(len(th))
         e[i] = step
         d = f(th + e) - f(th - e)
-        ang = np.tile([False, False, False, True, True, True], len(LINKS))
         d[ang] = (d[ang] + np.pi) % (2 * np.pi) - np.pi
         J[:, i] = d / (2 * step)
-    sd = np.sqrt(np.clip(np.einsum("ij,jk,ik->i", J, cov, J), 0.0, None))
-    it = iter(sd)
-    return {n: {k: float(next(it)) for k in KEYS} for n in LINKS}
+    return J
+
+
+def _estimated_mask(g, n: int) -> np.ndarray | None:
+    """Which of the n geometric parameters the model estimated: its `free` mask (dh, augmented
+    and the dh base of lddmm/gp), else those with a variance in its covariance (ekf-ann); None
+    when it says neither."""
+    free = getattr(g, "free", None)
+    if free is not None and np.shape(free) == (n,):
+        return np.asarray(free, bool)
+    c = g.theta_cov() if hasattr(g, "theta_cov") else None
+    if c is not None and np.shape(c) == (n, n) and np.all(np.isfinite(c)):
+        return np.diag(np.asarray(c, float)) > 0
+    return None
+
+
+def fixed_values(model) -> tuple[dict | None, list[str]]:
+    """The YAML values the model did not estimate -> ({link: {key: [parameter names]}}, the
+    fixed parameters named): a value is fixed when it moves one for one (|derivative| >= 0.5)
+    with a parameter held at its nominal value (unidentifiable, or left out of the fit) and
+    with no estimated one, or when no estimated parameter moves it at all. Its propagated +-
+    (0, or a by-product of a small rotation of it, 2e-8 m) is no measurement. (None, []) when
+    the model does not say which parameters it estimated."""
+    from workcell.kinematics.chain import joints_of, param_names
+
+    th, _, base_ref, _ = model_geometry(model)
+    g, _ = _geometric_part(model)
+    est = _estimated_mask(g, len(th))
+    if est is None:
+        return None, []
+    J = np.abs(_yaml_jacobian(th, base_ref, range(len(th))))
+    names = param_names(joints_of(th))
+    out: dict = {}
+    used: set[str] = set()
+    it = iter(J)
+    for n in LINKS:
+        for k in KEYS:
+            row = next(it)
+            held = [j for j in np.flatnonzero(row >= 0.5) if not est[j]]
+            if any(row[est] >= 0.5) or (not held and np.any(row[est] > 1e-6)):
+                continue  # estimated (through a parameter that moves it, however little)
+            held = held or [j for j in np.flatnonzero(row > 1e-6) if not est[j]]
+            out.setdefault(n, {})[k] = [names[j] for j in held]
+            used.update(names[j] for j in held)
+    return out, [x for x in names if x in used]
+
+
+# a calibration moves the nominal DH by tenths of a millimetre and milliradians: a model this
+# far from it is another arm's, or the session declared the wrong arm
+LINK_MOVE_MAX_M = 0.02
+ANGLE_MOVE_MAX_RAD = 0.05
+
+
+def check_nominal_distance(model) -> None:
+    """Refuse (one line) a geometry whose link lengths moved more than `LINK_MOVE_MAX_M` or
+    whose angles (alpha, joint offsets, tilts) moved more than `ANGLE_MOVE_MAX_RAD` from the
+    nominal chain of the arm the model names: a controller would take it as given (the table
+    and URScript exports refuse such a model by its correction's size)."""
+    from workcell.kinematics.chain import joints_of, pack, param_names
+    from workcell.kinematics.robots import robot_by_name
+
+    g, _ = _geometric_part(model)
+    spec = getattr(getattr(g, "features_spec", None), "spec", None)  # augmented
+    nd = getattr(g, "nominal_dh", None)
+    nd = getattr(spec, "dh", None) if nd is None else nd
+    robot = getattr(g, "robot_model", None) or getattr(spec, "model", None) or "?"
+    if nd is None:
+        try:
+            nd = robot_by_name(robot).dh
+        except ValueError:
+            return  # no nominal to compare with
+    th = np.asarray(g.theta, float)
+    n = joints_of(th)
+    nom = pack(nd)
+    if nom.shape != th.shape:
+        return
+    d = th - nom
+    d[2 * n : 5 * n] = (d[2 * n : 5 * n] + np.pi) % (2 * np.pi) - np.pi
+    names = param_names(n)
+    method = getattr(model, "method", "?")
+    for sl, lim, scale, unit in (
+        (slice(0, 2 * n), LINK_MOVE_MAX_M, 1e3, "mm"),
+        (slice(2 * n, 5 * n), ANGLE_MOVE_MAX_RAD, 1.0, "rad"),
+    ):
+        i = sl.start + int(np.argmax(np.abs(d[sl])))
+        if abs(d[i]) > lim:
+            raise UserError(
+                f"refused: the {method} model's {names[i]} moved {abs(d[i]) * scale:.3g} {unit} "
+                f"from the {robot} nominal ({nom[i]:.6g} -> {th[i]:.6g}; more than "
+                f"{lim * scale:g} {unit}): is the session's robot model right? A calibration "
+                "moves it by far less; fit a recording of this arm"
+            )
 
 
 def check_units(th: np.ndarray, tcp: np.ndarray, method: str) -> None:
@@ -347,7 +457,7 @@ def _dropped_line(model, th: np.ndarray, base_ref: np.ndarray) -> tuple[str, dic
         "not carried: non-geometric effects (compliance, backlash, thermal, data-driven residuals)"
     )
     if getattr(model, "method", None) == "dh":
-        return "not carried: nothing (a dh model is geometric only)", None
+        return "not carried: no term of the model (a dh model is geometric only)", None
     size, why = dropped_part(model, th, base_ref)
     if size is None:
         return f"{what}; their size could not be evaluated: {why}", None
@@ -368,7 +478,9 @@ def export_ros_yaml(model, path, meta: dict | None = None) -> tuple[Path, dict]:
     S6 = segments(th, B)[6]
     tcp = S6 @ _T(np.eye(3), th[36:39])
     check_units(th, tcp, getattr(model, "method", "?"))
+    check_nominal_distance(model)
     dropped, size = _dropped_line(model, th, base_ref)
+    unexplained, u = _unexplained_lines(model)
     meta = meta or {}
     comments = [
         "UR calibration kinematics generated by workcell (ur_description kinematics_params_file)",
@@ -378,8 +490,10 @@ def export_ros_yaml(model, path, meta: dict | None = None) -> tuple[Path, dict]:
         f"tcp_in_tool0 (SMR, incl. a6/alpha6/beta6): xyz {np.round(tcp[:3, 3], 9).tolist()} m, "
         f"rotvec {np.round(matrix_to_rotvec(tcp[:3, :3]), 12).tolist()} rad",
         dropped,
+        *unexplained,
     ]
     std = kinematics_std(model)
+    fixed, held = fixed_values(model)
     method = getattr(model, "method", "?")
     if std is not None:
         basis = {
@@ -394,12 +508,63 @@ def export_ros_yaml(model, path, meta: dict | None = None) -> tuple[Path, dict]:
             f"no uncertainty beside the values: this {method} model carries no covariance of its "
             "geometry (an ekf-ann model in paper mode does not estimate it)"
         )
+    if fixed:
+        comments.append(_fixed_line(model, held))
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    write_text(p, to_yaml(kin, comments=comments, std=std))
+    write_text(p, to_yaml(kin, comments=comments, std=std, fixed=fixed))
     return p, {
         "kinematics": kin,
         "kinematics_std": std,
+        "kinematics_fixed": fixed,  # {link: {key: [parameter names]}}: values not estimated
         "tcp_in_tool0": tcp.tolist(),
         "not_carried": size,  # {"rms_m", "max_m", "poses"} or None (dh, or not evaluated)
+        **u,  # model_unexplained (and without outliers): the model file's held-out figure
     }
+
+
+def _unexplained_lines(model) -> tuple[list[str], dict]:
+    """What the model itself leaves unexplained on its held-out poses (the model file's figure,
+    `export` prints it beside a table's 1-sigma): in neither the YAML's values nor their +-."""
+    from workcell.estimation.models import unexplained_text
+    from workcell.export.build import model_unexplained
+
+    u = model_unexplained(model)
+    if u is None:
+        return [
+            "unexplained by the model: not stated (the model file has no held-out figure); "
+            "it is in neither the values nor their +-"
+        ], {}
+    lines = [
+        f"unexplained by the model: {unexplained_text(u)} on its held-out poses, in neither the "
+        "values nor their +-"
+    ]
+    out = {"model_unexplained": u}
+    w = model_unexplained(model, without_outliers=True)
+    if w is not None:
+        ids = ", ".join(str(i) for i in w["pose_ids"])
+        lines.append(f"without the held-out outlier pose(s) {ids}: {unexplained_text(w)}")
+        out["model_unexplained_without_outliers"] = w
+    return lines, out
+
+
+def _fixed_line(model, held: list[str]) -> str:
+    """The header line saying what `fixed` beside a value means, naming the parameters."""
+    g, _ = _geometric_part(model)
+    groups = [
+        gr
+        for gr in (getattr(g, "unidentifiable", None) or [])
+        if isinstance(gr, list | tuple) and set(gr) & set(held)
+    ]
+    why = (
+        " (not identifiable apart on the recording's poses: "
+        + ", ".join("{" + ", ".join(map(str, gr)) + "}" for gr in groups)
+        + "; or left out of the fit)"
+        if groups
+        else " (unidentifiable on the recording's poses, or left out of the fit)"
+    )
+    return (
+        f"fixed beside a value: not estimated; it follows parameters held at their nominal "
+        f"value: {', '.join(held) or 'none'}{why}; no 1-sigma is given for it (it would be 0 "
+        "or a by-product of other parameters, not a measurement)"
+    )

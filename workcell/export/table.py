@@ -334,6 +334,8 @@ class CorrectionTable:
             f.write(f"# max_interp_error_m: {self.meta.get('max_interp_error_m')}\n")
             if isinstance(self.meta.get("joint_coverage"), dict):
                 f.write(f"# {coverage_line(self.meta['joint_coverage'])}\n")
+            for line in unexplained_lines(self.meta):
+                f.write(f"# {line}\n")
             w = csv.writer(f)
             if self.std_m is not None and "std_basis" in self.meta:
                 f.write(f"# sx_m, sy_m, sz_m: {self.meta['std_basis']}\n")
@@ -357,6 +359,29 @@ class CorrectionTable:
                                 )
                             )
         return pj, pc
+
+
+def unexplained_lines(meta: dict) -> list[str]:
+    """What the model leaves unexplained on its held-out poses (`model_unexplained` in a table's
+    or summary's meta, and without the named outliers), which the correction's 1-sigma does not
+    hold: the lines export files state it with."""
+    from workcell.estimation.models import unexplained_text
+
+    u = meta.get("model_unexplained")
+    if not isinstance(u, dict):
+        return [
+            "not in that 1-sigma: what the model leaves unexplained (its file states no "
+            "held-out figure)"
+        ]
+    out = [f"not in that 1-sigma: the model leaves {unexplained_text(u)} on its held-out poses"]
+    w = meta.get("model_unexplained_without_outliers")
+    if isinstance(w, dict):
+        ids = ", ".join(str(i) for i in w.get("pose_ids", []))
+        out.append(
+            f"without the held-out outlier pose(s) {ids} ({w.get('rule', '')}): "
+            f"{unexplained_text(w)}"
+        )
+    return out
 
 
 def table_files(path: str | os.PathLike) -> tuple[Path, Path]:
@@ -506,11 +531,12 @@ def approach_sensitivity(corr: Corrector, q_nodes: np.ndarray) -> dict | None:
     }
 
 
-def joint_coverage(corr: Corrector, q_nodes: np.ndarray) -> dict:
+def joint_coverage(corr: Corrector, q_nodes: np.ndarray, what: str = "nodes") -> dict:
     """Which of the nodes' joints (..., 6) lie outside the joint range the model was fitted on
     (`info["joint_range_rad"]`, written by fit/diagnose/replay since 2026-11-26): there the
     correction is the model's extrapolation. Joint values are compared as they are (a joint
-    2 pi away from the measured range counts as outside: a non-geometric model sees it so)."""
+    2 pi away from the measured range counts as outside: a non-geometric model sees it so).
+    `what` names the points in the basis (a table's "nodes", or "targets")."""
     info = getattr(corr.model, "info", None)
     rng = info.get("joint_range_rad") if isinstance(info, dict) else None
     try:
@@ -523,7 +549,7 @@ def joint_coverage(corr: Corrector, q_nodes: np.ndarray) -> dict:
     beyond = np.maximum(lohi[:, 0] - q, q - lohi[:, 1]).clip(0.0, None)  # (N, 6) rad
     out = beyond > 0
     return {
-        "basis": "nodes whose corrected joints lie outside the joint range of the poses the "
+        "basis": f"{what} whose corrected joints lie outside the joint range of the poses the "
         "model was fitted on (the correction there is an extrapolation)",
         "measured_range_rad": lohi.tolist(),
         "nodes": int(len(q)),
@@ -536,21 +562,44 @@ def joint_coverage(corr: Corrector, q_nodes: np.ndarray) -> dict:
     }
 
 
-def coverage_line(cov: dict) -> str:
-    """One line for the export log / CSV header from `joint_coverage`'s result."""
+def coverage_line(cov: dict, what: str = "nodes") -> str:
+    """One line for the export log / CSV header from `joint_coverage`'s result; `what` names
+    the corrected points ("nodes" of a table, "targets" of `export --format targets`)."""
     if "nodes_outside" not in cov:
         return f"joint coverage {cov['basis']}"
     if cov["nodes_outside"] == 0:
-        return f"all {cov['nodes']} nodes' joints lie inside the range the model was fitted on"
+        return f"all {cov['nodes']} {what}' joints lie inside the range the model was fitted on"
     worst = ", ".join(
-        f"joint {j} by up to {v['max_beyond_rad']:.3f} rad ({v['nodes_outside']} nodes)"
+        f"joint {j} by up to {v['max_beyond_rad']:.3f} rad ({v['nodes_outside']} {what})"
         for j, v in cov["per_joint"].items()
     )
+    remedy = "measure poses there" + (" or shrink the volume (--volume)" if what == "nodes" else "")
     return (
-        f"WARNING: {cov['nodes_outside']} of {cov['nodes']} nodes need joints outside the range "
-        f"the model was fitted on ({worst}): their corrections are extrapolations; measure "
-        "poses there or shrink the volume (--volume)"
+        f"WARNING: {cov['nodes_outside']} of {cov['nodes']} {what} need joints outside the range "
+        f"the model was fitted on ({worst}): their corrections are extrapolations; {remedy}"
     )
+
+
+def undetermined_line(s3: np.ndarray, mags: np.ndarray, what: str = "nodes") -> str | None:
+    """The warning when corrections (3-D sizes `mags`) are smaller than their own 1-sigma `s3`
+    somewhere: the measured poses do not determine them there; None when nowhere."""
+    n = int(np.sum(s3 > mags))
+    if not n:
+        return None
+    return (
+        f"WARNING: at {n} of {s3.size} {what} the correction's 1-sigma is larger than the "
+        f"correction itself (median 1-sigma {np.median(s3) * 1e3:.3g} mm, median correction "
+        f"{np.median(mags) * 1e3:.3g} mm): the measured poses do not determine it there (see "
+        "`fit`'s weakly identified groups); measure poses in this volume and orientation"
+    )
+
+
+NO_STD_LINE = "correction 1-sigma: not given (the model carries no covariance of its prediction)"
+
+
+def is_warning(line: str) -> bool:
+    """Whether an export log line is a warning (`export --json` lists those in `warnings`)."""
+    return line.strip().startswith(("WARNING", "warning:", NO_STD_LINE))
 
 
 def _configurations(corr: Corrector, tab: CorrectionTable) -> tuple[np.ndarray, tuple]:
@@ -688,19 +737,11 @@ def build_table(
             f"max {s3.max() * 1e6:.1f} um at {np.round(X.reshape(-1, 3)[i % X[..., 0].size], 3).tolist()} m"
         )
         # a correction smaller than its own 1-sigma is not determined by the measurements
-        undetermined = int(np.sum(s3 > mags))
-        std_meta["nodes_std_exceeds_correction"] = undetermined
-        if undetermined:
-            log(
-                f"  WARNING: at {undetermined} of {s3.size} nodes the correction's 1-sigma is "
-                "larger than the correction itself (median 1-sigma "
-                f"{np.median(s3) * 1e3:.3g} mm, median correction {np.median(mags) * 1e3:.3g} "
-                "mm): the measured poses do not "
-                "determine it there (see `fit`'s weakly identified groups); measure poses in this "
-                "volume and orientation"
-            )
+        std_meta["nodes_std_exceeds_correction"] = int(np.sum(s3 > mags))
+        if (line := undetermined_line(s3, mags)) is not None:
+            log(f"  {line}")
     else:
-        log("  correction 1-sigma: not given (the model carries no covariance of its prediction)")
+        log(f"  {NO_STD_LINE}")
     tab.meta = {
         **(meta or {}),
         "frame": "base = model's registered nominal base (tracker_T_base = base_ref); "

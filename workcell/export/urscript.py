@@ -23,7 +23,12 @@ from pathlib import Path
 import numpy as np
 
 from workcell.atomic import write_text
-from workcell.export.table import OUTSIDE_TOL_M, CorrectionTable
+from workcell.export.table import (
+    OUTSIDE_TOL_M,
+    CorrectionTable,
+    coverage_line,
+    unexplained_lines,
+)
 
 
 def _num(x: float) -> str:
@@ -147,12 +152,23 @@ def generate_urscript(table: CorrectionTable, name: str = "wc_correct") -> str:
 
 
 def _uncertainty_lines(m: dict) -> list[str]:
+    """The correction's 1-sigma, where it is undetermined, which nodes are extrapolations and
+    what the model leaves unexplained (as `export` prints them)."""
     if m.get("median_std_m") is not None:
-        return [
+        out = [
             f"# correction 1-sigma (3-D, model uncertainty): median {m['median_std_m']:.3g} m, "
             f"max {m.get('max_std_m', float('nan')):.3g} m; per node in the table's JSON/CSV"
         ]
-    return ["# correction 1-sigma: none (the model carries no covariance of its prediction)"]
+    else:
+        out = ["# correction 1-sigma: none (the model carries no covariance of its prediction)"]
+    if m.get("nodes_std_exceeds_correction"):
+        out.append(
+            f"# WARNING: at {m['nodes_std_exceeds_correction']} nodes the correction's 1-sigma is "
+            "larger than the correction itself: the measured poses do not determine it there"
+        )
+    if isinstance(m.get("joint_coverage"), dict):
+        out.append(f"# {coverage_line(m['joint_coverage'])}")
+    return out + [f"# {line}" for line in unexplained_lines(m)]
 
 
 def _configuration_lines(table: CorrectionTable) -> list[str]:
