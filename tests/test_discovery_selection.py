@@ -63,6 +63,12 @@ def test_backlash_is_named_with_joint_and_size(tmpdir_mod):
     ):
         assert key in r
     assert "joint 3 backlash" in r["summary"]
+    # split-half check: the model refitted on two halves of the training poses; on a simulated
+    # cell whose physics the model holds, the halves agree within their +- (z ~ N(0, 1))
+    sh = r["split_half"]
+    assert sh["n_parameters"] == 1 and np.isfinite(sh["z_rms"])
+    assert abs(eff["evidence"]["split_half_z"]) < 4.0
+    assert "Split-half check" in r["summary"]
 
 
 def test_clean_recording_claims_no_physical_effect(clean):

@@ -546,6 +546,38 @@ def _fit_augmented(
     return th, ef, cov
 
 
+SPLIT_HALF_Z = 3.0  # |z| beyond which an effect's +- is said to understate its spread
+SPLIT_HALF_BASIS = (
+    "the final model refitted on two halves of the training poses (a seeded permutation), "
+    "z = (value_1 - value_2) / sqrt(std_1^2 + std_2^2) per effect parameter: |z| is about 1 when "
+    "the +- is honest; z_rms = sqrt(mean z^2) over the effect parameters estimates how many times "
+    "the +- understates the spread of a value over data sets"
+)
+
+
+def _split_half(dfit, w, X, theta, base_ref, free, eff, active, seed: int = 7) -> dict | None:
+    """Refit geometry + effects on two halves of the training poses; z per effect index."""
+    n = len(dfit)
+    if n < 40:
+        return None
+    perm = np.random.default_rng(seed).permutation(n)
+    halves = (np.sort(perm[: n // 2]), np.sort(perm[n // 2 :]))
+    vals, var = [], []
+    nf = int(free.sum())
+    for h in halves:
+        _, ef, cov = _fit_augmented(dfit.subset(h), w[h], X[h], theta, base_ref, free, eff, active)
+        vals.append(ef[active])
+        var.append(np.clip(np.diag(cov)[nf:], 0.0, None))
+    sd = np.sqrt(var[0] + var[1])
+    z = np.where(sd > 0, (vals[0] - vals[1]) / np.where(sd > 0, sd, 1.0), 0.0)
+    return {
+        "z": {int(i): float(zi) for i, zi in zip(active, z, strict=True)},
+        "z_rms": float(np.sqrt(np.mean(z**2))),
+        "n_parameters": int(len(active)),
+        "basis": SPLIT_HALF_BASIS,
+    }
+
+
 # ----------------------------------------------------------------------------- main entry
 def diagnose(
     ds: Dataset,
@@ -665,6 +697,8 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
         },
     )
 
+    split = _split_half(dfit, w, X, th_f, base_ref, free, eff_f, active) if len(active) else None
+
     # ---- 6. show: held-out before/after, per step (linearised prefix models)
     pred_dh_te = padded_call(dh.predict, dte.q)
     pred_te = model.predict_parametric(dte.q, **aux(dte))
@@ -731,6 +765,10 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
                     "heldout_gain_ci95_m": gain_ci,
                     # after the joint refit with the other terms (the selection checked its own)
                     "physical_sign_ok": physical_sign_ok(c, model.eff[list(c.idx)]),
+                    # the effect's largest |z| between two halves of the training poses
+                    "split_half_z": (
+                        float(max(abs(split["z"][i]) for i in c.idx)) if split else None
+                    ),
                 },
             }
         )
@@ -842,6 +880,9 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
         "not_identifiable": not_identifiable,
         "locate": loc,
         "geometry": geometry,
+        "split_half": (
+            {k: split[k] for k in ("z_rms", "n_parameters", "basis")} if split else None
+        ),
         "geometry_basis": (
             "the final model's geometric parameters, estimated jointly with the accepted "
             "effects (deviations from the session's nominal chain)"
@@ -1247,6 +1288,29 @@ def summary_text(r: dict) -> str:
         for e in r["effects"]:
             lines.append("  - " + effect_sentence(e))
         lines.append(f"  ({r.get('parameter_std_basis', PARAMETER_STD_BASIS)}.)")
+        sh = r.get("split_half")
+        if sh:
+            moved = [
+                f"{e['description']} (|z| {e['evidence']['split_half_z']:.1f})"
+                for e in r["effects"]
+                if (e["evidence"].get("split_half_z") or 0.0) > SPLIT_HALF_Z
+            ]
+            lines.append(
+                "  Split-half check (the model refitted on two halves of the training poses): "
+                f"the effect values differ by z_rms = {sh['z_rms']:.1f} standard deviations of "
+                f"the difference over {sh['n_parameters']} parameters (about 1 if the +- were "
+                "the whole spread"
+                + (f"; beyond {SPLIT_HALF_Z:g}: " + ", ".join(moved) if moved else ")")
+                + (
+                    "): read the +- as a lower bound on how much the values move with the data."
+                    if moved
+                    else (
+                        "; above 1.5 the +- understates how much the values move with the data."
+                        if sh["z_rms"] > 1.5
+                        else "."
+                    )
+                )
+            )
         tied = r.get("joints_tied_to_time") or {}
         for j, rho in tied.items():
             terms = [
