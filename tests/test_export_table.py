@@ -493,6 +493,26 @@ def test_validate_warns_when_a_table_is_for_another_thermal_state():
     assert thermal_mismatch(_thermal_model("time"), tab, np.full(6, 50.0)) is None
 
 
+def test_thermal_warning_weighs_the_drift_against_the_tables_own_1_sigma():
+    """With the model's fitted joint range and the table's median 1-sigma known, the warning
+    follows what the mismatch moves the SMR by, not a fixed 2 K: a 1.6 K mismatch on the
+    audit's simulated cell cost 17.8 um against 7.6 um (table 1-sigma 3.8 um) and went unsaid."""
+    from workcell.export.table import CorrectionTable
+    from workcell.export.validate import thermal_mismatch, thermal_shift_rms_m
+
+    m = _thermal_model("joint")  # thermal_ref: links at 25 degC, 20e-6 /K
+    m.info["joint_range_rad"] = [[-1.0, 1.0]] * 6
+    tab = CorrectionTable(LO, HI, (2, 2, 2), np.array([DOWN]), np.zeros((1, 2, 2, 2, 3)))
+    shift = thermal_shift_rms_m(m, None, np.full(6, 26.0))
+    assert shift is not None and 1e-6 < shift < 1e-3
+    assert thermal_shift_rms_m(m, None, np.full(6, 25.0)) == pytest.approx(0.0, abs=1e-12)
+    tab.meta = {"conditions": {"joint_temperature_c": None}, "median_std_m": shift / 2}
+    w = thermal_mismatch(m, tab, np.full(6, 26.0))  # 1 K: within the old 2 K rule
+    assert w is not None and "1.0 K apart" in w and "um RMS over its fitted joint range" in w
+    tab.meta["median_std_m"] = 10.0 * thermal_shift_rms_m(m, None, np.full(6, 31.0))
+    assert thermal_mismatch(m, tab, np.full(6, 31.0)) is None  # 6 K, but below its 1-sigma
+
+
 def test_a_failed_table_write_keeps_the_earlier_table_whole(tmp_path, monkeypatch):
     """A table write that fails half way (a full disk) used to leave the new JSON beside a CSV
     cut off mid-row, with the earlier good CSV gone; a later run took the truncated CSV for a

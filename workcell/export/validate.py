@@ -329,8 +329,23 @@ def thermal_mismatch(model, table, temps_c, *, ui: bool = False) -> str | None:
         what = "the temperatures it was exported for"
     link_now = thermal_signal("joint", now, None, None, 1)[0]
     d = float(np.abs(link_now - link_table).max())
-    if d <= THERMAL_MISMATCH_K:
+    # what the mismatch costs: the model's thermal drift between the two states over the joint
+    # range it was fitted on, against the table's own median 1-sigma (a drift larger than what
+    # the table says it knows is worth a warning at any K); without either, the 2 K rule
+    shift = thermal_shift_rms_m(model, t_table, now[0])
+    std = (table.meta or {}).get("median_std_m")
+    if shift is not None and isinstance(std, int | float) and np.isfinite(std) and std > 0:
+        if shift <= std:
+            return None
+        cost = (
+            f", and the model's thermal drift between the two moves the SMR by "
+            f"{shift * 1e6:.1f} um RMS over its fitted joint range, more than the table's median "
+            f"1-sigma {std * 1e6:.1f} um"
+        )
+    elif d <= THERMAL_MISMATCH_K:
         return None
+    else:
+        cost = ", and the model's thermal drift differs by that"
     temps = ",".join(f"{t:.1f}" for t in now[0])
     remedy = (
         f"export it for now on the command line (`workcell export MODEL --joint-temperature "
@@ -341,9 +356,32 @@ def thermal_mismatch(model, table, temps_c, *, ui: bool = False) -> str | None:
     )
     return (
         f"the table is for {what} (link temperatures {np.round(link_table, 1).tolist()} degC); "
-        f"the arm is now at {np.round(link_now, 1).tolist()} degC ({d:.1f} K apart), and the "
-        f"model's thermal drift differs by that: {remedy}"
+        f"the arm is now at {np.round(link_now, 1).tolist()} degC ({d:.1f} K apart){cost}: "
+        f"{remedy}"
     )
+
+
+def thermal_shift_rms_m(model, t_table_c, t_now_c, n: int = 64) -> float | None:
+    """RMS over `n` seeded configurations in the model's fitted joint range of how far its
+    prediction moves between joint temperatures `t_table_c` (None: the recording's mean, the
+    model's reference) and `t_now_c` (m); None without a recorded joint range."""
+    jr = (getattr(model, "info", {}) or {}).get("joint_range_rad")
+    try:
+        jr = np.asarray(jr, float)
+    except (TypeError, ValueError):
+        return None
+    if jr.shape != (6, 2) or not np.all(np.isfinite(jr)):
+        return None
+    q = np.random.default_rng(0).uniform(jr[:, 0], jr[:, 1], size=(n, 6))
+    now = np.tile(np.asarray(t_now_c, float), (n, 1))
+    p_now = model.predict_parametric(q, joint_temperature_c=now)
+    if t_table_c is None:
+        p_tab = model.predict_parametric(q)  # no temperatures: the reference state
+    else:
+        p_tab = model.predict_parametric(
+            q, joint_temperature_c=np.tile(np.asarray(t_table_c, float), (n, 1))
+        )
+    return float(np.sqrt(np.mean(np.sum((p_now - p_tab) ** 2, axis=1))))
 
 
 def validation_envelope(given, session: dict, spec, source: str, default=None):
