@@ -65,7 +65,7 @@ def build_sim(
     if with_tracker:
         try:
             # the same clock as the world's: a simulated delay d takes d / time_scale wall
-            # seconds (until 2026-11-27 it got 1 / time_scale: d * time_scale wall seconds)
+            # seconds (until 2026-11-26 it got 1 / time_scale: d * time_scale wall seconds)
             tracker = SimGeoComTracker(
                 world.read_tracker, faults=tracker_faults, seed=seed, time_scale=time_scale
             )

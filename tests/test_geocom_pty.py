@@ -394,7 +394,7 @@ class _OddInstrument:
 )
 def test_an_instrument_answering_wrongly_is_not_called_silent(mode: str, what: str) -> None:
     """Replies that are not GeoCOM answers to our requests (another transaction id, no line end)
-    are told apart from silence: until 2026-11-27 both read "is silent ... check the instrument
+    are told apart from silence: until 2026-11-26 both read "is silent ... check the instrument
     is on", which sends the operator to the power switch of an instrument that is talking."""
     odd = _OddInstrument(mode)
     try:

@@ -1,6 +1,6 @@
 """The online filter says which geometric states its prior holds, not the data (replay --json/text).
 
-Audit 2026-11-27: replaying the real UR10 series D (iso cubes) reported tool_z = 109.3 +- 0.85 mm
+Audit 2026-11-26: replaying the real UR10 series D (iso cubes) reported tool_z = 109.3 +- 0.85 mm
 and base_ty +- 0.85 mm, although `workcell fit` flags {base_ty, tool_z} as weakly identified and
 series B puts the SMR at 93.2 mm: the filter's std of both had only come down from its prior
 (sigma_g0_m = 0.1 mm) to 0.071 mm, and the value was the declared 109 mm. Here a synthetic cell

@@ -165,7 +165,7 @@ def test_speed_limit_enforced_on_ur10():
 def test_a_controller_of_another_arm_is_refused_before_anything_moves():
     """A UR10 controller and `--model ur5e` (the default): the driver asks the dashboard which
     arm it is and refuses in one line before powering, uploading or moving anything; with
-    `--model ur10` it connects. Until 2026-11-27 the simulator answered "UR5" whatever its arm
+    `--model ur10` it connects. Until 2026-11-26 the simulator answered "UR5" whatever its arm
     and the driver never asked: a UR10 campaign was planned and envelope-checked with UR5e
     kinematics (5 recorded postures put the SMR 39 mm above the envelope box)."""
     with SimProcess("127.0.0.31", robot="ur10", time_scale=TS) as sp:
@@ -314,7 +314,7 @@ def test_tracker_measures_the_arm_the_controller_moved():
 
 def test_tracker_delays_run_on_the_simulated_clock():
     """A reply 1 simulated second late at --time-scale 20 takes 0.05 s of wall time. Until
-    2026-11-27 the simulator handed the tracker 1 / time_scale, so it took 20 s and a tracker
+    2026-11-26 the simulator handed the tracker 1 / time_scale, so it took 20 s and a tracker
     with slow faults was unusable."""
     from workcell.drivers.serial_tracker import SerialTracker
 
