@@ -350,3 +350,15 @@ def test_validate_moves_inside_the_campaigns_recorded_envelope_by_default(tmp_pa
     assert res["envelope"].startswith("the envelope recorded with the model's campaign")
     assert moves and all(-1.0 <= q[0] <= 1.5 and s <= 0.3 for q, s in moves)
     assert res["skipped"] and all("joint 1 target" in w for w in res["skipped"]), res["skipped"]
+
+
+def test_envelope_check_refuses_an_envelope_no_pose_fits(tmp_path, tight, capsys):
+    """`envelope --check` said "ok" for a 2 cm box no pose reaches; a campaign refused it later."""
+    d = json.loads(tight.read_text())
+    assert main(["envelope", "--check", str(tight)]) == 0
+    assert "reach " in capsys.readouterr().out
+    far = tmp_path / "far.json"
+    far.write_text(json.dumps({**d, "box_min_m": [0.5, 0.5, 0.5], "box_max_m": [0.52, 0.52, 0.52]}))
+    assert main(["envelope", "--check", str(far)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no pose fits" in err[0]

@@ -40,7 +40,25 @@ def run(args: argparse.Namespace) -> int:
     model = _load_model_for(args.model, spec) if args.model else None
     if args.check:
         env = load_envelope(args.check, spec)
+        frac, n = reach_fraction(env, spec)
+        if frac == 0.0:
+            raise UserError(
+                f"{args.check}: no pose fits: none of {n:,} random configurations in its joint "
+                "ranges keeps the arm inside its box and above its floor (with the default SMR "
+                "offset); a campaign would refuse it: widen the box or the joint ranges"
+            )
         print(describe(env, spec, f"{args.check} ({spec.model})"))
+        print(
+            f"  reach    {100 * frac:.3g} % of {n:,} random configurations in the joint ranges "
+            "keep the arm inside (default SMR offset): what a random plan draws from"
+        )
+        width = np.ptp(np.asarray(env.joint_limits_rad, float), axis=1)
+        if np.all(width < np.radians(5.0)):
+            print(
+                f"  WARNING: every joint range is narrower than 5 deg (widest "
+                f"{np.degrees(width.max()):.3g} deg): the poses barely differ and a fit cannot "
+                "tell the parameters apart; widen them"
+            )
         if model is not None:
             dev = _deviation(model, env, spec)
             print(describe_deviation(dev, args.model))
@@ -115,6 +133,17 @@ def describe_deviation(dev: dict, source: str) -> str:
         )
     lines.append(f"  suggested margin {1e3 * dev['suggested_margin_m']:g} mm: {dev['basis']}")
     return "\n".join(lines)
+
+
+def reach_fraction(env, spec, n: int = 20_000, seed: int = 0) -> tuple[float, int]:
+    """Share of `n` seeded random configurations in the envelope's joint ranges that the
+    envelope admits (box, floor, margin) with the default SMR offset."""
+    from workcell.campaign.devices import DEFAULT_SMR_OFFSET_M
+
+    lim = np.asarray(env.joint_limits_rad, float)
+    q = np.random.default_rng(seed).uniform(lim[:, 0], lim[:, 1], size=(n, len(lim)))
+    ok = [v is None for v in env.violations(spec, q, np.asarray(DEFAULT_SMR_OFFSET_M))]
+    return float(np.mean(ok)), n
 
 
 def describe(env, spec, title: str) -> str:
