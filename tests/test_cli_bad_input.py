@@ -228,6 +228,7 @@ def test_an_unmet_interpolation_target_is_said(cell, capsys):
         (["--sim", "--sim-host", "10.0.0.1"], "only listens on loopback"),
         (["--sim", "--robot", "ur://127.0.0.9"], "--robot and --tracker are not used with it"),
         (["--time-scale", "inf"], "must be a finite number > 0"),
+        (["--robot", "ur://127.0.0.9"], "use --robot sim together with --tracker sim"),
     ],
 )
 def test_tui_options_refused_before_it_starts(tmp_path, capsys, argv, match):
@@ -859,3 +860,16 @@ def test_a_model_with_its_tcp_in_millimetres_is_not_exported_as_ros_yaml(cell, c
     argv = ["export", str(p), "--format", "ros-yaml", "--out", str(out)]
     one_line_refusal(capsys, argv, "60 m from the flange")
     assert not out.exists()
+
+
+def test_tui_sim_on_a_host_whose_ports_are_taken_is_refused(capsys):
+    """The simulator's child printed "Address already in use" over the UI."""
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        s.bind(("127.0.0.47", 29999))
+        s.listen(1)
+        one_line_refusal(
+            capsys, ["tui", "--sim", "--sim-host", "127.0.0.47"], "port 29999 is already in use"
+        )

@@ -66,6 +66,24 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _port_in_use(host: str) -> int | None:
+    """The first of the simulated controller's ports (dashboard, script, RTDE) already bound on
+    `host`, else None: its child process would print "Address already in use" over the UI."""
+    import socket
+
+    from sim_devices.ur_controller import DASHBOARD_PORT, RTDE_PORT, SCRIPT_PORT
+
+    for port in (DASHBOARD_PORT, SCRIPT_PORT, RTDE_PORT):
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            # as the simulator binds (a closed one's TIME_WAIT does not count; a listener does)
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                s.bind((host, port))
+            except OSError:
+                return port
+    return None
+
+
 def check_args(args: argparse.Namespace) -> None:
     """What the TUI would only find out on its Devices or Campaign screen, refused before it
     starts: one line each."""
@@ -90,9 +108,19 @@ def check_args(args: argparse.Namespace) -> None:
             "--sim starts its own simulated devices: --robot and --tracker are not used with it "
             "(leave them out, or drop --sim to connect to those devices)"
         )
+    if not args.sim and (args.robot == "sim") != (args.tracker == "sim"):
+        raise UserError(
+            "use --robot sim together with --tracker sim (one simulated world), "
+            "or start `workcell sim` and give both real addresses"
+        )
     if args.sim and not args.sim_host.startswith("127."):
         raise UserError(
             f"--sim-host {args.sim_host}: the simulator only listens on loopback (127.x.y.z)"
+        )
+    if args.sim and (busy := _port_in_use(args.sim_host)) is not None:
+        raise UserError(
+            f"--sim-host {args.sim_host}: port {busy} is already in use there (another "
+            "simulator or a test?); give another --sim-host, e.g. 127.0.0.3"
         )
     if args.sim or args.robot == "sim":
         from sim_devices.truth import parse_effects
