@@ -116,6 +116,7 @@ REAL_B = (
 )
 
 
+@pytest.mark.slow  # 23 s; `make test` stays near 10 min on 2 cores (the bench prints the figure)
 @pytest.mark.skipif(not REAL_B.exists(), reason="shared real data not present")
 def test_vopt_needs_fewer_real_poses_than_random():
     """Real UR10 series B (1121 candidate poses): on the bench's first three seeds, the V-optimal

@@ -371,6 +371,7 @@ def test_the_fit_screen_names_heldout_outliers(tmp_path, monkeypatch):
     assert rows["held-out outliers"][1].startswith("without: ")
 
 
+@pytest.mark.slow  # 11 s; the command line path of --reference-every is in make test
 def test_reference_pose_from_the_plan_screen_and_kept_by_a_resume(tmp_path, monkeypatch):
     """`Ref. every` on the Plan screen: the dry run says how many more measurements, the
     campaign measures the first pose again (each repeat in the event log with its displacement),
