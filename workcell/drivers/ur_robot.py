@@ -18,7 +18,7 @@ Errors (all `DeviceError`, the campaign fault policy decides):
 - `WrongRobotModel`: given `model` (the arm the campaign plans and checks the envelope with), the
   controller's dashboard answers `get robot model` with another family ("UR10" for `ur5e`):
   refused at every connect, before anything powers on or moves. A controller that does not
-  answer the question (software before 5.6 / 3.12) or answers something unreadable is a warning
+  answer the question or answers something unreadable is a warning
   (`warnings`, and `on_warning`, by default one stderr line), not a refusal.
 
 Time: `time_scale` is the simulated-controller speed-up (1.0 for a real robot). `sleep(s)` waits
@@ -577,7 +577,7 @@ class UrRobot:
         if said is None:
             self._warn(
                 f"UR {self.host}: could not read the robot model from the controller "
-                f"(dashboard `get robot model`: {why}; software before 5.6 / 3.12 does not "
+                f"(dashboard `get robot model`: {why}; older software may not "
                 f"know it); make sure the arm is a {want}, the model the campaign plans with "
                 f"(--model {self.model})"
             )
