@@ -133,18 +133,12 @@ class MarginWatch:
         from scipy.optimize import least_squares
         from scipy.special import stdtrit
 
-        from workcell.kinematics.frames import kabsch, matrix_from_rotvec, rotvec_from_matrix
+        from workcell.kinematics.registration import smr_registration_problem
 
         R, t, P = np.array(self.R), np.array(self.t), np.array(self.p)
         n = len(P)
         tool0 = self.tool_m
-        T0 = kabsch(np.einsum("nij,j->ni", R, tool0) + t, P)
-        x0 = np.concatenate([rotvec_from_matrix(T0[:3, :3]), T0[:3, 3], tool0])
-
-        def residual(x: np.ndarray, rows: np.ndarray) -> np.ndarray:
-            p_base = np.einsum("nij,j->ni", R[rows], x[6:]) + t[rows]
-            r = (p_base @ matrix_from_rotvec(x[:3]).T + x[3:6] - P[rows]).ravel()
-            return np.concatenate([r, PRIOR_WEIGHT * (x[6:] - tool0)])
+        residual, x0 = smr_registration_problem(R, t, P, tool0, PRIOR_WEIGHT)
 
         def distances(x: np.ndarray) -> np.ndarray:
             return np.linalg.norm(residual(x, np.arange(n))[:-3].reshape(-1, 3), axis=1)

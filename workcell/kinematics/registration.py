@@ -34,6 +34,33 @@ class Registration:
     distance_m: np.ndarray  # (N,) |registered nominal SMR - measured| per pose
 
 
+def smr_registration_problem(
+    R_flange: np.ndarray,
+    t_flange: np.ndarray,
+    p_tracker: np.ndarray,
+    p_flange_smr_m,
+    prior_weight: float = TOOL_PRIOR_WEIGHT,
+):
+    """The least-squares problem behind every registration with the SMR offset free: flange
+    rotations `R_flange` (N, 3, 3) and positions `t_flange` (N, 3) in base, measured SMR
+    positions `p_tracker` (N, 3), nominal offset `p_flange_smr_m` (3,). Returns
+    (residual(x, rows), x0): x = (rotvec of tracker_T_base, its translation, the SMR offset);
+    the residual stacks the position errors of poses `rows` (m) and `prior_weight` times the
+    offset's change; x0 is the Kabsch registration with the nominal offset."""
+    R, t = np.asarray(R_flange, float), np.asarray(t_flange, float)
+    P = check_points(p_tracker, "p_tracker")
+    tool0 = np.asarray(p_flange_smr_m, dtype=float).reshape(3)
+    T0 = kabsch(np.einsum("nij,j->ni", R, tool0) + t, P)
+    x0 = np.concatenate([rotvec_from_matrix(T0[:3, :3]), T0[:3, 3], tool0])
+
+    def residual(x: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        p_base = np.einsum("nij,j->ni", R[rows], x[6:]) + t[rows]
+        r = (p_base @ matrix_from_rotvec(x[:3]).T + x[3:6] - P[rows]).ravel()
+        return np.concatenate([r, prior_weight * (x[6:] - tool0)])
+
+    return residual, x0
+
+
 def register_nominal(
     base_T_flange: np.ndarray, p_tracker: np.ndarray, p_flange_smr_m, *, robust_m: float = 5e-3
 ) -> Registration:
@@ -46,18 +73,16 @@ def register_nominal(
     T = np.asarray(base_T_flange, dtype=float)
     if T.shape != (len(P), 4, 4):
         raise ValueError(f"base_T_flange: expected shape ({len(P)}, 4, 4), got {T.shape}")
-    R, t = T[:, :3, :3], T[:, :3, 3]
-    tool0 = np.asarray(p_flange_smr_m, dtype=float).reshape(3)
-    T0 = kabsch(np.einsum("nij,j->ni", R, tool0) + t, P)
-    x0 = np.concatenate([rotvec_from_matrix(T0[:3, :3]), T0[:3, 3], tool0])
-
-    def residual(x: np.ndarray) -> np.ndarray:
-        p_base = np.einsum("nij,j->ni", R, x[6:]) + t
-        r = (p_base @ matrix_from_rotvec(x[:3]).T + x[3:6] - P).ravel()
-        return np.concatenate([r, TOOL_PRIOR_WEIGHT * (x[6:] - tool0)])
-
+    residual, x0 = smr_registration_problem(T[:, :3, :3], T[:, :3, 3], P, p_flange_smr_m)
+    rows = np.arange(len(P))
     x = least_squares(
-        residual, x0, x_scale=np.full(9, 0.1), loss="cauchy", f_scale=robust_m, max_nfev=200
+        residual,
+        x0,
+        args=(rows,),
+        x_scale=np.full(9, 0.1),
+        loss="cauchy",
+        f_scale=robust_m,
+        max_nfev=200,
     ).x
-    dist = np.linalg.norm(residual(x)[:-3].reshape(-1, 3), axis=1)
+    dist = np.linalg.norm(residual(x, rows)[:-3].reshape(-1, 3), axis=1)
     return Registration(transform_from(matrix_from_rotvec(x[:3]), x[3:6]), x[6:].copy(), dist)
