@@ -37,23 +37,13 @@ def screened_samples(rec, name: str) -> list[dict]:
     """The fits' screen (`workcell.recording.consistency`) on a replay: a recording whose tracker
     positions do not follow the arm is refused; exact copies of a sample and gross readings are
     skipped, with the warnings `fit` prints, so the filter sees what the fits see."""
-    import numpy as np
-
-    from workcell.recording import consistency
     from workcell.recording.dataset import Dataset
 
     ds = Dataset.from_recording(rec)  # refuses a recording that does not follow the arm
     for note in ds.read_notes:
         if "set aside" in note or "exact copies" in note:
             print(f"warning: {name}: {note} (skipped by the replay too)", file=sys.stderr)
-    copies = set(consistency.exact_copies(rec.samples))
-    rows = [r for i, r in enumerate(rec.samples) if i not in copies]
-    if len(ds) == len(rows) or len(rows) < consistency.MIN_SAMPLES:
-        return rows
-    q = np.array([r["q_measured_rad"] for r in rows], float)
-    p = np.array([r["tracker_position_m"] for r in rows], float)
-    dist = consistency.nominal_distances(ds.robot, ds.tool_offset_m, q, p)
-    return [r for r, d in zip(rows, dist, strict=True) if d <= consistency.GROSS_M]
+    return [rec.samples[i] for i in ds.row]
 
 
 def geometric_lines(est: dict) -> list[str]:

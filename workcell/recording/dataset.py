@@ -71,6 +71,9 @@ class Dataset:
     payload_kg: np.ndarray | None = None
     payload_com_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
     pose_id: np.ndarray | None = None
+    # (N,) index of each sample among the recording's samples (log-time order): the screens of
+    # `from_recording` leave some out (`consistency`); a replay streams the same ones
+    row: np.ndarray | None = None
     session: dict = field(default_factory=dict)
     source: str = ""
     source_sha256: str = ""
@@ -101,6 +104,8 @@ class Dataset:
             self.payload_kg = np.zeros(n)
         if self.pose_id is None:
             self.pose_id = np.arange(n)
+        if self.row is None:
+            self.row = np.arange(n)
         if self.q_commanded is None:
             self.q_commanded = self.q.copy()
 
@@ -121,6 +126,7 @@ class Dataset:
             "elapsed_s",
             "payload_kg",
             "pose_id",
+            "row",
         ):
             arrays[k] = getattr(self, k)[idx]
         return replace(self, **arrays)
@@ -157,6 +163,7 @@ class Dataset:
         if problems:
             raise RecordingError(f"{rec.path}: {checks.first_problem(problems)}")
         notes = []
+        kept = list(range(len(rows)))
         copies = consistency.exact_copies(rows)
         if copies:
             notes.append(
@@ -164,7 +171,8 @@ class Dataset:
                 "pose_id, joints and tracker position: a stream written twice?); each is used once"
             )
             drop = set(copies)
-            rows = [r for i, r in enumerate(rows) if i not in drop]
+            kept = [i for i in kept if i not in drop]
+            rows = [rows[i] for i in kept]
         tool = s["tool"]["smr_offset_m"]
         bit = s["tracker"]["base_in_tracker"]
         t, qw = bit["translation_m"], bit["quaternion_wxyz"]
@@ -218,6 +226,7 @@ class Dataset:
             payload_kg=pkg,
             payload_com_m=np.asarray(com if is_finite_list(com, 3) else [0.0, 0.0, 0.0], float),
             pose_id=arr("pose_id", 0, -1).astype(int),
+            row=np.asarray(kept, int),
             session=s,
             source=os.path.abspath(rec.path),
             source_sha256=file_sha256(rec.path),
