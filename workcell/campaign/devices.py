@@ -42,6 +42,15 @@ def parse_smr_offset(text, what: str = "--smr-offset") -> np.ndarray:
     return v
 
 
+def check_device_pair(robot: str, tracker: str) -> None:
+    """A simulated robot goes with a simulated tracker (one simulated world): refuse a mix."""
+    if (robot == "sim") != (tracker == "sim"):
+        raise UserError(
+            "use --robot sim together with --tracker sim (one simulated world), "
+            "or start `workcell sim` and give both real addresses"
+        )
+
+
 def open_cell(args):
     """-> (CellSetup, robot, tracker, envelope) from parsed CLI args (`envelope`: optional
     FILE; default: the arm's default envelope; `smr_offset`: optional 'X,Y,Z' m, the SMR on the
@@ -55,11 +64,7 @@ def open_cell(args):
         if declared:  # else the simulated cell's own nominal SMR
             cell.tool_m = tool_m
         return cell, robot, tracker, envelope_from_args(args, cell.spec)
-    if args.robot == "sim" or args.tracker == "sim":
-        raise UserError(
-            "use --robot sim together with --tracker sim (one simulated world), "
-            "or start `workcell sim` and give both real addresses"
-        )
+    check_device_pair(args.robot, args.tracker)
     if not args.robot.startswith("ur://"):
         raise UserError(f"--robot {args.robot!r}: expected sim or ur://HOST")
     host = args.robot[len("ur://") :]

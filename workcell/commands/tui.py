@@ -92,7 +92,7 @@ def check_args(args: argparse.Namespace) -> None:
 
     if args.seed < 0:
         raise UserError(f"--seed must be >= 0, got {args.seed}")
-    from workcell.campaign.devices import parse_smr_offset
+    from workcell.campaign.devices import check_device_pair, parse_smr_offset
 
     parse_smr_offset(getattr(args, "smr_offset", ""))
     if args.robot != "sim" and not args.robot.startswith("ur://"):
@@ -108,11 +108,8 @@ def check_args(args: argparse.Namespace) -> None:
             "--sim starts its own simulated devices: --robot and --tracker are not used with it "
             "(leave them out, or drop --sim to connect to those devices)"
         )
-    if not args.sim and (args.robot == "sim") != (args.tracker == "sim"):
-        raise UserError(
-            "use --robot sim together with --tracker sim (one simulated world), "
-            "or start `workcell sim` and give both real addresses"
-        )
+    if not args.sim:
+        check_device_pair(args.robot, args.tracker)
     if args.sim and not args.sim_host.startswith("127."):
         raise UserError(
             f"--sim-host {args.sim_host}: the simulator only listens on loopback (127.x.y.z)"
