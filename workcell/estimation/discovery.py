@@ -1295,22 +1295,22 @@ def summary_text(r: dict) -> str:
                 for e in r["effects"]
                 if (e["evidence"].get("split_half_z") or 0.0) > SPLIT_HALF_Z
             ]
-            lines.append(
+            line = (
                 "  Split-half check (the model refitted on two halves of the training poses): "
                 f"the effect values differ by z_rms = {sh['z_rms']:.1f} standard deviations of "
                 f"the difference over {sh['n_parameters']} parameters (about 1 if the +- were "
                 "the whole spread"
-                + (f"; beyond {SPLIT_HALF_Z:g}: " + ", ".join(moved) if moved else ")")
-                + (
-                    "): read the +- as a lower bound on how much the values move with the data."
-                    if moved
-                    else (
-                        "; above 1.5 the +- understates how much the values move with the data."
-                        if sh["z_rms"] > 1.5
-                        else "."
-                    )
-                )
             )
+            if moved:
+                line += (
+                    f"; beyond {SPLIT_HALF_Z:g}: {', '.join(moved)}): read the +- as a lower "
+                    "bound on how much the values move with the data."
+                )
+            elif sh["z_rms"] > 1.5:
+                line += "); above 1.5 the +- understates how much the values move with the data."
+            else:
+                line += ")."
+            lines.append(line)
         tied = r.get("joints_tied_to_time") or {}
         for j, rho in tied.items():
             terms = [
