@@ -110,21 +110,27 @@ def test_kill9_over_real_protocols_then_resume(tmp_path):
     assert second.session["chained_from"]["sha256"]
 
 
-def test_protective_stop_pauses_and_resumes(tmp_path):
-    out = tmp_path / "ps.mcap"
+def _campaign_with_a_protective_stop(host, out, policy, stdin=None):
+    """A 4-pose campaign over the protocol simulators whose 3rd move ends in a protective stop."""
     with SimProcess(
-        "127.0.0.43",
+        host,
         seed=2,
         time_scale=TIME_SCALE,
         with_tracker=True,
         faults={"protective_stop_at_move": [3]},
     ) as sim:
-        r = subprocess.run(
-            campaign_cmd(sim.info, out, 4, "--on-protective-stop", "resume"),
+        return subprocess.run(
+            campaign_cmd(sim.info, out, 4, "--on-protective-stop", policy),
+            stdin=stdin,
             capture_output=True,
             text=True,
             timeout=600,
         )
+
+
+def test_protective_stop_pauses_and_resumes(tmp_path):
+    out = tmp_path / "ps.mcap"
+    r = _campaign_with_a_protective_stop("127.0.0.43", out, "resume")
     assert r.returncode == 0, r.stderr[-3000:]
     rec = read_recording(out)
     kinds = [e["kind"] for e in rec.events]
@@ -137,20 +143,7 @@ def test_ask_with_no_operator_does_not_release_a_protective_stop(tmp_path):
     stop was released with nobody there (exit 0). Now the end of input stops the campaign: the
     arm is not unlocked, the recording closed with an `abort` event, one line, exit 2."""
     out = tmp_path / "ask.mcap"
-    with SimProcess(
-        "127.0.0.44",
-        seed=2,
-        time_scale=TIME_SCALE,
-        with_tracker=True,
-        faults={"protective_stop_at_move": [3]},
-    ) as sim:
-        r = subprocess.run(
-            campaign_cmd(sim.info, out, 4, "--on-protective-stop", "ask"),
-            stdin=subprocess.DEVNULL,
-            capture_output=True,
-            text=True,
-            timeout=600,
-        )
+    r = _campaign_with_a_protective_stop("127.0.0.44", out, "ask", stdin=subprocess.DEVNULL)
     assert r.returncode == 2, r.stderr[-3000:]
     last = r.stderr.strip().splitlines()[-1]
     assert "not acknowledged" in last and f"--resume {out}" in last, last
