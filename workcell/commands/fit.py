@@ -58,11 +58,6 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--on must be dh, nominal or auto, got {args.on!r}")
     if args.on != "auto" and args.method == "dh":
         raise UserError("--on chooses the base model of lddmm and gp; --method dh has none")
-    if args.on == "nominal" and args.method == "gp":
-        raise UserError(
-            "--method gp always sits on the DH fit (its GP models the DH fit's residual); drop "
-            "--on nominal, or use --method lddmm --on nominal"
-        )
     mpe = parse_tracker_mpe(args.tracker_mpe)
     if args.out:
         out = Path(args.out)

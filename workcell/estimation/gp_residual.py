@@ -263,6 +263,13 @@ def fit_method(
     ds, *, on: str = "auto", progress=None, tracker_mpe=TRACKER_MPE_M, **_
 ) -> tuple[GPResidualModel, dict]:
     """`workcell fit --method gp`: DH fit, then a GP on its residual (training poses only)."""
+    if on == "nominal":
+        from workcell.errors import UserError
+
+        raise UserError(
+            "--method gp always sits on the DH fit (its GP models the DH fit's residual); drop "
+            "--on nominal, or use --method lddmm --on nominal"
+        )
     base = fit_dh(ds, tracker_mpe=tracker_mpe)
     model = fit_gp_residual(base, ds.q, ds.p_tracker, sigma_m=ds.sigma_m)
     extra = {
