@@ -3,12 +3,14 @@
 The unmodified `ur_rtde` client (RTDEReceiveInterface, RTDEControlInterface, DashboardClient)
 works against it. It serves, on one host address (use a loopback alias such as 127.0.0.2):
 
-- RTDE, port 30004, protocol version 2, reporting controller version 5.15.0. Output recipes may
+- RTDE, port 30004, protocol version 2, reporting controller version 5.15.0 for an e-Series arm
+  (3.15.8 for a CB3 arm such as "ur10", as a real CB3 controller would). Output recipes may
   name any output the client knows (about 150: joints, TCP, modes, status bits, registers...);
   input recipes may name the input registers. `U` packets stream at the requested frequency in
   simulated time (500 Hz for the client's default) but never faster than `max_stream_hz` of wall
   time, so a time-scaled run stays cheap.
-- Dashboard, port 29999: greeting, PolyscopeVersion, get serial number, get robot model (the
+- Dashboard, port 29999: greeting, PolyscopeVersion (the same version), get serial number, get
+  robot model (the
   family name of the simulated arm, "UR5" for a UR5e, "UR10" for a UR10), power on/off, brake
   release, robotmode, safetymode/safetystatus, programState, running, play, stop, pause, unlock
   protective stop, close (safety) popup, is in remote control (-> true), load, quit, ...
@@ -74,8 +76,19 @@ RTDE_PORT = 30004
 DASHBOARD_PORT = 29999
 SCRIPT_PORT = 30003
 
-CONTROLLER_VERSION = (5, 15, 0, 11820)
+CONTROLLER_VERSION = (5, 15, 0, 11820)  # an e-Series controller (PolyScope 5)
+CB3_CONTROLLER_VERSION = (3, 15, 8, 106339)  # a CB3 controller (PolyScope 3)
 SERIAL_NUMBER = "20235500001"
+
+
+def controller_version(model: str) -> tuple[int, int, int, int]:
+    """The software version a real controller of this arm reports: 5.x for an e-Series arm
+    ("ur5e"), 3.x for a CB3 arm ("ur10", "ur5cb3"). The RTDE `v` answer and the dashboard's
+    PolyscopeVersion both carry it."""
+    m = re.fullmatch(r"\s*ur\s*\d+\s*(e|cb3)?\s*", str(model), re.IGNORECASE)
+    if m and (m.group(1) or "").lower() != "e":
+        return CB3_CONTROLLER_VERSION
+    return CONTROLLER_VERSION
 
 
 def dashboard_model_name(model: str) -> str:
@@ -473,6 +486,7 @@ class UrControllerSim:
         self._log = log or (lambda msg: None)
         spec = world.truth.nominal
         self.spec = spec
+        self.controller_version = controller_version(spec.model)
         self.chain = NominalChain(spec.dh.a, spec.dh.d, spec.dh.alpha, spec.dh.theta_offset)
         self.rng = np.random.default_rng(seed + 104729)
 
@@ -1005,7 +1019,7 @@ class UrControllerSim:
                 ver = struct.unpack(">H", body[:2])[0] if len(body) >= 2 else 0
                 reply(ord("V"), struct.pack(">B", 1 if ver in (1, 2) else 0))
             elif ptype == ord("v"):
-                reply(ord("v"), struct.pack(">IIII", *CONTROLLER_VERSION))
+                reply(ord("v"), struct.pack(">IIII", *self.controller_version))
             elif ptype == ord("O"):
                 if len(body) < 8:
                     reply(ord("O"), b"\x00NOT_FOUND")
@@ -1131,7 +1145,7 @@ class UrControllerSim:
 
     def _dashboard(self, line: str) -> tuple[str, bool]:
         low = line.lower()
-        v = CONTROLLER_VERSION
+        v = self.controller_version
         with self.lock:
             if low == "polyscopeversion":
                 return f"URSoftware {v[0]}.{v[1]}.{v[2]}.{v[3]} (Mar 13 2024)", False

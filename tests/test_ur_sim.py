@@ -143,6 +143,26 @@ def test_urrobot_moves_and_reports_state(sim, robot_factory):
     assert r.state().t_s - t_r > 0.5
 
 
+def test_an_e_series_controller_is_refused_for_a_cb3_model():
+    """The dashboard names the family only ("UR5" for a CB3 UR5 and a UR5e alike): the driver
+    tells the generations apart by the software version, over the real client, before anything
+    moves. Until 2026-11-26 a UR10e passed as `--model ur10` (the CB3 arm, 53 mm lower
+    shoulder)."""
+    with SimProcess("127.0.0.36", time_scale=TS) as sp:  # a UR5e: PolyScope 5
+        r = UrRobot("127.0.0.36", time_scale=TS, model="ur5")
+        try:
+            with pytest.raises(WrongRobotModel) as ei:
+                r.connect()
+        finally:
+            r.close()
+        msg = str(ei.value)
+        assert "\n" not in msg and "127.0.0.36" in msg
+        assert "runs PolyScope 5.15.0, so the arm is a UR5e, but --model ur5 is a CB3 UR5" in msg
+        assert "give --model ur5e" in msg
+        st = sp.state()
+        assert st["moves"] == 0 and st["stats"]["script_uploads"] == 0
+
+
 def test_speed_limit_enforced_on_ur10():
     """UR10 base/shoulder are limited to 120 deg/s: a 3 rad/s moveJ cruises at 2.094 rad/s."""
     with SimProcess("127.0.0.24", robot="ur10", time_scale=TS) as sp:
@@ -173,6 +193,7 @@ def test_a_controller_of_another_arm_is_refused_before_anything_moves():
         db.connect()
         try:
             assert db.getRobotModel() == "UR10"
+            assert db.polyscopeVersion().startswith("3.")  # a CB3 controller
         finally:
             db.disconnect()
         warned: list[str] = []
@@ -191,7 +212,7 @@ def test_a_controller_of_another_arm_is_refused_before_anything_moves():
         r = UrRobot("127.0.0.31", time_scale=TS, model="ur10", on_warning=warned.append)
         try:
             r.connect()
-            assert r.controller_model == "UR10"
+            assert r.controller_model == "UR10" and r.controller_version == "3.15.8"
             r.move_joints(QA, 1.0, 2.0)
             assert np.max(np.abs(r.state().q_rad - QA)) < 1e-4
         finally:

@@ -16,10 +16,13 @@ Errors (all `DeviceError`, the campaign fault policy decides):
 - `DeviceError`: connection lost, controller restarted, program stopped, move timed out. Call
   `reconnect()` (the campaign executor does, with back-off).
 - `WrongRobotModel`: given `model` (the arm the campaign plans and checks the envelope with), the
-  controller's dashboard answers `get robot model` with another family ("UR10" for `ur5e`):
-  refused at every connect, before anything powers on or moves. A controller that does not
-  answer the question or answers something unreadable is a warning
-  (`warnings`, and `on_warning`, by default one stderr line), not a refusal.
+  controller's dashboard answers `get robot model` with another family ("UR10" for `ur5e`), or
+  the same family of the other generation (the dashboard says "UR10" for a CB3 UR10 and a UR10e
+  alike, whose link lengths differ by up to 53 mm: the software version tells them apart,
+  PolyScope 3.x on a CB3, 5.x or later on an e-Series): refused at every connect, before
+  anything powers on or moves. A controller that does not answer a question or answers
+  something unreadable is a warning (`warnings`, and `on_warning`, by default one stderr line),
+  not a refusal.
 
 Time: `time_scale` is the simulated-controller speed-up (1.0 for a real robot). `sleep(s)` waits
 s / time_scale wall seconds and move timeouts are scaled the same way.
@@ -122,6 +125,41 @@ class WrongRobotModel(DeviceError):
 
 
 _UR_NAME_RE = re.compile(r"\s*ur\s*(\d+)\s*(?:e|cb3)?\s*", re.IGNORECASE)
+
+
+_VERSION_RE = re.compile(r"(\d+)\.(\d+)\.(\d+)")
+
+
+def ur_generation(name: str) -> str | None:
+    """'ur5e', 'UR10e' -> 'e-Series'; 'ur10', 'UR5', 'ur5cb3' -> 'CB3'; None if not a UR name.
+
+    A model name without the "e" is a CB3 arm, as in this build's catalogue ("ur10" is the CB3
+    UR10)."""
+    m = _UR_NAME_RE.fullmatch(str(name))
+    if m is None:
+        return None
+    return "e-Series" if str(name).strip().lower().endswith("e") else "CB3"
+
+
+def generation_from_version(answer: str) -> tuple[str | None, str | None]:
+    """A dashboard `PolyscopeVersion` answer ("URSoftware 5.15.0.11820 (Mar 13 2024)") ->
+    (generation, "5.15.0"): 3.x is a CB3 controller, 5.x and later (PolyScope X is 10.x) an
+    e-Series one; (None, version or None) when the answer does not say."""
+    m = _VERSION_RE.search(str(answer))
+    if m is None:
+        return None, None
+    version = ".".join(m.groups())
+    major = int(m.group(1))
+    if major == 3:
+        return "CB3", version
+    if major >= 5:
+        return "e-Series", version
+    return None, version
+
+
+def _arm_name(family: str, generation: str | None) -> str:
+    """('UR10', 'e-Series') -> 'UR10e'; ('UR10', 'CB3') -> 'CB3 UR10'."""
+    return f"{family}e" if generation == "e-Series" else f"CB3 {family}"
 
 
 def ur_family(name: str) -> str | None:
@@ -299,6 +337,7 @@ class UrRobot:
         self.host = host
         self.model = model  # the arm the caller plans with; checked against the controller
         self.controller_model: str | None = None  # its answer to `get robot model`
+        self.controller_version: str | None = None  # its PolyScope version, "5.15.0"
         self.warnings: list[str] = []
         self._on_warning = _stderr_warning if on_warning is None else on_warning
         self.frequency = float(frequency)
@@ -582,9 +621,11 @@ class UrRobot:
                 f"(--model {self.model})"
             )
             return
-        if said == want:
-            return
         from workcell.kinematics.robots import CATALOGUE  # only for the hint
+
+        if said == want:
+            self._check_generation(want, CATALOGUE)
+            return
 
         known = [name for name in sorted(CATALOGUE) if ur_family(name) == said]
         if known:
@@ -595,6 +636,45 @@ class UrRobot:
             f"UR {self.host}: the controller says it is a {said} but --model is {self.model}: "
             f"plans and envelope checks would use the wrong arm's kinematics; {hint} "
             "(nothing moves until they agree)"
+        )
+
+    def _check_generation(self, family: str, catalogue) -> None:
+        """Refuse an e-Series controller for a CB3 `model` and the other way round (the
+        dashboard's `get robot model` names only the family)."""
+        want = ur_generation(self.model)
+        try:
+            answer = " ".join(str(self._db.polyscopeVersion()).split())
+        except Exception as e:  # noqa: BLE001 - an unknown answer only warns
+            answer, why = "", _one_line(e)
+        else:
+            why = f"it answered {answer[:60]!r}"
+        said, version = generation_from_version(answer)
+        self.controller_version = version
+        if said is None:
+            self._warn(
+                f"UR {self.host}: could not tell a CB3 from an e-Series controller (dashboard "
+                f"`PolyscopeVersion`: {why}); make sure the arm is a "
+                f"{_arm_name(family, want)}, the model "
+                f"the campaign plans with (--model {self.model})"
+            )
+            return
+        if said == want:
+            return
+
+        known = [
+            name
+            for name in sorted(catalogue)
+            if ur_family(name) == family and ur_generation(name) == said
+        ]
+        if known:
+            hint = f"give --model {' or '.join(known)}"
+        else:
+            hint = f"this build has no kinematics for a {_arm_name(family, said)} (known: {', '.join(catalogue)})"
+        raise WrongRobotModel(
+            f"UR {self.host}: the controller runs PolyScope {version}, so the arm is a "
+            f"{_arm_name(family, said)}, but --model {self.model} is a {_arm_name(family, want)}, whose link lengths differ: "
+            f"plans and envelope checks would use the wrong arm's kinematics; {hint} (nothing moves "
+            "until they agree)"
         )
 
     def _check_powered(self, mode: str) -> None:
