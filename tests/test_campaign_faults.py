@@ -28,6 +28,7 @@ from workcell.drivers.protocols import (
     ProtectiveStop,
     TrackerReading,
 )
+from workcell.drivers.ur_robot import MoveAborted
 from workcell.errors import INTERRUPTED, UserError
 from workcell.recording.reader import read_recording
 
@@ -295,6 +296,52 @@ def test_ctrl_c_is_not_held_up_by_a_garbled_tracker(tmp_path, signals):
     assert res.aborted and res.stopped_by == "operator" and slow.calls <= 2
     rec = read_recording(path)
     assert rec.closed_cleanly and rec.events[-1]["kind"] == "abort"
+
+
+class SlowMover(Wrapped):
+    """A robot whose third move takes 30 s and watches `abort_requested` as UrRobot does
+    (the real protocol's stopJ is tested in tests/test_ur_sim.py)."""
+
+    def __init__(self, inner):
+        super().__init__(inner)
+        self.abort_requested = None
+        self.n = self.stops = 0
+        self.cut_short = False
+
+    def move_joints(self, q, speed, accel):
+        self.n += 1
+        if self.n == 3:
+            end = time.monotonic() + 30.0
+            while time.monotonic() < end:
+                if self.abort_requested is not None and self.abort_requested():
+                    self.cut_short = True
+                    raise MoveAborted("UR sim: move stopped by an abort")
+                time.sleep(0.01)
+        return self.inner.move_joints(q, speed, accel)
+
+    def stop(self):
+        self.stops += 1
+        return self.inner.stop()
+
+
+def test_ctrl_c_during_a_move_stops_the_move(tmp_path, signals):
+    """Ctrl-C while the arm moved was seen only once the move had reached its target. Now the
+    campaign hands its abort flag to the driver, the move is cut short, the robot stopped and
+    the abort recorded like any other."""
+    _, robot, tracker, cell = sim_cell("ur5e", "none", seed=1, beam_break_prob=0.0)
+    control = CampaignControl()
+    control.install_sigint()
+    slow = SlowMover(robot)
+    t0 = time.monotonic()
+    _signal_after(1.0)
+    path, res = run_campaign(slow, tracker, cell, tmp_path / "m.mcap", poses=4, seed=1,
+                             config=FAST, control=control)  # fmt: skip
+    assert slow.n == 3 and slow.cut_short and slow.stops >= 1
+    assert time.monotonic() - t0 < 10.0  # not the 30 s move
+    assert res.aborted and res.stopped_by == "operator"
+    rec = read_recording(path)
+    assert rec.closed_cleanly and rec.events[-1]["kind"] == "abort"
+    assert not any(e["kind"] == "reconnect" for e in rec.events)  # not taken for a lost link
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])

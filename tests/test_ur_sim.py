@@ -7,6 +7,7 @@ Every simulator runs in its own process (`SimProcess`, time-scaled) on its own l
 from __future__ import annotations
 
 import os
+import threading
 import time
 
 import numpy as np
@@ -25,7 +26,7 @@ from workcell.drivers.protocols import (  # noqa: E402
     ProtectiveStop,
     Robot,
 )
-from workcell.drivers.ur_robot import UrRobot, WrongRobotModel  # noqa: E402
+from workcell.drivers.ur_robot import MoveAborted, UrRobot, WrongRobotModel  # noqa: E402
 
 TS = 10.0  # simulated seconds per wall second
 HOME = np.array([0.0, -1.57, 1.57, -1.57, -1.57, 0.0])
@@ -141,6 +142,30 @@ def test_urrobot_moves_and_reports_state(sim, robot_factory):
     assert time.monotonic() - t_w < 0.5  # 1 s of robot time at TS = 10
     # robot time went on by about 1 s (each reading may be a packet old; loaded CI machines)
     assert r.state().t_s - t_r > 0.5
+
+
+def test_an_abort_stops_a_move_on_the_way(sim, robot_factory):
+    """A campaign's abort flag (`abort_requested`) turning true during a move sends stopJ at
+    once: the arm stops between the two poses. Until 2026-11-26 a Ctrl-C waited for the move to
+    reach its target (seconds at the campaign's speed) before the robot was stopped."""
+    r = robot_factory("127.0.0.21")
+    r.connect()
+    r.move_joints(QA, 1.0, 2.0)
+    flag = threading.Event()
+    r.abort_requested = flag.is_set
+    timer = threading.Timer(0.2, flag.set)  # 2 s of robot time into a 7 s move
+    timer.start()
+    try:
+        with pytest.raises(MoveAborted) as ei:
+            r.move_joints(QB, 0.1, 1.0)
+    finally:
+        timer.cancel()
+    assert "move stopped by an abort" in str(ei.value) and "stopJ failed" not in str(ei.value)
+    r.abort_requested = None
+    r.sleep(1.0)  # the arm decelerates and stays where it stopped
+    q = np.array(sim.state()["q_rad"])
+    assert np.max(np.abs(q - QB)) > 0.3 and np.max(np.abs(q - QA)) > 0.05
+    assert np.max(np.abs(r.state().qd_rad_s)) < 1e-3
 
 
 def test_an_e_series_controller_is_refused_for_a_cb3_model():

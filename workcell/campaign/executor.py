@@ -15,8 +15,10 @@ MCAP. Faults become `/campaign/event` records and are handled by a small policy:
   freedriven meanwhile, so the pose starts over from where the arm is, every path checked again
   (`_MoveInterrupted`; after `max_reconnects` such restarts the pose is skipped);
 - Ctrl-C / SIGTERM / SIGHUP / abort: stop the robot, record an `abort` event; the caller closes
-  the recording. Back-off waits and the tracker's retries look at the abort flag (and a signal
-  interrupts a tracker reading itself), so an abort never waits for them to run out;
+  the recording. A driver with an `abort_requested` attribute (UrRobot) is given the abort flag
+  and stops a move in progress at once. Back-off waits and the tracker's retries look at the
+  abort flag (and a signal interrupts a tracker reading itself), so an abort never waits for
+  them to run out;
 - the kinematic margin does not hold (`watch.MarginWatch`, when given): stop the robot, record
   a `margin` event saying why, end the campaign (`CampaignResult.stopped_by == "margin"`).
 Safety: every target (and its approach pre-pose) is checked against the envelope before any
@@ -336,6 +338,8 @@ class Executor:
             except ProtectiveStop:
                 raise
             except DeviceError as e:
+                if self.control.abort.is_set():
+                    raise KeyboardInterrupt from None  # the move stopped for the abort, or failed
                 err = e
             while True:  # reconnect, with back-off
                 attempt += 1
@@ -735,6 +739,8 @@ class Executor:
     def run(self, plan: Plan) -> CampaignResult:
         sample = None
         self.control.running.set()
+        if hasattr(self.robot, "abort_requested"):  # a driver whose moves an abort can cut short
+            self.robot.abort_requested = self.control.abort.is_set
         try:
             t = next(plan)
             self.warm_up(t.q_rad)

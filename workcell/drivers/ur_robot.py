@@ -15,6 +15,9 @@ Errors (all `DeviceError`, the campaign fault policy decides):
   control program.
 - `DeviceError`: connection lost, controller restarted, program stopped, move timed out. Call
   `reconnect()` (the campaign executor does, with back-off).
+- `MoveAborted`: `abort_requested` (a callable a campaign sets to its abort flag) turned true
+  while a move was under way: the driver sent stopJ at once rather than letting the arm run to
+  its target (a Ctrl-C used to wait for the end of the move).
 - `WrongRobotModel`: given `model` (the arm the campaign plans and checks the envelope with), the
   controller's dashboard answers `get robot model` with another family ("UR10" for `ur5e`), or
   the same family of the other generation (the dashboard says "UR10" for a CB3 UR10 and a UR10e
@@ -118,6 +121,10 @@ def _import_ur_rtde():
 
 def _one_line(e: BaseException) -> str:
     return " ".join(str(e).split()) or type(e).__name__
+
+
+class MoveAborted(DeviceError):
+    """A move stopped on the way because `abort_requested()` turned true (stopJ sent)."""
 
 
 class WrongRobotModel(DeviceError):
@@ -348,6 +355,9 @@ class UrRobot:
         self.settle_speed_rad_s = float(settle_speed_rad_s)
         self.auto_power_on = bool(auto_power_on)
         self.poll_s = float(poll_s)
+        # set by a campaign (its abort flag's `is_set`): a move in progress stops at once when
+        # it turns true, instead of running to its target before the abort is seen
+        self.abort_requested: Callable[[], bool] | None = None
         self._rr = None
         self._rc = None
         self._db = None
@@ -806,6 +816,14 @@ class UrRobot:
         t_end = time.monotonic() + timeout
         rr = self._rr
         while True:
+            if self.abort_requested is not None and self.abort_requested():
+                try:
+                    self._rc.call("stopJ", 2.0, False)
+                except Exception as e:  # noqa: BLE001 - the caller stops the robot again
+                    why = f"; stopJ failed: {_one_line(e)}"
+                else:
+                    why = ""
+                raise MoveAborted(f"UR {self.host}: move stopped by an abort{why}")
             if not rr.isConnected():
                 self._kill_control()
                 raise DeviceError(f"UR {self.host}: RTDE connection lost during a move")
