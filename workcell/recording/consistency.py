@@ -48,10 +48,10 @@ def nominal_distances(
     robot: RobotSpec, p_flange_smr_m: np.ndarray, q: np.ndarray, p_tracker: np.ndarray
 ) -> np.ndarray:
     """(N,) distance of each measured SMR position from the registered nominal arm's (m)."""
-    from workcell.kinematics.chain import base_T_flange, pack
+    from workcell.kinematics.dh_numpy import base_T_flange_nominal
     from workcell.kinematics.registration import register_nominal
 
-    T = base_T_flange(pack(robot.dh), np.asarray(q, float))
+    T = base_T_flange_nominal(robot.dh, np.asarray(q, float))
     return register_nominal(T, p_tracker, p_flange_smr_m).distance_m
 
 
