@@ -371,6 +371,7 @@ class WorkcellApp(App):
 
         def work() -> None:
             path = None
+            out = plan.out  # the recording (a resume's new file, once worked out)
             try:
                 if not msg.resume_from:
                     chk = backend.dry_run(plan, dev, preview=False)
@@ -390,7 +391,6 @@ class WorkcellApp(App):
                     note = "" if est.available else "EKF-ANN unavailable"
                 from workcell.recording.repeats import RepeatWatch, repeat_event_line
 
-                out = plan.out
                 if msg.resume_from:
                     from workcell.campaign.plans import reference_repeats
                     from workcell.campaign.resume import (
@@ -448,16 +448,20 @@ class WorkcellApp(App):
                 self.post_message(
                     m.CampaignFinished(str(path), result, backend.check_recording(path))
                 )
-            except BaseException:
+            except BaseException as e:
                 rec = None
-                p = Path(plan.out) if plan.out else None
+                # an error after the recording was opened (a device fault beyond the retries):
+                # the engine stopped the campaign, the recording keeps what it measured
+                stop = backend.error_stop_report(e, out)
+                p = Path(out) if out else None
                 if path is None and p is not None and p.exists():
                     try:
                         rec = backend.check_recording(p)
                     except Exception:  # noqa: BLE001
                         rec = None
-                self.post_message(m.CampaignFinished(None, None, rec))
-                raise
+                self.post_message(m.CampaignFinished(None, None, rec, stop))
+                if stop is None:
+                    raise
 
         self._thread(work, "campaign")
 
@@ -552,7 +556,14 @@ class WorkcellApp(App):
         self.finished.append(msg)
         scr = self.views["campaign"]
         res, rec = msg.result, msg.recording or {}
-        if res is None:
+        stop = msg.stop
+        if stop is None and res is not None:
+            stop = backend.stop_report(res, msg.path, self.campaign_log)
+        ok = "closed cleanly" if rec.get("closed_cleanly") else "NOT closed cleanly"
+        # why the engine ended it by itself, what the recording keeps, how to resume (the
+        # event's kind and the notice's title say "stopped")
+        why = f"{stop['reason']}; {stop['recording']}; " if stop else ""
+        if res is None and not stop:
             state = "failed"
             summary = (
                 f"campaign failed; recording {rec.get('path', '-')} holds "
@@ -560,19 +571,18 @@ class WorkcellApp(App):
                 if rec
                 else "campaign failed before recording"
             )
-        else:
-            state = "aborted" if res.aborted else "finished"
-            ok = "closed cleanly" if rec.get("closed_cleanly") else "NOT closed cleanly"
-            why = (
-                "stopped: the kinematic margin does not hold; "
-                if res.stopped_by == "margin"
-                else ""
+        elif res is None:
+            state = "stopped"
+            summary = (
+                f"{why}{Path(rec.get('path', '-')).name}: {rec.get('samples', '?')} samples, {ok}"
             )
+        else:
+            state = "stopped" if stop else "aborted" if res.aborted else "finished"
             summary = (
                 f"{why}{res.measured} measured, {res.skipped} skipped, {res.events} events; "
                 f"{Path(msg.path).name}: {rec.get('samples', '?')} samples, {ok}"
             )
-        scr.finish(state, summary)
+        scr.finish(state, summary, stop)
         for line in rec.get("repeats") or []:  # the reference pose, over the whole recording
             scr.add_event({"level": "info", "kind": "reference", "message": line})
         if rec.get("samples"):
@@ -583,8 +593,8 @@ class WorkcellApp(App):
             self.notify(
                 summary,
                 title=f"Campaign {state}",
-                timeout=self.notify_timeout_s,
-                severity="information" if state == "finished" else "warning",
+                timeout=self.notify_timeout_s * (1.5 if state == "stopped" else 1.0),
+                severity={"finished": "information", "stopped": "error"}.get(state, "warning"),
             )
         # next campaign: a fresh recording path
         if self.plan and self.plan.out and Path(self.plan.out).exists():

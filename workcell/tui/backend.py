@@ -517,6 +517,60 @@ def _cell_identity(dev: Devices) -> dict:
     }
 
 
+# what the campaign screen adds to the command line's resume hint: its own way to resume
+RESUME_HERE = " (on this screen: r)"
+
+
+def stop_report(res, path: str | Path, events=()) -> dict | None:
+    """Why the campaign engine ended a campaign by itself (not the operator's abort, not the
+    end of the plan), in the command line's words (`run.campaign_stop`): {"kind": its
+    `stopped_by`, "reason": the engine's one line on why, "recording": what the recording
+    keeps and how to resume it}. For the margin watch the reason is its `margin` error event
+    (`events`: those the campaign sent), and a resume is refused. None otherwise."""
+    from workcell.campaign.run import campaign_stop, resume_hint
+
+    if res is None or not res.aborted or res.stopped_by in ("", "operator"):
+        return None
+    try:
+        campaign_stop(res, path)
+        line = ""
+    except UserError as e:
+        line = str(e)
+    if res.stopped_by == "margin":
+        said = [e for e in events if e.get("kind") == "margin" and e.get("level") == "error"]
+        return {
+            "kind": "margin",
+            "reason": str(said[-1]["message"]) if said else line,
+            # what a resume of it answers (`run_campaign`'s check of the recording it continues)
+            "recording": f"{path} is closed and keeps {res.measured} poses; a resume keeps its "
+            "SMR offset and envelope, so start a new campaign instead",
+        }
+    reason = res.stop_message or res.stopped_by
+    kept = line.removeprefix(f"{reason}; ") if line else resume_hint(path, res.measured)
+    return {"kind": res.stopped_by, "reason": reason, "recording": kept + RESUME_HERE}
+
+
+def error_stop_report(error: BaseException, path: str | Path | None) -> dict | None:
+    """The same for a campaign an error ended after its recording was opened: a device fault
+    beyond the retries (`run_campaign` notes the recording on it; the command line's
+    `device_errors_say_resume` line), or the arm found outside the envelope with the recording
+    kept (its message says to jog it back in). None for any other failure."""
+    from workcell.campaign.executor import ArmOutsideEnvelope
+    from workcell.campaign.run import resume_hint
+
+    rec = getattr(error, "recording", None)
+    if rec is None and isinstance(error, ArmOutsideEnvelope) and path and Path(path).is_file():
+        from workcell.recording.reader import read_recording
+
+        try:
+            rec = (Path(path), len(read_recording(path).samples))
+        except Exception:  # noqa: BLE001 - unreadable: no line about what it keeps
+            rec = None
+    if rec is None:
+        return None
+    return {"kind": "error", "reason": str(error), "recording": resume_hint(*rec) + RESUME_HERE}
+
+
 def check_recording(path: str | Path) -> dict:
     """What a reader sees in a (possibly interrupted) recording."""
     from workcell.recording.reader import read_recording

@@ -122,9 +122,15 @@ class CampaignEvent(Message):
 
 
 class CampaignFinished(Message):
-    def __init__(self, path: str | None, result, recording: dict | None) -> None:
+    """`stop`: why the campaign engine ended it by itself (`backend.stop_report`); for a
+    result the app works it out itself, for an error the worker gives it."""
+
+    def __init__(
+        self, path: str | None, result, recording: dict | None, stop: dict | None = None
+    ) -> None:
         super().__init__()
         self.path, self.result, self.recording = path, result, recording
+        self.stop = stop
 
 
 class JobProgress(Message):

@@ -1,6 +1,8 @@
 """Campaign: start after an explicit confirmation; progress with ETA; the current pose, joints,
 last tracker reading and its sigma; live residual plot (nominal model, EKF-ANN online estimate);
-the event log; pause, resume, abort (confirmed); resume of an interrupted recording."""
+the event log; pause, resume, abort (confirmed); resume of an interrupted recording. A campaign
+the engine stopped by itself (a fault it will not get past, the margin watch) is STOPPED, not
+aborted: the status says why, what the recording keeps and how to resume it."""
 
 from __future__ import annotations
 
@@ -71,6 +73,9 @@ class CampaignScreen(WorkcellScreen):
         self.last_live: dict | None = None
         self.last_est: dict | None = None
         self.position: dict[int, int] = {}  # sample index -> position in the plot
+        # why the campaign engine ended the last campaign by itself (`backend.stop_report`:
+        # reason, what the recording keeps and how to resume), None otherwise
+        self.stop: dict | None = None
 
     def body(self) -> ComposeResult:
         with Vertical(id="top"):
@@ -167,7 +172,7 @@ class CampaignScreen(WorkcellScreen):
     # ---------------------------------------------------------------- attributes down
     def set_context(self, plan, connected: bool) -> None:
         self.plan, self.connected = plan, connected
-        if self.state in ("idle", "finished", "aborted", "failed") and self.done == 0:
+        if self.state in ("idle", "finished", "aborted", "stopped", "failed") and self.done == 0:
             self.total = plan.measurements() if plan else 0
             self.references = self.total - plan.poses if plan else 0
         self.update_view()
@@ -181,6 +186,7 @@ class CampaignScreen(WorkcellScreen):
         self.last_sample = self.last_live = self.last_est = None
         self.position = {}
         self.eta_s = None
+        self.stop = None
         self.events = []
         if self.is_mounted:
             self.query_one("#events", RichLog).clear()
@@ -222,13 +228,16 @@ class CampaignScreen(WorkcellScreen):
             f"[{colour}]{escape(str(ev.get('kind')))}[/{colour}] {escape(str(ev.get('message')))}"
         )
 
-    def finish(self, state: str, summary: str) -> None:
+    def finish(self, state: str, summary: str, stop: dict | None = None) -> None:
+        """The campaign ended: `state` finished, aborted (the operator), stopped (the engine by
+        itself, `stop` says why and how to resume) or failed; `summary` goes in the event log."""
         self.state = state
+        self.stop = stop
         if state == "finished":
             self.eta_s = 0.0
         self.add_event(
             {
-                "level": "info" if state == "finished" else "warning",
+                "level": {"finished": "info", "stopped": "error"}.get(state, "warning"),
                 "kind": state,
                 "message": summary,
             }
@@ -261,6 +270,9 @@ class CampaignScreen(WorkcellScreen):
                 + f"  -> {Path(str(rec)).name}",
             )
         )
+        if self.stop and self.state == "stopped":  # the engine's words, not markup
+            rows.append(("Stopped", escape(str(self.stop.get("reason", "")))))
+            rows.append(("Recording", escape(str(self.stop.get("recording", "")))))
         s = self.last_sample
         if s:
             q = " ".join(f"{x:+.3f}" for x in s["q_measured_rad"])
