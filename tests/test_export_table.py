@@ -212,7 +212,7 @@ def test_cli_targets_land_on_target_and_refuse_bad_rows(tmp_path, capsys):
         "gap": ("x,y,z\n0.1,-0.4,0.3\n0.1,,0.3\n", "line 3, column y: missing value"),
         "short": ("x,y,z\n0.1,-0.4\n", "line 2, column z: missing value"),
         "text": ("x,y,z\n0.1,-0.4,0.3m\n", "line 2, column z: '0.3m' is not a number"),
-        "cols": ("X_m,Y_m,Z_m\n0.1,-0.4,0.3\n", "need columns x,y,z .* 'x_m,y_m,z_m'"),
+        "cols": ("a,b,c\n0.1,-0.4,0.3\n", "need columns x,y,z .* 'a,b,c'"),
         "part": ("x,y,z,rx,ry\n0.1,-0.4,0.3,0.5,3.0\n", "columns rx,ry without rz"),
         "seed_deg": (
             "x,y,z,q1,q2,q3,q4,q5,q6\n0.1,-0.4,0.3,10,-70,60,-80,-90,12\n",

@@ -67,7 +67,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--in",
         dest="targets_in",
-        help="targets: CSV with x,y,z[,rx,ry,rz][,q1..q6 seeds] (m, rad, base) or q1..q6 only",
+        help="targets: CSV with x,y,z[,rx,ry,rz][,q1..q6 seeds] (base; m, rad, or the unit in "
+        "the name: x_mm, rx_deg) or q1..q6 only; also a targets CSV this command wrote (its "
+        "desired x_m..rz_rad are corrected again, never its *_cmd_* columns)",
     )
     p.add_argument("--json", action="store_true", help="print a JSON summary")
     p.add_argument(
@@ -272,7 +274,7 @@ def _check_reach(src: Path, P: np.ndarray, nom, lines: list[int]) -> None:
         )
 
 
-def _check_joints(src: Path, q: np.ndarray, nom, lines: list[int]) -> None:
+def _check_joints(src: Path, q: np.ndarray, nom, lines: list[int], names=()) -> None:
     """Joint targets must be inside the arm's joint ranges; refuse with its line in the file."""
     from workcell.kinematics.robots import robot_by_name
     from workcell.recording.checks import joint_range_problem
@@ -283,7 +285,11 @@ def _check_joints(src: Path, q: np.ndarray, nom, lines: list[int]) -> None:
         return  # unknown arm: its controller checks its own limits
     for i in range(len(q)):
         p = joint_range_problem(
-            f"{src}: line {lines[i]}", "q", q[i], spec, label=lambda j: f"column q{j + 1}"
+            f"{src}: line {lines[i]}",
+            "q",
+            q[i],
+            spec,
+            label=lambda j: f"column {names[j] if names else f'q{j + 1}'}",
         )
         if p:
             raise UserError(p[0])
@@ -294,10 +300,8 @@ def _targets(args, model, cond, summary, log, logged: list[str]) -> int:
     from workcell.export.correction import Q_REF, Corrector, matrix_to_rotvec, rotvec_to_matrix
     from workcell.export.files import TARGETS_CSV_MARK
     from workcell.export.table import (
-        DEGREES_HINT,
         NO_STD_LINE,
         STD_BASIS,
-        beyond_full_turn,
         check_corrections,
         coverage_line,
         is_warning,
@@ -306,6 +310,7 @@ def _targets(args, model, cond, summary, log, logged: list[str]) -> int:
         undetermined_line,
         unexplained_lines,
     )
+    from workcell.export.targets_in import read_targets
 
     if not args.targets_in:
         raise UserError("--format targets needs --in CSV")
@@ -314,79 +319,32 @@ def _targets(args, model, cond, summary, log, logged: list[str]) -> int:
         raise UserError(f"{src}: no such file")
     if not src.is_file():
         raise UserError(f"{src}: not a regular file; give a targets CSV file")
-    try:
-        with open(src, newline="", encoding="utf-8-sig") as f:  # spreadsheets write a BOM
-            reader = csv.reader(f)
-            header: list[str] = []
-            for r in reader:  # the first non-blank row is the header
-                if any(x.strip() for x in r):
-                    header = [h.strip().lower() for h in r]
-                    break
-            rows, lines = [], []  # lines: each row's line number in the file, for messages
-            for r in reader:
-                if any(x.strip() for x in r):
-                    rows.append(r)
-                    lines.append(reader.line_num)
-    except (UnicodeDecodeError, csv.Error) as e:
-        raise UserError(f"{src}: not a text CSV file ({e})") from None
-    if not rows:
-        raise UserError(f"{src}: no targets")
-    qcols = [f"q{i}" for i in range(1, 7)]
-    known = ["x", "y", "z", "rx", "ry", "rz", *qcols]
-    cols = {c for c in header if c in known}
-    for group in (["rx", "ry", "rz"], qcols, ["x", "y", "z"]):
-        given = [c for c in group if c in cols]
-        if given and len(given) < len(group):
-            raise UserError(
-                f"{src}: columns {','.join(given)} without "
-                f"{','.join(c for c in group if c not in cols)}; give all of "
-                f"{','.join(group)} or none"
-            )
-    num = {c: np.empty(len(rows)) for c in cols}
-    for i, r in enumerate(rows):
-        for c in cols:
-            j = header.index(c)
-            try:
-                num[c][i] = float(r[j])
-            except (IndexError, ValueError):
-                v = r[j].strip() if j < len(r) else ""
-                raise UserError(
-                    f"{src}: line {lines[i]}, column {c}: "
-                    + (f"{v!r} is not a number" if v else "missing value")
-                ) from None
-    for c in sorted(num):
-        bad = np.where(~np.isfinite(num[c]))[0]
-        if bad.size:
-            raise UserError(f"{src}: line {lines[bad[0]]}, column {c}: not a finite number")
+    tin = read_targets(src)  # one UserError line on anything it cannot use
+    lines = tin.lines
+    summary["input"] = {
+        "file": str(src),
+        "columns": tin.columns,
+        "corrected_targets_csv": tin.corrected_csv,
+        "notes": tin.notes,
+    }
+    for note in tin.notes:
+        log(note)
     corr = Corrector(model, nominal_for_model(model, args.recording), cond)
     nom = corr.nominal
-    if {"x", "y", "z"} <= cols:
-        P = np.stack([num["x"], num["y"], num["z"]], 1)
+    if tin.P is not None:
+        P = tin.P
         _check_reach(src, P, nom, lines)
-        if {"rx", "ry", "rz"} <= cols:
-            rv = np.stack([num["rx"], num["ry"], num["rz"]], 1)
-            if (turn := beyond_full_turn(rv)) is not None:
-                i, ang = turn
-                raise UserError(
-                    f"{src}: line {lines[i]}: rotation vector of {ang:.4g} rad, more than a full "
-                    f"turn; {DEGREES_HINT}"
-                )
-            R = rotvec_to_matrix(rv)
+        if tin.rotvec is not None:
+            R = rotvec_to_matrix(tin.rotvec)
         else:
             R = np.broadcast_to(rotvec_to_matrix([0.0, np.pi, 0.0])[0], (len(P), 3, 3))
-        seeds = np.stack([num[c] for c in qcols], 1) if set(qcols) <= cols else Q_REF
-        seeds = np.broadcast_to(seeds, (len(P), 6))
-        if set(qcols) <= cols:
-            _check_joints(src, seeds, nom, lines)  # seeds in degrees would command far off
-    elif set(qcols) <= cols:
-        seeds = np.stack([num[c] for c in qcols], 1)
-        _check_joints(src, seeds, nom, lines)
+        seeds = np.broadcast_to(tin.q if tin.q is not None else Q_REF, (len(P), 6))
+        if tin.q is not None:  # seeds in degrees would command far off
+            _check_joints(src, seeds, nom, lines, tin.q_columns)
+    else:  # joint targets: the nominal arm's pose there is the desired one
+        seeds = tin.q
+        _check_joints(src, seeds, nom, lines, tin.q_columns)
         P, R = nom.fk(seeds)
-    else:
-        raise UserError(
-            f"{src}: need columns x,y,z (and optional rx,ry,rz, q1..q6) or q1..q6; the header "
-            f"has {','.join(header)[:80]!r}"
-        )
     c, q, _ = corr.correct_positions(P, R, seeds)
     bad = ~np.all(np.isfinite(c), axis=1)
     if bad.any():
