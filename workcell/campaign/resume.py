@@ -3,9 +3,14 @@
 Reads what survived in OLD (a file cut short by a crash is fine), re-creates the same plan from
 the session's `campaign` block (plan, poses, seed, devices, readings, settle), skips every pose
 already measured (by `pose_id`) and records the rest into a new file whose session carries
-`chained_from` {path, sha256, samples}. The old file is never modified. Sample `index` continues
-from the old file's count; `elapsed_s` continues from its last value plus the time the campaign
-was down (on the old file's log-time scale), and every log time comes after the old file's last.
+`chained_from` {path, sha256, samples}. The old file is never modified. When OLD is itself a
+resume, its `chained_from` chain is followed back (`read_chain`: each path relative to the file
+that names it, each sha256 checked) and the poses of every file of the chain count as measured;
+a link missing or changed is refused in one line unless `remeasure_missing`. Sample `index`
+continues from the chain's count; `elapsed_s` continues from its last value plus the time the
+campaign was down (on the old files' log-time scale), and every log time comes after the
+chain's last. The tracker may be on another port (a re-plugged adapter) if it is the same
+instrument by serial number (`run.check_same_tracker`).
 """
 
 from __future__ import annotations
@@ -13,6 +18,7 @@ from __future__ import annotations
 import argparse
 import copy
 import dataclasses
+import re
 import sys
 from pathlib import Path
 
@@ -22,6 +28,7 @@ from workcell.campaign.devices import open_cell
 from workcell.campaign.envelope import envelope_of_session
 from workcell.campaign.executor import CampaignConfig, CampaignControl
 from workcell.campaign.run import campaign_stop, exit_code, progress, run_campaign, summary
+from workcell.drivers.protocols import DeviceUnreachable
 from workcell.errors import UserError, check_output_path
 from workcell.recording import checks
 from workcell.recording.dataset import file_sha256
@@ -61,9 +68,93 @@ def _read_for_resume(old: str):
         raise
 
 
-def resume_plan(old: str) -> dict:
-    """What a resume needs from the old recording."""
-    rec = _read_for_resume(old)
+REMEASURE_OPTION = "--remeasure-missing"
+MAX_CHAIN = 1000  # links followed back; a longer chain is refused (a loop made by hand?)
+
+
+def _link_candidates(path: str, named_by: Path) -> list[Path]:
+    """Where the file a `chained_from.path` names may be: relative to the file that names it
+    (how workcell records it), as given (recordings made before, relative to the folder the
+    resume ran in), or beside the file that names it (the two moved together)."""
+    p = Path(path)
+    cands = [p] if p.is_absolute() else [named_by.parent / p, p]
+    cands.append(named_by.parent / p.name)
+    seen, out = set(), []
+    for c in cands:
+        key = str(c.resolve()) if c.exists() else str(c)
+        if key not in seen:
+            seen.add(key)
+            out.append(c)
+    return out
+
+
+def _chain_link(rec, named_by: Path) -> tuple[Path | None, str | None, dict]:
+    """The file `rec`'s `chained_from` names: (path, None) when found with the recorded sha256,
+    (None, why) when it is missing or has changed, (None, None) when `rec` continues nothing.
+    Third: the `chained_from` block."""
+    link = rec.session.get("chained_from")
+    if not link:
+        return None, None, {}
+    if not isinstance(link, dict) or not isinstance(link.get("path"), str) or not link["path"]:
+        return None, f"{named_by}: its chained_from block names no file", {}
+    want = link.get("sha256")
+    cands = _link_candidates(link["path"], named_by)
+    found = [c for c in cands if c.is_file()]
+    for c in found:
+        if not isinstance(want, str) or file_sha256(c) == want.lower():
+            return c, None, link
+    n = link.get("samples")
+    held = f" ({n} samples)" if isinstance(n, int) and not isinstance(n, bool) else ""
+    if not found:
+        why = f"{named_by} continues {link['path']}{held}, which is not at {cands[0]}"
+    else:
+        why = (
+            f"{named_by} continues {found[0]}{held}, but that file has changed since (its sha256 "
+            f"is not the one {named_by.name} recorded)"
+        )
+    return None, why, link
+
+
+def read_chain(old: str, *, remeasure_missing: bool = False) -> tuple[list, list[dict]]:
+    """The recordings of a resume chain, oldest first, ending with `old`, and the notes
+    (events) to record: `old`'s `chained_from`, then that file's, and so on. A link missing or
+    changed is refused in one line (its poses would be measured twice, or a changed file's
+    counted as this campaign's), unless `remeasure_missing`: the chain then stops there, the
+    poses it held are measured again and a warning says so."""
+    newest = _read_for_resume(old)
+    chain, notes = [newest], []
+    seen = {str(Path(old).resolve())}
+    named_by, rec = Path(old), newest
+    while True:
+        path, why, link = _chain_link(rec, named_by)
+        if why is not None:
+            if not remeasure_missing:
+                raise UserError(
+                    f"{why}: put the original back there and resume again, or resume with "
+                    f"{REMEASURE_OPTION} to measure the poses it held again"
+                )
+            note = f"{why}; its poses (and any before it in the chain) are measured again"
+            notes.append({"level": "warning", "kind": "chain", "message": note})
+            break
+        if path is None:
+            break
+        key = str(path.resolve())
+        if key in seen or len(chain) >= MAX_CHAIN:
+            raise UserError(
+                f"{named_by}: its chained_from links lead back to {path} again (edited by "
+                "hand?); cannot tell which poses were measured"
+            )
+        seen.add(key)
+        rec = read_recording(path)
+        chain.append(rec)
+        named_by = path
+    return chain[::-1], notes
+
+
+def resume_plan(old: str, *, remeasure_missing: bool = False) -> dict:
+    """What a resume needs from the old recording and the files it continues (`read_chain`)."""
+    chain, notes = read_chain(old, remeasure_missing=remeasure_missing)
+    rec = chain[-1]
     camp = rec.session.get("campaign") or {}
     if not isinstance(camp, dict):
         raise UserError(f"{old}: session campaign block is not an object; cannot resume it")
@@ -74,32 +165,59 @@ def resume_plan(old: str) -> dict:
             )
     if (why := campaign_block_problem(camp, rec.session)) is not None:
         raise UserError(f"{old}: session campaign block: {why}; cannot resume it")
-    problems = checks.problems_of(rec.session, rec.samples)
-    if problems:
-        raise UserError(f"{old}: {checks.first_problem(problems)}; cannot resume it")
+    for r in chain:
+        problems = checks.problems_of(r.session, r.samples)
+        if problems:
+            raise UserError(f"{r.path}: {checks.first_problem(problems)}; cannot resume it")
+        rc = r.session.get("campaign")
+        if r is not rec and (
+            not isinstance(rc, dict) or any(rc.get(k) != camp[k] for k in ("plan", "poses", "seed"))
+        ):
+            raise UserError(
+                f"{old} continues {r.path}, which records another campaign (plan, poses or seed "
+                "differ); cannot tell which poses were measured: resume the file of that campaign"
+            )
+    samples = [s for r in chain for s in r.samples]
     history: dict[int, dict] = {}
-    for s in rec.samples:  # a reference pose measured again keeps its first sample
+    for s in samples:  # a reference pose measured again keeps its first sample
         history.setdefault(int(s["pose_id"]), s)
     done = set(history)
-    skipped_events = [e for e in rec.events if e.get("kind") in ("skip", "refused")]
+    skipped_events = [e for r in chain for e in r.events if e.get("kind") in ("skip", "refused")]
     return {
         "recording": rec,
+        "chain": chain,
+        "notes": notes,
         "campaign": camp,
         "done": done,
         "history": history,
+        "samples": samples,
         "n_samples": len(rec.samples),
-        "last_elapsed": max((float(s.get("elapsed_s") or 0.0) for s in rec.samples), default=0.0),
-        "clock": _recorded_clock(rec),
+        "index0": len(samples),
+        "last_elapsed": max((float(s.get("elapsed_s") or 0.0) for s in samples), default=0.0),
+        "clock": _recorded_clock(chain),
         "skipped_events": len(skipped_events),
     }
 
 
-def _recorded_clock(rec) -> dict:
-    """The old file's clock: the log time of its last record, and the campaign's start on the
-    log-time scale (a sample's log time less its `elapsed_s`), so that the new file's log times
-    come after the old one's and its `elapsed_s` counts the time the campaign was down."""
+def chain_line(info: dict) -> str:
+    """'20 poses measured (12 in a.mcap, 8 in a.resumed1.mcap)': what a chain holds."""
+    chain = info.get("chain") or [info["recording"]]
+    n = len(info["done"])
+    if len(chain) < 2:
+        return f"{n} poses measured"
+    per = ", ".join(f"{len({s['pose_id'] for s in r.samples})} in {r.path.name}" for r in chain)
+    return f"{n} poses measured ({per})"
+
+
+def _recorded_clock(chain) -> dict:
+    """The old files' clock: the log time of the chain's last record, and the campaign's start
+    on the log-time scale (a sample's log time less its `elapsed_s`), so that the new file's log
+    times come after the old ones' and its `elapsed_s` counts the time the campaign was down.
+    `chain`: the recordings, or one recording."""
+    recs = chain if isinstance(chain, list) else [chain]
     timed = [
         (s["_log_time_ns"], float(s["elapsed_s"]))
+        for rec in recs
         for s in rec.samples
         if isinstance(s.get("elapsed_s"), int | float)
         and not isinstance(s["elapsed_s"], bool)
@@ -109,7 +227,7 @@ def _recorded_clock(rec) -> dict:
     if timed:
         t_ns, e = max(timed, key=lambda x: x[1])
         start = t_ns - int(round(e * 1e9))
-    return {"last_ns": rec.last_ns or 0, "start_ns": start}
+    return {"last_ns": max((rec.last_ns or 0 for rec in recs), default=0), "start_ns": start}
 
 
 def campaign_block_problem(camp: dict, session: dict) -> str | None:
@@ -171,9 +289,11 @@ def continuation(info: dict, old: str | Path) -> dict:
     the chain to the old file, the margin watch's history and the reference interval. The
     command line and the terminal UI resume through this one function."""
     camp = info["campaign"]
+    tracker = info["recording"].session.get("tracker")
+    tracker = tracker if isinstance(tracker, dict) else {}
     return {
         **plan_continuation(camp["plan"], info),
-        "index0": info["n_samples"],
+        "index0": info.get("index0", info["n_samples"]),
         "chained_from": {
             "path": str(old),
             "sha256": file_sha256(old),
@@ -181,8 +301,16 @@ def continuation(info: dict, old: str | Path) -> dict:
         },
         "elapsed0_s": info["last_elapsed"],
         "clock": info["clock"],
-        "watch_history": info["recording"].samples,
+        "watch_history": info.get("samples", info["recording"].samples),
         "reference_every": recorded_reference_every(camp, str(old)),
+        "same_tracker": {
+            "source": str(old),
+            "url": camp.get("tracker_url"),
+            "simulated": camp.get("effects") is not None,
+            "serial_number": tracker.get("serial_number"),
+            "instrument_name": tracker.get("instrument_name"),
+        },
+        "notes": list(info.get("notes") or []),
     }
 
 
@@ -286,8 +414,10 @@ def check_same_cell(camp: dict, source: str, *, robot_url: str, tracker_url: str
                     effects: str | None, sim_seed: int | None) -> None:  # fmt: skip
     """A resume continues on the cell the campaign was recorded on: refuse (one line) a
     simulated truth other than the recorded one (`effects` None: the connected cell is not a
-    simulation this program runs), or other device addresses for a real cell. Addresses of
-    simulators started for the recording are not compared (their ports change each start)."""
+    simulation this program runs), or other device addresses for a real cell; a tracker on
+    another serial port is let through here: `run.check_same_tracker` compares the instrument's
+    serial number once it is connected. Addresses of simulators started for the recording are
+    not compared (their ports change each start)."""
     rec_effects = camp.get("effects")
     if rec_effects is not None or effects is not None:
         if effects is None:
@@ -310,6 +440,8 @@ def check_same_cell(camp: dict, source: str, *, robot_url: str, tracker_url: str
         return
     for what, given in (("robot", robot_url), ("tracker", tracker_url)):
         recorded = camp.get(f"{what}_url")
+        if what == "tracker" and new_serial_port(recorded, given):
+            continue
         if recorded is not None and recorded != given:
             raise UserError(
                 f"{source} was recorded with the {what} at {recorded}, the connected one is "
@@ -317,10 +449,25 @@ def check_same_cell(camp: dict, source: str, *, robot_url: str, tracker_url: str
             )
 
 
+def new_serial_port(recorded, given) -> bool:
+    """Both addresses name a serial port, and not the same one: the tracker may have been
+    re-plugged (`run.check_same_tracker` decides once it is connected)."""
+    return (
+        isinstance(recorded, str)
+        and isinstance(given, str)
+        and recorded.startswith("serial://")
+        and given.startswith("serial://")
+        and recorded != given
+    )
+
+
 def default_out(old: Path) -> Path:
-    k = 1
+    """Beside `old`: X.resumed1.mcap for X.mcap, X.resumed2.mcap for X.resumed1.mcap, ... (the
+    first free number after `old`'s)."""
+    m = re.fullmatch(r"(.+)\.resumed(\d+)", old.stem)
+    base, k = (m.group(1), int(m.group(2)) + 1) if m else (old.stem, 1)
     while True:
-        p = old.with_name(f"{old.stem}.resumed{k}{old.suffix}")
+        p = old.with_name(f"{base}.resumed{k}{old.suffix}")
         if not p.exists():
             return p
         k += 1
@@ -330,7 +477,7 @@ def resume_campaign(args: argparse.Namespace, control: CampaignControl) -> int:
     """Continue `args.resume` in a new chained file. `--robot`/`--tracker` are needed only for
     recordings that do not name their devices; given otherwise, they must name the same ones."""
     old = Path(args.resume)
-    info = resume_plan(str(old))
+    info = resume_plan(str(old), remeasure_missing=bool(getattr(args, "remeasure_missing", False)))
     camp = info["campaign"]
     remaining = int(camp["poses"]) - len(info["done"])
     out = Path(args.out) if args.out else default_out(old)
@@ -346,6 +493,8 @@ def resume_campaign(args: argparse.Namespace, control: CampaignControl) -> int:
             "it elsewhere)"
         ) from None
     if remaining <= 0:
+        for note in info["notes"]:
+            progress(f"warning: {note['message']}")
         print(f"{old}: all {camp['poses']} poses already measured; nothing to resume")
         return 0
     if getattr(args, "smr_offset", None):
@@ -360,6 +509,10 @@ def resume_campaign(args: argparse.Namespace, control: CampaignControl) -> int:
     ns = copy.copy(args)
     for opt in ("robot", "tracker"):
         given, recorded = getattr(args, opt), camp.get(f"{opt}_url")
+        if opt == "tracker" and new_serial_port(recorded, given):
+            # a re-plugged adapter: `run.check_same_tracker` compares the serial numbers
+            setattr(ns, opt, given)
+            continue
         if given is not None and recorded is not None and given != recorded:
             raise UserError(
                 f"--{opt} {given}: {old} was recorded with --{opt} {recorded}, and a resume "
@@ -378,10 +531,7 @@ def resume_campaign(args: argparse.Namespace, control: CampaignControl) -> int:
     cfg = recorded_config(
         camp, cell.payload_kg, CampaignConfig(readings_per_pose=args.readings, settle_s=args.settle)
     )
-    print(
-        f"resuming {old}: {len(info['done'])} poses measured, {remaining} to go -> {out}",
-        file=sys.stderr,
-    )
+    print(f"resuming {old}: {chain_line(info)}, {remaining} to go -> {out}", file=sys.stderr)
     extra = {
         k: v
         for k, v in camp.items()
@@ -398,27 +548,40 @@ def resume_campaign(args: argparse.Namespace, control: CampaignControl) -> int:
             "reference_every",
         )
     }
+    if "tracker_url" in extra:  # the port it is on now (a re-plugged adapter)
+        extra["tracker_url"] = ns.tracker
     watch, repeats = RepeatWatch(info["history"]), [0]
 
     def count_repeats(sample: dict) -> None:
         repeats[0] += watch.update(sample) is not None
 
-    _, res = run_campaign(
-        robot,
-        tracker,
-        cell,
-        out,
-        plan=camp["plan"],
-        poses=int(camp["poses"]),
-        seed=int(camp["seed"]),
-        envelope=env,
-        config=cfg,
-        control=control,
-        extra_campaign=extra,
-        **continuation(info, old),
-        on_event=lambda e: progress(f"  [{e['level']}] {e['kind']}: {e['message']}"),
-        on_sample=count_repeats,
-    )
+    try:
+        _, res = run_campaign(
+            robot,
+            tracker,
+            cell,
+            out,
+            plan=camp["plan"],
+            poses=int(camp["poses"]),
+            seed=int(camp["seed"]),
+            envelope=env,
+            config=cfg,
+            control=control,
+            extra_campaign=extra,
+            **continuation(info, old),
+            on_event=lambda e: progress(f"  [{e['level']}] {e['kind']}: {e['message']}"),
+            on_sample=count_repeats,
+        )
+    except DeviceUnreachable as e:
+        if getattr(e, "recording", None) is not None or args.tracker is not None:
+            raise
+        if not str(ns.tracker).startswith("serial://") or not str(e).startswith("tracker port"):
+            raise
+        raise UserError(
+            f"{e}; a re-plugged USB adapter may have another name: give it with --tracker "
+            "serial:///dev/ttyUSBn (the resume checks it is the same tracker by its serial number)",
+            exit_code=3,
+        ) from None
     again = f" (and the reference {repeats[0]} more times)" if repeats[0] else ""
     summary(
         f"recorded {res.measured - repeats[0]} more poses{again}, skipped {res.skipped} -> {out}",

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import sys
 import time
 from collections.abc import Callable
@@ -66,6 +67,93 @@ def _first_target(plan, cell, env, poses, seed, cfg, plan_kwargs) -> PoseTarget:
         gen.close()
 
 
+def tracker_identity(tracker) -> dict:
+    """What the connected tracker says it is, recorded in the session's `tracker` block and
+    compared by a resume (`check_same_tracker`): `instrument_name` and `serial_number` of a GeoCOM
+    instrument (CSV_GetInstrumentName, CSV_GetInstrumentNo); {} for a tracker that does not say
+    (the in-process simulation). An instrument that does not answer the serial number query is
+    recorded without one."""
+    ident: dict = {}
+    name = getattr(tracker, "instrument_name", None)
+    if isinstance(name, str) and name.strip():
+        ident["instrument_name"] = name.strip()
+    call = getattr(tracker, "call", None)
+    if callable(call):
+        from workcell.drivers import geocom as gc
+
+        try:
+            rep = call(gc.Rpc.CSV_GetInstrumentNo)
+            if rep.ok:
+                ident["serial_number"] = gc.decode_single(rep, gc.decode_long)
+        except (DeviceError, ValueError):
+            pass
+    return ident
+
+
+def _describe_tracker(ident: dict) -> str:
+    name = ident.get("instrument_name")
+    sn = ident.get("serial_number")
+    if sn is None:
+        return f"'{name}' (serial number unknown)" if name else "a tracker of unknown serial number"
+    return f"serial number {sn}" + (f" ({name})" if name else "")
+
+
+def check_same_tracker(same: dict, ident: dict, url: str | None) -> str | None:
+    """A resume continues with the tracker its recording was made with (`same`: `source`, the
+    recorded `url` and the recorded session's `serial_number` / `instrument_name`; `ident`:
+    `tracker_identity` of the connected one at `url`). Another instrument is refused in one
+    line, on any port. A new port (a re-plugged USB adapter: /dev/ttyUSB0 -> /dev/ttyUSB1) is
+    accepted when the serial numbers agree, and the returned line says so; None: nothing to
+    say. Simulators started for the recording (`simulated`) change ports each start and are not
+    compared."""
+    if same.get("simulated"):
+        return None
+    source = same.get("source", "the recording")
+    rec_url = same.get("url")
+    rec = {k: same.get(k) for k in ("serial_number", "instrument_name")}
+    rec = {k: v for k, v in rec.items() if v is not None}
+    moved = rec_url is not None and url is not None and rec_url != url
+    if rec.get("serial_number") is not None and ident.get("serial_number") is not None:
+        names = (rec.get("instrument_name"), ident.get("instrument_name"))
+        if rec["serial_number"] != ident["serial_number"] or (
+            None not in names and names[0] != names[1]
+        ):
+            raise UserError(
+                f"{source} was recorded with the tracker {_describe_tracker(rec)}, the one "
+                f"connected at {url} is {_describe_tracker(ident)}: a resume continues with the "
+                "same instrument; connect that tracker, or start a new campaign"
+            )
+    if not moved:
+        return None
+    if rec.get("serial_number") is None:
+        raise UserError(
+            f"{source} was recorded with the tracker at {rec_url} and does not record the "
+            f"tracker's serial number (an older recording), so a resume cannot tell that the "
+            f"tracker at {url} is the same instrument: connect it at {rec_url} again (re-plug "
+            "the adapter), or start a new campaign"
+        )
+    if ident.get("serial_number") is None:
+        raise UserError(
+            f"the tracker at {url} does not give its serial number, so a resume cannot tell "
+            f"it is the instrument {source} was recorded with at {rec_url} "
+            f"({_describe_tracker(rec)}): connect it at {rec_url} again, or start a new campaign"
+        )
+    return (
+        f"the tracker's port changed: {rec_url} when {source} was recorded, {url} now; the "
+        f"same instrument, {_describe_tracker(ident)}: the campaign continues"
+    )
+
+
+def chain_path(old: str | Path, out: str | Path) -> str:
+    """How a resumed file names the file it continues (`chained_from.path`): relative to the
+    new file's folder, so that the two stay linked when their folder is moved or read from
+    another working directory."""
+    try:
+        return os.path.relpath(Path(old).resolve(), Path(out).resolve().parent)
+    except ValueError:  # another drive (Windows): no relative path
+        return str(Path(old).resolve())
+
+
 def _start_clock(clock: dict | None, elapsed0_s: float) -> tuple[int, float]:
     """The new run's log time at its start and its elapsed time then. A resume (`clock`: the old
     file's last log time and campaign start, `resume.continuation`) starts after the old file's
@@ -103,12 +191,17 @@ def run_campaign(
     plan_kwargs: dict | None = None,
     watch_history: list[dict] | None = None,
     reference_every: int = 0,
+    same_tracker: dict | None = None,
+    notes: list[dict] | None = None,
 ) -> tuple[Path, CampaignResult]:
     """Plan, connect, record. With a non-zero kinematic margin, every sample
     also checks that the real SMR stays within the margin of the nominal one (`watch.MarginWatch`;
     `watch_history`: samples of the recording a resume continues) and the campaign stops when it
     does not. `reference_every` N > 0: the plan's first pose is measured again after every N
-    poses and at the end (`plans.with_reference`), a drift record."""
+    poses and at the end (`plans.with_reference`), a drift record. The connected tracker's
+    identity (`tracker_identity`) goes into the session; a resume (`same_tracker`, from
+    `resume.continuation`) checks it is the recorded instrument before anything moves
+    (`check_same_tracker`). `notes`: events ({level, kind, message}) recorded at the start."""
     env = envelope or default_envelope(cell.spec)
     cfg = config or CampaignConfig(payload_kg=cell.payload_kg)
     gen, _ = make_plan(
@@ -145,7 +238,7 @@ def run_campaign(
         campaign["reference_every"] = int(reference_every)
     session = cell.session(campaign)
     if chained_from:
-        session["chained_from"] = chained_from
+        session["chained_from"] = {**chained_from, "path": chain_path(chained_from["path"], out)}
     if INTERRUPTED.is_set():
         # a Ctrl-C at the command line that Python dropped while planning (`errors.INTERRUPTED`):
         # stop here, nothing connected, nothing recorded. (A UI's abort runs through the executor.)
@@ -160,7 +253,21 @@ def run_campaign(
                 "(nothing moved)"
             )
     robot.connect()
-    tracker.connect()
+    try:
+        tracker.connect()
+        ident = tracker_identity(tracker)
+        session["tracker"].update(ident)
+        port_note = (
+            check_same_tracker(same_tracker, ident, campaign.get("tracker_url"))
+            if same_tracker is not None
+            else None
+        )
+    except BaseException:
+        close_quietly(robot, tracker)
+        raise
+    notes = list(notes or [])
+    if port_note:
+        notes.append({"level": "info", "kind": "tracker_port", "message": port_note})
     t_wall0_ns, elapsed0_s = _start_clock(clock, elapsed0_s)
     ex = None
     try:
@@ -187,6 +294,8 @@ def run_campaign(
                     "resume_from",
                     f"continues {chained_from.get('path')} ({chained_from.get('samples')} samples)",
                 )
+            for note in notes:
+                ex.event(note["level"], note["kind"], note["message"])
             result = ex.run(gen)
     except DeviceError as e:
         if ex is not None:  # the recording was opened, is closed now and keeps what it has

@@ -87,7 +87,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "same approach: a record of drift during the campaign (`workcell info` reports it)",
     )
     p.add_argument("--dry-run", action="store_true", help="print and check the plan; do not move")
-    p.add_argument("--resume", help="continue this interrupted recording in a new chained file")
+    p.add_argument(
+        "--resume",
+        help="continue this interrupted recording in a new chained file (the poses of every "
+        "file it continues count as measured; the tracker may be on another serial port if it "
+        "is the same instrument)",
+    )
+    p.add_argument(
+        "--remeasure-missing",
+        action="store_true",
+        help="with --resume: when a file earlier in the chain is missing or has changed, "
+        "measure the poses it held again instead of refusing",
+    )
     p.add_argument("--online", choices=["ekf-ann"], help="feed samples to an online estimator")
     p.add_argument(
         "--on-protective-stop",
@@ -158,6 +169,11 @@ def _control(args: argparse.Namespace) -> CampaignControl:
 
 
 def run(args: argparse.Namespace) -> int:
+    if getattr(args, "remeasure_missing", False) and not args.resume:
+        raise UserError(
+            "--remeasure-missing goes with --resume (it says what to do when a file the "
+            "resumed recording continues is missing); leave it out"
+        )
     if args.resume:
         from workcell.campaign.resume import resume_campaign
 

@@ -3,8 +3,11 @@
 Extensions made by workcell (optional, readers must not require them):
 - `/campaign/sample` may carry `tracker_readings` (int, raw readings taken) and
   `rejected_readings` (int, outliers rejected) and `payload_com_m`.
-- `/workcell/session` may carry `chained_from` (path and sha256 of the recording a resumed
-  campaign continues) and `truth` is never written (simulated truth stays in the simulator).
+- `/workcell/session` may carry `chained_from` (path, sha256 and sample count of the recording
+  a resumed campaign continues; the path relative to this file's folder, or as typed in
+  recordings made before 2026-11-26) and `truth` is never written (simulated truth stays in the
+  simulator). Its `tracker` block may carry `instrument_name` (text) and `serial_number` (as the
+  instrument gives it) of the connected tracker; a resume compares them.
 """
 
 from __future__ import annotations
