@@ -43,7 +43,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--on", default="auto", help="lddmm/gp: base model (dh, nominal or auto)")
-    p.add_argument("--bounds", help="dh: parameter bounds file (JSON) or 'default' (bounded QP)")
+    p.add_argument(
+        "--bounds",
+        help="dh: parameter bounds file (JSON) or 'default' (bounded QP; default bounds the DH "
+        "corrections to +-5 mm, +-10 mrad, base and SMR offset unbounded)",
+    )
     add_tracker_mpe(p)
 
 
@@ -52,6 +56,11 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"unknown method {args.method!r}; choose from {', '.join(FIT_METHODS)}")
     if not 0.0 <= args.holdout < 0.9:
         raise UserError(f"--holdout must be in [0, 0.9), got {args.holdout}")
+    if args.bounds is not None and not args.bounds.strip():
+        raise UserError(
+            "--bounds is empty: give a JSON file of bounds or 'default' (leave --bounds out for "
+            "the unbounded fit)"
+        )
     if args.bounds and args.method != "dh":
         raise UserError(f"--bounds applies to --method dh only (the bounded QP), not {args.method}")
     if args.on not in ("auto", "dh", "nominal"):
@@ -242,10 +251,24 @@ def print_report(r: dict) -> None:
         if k.startswith("gp_") and isinstance(v, (int, float, list)):
             continue  # the GP's hyperparameters: in the table above, with their std
         print(f"{k:>16} {v}")
+    b = r.get("bounds")
+    if b:
+        print(textwrap.fill(b["line"], width=100))
     if (r.get("extra") or {}).get("converged") is False:
-        print(
-            "warning: the LDDMM optimiser stopped before its convergence test held "
-            f"({r['extra'].get('optimizer_message')}); the deformation may be short of its "
-            "optimum: compare train_rms_after_m with train_rms_linear_m"
-        )
+        if r.get("method") == "dh":
+            print(
+                textwrap.fill(
+                    "warning: the bounded QP stopped after "
+                    f"{r['extra'].get('qp_iterations')} iterations before its step fell below "
+                    "its tolerance; the parameters may be short of the bounded optimum: compare "
+                    "with the fit without --bounds, or loosen the bounds that hold",
+                    width=100,
+                )
+            )
+        else:
+            print(
+                "warning: the LDDMM optimiser stopped before its convergence test held "
+                f"({r['extra'].get('optimizer_message')}); the deformation may be short of its "
+                "optimum: compare train_rms_after_m with train_rms_linear_m"
+            )
     print(f"model           {r['model']}")

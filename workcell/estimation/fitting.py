@@ -29,7 +29,7 @@ from workcell.estimation.models import (
     save_model,
     unexplained_error,
 )
-from workcell.kinematics.chain import PARAMETER_FRAMES, p_tracker
+from workcell.kinematics.chain import PARAMETER_FRAMES, joints_of, p_tracker, param_names
 from workcell.recording.dataset import HOLDOUT_SEED, Dataset, distinct_poses, read_warnings
 
 MIN_TRAIN_POSES = 12  # a fit refuses fewer training poses (or distinct configurations)
@@ -54,10 +54,12 @@ FIT_METHODS: dict[str, str] = {
 def _fit_dh(
     ds: Dataset, *, bounds=None, progress=None, tracker_mpe=TRACKER_MPE_M, **_
 ) -> tuple[DHModel, dict]:
-    if bounds:
+    if bounds is not None:  # "" is refused by the bounds reader, not taken as no bounds
         from workcell.estimation.bounded import fit_dh_bounded  # experiment-design issue
 
-        return fit_dh_bounded(ds, bounds=bounds, tracker_mpe=tracker_mpe), {}
+        m = fit_dh_bounded(ds, bounds=bounds, tracker_mpe=tracker_mpe)
+        # `converged` False makes `fit` warn (it was only in the model file's info)
+        return m, {"qp_iterations": m.info["qp_iterations"], "converged": m.info["converged"]}
     return fit_dh(ds, tracker_mpe=tracker_mpe), {}
 
 
@@ -227,8 +229,80 @@ def fit_dataset(
         "outliers_rejected": info.get("outliers_rejected", 0),
         "extra": extra,
     }
+    report["bounds"] = (
+        bounds_summary(model, bounds, held["rms_m"], dtr, ev, tracker_mpe)
+        if method == "dh" and bounds is not None
+        else None
+    )
     report["smr_change"] = smr_change(params)
     return model, report
+
+
+def bounds_summary(model, bounds, heldout_rms_m: float, dtr, ev, tracker_mpe) -> dict:
+    """What the bounds of a bounded DH fit (`--bounds`) did: the estimated parameters held at
+    a bound (`at_bound`: name, side, value, bound), the bounds on parameters the fit does not
+    estimate (`not_estimated`, no effect), and, when some bound holds, the held-out RMS of the
+    unbounded fit of the same training poses (`heldout_rms_unbounded_m`: what `--method dh`
+    without --bounds gives; one more fit, only then). `line` says it in one line."""
+    info = getattr(model, "info", {}) or {}
+    names = param_names(joints_of(model.theta))
+    lim = info.get("bounds") or {}
+    at = []
+    for n in info.get("active_bounds") or []:
+        v = float(model.theta[names.index(n)])
+        lo, hi = (lim.get(n) or [None, None])[:2]
+        side = "lower" if lo is not None and (hi is None or abs(v - lo) <= abs(v - hi)) else "upper"
+        at.append({"name": n, "side": side, "value": v, "bound": lo if side == "lower" else hi})
+    ref = None
+    if at:
+        unb = fit_dh(dtr, tracker_mpe=tracker_mpe)
+        ref = error_stats(unb.predict(ev.q), ev.p_tracker)["rms_m"]
+    given = "a dict" if isinstance(bounds, dict) else str(bounds)
+    out = {
+        "given": given,
+        "at_bound": at,
+        "not_estimated": list(info.get("bounds_not_estimated") or []),
+        "heldout_rms_m": heldout_rms_m,
+        "heldout_rms_unbounded_m": ref,
+        "evaluated_on": "held-out" if ev is not dtr else "train",  # --holdout 0: training poses
+        "converged": info.get("converged"),
+    }
+    out["line"] = bounds_line(out)
+    return out
+
+
+def bounds_line(b: dict) -> str:
+    """One line on what the bounds did (`bounds_summary`), for `fit` and its report."""
+    if not b["at_bound"]:
+        return (
+            f"bounds ({b['given']}): none holds a parameter; the fit is the unbounded one "
+            "(`--method dh` without --bounds)"
+        )
+    held = ", ".join(f"{a['name']} ({a['side']})" for a in b["at_bound"])
+    tool = [a["name"] for a in b["at_bound"] if a["name"].startswith("tool_")]
+    n = len(b["at_bound"])
+    line = (
+        f"bounds ({b['given']}): {n} parameter{'s' if n > 1 else ''} held at a bound, not "
+        f"estimated there (no std): {held}"
+    )
+    ref = b.get("heldout_rms_unbounded_m")
+    if ref is not None:
+        r = b["heldout_rms_m"]
+        line += (
+            f"; {b.get('evaluated_on', 'held-out')} RMS {r * 1e6:.1f} um with the bounds, "
+            f"{ref * 1e6:.1f} um without (`--method dh` alone)"
+        )
+        if r > 1.05 * ref:
+            line += (
+                f": the bounds make the fit {r / ref:.2f}x worse, they hold parameters away from "
+                "what the poses say; widen them"
+            )
+    if tool:
+        line += (
+            f"; the SMR offset ({', '.join(tool)}) is held by its bound: fit without --bounds for "
+            "the offset to declare"
+        )
+    return line
 
 
 def fit_recording(
@@ -258,6 +332,14 @@ def fit_recording(
         progress=progress,
     )
     report["recording_problems"] = list(ds.read_problems)
+    b = report.get("bounds")
+    if warn and b and b["not_estimated"]:
+        ne = b["not_estimated"]
+        it = "that bound has" if len(ne) == 1 else "those bounds have"
+        warn(
+            f"warning: --bounds {b['given']} bounds {', '.join(ne)}, which the fit does not "
+            f"estimate (dependent or fixed at nominal): {it} no effect"
+        )
     if out is not None:
         keep_in_model(model, ds, report)
         report["model"] = str(save_model(model, out))
@@ -271,7 +353,8 @@ SMR_NOTE_M = 1e-3  # a fitted SMR this far (and 3 std) from the declared one get
 
 def smr_change(params: dict) -> dict | None:
     """The fitted SMR offset against the declared one (`tool_x/y/z` of a fit report's
-    parameters), when they differ by more than SMR_NOTE_M and 3 std; else None."""
+    parameters), when they differ by more than SMR_NOTE_M and 3 std; else None (also when a
+    bound of a bounded fit holds one of them: that value is the bound's, not an estimate)."""
     names = ("tool_x", "tool_y", "tool_z")
     if not all(n in params and "nominal" in params[n] for n in names):
         return None
@@ -279,6 +362,8 @@ def smr_change(params: dict) -> dict | None:
     declared = np.array([params[n]["nominal"] for n in names], float)
     d = fitted - declared
     change = float(np.linalg.norm(d))
+    if any(params[n].get("at_bound") for n in names):
+        return None  # held by a bound: no estimate to declare, nor a std (`bounds_summary`)
     stds = np.array([params[n].get("std") or 0.0 for n in names], float)
     std = float(np.sqrt(np.sum((d / max(change, 1e-12)) ** 2 * stds**2)))  # along the change
     if not (np.all(np.isfinite(fitted)) and change > SMR_NOTE_M and change > 3.0 * std):
@@ -308,6 +393,9 @@ def keep_in_model(model, ds: Dataset, report: dict) -> None:
             info["heldout"] = "none: fitted with --holdout 0"
             return
         info["heldout_rms_m"] = report["heldout_rms_m"]
+        b = report.get("bounds")
+        if b and b.get("heldout_rms_unbounded_m") is not None:
+            info["heldout_rms_unbounded_m"] = b["heldout_rms_unbounded_m"]  # a bound held
         info["heldout_rms_ci95_m"] = report["heldout_rms_ci95_m"]
         info["unexplained"] = report["unexplained"]
         ho = report.get("heldout_outliers")
@@ -328,6 +416,7 @@ def keep_in_model(model, ds: Dataset, report: dict) -> None:
 __all__ = [
     "fit_dataset",
     "smr_change",
+    "bounds_summary",
     "fit_recording",
     "keep_in_model",
     "heldout_outliers",
