@@ -189,3 +189,26 @@ def test_bounded_fit_records_what_it_ignored(sim_ds):
     m = fit_dh_bounded(sim_ds, bounds={"d2": [-1.0, 1.0], "a2": [-1.0, 1.0]})
     assert m.info["bounds_not_estimated"] == ["d2"]
     assert fit_dh_bounded(sim_ds, bounds="default").info["bounds_not_estimated"] == []
+
+
+def test_ros_yaml_marks_a_value_held_at_a_bound_as_not_estimated(sim_ds, tmp_path):
+    """The ROS calibration YAML wrote a value a bound held (`forearm.x`, a2) with "+- 0 m", as
+    if measured to the nanometre: now it says the bound set it, in the line and the header."""
+    from workcell.export.ros_yaml import export_ros_yaml
+
+    spec = {"mode": "delta", "bounds": {"a2": [-1e-7, 1e-7]}}
+    model, _ = fit_dataset(sim_ds, method="dh", bounds=spec)
+    assert "a2" in model.info["active_bounds"]
+    p, info = export_ros_yaml(model, tmp_path / "cal.yaml")
+    text = p.read_text()
+    link = None
+    for line in text.splitlines():
+        if line.startswith("  ") and not line.startswith("    "):
+            link = line.strip().rstrip(":")
+        elif link == "forearm" and line.strip().startswith("x:"):
+            assert line.endswith("# fixed, not estimated (a2 at its bound)"), line
+            break
+    else:
+        raise AssertionError("no forearm x line")
+    assert "held at a bound of the bounded fit (`fit --bounds`): a2" in text
+    assert info["kinematics_fixed"]["forearm"]["x"] == ["a2 (at its bound)"]

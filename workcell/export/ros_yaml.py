@@ -199,7 +199,7 @@ def to_yaml(
             line = f"    {k}: {_fmt(kin[n][k])}"
             held = (fixed or {}).get(n, {}).get(k)
             if held is not None:
-                why = f"{', '.join(held)} at nominal" if held else "no parameter moves it"
+                why = ", ".join(_held_how(x) for x in held) or "no parameter moves it"
                 line = f"{line:<33} # fixed, not estimated ({why})"
             elif std is not None:
                 unit = "m" if k in "xyz" else "rad"
@@ -322,6 +322,23 @@ def _estimated_mask(g, n: int) -> np.ndarray | None:
     return None
 
 
+# a parameter a bounded fit held at one of its bounds (`info["active_bounds"]`), as
+# `fixed_values` names it: not estimated there, its value set by the bound
+AT_BOUND = " (at its bound)"
+
+
+def _held_how(name: str) -> str:
+    """'a4 (at its bound)' -> 'a4 at its bound'; 'd5' -> 'd5 at nominal'."""
+    if name.endswith(AT_BOUND):
+        return f"{name.removesuffix(AT_BOUND)} at its bound"
+    return f"{name} at nominal"
+
+
+def _at_bound(g) -> set[str]:
+    info = getattr(g, "info", None)
+    return set((info or {}).get("active_bounds") or ()) if isinstance(info, dict) else set()
+
+
 def fixed_values(model) -> tuple[dict | None, list[str]]:
     """The YAML values the model did not estimate -> ({link: {key: [parameter names]}}, the
     fixed parameters named): a value is fixed when it moves one for one (|derivative| >= 0.5)
@@ -336,8 +353,12 @@ def fixed_values(model) -> tuple[dict | None, list[str]]:
     est = _estimated_mask(g, len(th))
     if est is None:
         return None, []
-    J = np.abs(_yaml_jacobian(th, base_ref, range(len(th))))
     names = param_names(joints_of(th))
+    bound = _at_bound(g)
+    if bound:  # held at a bound by a bounded fit: not estimated, whatever its `free` says
+        est = est & np.array([x not in bound for x in names])
+        names = [x + AT_BOUND if x in bound else x for x in names]
+    J = np.abs(_yaml_jacobian(th, base_ref, range(len(th))))
     out: dict = {}
     used: set[str] = set()
     it = iter(J)
@@ -563,8 +584,17 @@ def _fixed_line(model, held: list[str]) -> str:
         if groups
         else " (unidentifiable on the recording's poses, or left out of the fit)"
     )
+    nominal = [x for x in held if not x.endswith(AT_BOUND)]
+    at_bound = [x.removesuffix(AT_BOUND) for x in held if x.endswith(AT_BOUND)]
+    bound_part = (
+        f"; or held at a bound of the bounded fit (`fit --bounds`): {', '.join(at_bound)}"
+        if at_bound
+        else ""
+    )
+    if not nominal and at_bound:
+        why = ""
     return (
         f"fixed beside a value: not estimated; it follows parameters held at their nominal "
-        f"value: {', '.join(held) or 'none'}{why}; no 1-sigma is given for it (it would be 0 "
-        "or a by-product of other parameters, not a measurement)"
+        f"value: {', '.join(nominal) or 'none'}{why}{bound_part}; no 1-sigma is given for it "
+        "(it would be 0 or a by-product of other parameters, not a measurement)"
     )
