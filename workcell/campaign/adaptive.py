@@ -5,9 +5,14 @@ sampled uniformly inside the envelope (`plans.random_configurations`), so every 
 reachable and *is* its own IK solution; approach signs are chosen so the approach pre-pose stays
 inside the envelope too (`plans.approach_signs`). A candidate's pose on S3 x R3 is the nominal
 flange quaternion (wxyz, base frame) and the nominal SMR position (base frame). Each step takes
-the best-scored candidate the arm may move to from the last measured pose the way the executor
-moves (approach path inside the envelope; direct joint path to the pre-pose, else via the
-upright posture: `Reach`), so an adaptive campaign is not left with refused poses.
+the best-scored candidate the arm may move to from where it is, the way the executor moves
+(approach path inside the envelope; direct joint path to the pre-pose, else via the upright
+posture: `Reach`), all candidates tried in score order. Where the arm is: what the executor read
+before asking (`arm`, a `plans.ArmPosture`: the start posture, a pose skipped after the arm went
+there, a jog), else the last measured pose. So an adaptive campaign is not left with refused
+poses; when no candidate is reachable from where the arm is, the plan raises `plans.PlanStuck`
+(the campaign stops and says which limit the paths cross) instead of proposing poses the
+executor refuses one after another.
 
 ``bo`` (Das, Touma & Burdick, Algorithm 1): GP-UCB over the candidates with the S3 x R3 product
 kernel (heat kernel on S3 times SE on R3, `workcell.estimation.design`). The objective is the
@@ -42,9 +47,15 @@ parameters (D-optimality), which rewards extreme postures.
 `history` (resume): the samples of a recording being resumed, by pose id. The plan is re-created
 with the same seed and the recorded samples are fed back in the order they were taken (a pose id
 below the last recorded one without a sample was skipped by the old run: None is fed back, as
-the executor did), so the plan's state is what it was when the old process died and the
-following poses are the ones it would have chosen. Each recorded commanded pose must equal the
-plan's choice (else the plan cannot be re-created: ValueError).
+the executor did), so the plan's state is what it was when the old process died. Each recorded
+commanded pose must be one of the re-created plan's candidates (else the recording comes from
+another envelope, seed or version: ValueError, before anything moves); at each recorded step the
+plan takes that candidate (the old run chose it from where its arm was, which the replay cannot
+know), and at a skipped one its best-scored candidate other than the recorded ones. The replay
+runs when the continuation is first asked for its next pose (so the arm's posture then is
+known). `replace_skipped` (what a resume does): the continuation goes on past pose id n - 1 with
+new pose ids n, n+1, ... until it has offered n - (poses recorded) poses, so each pose skipped
+before is replaced by a new choice, as a static plan's resume measures its skipped poses again.
 """
 
 from __future__ import annotations
@@ -58,7 +69,9 @@ from scipy.spatial.transform import Rotation
 from workcell.campaign.envelope import Envelope
 from workcell.campaign.plans import (
     ADAPTIVE_KINDS,
+    ArmPosture,
     Plan,
+    PlanStuck,
     PoseTarget,
     Reach,
     approach_signs,
@@ -126,21 +139,26 @@ def identifiable_mask(spec: RobotSpec, J: np.ndarray) -> np.ndarray:
     return free
 
 
-SCAN = 50  # candidates tried, best first, before giving up on reaching one from here
+_NOT_REPLAYED = -1
 
 
-def _pick(reach: Reach | None, order, info: dict) -> int:
-    """The best candidate of `order` the arm may reach (all of them when reach is None); if
-    none may, the best one (the executor then refuses it with no motion)."""
+def _pick(reach: Reach | None, order, info: dict, replayed: int | None = _NOT_REPLAYED,
+          kind: str = "adaptive") -> int:  # fmt: skip
+    """The best candidate of `order` the arm may reach (the first when reach is None), every
+    candidate tried in turn; none: `PlanStuck`. `replayed` (a resume's replay): the candidate
+    the old run recorded for this step, taken as it is; None for a step the old run skipped:
+    the first of `order` (which the replay leaves out of the recorded candidates), unchecked."""
     order = np.asarray(order, int)
+    if replayed is None or replayed != _NOT_REPLAYED:
+        info["replayed"] = True
+        return int(order[0]) if replayed is None else int(replayed)
     if reach is None:
         return int(order[0])
-    i, passed = reach.first(order, scan=SCAN)
+    i, passed = reach.first(order)
     if passed:
         info["passed_over_unreachable"] = passed
     if i is None:
-        info["unreachable"] = True
-        return int(order[0])
+        raise reach.stuck(order, kind)
     return i
 
 
@@ -237,13 +255,17 @@ def make_adaptive_plan(
     negate_objective: bool = True,
     relinearise_every: int = 5,
     on_choice: Callable[[dict], None] | None = None,
+    arm: ArmPosture | None = None,
+    replace_skipped: bool = False,
 ) -> Plan:
     """A generator of `PoseTarget`s that receives each recorded sample (or None) via `.send()`.
 
     kind "bo", "dopt" or "vopt" (see the module docstring). `n_candidates` reachable
     configurations are drawn once (seeded); `n_seed` space-filling poses start the campaign
     (default 5 for bo, 1 for dopt and vopt); `index` is dopt's criterion ("o1" or "min_sv").
-    `on_choice` is called with a small dict per chosen pose (for logs and tests).
+    `on_choice` is called with a small dict per chosen pose (for logs and tests). `arm`: where
+    the arm is (the executor keeps it up to date); `replace_skipped`: with `history`, new poses
+    in place of the ones the old run skipped (module docstring).
     """
     _check_kind(kind)
     if n <= 0:
@@ -262,13 +284,43 @@ def make_adaptive_plan(
     if history and skip_ids:
         raise ValueError("give either history (resume) or skip_ids, not both")
     ids = [i for i in range(n) if not (skip_ids and i in skip_ids)]
+    replay: dict[int, int | None] = {}
+    if history:
+        replay = _recorded_candidates(history, q_c)
+        last = max(history)
+        if replace_skipped:  # one more pose id for each one skipped up to the last recorded
+            ids = list(range(min(max(n, last + 1 + max(0, n - len(history))), len(q_c))))
     plan = plan_over_candidates(
         kind, spec, q_c, s_c, tool_m, ids, seed=seed, n_seed=n_seed, index=index,
         beta_schedule=beta_schedule, negate_objective=negate_objective,
         relinearise_every=relinearise_every, on_choice=on_choice,
-        reach=Reach(spec, env, tool_m, q_c, s_c, approach_rad),
+        reach=Reach(spec, env, tool_m, q_c, s_c, approach_rad, arm=arm), replay=replay,
     )  # fmt: skip
-    return _replayed(plan, history) if history else plan
+    return _replayed(plan, history, max(history)) if history else plan
+
+
+def _recorded_candidates(history: dict[int, dict], q_c: np.ndarray) -> dict[int, int | None]:
+    """For the replay of a resumed campaign: every pose id up to the last recorded one -> the
+    candidate its recorded commanded configuration is (None: skipped by the old run). A recorded
+    pose that is no candidate of the re-created plan, or one candidate recorded twice, means
+    another envelope, seed or version: ValueError."""
+    out: dict[int, int | None] = dict.fromkeys(range(max(history) + 1))
+    used: dict[int, int] = {}
+    for pid, rec in sorted(history.items()):
+        q_rec = np.asarray(rec.get("q_commanded_rad", []), float)
+        i = None
+        if pid >= 0 and q_rec.shape == q_c.shape[1:] and np.all(np.isfinite(q_rec)):
+            d = np.max(np.abs(q_c - q_rec), axis=1)
+            k = int(np.argmin(d))
+            i = k if d[k] <= 1e-9 and k not in used else None
+        if i is None:
+            raise ValueError(
+                f"recorded pose {pid} is not one the re-created plan can choose (different "
+                "envelope, seed or version); cannot resume this adaptive campaign"
+            )
+        used[i] = pid
+        out[pid] = i
+    return out
 
 
 def plan_over_candidates(
@@ -287,13 +339,15 @@ def plan_over_candidates(
     relinearise_every: int = 5,
     on_choice: Callable[[dict], None] | None = None,
     reach: Reach | None = None,
+    replay: dict[int, int | None] | None = None,
 ) -> Plan:
     """The adaptive plan `kind` choosing, for each pose id in `ids`, one of the given candidate
     configurations q_c (M, n) with approach signs s_c (M, n) (each at most once). Used by
     `make_adaptive_plan` (candidates drawn in the envelope) and to replay a design over the
     poses of an existing recording (`workcell bench design-real`). With `reach` (a live
-    campaign), each step takes the best-scored candidate the arm may move to from the last
-    measured pose (see `Reach`); without, the best-scored one."""
+    campaign), each step takes the best-scored candidate the arm may move to from where it is
+    (see `Reach`; `PlanStuck` when none); without, the best-scored one. `replay` (a resume):
+    pose id -> the candidate the old run recorded there (None: skipped), taken as recorded."""
     from workcell.estimation.bounded import jacobian_padded
 
     _check_kind(kind)
@@ -305,14 +359,15 @@ def plan_over_candidates(
     J_c = jacobian_padded(th_nom, np.eye(4), q_c)  # (M, 3, 5 n + 9)
     free = identifiable_mask(spec, J_c)
     n_seed = (5 if kind == "bo" else 1) if n_seed is None else int(n_seed)
+    replay = replay or {}
     if kind == "bo":
         return _bo_plan(
             spec, q_c, s_c, poses, free, tool_m, ids, n_seed, seed, beta_schedule,
-            negate_objective, on_choice, reach,
+            negate_objective, on_choice, reach, replay,
         )  # fmt: skip
     return _dopt_plan(
         spec, q_c, s_c, poses, J_c, free, tool_m, ids, n_seed, seed,
-        "v" if kind == "vopt" else index, relinearise_every, on_choice, reach, kind,
+        "v" if kind == "vopt" else index, relinearise_every, on_choice, reach, kind, replay,
     )  # fmt: skip
 
 
@@ -321,36 +376,19 @@ def _check_kind(kind: str) -> None:
         raise ValueError(f"unknown adaptive plan {kind!r}; choose {', '.join(ADAPTIVE_KINDS)}")
 
 
-def _replayed(plan: Plan, history: dict[int, dict]) -> Plan:
-    """Feed the recorded samples back into a re-created plan now (so a foreign history is
-    refused before anything is opened or moved), then return the plan's continuation."""
-    last = max(history)
+def _replayed(plan: Plan, history: dict[int, dict], last: int) -> Plan:
+    """The plan's continuation after pose id `last`: when first asked, it feeds the recorded
+    samples (None for a pose id without one) back into the re-created plan, which takes the
+    recorded candidates (`replay`), then goes on choosing from where the arm is then. (A
+    foreign history was refused by `_recorded_candidates` before anything was opened.)"""
     try:
         target = next(plan)
         while target.pose_id <= last:
-            rec = history.get(target.pose_id)
-            if rec is not None:
-                q_rec = np.asarray(rec.get("q_commanded_rad", []), float)
-                if q_rec.shape != target.q_rad.shape or not np.allclose(
-                    q_rec, target.q_rad, atol=1e-9
-                ):
-                    raise ValueError(
-                        f"recorded pose {target.pose_id} is not the one the re-created plan "
-                        "chooses (different envelope, seed or version); cannot resume this "
-                        "adaptive campaign"
-                    )
-            target = plan.send(rec)
-    except StopIteration:
-        return iter(())  # type: ignore[return-value]  # every pose was already measured
-    return _continued(plan, target)
-
-
-def _continued(plan: Plan, target: PoseTarget) -> Plan:
-    try:
+            target = plan.send(history.get(target.pose_id))
         while True:
             sample = yield target
             target = plan.send(sample)
-    except StopIteration:
+    except StopIteration:  # every pose was already measured, or the plan's end
         return
 
 
@@ -361,7 +399,7 @@ def _seed_order(poses: np.ndarray, n_seed: int, seed: int) -> list[int]:
 
 def _bo_plan(
     spec, q_c, s_c, poses, free, tool_m, ids, n_seed, seed, beta_schedule, negate, on_choice,
-    reach,
+    reach, replay,
 ) -> Plan:  # fmt: skip
     from workcell.estimation.design.gp import pose_error_objective, ucb_scores
 
@@ -369,24 +407,27 @@ def _bo_plan(
     available = np.ones(len(q_c), bool)
     measured_idx: list[int] = []
     seeds = _seed_order(poses, n_seed, seed)
+    free_now = _replay_mask(available, replay)
     for k, pid in enumerate(ids):
         info: dict = {"plan": "bo", "pose_id": pid, "k": k}
+        rec = replay.get(pid, _NOT_REPLAYED)
+        avail = free_now(pid)
         if k < len(seeds) or len(measured_idx) < 3:
-            pending = [i for i in seeds if available[i]]
-            order = pending + [i for i in _farthest_order(poses, measured_idx, available)
+            pending = [i for i in seeds if avail[i]]
+            order = pending + [i for i in _farthest_order(poses, measured_idx, avail)
                                if i not in pending]  # fmt: skip
-            i = _pick(reach, order, info)
+            i = _pick(reach, order, info, rec, "bo")
             info["rule"] = "space-filling seed"
         else:
             meas.refit()
             err = meas.errors_m()
             y = pose_error_objective(err, negate=negate)
-            cand = np.where(available)[0]
+            cand = np.where(avail)[0]
             score = ucb_scores(
                 poses[cand], poses[measured_idx], y, beta_schedule=beta_schedule,
                 iteration=len(measured_idx) + 1,
             )  # fmt: skip
-            i = _pick(reach, cand[np.argsort(-score, kind="stable")], info)
+            i = _pick(reach, cand[np.argsort(-score, kind="stable")], info, rec, "bo")
             info.update(
                 rule="GP-UCB",
                 calibrated=meas.calibrated,
@@ -404,6 +445,21 @@ def _bo_plan(
                 reach.last = q_c[i]
 
 
+def _replay_mask(available: np.ndarray, replay: dict[int, int | None]):
+    """available(pid): the candidates a step may take. At a step the old run skipped (replayed
+    as None), the candidates recorded at other steps are left out, so the replay takes them
+    where they were recorded."""
+    recorded = np.zeros(len(available), bool)
+    recorded[[i for i in replay.values() if i is not None]] = True
+
+    def free_now(pid: int) -> np.ndarray:
+        if pid in replay and replay[pid] is None:
+            return available & ~recorded
+        return available
+
+    return free_now
+
+
 def _farthest_order(poses, measured_idx, available) -> np.ndarray:
     """Available candidates, farthest from the measured poses first (S3 x R3 distance)."""
     cand = np.where(available)[0]
@@ -415,7 +471,7 @@ def _farthest_order(poses, measured_idx, available) -> np.ndarray:
 
 def _dopt_plan(
     spec, q_c, s_c, poses, J_c, free, tool_m, ids, n_seed, seed, index, relin_every, on_choice,
-    reach, kind="dopt",
+    reach, kind="dopt", replay=None,
 ) -> Plan:  # fmt: skip
     from workcell.estimation.bounded import jacobian_padded
 
@@ -437,8 +493,12 @@ def _dopt_plan(
     measured_idx: list[int] = []
     seeds = _seed_order(poses, n_seed, seed)
     last_relin = 0
+    replay = replay or {}
+    free_now = _replay_mask(available, replay)
     for k, pid in enumerate(ids):
         info: dict = {"plan": kind, "pose_id": pid, "k": k}
+        rec = replay.get(pid, _NOT_REPLAYED)
+        avail = free_now(pid)
         if relin_every > 0 and len(meas) >= meas.n_fit and len(meas) - last_relin >= relin_every:
             meas.refit()
             if meas.calibrated:
@@ -449,14 +509,21 @@ def _dopt_plan(
         A = np.einsum("mkl,mkp->lp", Js[measured_idx], Js[measured_idx]) if measured_idx else None
         if A is None:
             A = np.zeros((L, L))
-        pending = [i for i in seeds if available[i]] if k < len(seeds) else []
+        pending = [i for i in seeds if avail[i]] if k < len(seeds) else []
         i = None
         if pending:
-            i = pending[0] if reach is None else reach.first(pending, SCAN)[0]
+            if rec != _NOT_REPLAYED:
+                i = (
+                    _pick(reach, pending, info, rec, kind)
+                    if rec is None or rec in pending
+                    else None
+                )
+            else:
+                i = pending[0] if reach is None else reach.first(pending)[0]
         if i is not None:
             info["rule"] = "space-filling seed"
         else:
-            cand = np.where(available)[0]
+            cand = np.where(avail)[0]
             full_rank = len(measured_idx) * 3 >= L and np.linalg.matrix_rank(A) == L
             if index == "min_sv" and full_rank:
                 M = A[None] + np.einsum("mkl,mkp->mlp", Js[cand], Js[cand])
@@ -477,7 +544,7 @@ def _dopt_plan(
                 score = np.linalg.slogdet(S)[1]
                 info["rule"] = "max O1 (D-optimal)"
             order = np.argsort(-score, kind="stable")
-            i = _pick(reach, cand[order], info)
+            i = _pick(reach, cand[order], info, rec, kind)
             info["score"] = float(score[cand == i][0])
         available[i] = False
         info["candidate"] = i
@@ -493,6 +560,7 @@ def _dopt_plan(
 
 __all__ = [
     "ADAPTIVE_KINDS",
+    "PlanStuck",
     "Reach",
     "candidate_poses",
     "identifiable_mask",

@@ -11,6 +11,10 @@ MCAP. Faults become `/campaign/event` records and are handled by a small policy:
   with the arm left stopped (`CampaignResult.stopped_by == "protective_stop"`);
 - a tracker that gives not one usable reading at `MAX_TRACKER_SKIPS_IN_A_ROW` poses in a row (no
   pose recorded between them) ends the campaign (`stopped_by == "tracker"`): it has stopped measuring;
+- `MAX_REFUSED_IN_A_ROW` poses in a row refused before any motion (their paths from where the arm
+  is leave the envelope; no pose recorded, no move made between them), or an adaptive plan with
+  no pose left that the arm may reach from where it is (`plans.PlanStuck`), end the campaign
+  (`stopped_by == "refused"`), saying which limit the paths cross and where to jog the arm;
 - a move cut short by either is never sent again as it was: the arm may have been jogged or
   freedriven meanwhile, so the pose starts over from where the arm is, every path checked again
   (`_MoveInterrupted`; after `max_reconnects` such restarts the pose is skipped);
@@ -22,7 +26,9 @@ MCAP. Faults become `/campaign/event` records and are handled by a small policy:
 - the kinematic margin does not hold (`watch.MarginWatch`, when given): stop the robot, record
   a `margin` event saying why, end the campaign (`CampaignResult.stopped_by == "margin"`).
 Safety: every target (and its approach pre-pose) is checked against the envelope before any
-motion; speed and acceleration are capped by the envelope.
+motion; speed and acceleration are capped by the envelope. The executor tells the plan where the
+arm is before it asks for each pose (`plans.ArmPosture`, when given): adaptive plans choose among
+the poses reachable from there.
 """
 
 from __future__ import annotations
@@ -37,7 +43,16 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from workcell.campaign.envelope import Envelope, route, route_back_in
-from workcell.campaign.plans import Plan, PoseTarget
+from workcell.campaign.plans import (
+    ArmPosture,
+    Plan,
+    PlanStuck,
+    PoseTarget,
+    fmt_q,
+    limit_name,
+    limits_summary,
+    path_limit,
+)
 from workcell.drivers.protocols import (
     DeviceError,
     DeviceUnreachable,
@@ -52,6 +67,10 @@ from workcell.kinematics.robots import RobotSpec
 # going to get anywhere by itself: it stops, the arm stopped, for a person to look (one line).
 MAX_PROTECTIVE_STOPS_IN_A_ROW = 3  # protective stops with no pose recorded between them
 MAX_TRACKER_SKIPS_IN_A_ROW = 3  # poses skipped for want of tracker readings, none recorded between
+# poses refused before any motion, with no pose recorded and no move made between them: the arm
+# stands where the plan's paths leave the envelope (a static plan from a start posture it was not
+# planned from; ordered for paths, a static plan's poses are not refused one after another)
+MAX_REFUSED_IN_A_ROW = 5
 
 # the signals a command line campaign handles as Ctrl-C (`CampaignControl.install_sigint`)
 ABORT_SIGNALS = tuple(
@@ -208,9 +227,10 @@ class CampaignResult:
     skipped_ids: list[int] = field(default_factory=list)
     # "operator" (abort, Ctrl-C, SIGTERM, SIGHUP), "margin" (the margin watch),
     # "unacknowledged" (a protective stop nobody acknowledged), "protective_stop" (too many in a
-    # row), "tracker" (no tracker readings at too many poses in a row) or "error"
+    # row), "tracker" (no tracker readings at too many poses in a row), "refused" (poses refused
+    # again and again, or an adaptive plan with no reachable pose left) or "error"
     stopped_by: str = ""
-    stop_message: str = ""  # for the last three: one line on why
+    stop_message: str = ""  # for the last four: one line on why
 
 
 class _MarginStop(Exception):
@@ -244,6 +264,7 @@ class Executor:
         t_wall0_ns: int | None = None,
         elapsed0_s: float = 0.0,
         watch=None,
+        arm: ArmPosture | None = None,
     ) -> None:
         self.robot, self.tracker, self.spec, self.env, self.sink = (
             robot,
@@ -272,6 +293,11 @@ class Executor:
         # faults since the last recorded pose (`MAX_..._IN_A_ROW`)
         self._pstops_in_a_row = 0
         self._tracker_skips_in_a_row = 0
+        # poses refused since the last move to a pose: (pose id, the limit their paths cross,
+        # where the arm was, the pose's pre-pose)
+        self._refused: list[tuple[int, str, np.ndarray | None, np.ndarray]] = []
+        self.arm = arm  # where the arm is, for an adaptive plan (`plans.ArmPosture`)
+        self._refused_from: np.ndarray | None = None  # where the arm was at the last refusal
 
     # ------------------------------------------------------------------ time and records
     def elapsed(self) -> float:
@@ -441,16 +467,21 @@ class Executor:
         )
 
     # ------------------------------------------------------------------ steps
-    def check_plan(self, targets: list[PoseTarget]) -> list[str]:
+    def check_plan(self, targets: list[PoseTarget], start: np.ndarray | None = None) -> list[str]:
         """Dry run: every target, pre-pose, approach and the path from the pose before against
-        the envelope. Returns the problems."""
+        the envelope; the first pose's path from `start`, the arm's posture when the campaign
+        starts, if known (else the campaign checks it when it starts). Returns the problems."""
         problems: list[str] = []
-        prev = None
+        prev = None if start is None else np.asarray(start, float)
+        at_start = start is not None
         for t in targets:
             found = self._pose_problems(t, prev)
+            if at_start:
+                found = [p.replace(" path: ", " path from the arm's start posture: ", 1)
+                         for p in found]  # fmt: skip
             problems += found
             if not found:
-                prev = t.q_rad  # a refused pose leaves the arm at the previous one
+                prev, at_start = t.q_rad, False  # a refused pose leaves the arm where it was
         return problems
 
     def _pose_problems(self, t: PoseTarget, prev: np.ndarray | None = None) -> list[str]:
@@ -478,13 +509,10 @@ class Executor:
     def _prepose(self, t: PoseTarget) -> np.ndarray:
         return t.q_rad - np.sign(t.approach_sign) * self.cfg.approach_rad
 
-    def _move_along(self, q_to: np.ndarray, what: str) -> bool:
-        """Move to q_to along joint paths inside the envelope (direct, or via the upright
-        posture); False, with a `refused` event and no motion, when neither stays inside. An arm
-        the operator left beyond the envelope's joint ranges only comes back along a path checked
-        against the box and the floor (a `warning`). One outside the box or below the floor is not
-        moved at all: an `error` event, then `ArmOutsideEnvelope` ends the campaign with the
-        recording closed, to be resumed once the arm is back inside."""
+    def _where(self) -> tuple[np.ndarray, str | None]:
+        """Where the arm is (read from the robot) and why that is outside the envelope (None:
+        inside). At a target on the envelope's edge, encoder noise can read just outside: the
+        arm is where it was sent, a checked posture, and that is where it is said to be."""
         q_now = np.asarray(self._robot_call(lambda: self.robot.state()).q_rad, float)
         outside = self.env.violations(self.spec, q_now[None], self.tool_m)[0]
         last = self._last_cmd
@@ -494,9 +522,22 @@ class Executor:
             and np.max(np.abs(q_now - last)) < 1e-3
             and self.env.violations(self.spec, last[None], self.tool_m)[0] is None
         ):
-            # at a target on the envelope's edge, encoder noise can read just outside: the arm
-            # is where it was sent, a checked posture, so check the path from there
             q_now, outside = last, None
+        return q_now, outside
+
+    def _tell_plan(self) -> None:
+        """Before the plan is asked for its next pose: where the arm is (`self.arm`)."""
+        if self.arm is not None:
+            self.arm.q = self._where()[0].copy()
+
+    def _move_along(self, q_to: np.ndarray, what: str) -> bool:
+        """Move to q_to along joint paths inside the envelope (direct, or via the upright
+        posture); False, with a `refused` event and no motion, when neither stays inside. An arm
+        the operator left beyond the envelope's joint ranges only comes back along a path checked
+        against the box and the floor (a `warning`). One outside the box or below the floor is not
+        moved at all: an `error` event, then `ArmOutsideEnvelope` ends the campaign with the
+        recording closed, to be resumed once the arm is back inside."""
+        q_now, outside = self._where()
         find_route = route
         if outside is not None:
             # beyond the envelope's joint ranges only (its SMR above the table, in the box):
@@ -520,12 +561,48 @@ class Executor:
         waypoints, why = find_route(self.env, self.spec, self.tool_m, q_now, q_to)
         if why is not None:
             self.event("error", "refused", f"{what}: {why}; also via the upright posture")
+            self._refused_from = q_now
             return False
         if len(waypoints) > 1:
             self.event("info", "via", f"{what}: direct path leaves the envelope; via upright")
         for q in waypoints:
             self._move(q)
         return True
+
+    def _note_refused(self, t: PoseTarget, q_from: np.ndarray | None) -> None:
+        """A pose refused before any motion (from q_from: where the arm was; None: the pose
+        itself, its target, pre-pose or approach). The `MAX_REFUSED_IN_A_ROW`-th since the arm
+        last moved to a pose stops the campaign (`_CampaignStop("refused")`)."""
+        pre = self._prepose(t)
+        if q_from is None:
+            bad = [q for q in (t.q_rad, pre) if self.env.violations(self.spec, q, self.tool_m)[0]]
+            name = (
+                limit_name(self.env, self.spec, self.tool_m, bad[0])
+                if bad
+                else path_limit(self.env, self.spec, self.tool_m, pre, t.q_rad)
+            )
+        else:
+            name = path_limit(self.env, self.spec, self.tool_m, q_from, pre)
+        self._refused.append((int(t.pose_id), name, q_from, pre))
+        if len(self._refused) >= MAX_REFUSED_IN_A_ROW:
+            msg = self._refused_message()
+            self.event("error", "stopped", f"{msg}; the campaign stops, the arm stopped")
+            raise _CampaignStop("refused", msg)
+
+    def _refused_message(self) -> str:
+        """One line on `MAX_REFUSED_IN_A_ROW` refused poses: which limit, and what to do."""
+        ids = [r[0] for r in self._refused]
+        names = [r[1] for r in self._refused]
+        q_from = next((r[2] for r in reversed(self._refused) if r[2] is not None), None)
+        where = f" from where the arm is (q = {fmt_q(q_from)} rad)" if q_from is not None else ""
+        via = ", also via the upright posture," if q_from is not None else ""
+        shown = ", ".join(map(str, ids[:8])) + (", ..." if len(ids) > 8 else "")
+        return (
+            f"{len(ids)} poses in a row refused before any motion (poses {shown}), none "
+            f"measured between them: their paths{where} leave the envelope{via} first crossing "
+            f"{limits_summary(names)}; "
+            + refused_advice(self._refused[0][3], f"pose {ids[0]}'s approach posture")
+        )
 
     def _skip(self, t: PoseTarget) -> None:
         self.result.skipped += 1
@@ -536,6 +613,7 @@ class Executor:
         if problems:
             self.event("error", "refused", problems[0])
             self._skip(t)
+            self._note_refused(t, None)
             return None
         for _ in range(self.cfg.max_reconnects + 1):
             try:
@@ -557,7 +635,9 @@ class Executor:
         pre = self._prepose(t)
         if not self._move_along(pre, f"pose {t.pose_id}"):
             self._skip(t)
+            self._note_refused(t, self._refused_from)
             return None
+        self._refused.clear()  # the arm moved on: refusals before say nothing about here
         self._record_state(force=True)
         self._move(t.q_rad)
         approach = np.sign(t.q_rad - pre)
@@ -742,6 +822,7 @@ class Executor:
         if hasattr(self.robot, "abort_requested"):  # a driver whose moves an abort can cut short
             self.robot.abort_requested = self.control.abort.is_set
         try:
+            self._tell_plan()
             t = next(plan)
             self.warm_up(t.q_rad)
             while True:
@@ -750,8 +831,18 @@ class Executor:
                 while self.control.pause.is_set() and not self.control.abort.is_set():
                     time.sleep(0.05)
                 sample = self.run_pose(t)
+                self._tell_plan()
                 t = plan.send(sample)
         except StopIteration:
+            self._margin_summary()
+        except PlanStuck as e:  # an adaptive plan with no pose the arm may reach from here
+            msg = (
+                f"{e}; " + refused_advice(e.suggest, "one of the plan's poses, the farthest inside")
+            )[:1500]
+            self.result.aborted, self.result.stopped_by = True, "refused"
+            self.result.stop_message = msg
+            self._stop_robot()
+            self.event("error", "stopped", f"{msg}; the campaign stops, the arm stopped")
             self._margin_summary()
         except KeyboardInterrupt:
             self.result.aborted, self.result.stopped_by = True, "operator"
@@ -803,6 +894,15 @@ class Executor:
             pass
 
 
+def refused_advice(suggest: np.ndarray | None, what: str) -> str:
+    """What to do about a campaign stopped by refused moves (`stopped_by == "refused"`)."""
+    at = f" (e.g. q = {fmt_q(suggest)} rad, {what})" if suggest is not None else ""
+    return (
+        f"jog the arm to a posture well inside the envelope{at} and resume, or widen the "
+        "envelope there (a new campaign: a resume keeps the recorded envelope)"
+    )
+
+
 def _pop_faults(tracker) -> list[tuple[str, str]]:
     pop = getattr(tracker, "pop_faults", None)
     return list(pop()) if pop else []
@@ -829,8 +929,11 @@ def dry_run_plan(
     seed: int,
     tool_m: np.ndarray,
     config: CampaignConfig | None = None,
+    start_q: np.ndarray | None = None,
 ) -> tuple[list[PoseTarget] | None, list[str]]:
     """Build a plan and check every target and pre-pose against the envelope; nothing moves.
+    `start_q`: the arm's posture when the campaign starts, if known (a simulated arm): the first
+    pose's path is checked from there (else the campaign checks it when it starts).
 
     Returns (targets, problems); targets is None for adaptive plans (chosen during the campaign).
     """
@@ -843,7 +946,7 @@ def dry_run_plan(
         return None, []
     targets = list(gen)
     ex = Executor(None, None, spec, env, None, tool_m=tool_m, config=cfg)
-    return targets, ex.check_plan(targets)
+    return targets, ex.check_plan(targets, start=start_q)
 
 
 PREVIEW_KINDS = ("dopt", "vopt")  # adaptive plans whose choice at the nominal chain means much
@@ -859,12 +962,16 @@ def preview_adaptive_plan(
     tool_m: np.ndarray,
     base_in_tracker: dict | None = None,
     config: CampaignConfig | None = None,
+    start_q: np.ndarray | None = None,
 ) -> tuple[list[PoseTarget], list[str]]:
     """The poses an adaptive design plan (`PREVIEW_KINDS`) would choose if the arm were its
     nominal chain, each answered with the nominal SMR position measured at the tracker's stated
     accuracy, and their envelope check; nothing moves. The campaign chooses from the real
     measurements, which move the choice once the calibrated model departs from the nominal one.
-    (bo chases the measured error, which the nominal chain does not have: no preview.)"""
+    (bo chases the measured error, which the nominal chain does not have: no preview.)
+    `start_q`: the arm's posture when the campaign starts, if known (a simulated arm): the plan
+    chooses its first pose among those reachable from there, as the campaign does. A plan left
+    with no reachable pose (`PlanStuck`) ends the preview with that as a problem."""
     from workcell.campaign.identification import nominal_smr_in_tracker
     from workcell.campaign.plans import make_plan
     from workcell.estimation.dh import tracker_spec_sigma
@@ -872,13 +979,19 @@ def preview_adaptive_plan(
     if kind not in PREVIEW_KINDS:
         raise ValueError(f"no preview for plan {kind!r}; {', '.join(PREVIEW_KINDS)} have one")
     cfg = config or CampaignConfig()
-    gen, _ = make_plan(kind, spec, env, n, seed=seed, tool_m=tool_m, approach_rad=cfg.approach_rad)
+    arm = ArmPosture(None if start_q is None else np.asarray(start_q, float))
+    gen, _ = make_plan(
+        kind, spec, env, n, seed=seed, tool_m=tool_m, approach_rad=cfg.approach_rad, arm=arm
+    )
     targets: list[PoseTarget] = []
+    stuck: list[str] = []
     try:
         t = next(gen)
         while True:
             targets.append(t)
             q = np.asarray(t.q_rad, float)
+            if arm.q is not None:
+                arm.q = q  # the campaign measures it there
             p = nominal_smr_in_tracker(spec, q[None], tool_m, base_in_tracker)[0]
             sig = tracker_spec_sigma(p)  # one forward kinematics a pose, not two
             t = gen.send(
@@ -894,5 +1007,7 @@ def preview_adaptive_plan(
             )
     except StopIteration:
         pass
+    except PlanStuck as e:
+        stuck.append(f"after {len(targets)} poses: {e}")
     ex = Executor(None, None, spec, env, None, tool_m=tool_m, config=cfg)
-    return targets, ex.check_plan(targets)
+    return targets, ex.check_plan(targets, start=start_q) + stuck

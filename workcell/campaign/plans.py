@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from workcell.campaign.envelope import Envelope, Guard
+from workcell.campaign.envelope import Envelope, Guard, upright
 from workcell.kinematics.robots import RobotSpec
 
 
@@ -116,12 +116,35 @@ def approach_signs(
     return q[ok], signs[ok]
 
 
+@dataclass
+class ArmPosture:
+    """Where the arm is, as the campaign executor last read it (`q`, None: not known yet). The
+    executor sets it before it asks the plan for its next pose; an adaptive plan given one
+    (`Reach.arm`) chooses among the poses the arm may move to from there, so the arm's start
+    posture, a pose skipped after the arm moved to it, or a jog during a pause are all known."""
+
+    q: np.ndarray | None = None
+
+
+class PlanStuck(Exception):
+    """An adaptive plan has no pose left that the arm may move to from where it is (every path
+    leaves the envelope, also via the upright posture): the campaign stops (`str(e)` says which
+    limit the paths cross; `suggest`: a posture of the plan well inside the envelope, or None)."""
+
+    def __init__(self, message: str, suggest: np.ndarray | None = None) -> None:
+        super().__init__(message)
+        self.suggest = suggest
+
+
 class Reach:
     """Which poses the arm may go to next, checked the way the executor moves (its
-    `_pose_problems`): the approach path pre-pose -> pose inside the envelope, and a route from
-    the last pose the arm was sent to (`last`) to the pre-pose (direct, else via the upright
-    posture). Checked lazily and the approach checks cached, so a caller that takes the first
-    reachable of an ordered list pays about one path check a step."""
+    `_pose_problems` and `_move_along`): the approach path pre-pose -> pose inside the envelope,
+    and a route from where the arm is to the pre-pose (direct, else via the upright posture; from
+    beyond the envelope's joint ranges only, the executor's way back in). Where the arm is: `arm`
+    (an `ArmPosture` the executor keeps up to date) when it knows, else `last` (the last pose the
+    arm was sent to; None: not known, not checked). Checked lazily, the approach checks and the
+    leg to the upright posture cached, so a caller that takes the first reachable of an ordered
+    list pays about one path check a step."""
 
     def __init__(
         self,
@@ -131,24 +154,80 @@ class Reach:
         q: np.ndarray,
         signs: np.ndarray,
         approach_rad: float,
+        arm: ArmPosture | None = None,
     ) -> None:
         self.guard = Guard(env, spec, np.asarray(tool_m, float))
         self.q = q
         self.pre = q - np.sign(signs) * approach_rad
         self._approach_ok: dict[int, bool] = {}
-        self.last: np.ndarray | None = None  # where the arm is (None: not known, not checked)
+        self.last: np.ndarray | None = None  # the last pose the arm was sent to
+        self.arm = arm
+        self._loose: Envelope | None = None
+        self._from_key: bytes | None = None
+        self._from: tuple = (None, None)
+        self._leg: bool | None = None  # the leg from `_from_key` to its via posture passes
+
+    def where(self) -> np.ndarray | None:
+        """Where the arm is: the executor's reading when given, else the last pose sent to."""
+        if self.arm is not None and self.arm.q is not None:
+            return np.asarray(self.arm.q, float)
+        return self.last
 
     def approach_ok(self, i: int) -> bool:
         if i not in self._approach_ok:
             self._approach_ok[i] = self.guard.direct(self.pre[i], self.q[i]) is None
         return self._approach_ok[i]
 
+    def _legs_from(self, q_from: np.ndarray) -> tuple[Envelope | None, np.ndarray | None]:
+        """(the envelope a path from q_from is checked against, None when the arm is beyond the
+        box or the floor; the via posture), cached for q_from: the same as `envelope.route` /
+        `route_back_in`, the executor's routes."""
+        key = q_from.tobytes()
+        if key == self._from_key:
+            return self._from
+        env, spec, tool = self.guard.env, self.guard.spec, self.guard.tool_m
+        first: Envelope | None = env
+        if env.violations(spec, q_from[None], tool)[0] is not None:
+            if self._loose is None:
+                self._loose = env.with_arm_joint_ranges(spec)
+            # beyond the joint ranges only: the executor's way back in; beyond the box or the
+            # floor: it moves nothing and stops the campaign itself (not this plan's call)
+            ok = self._loose.violations(spec, q_from[None], tool)[0] is None
+            first = self._loose if ok else None
+        u = None
+        if first is not None and spec.n_joints == 6:
+            u = upright(q_from)
+            if first is not env:
+                lim = np.asarray(env.joint_limits_rad, float)
+                u = np.clip(u, lim[:, 0], lim[:, 1])
+        self._from_key, self._from, self._leg = key, (first, u), None
+        return self._from
+
+    def route_ok(self, q_from: np.ndarray, q_to: np.ndarray) -> bool:
+        """May the arm get from q_from to q_to (direct, else via upright) as the executor moves?"""
+        q_from = np.asarray(q_from, float)
+        first, u = self._legs_from(q_from)
+        if first is None:
+            return True
+        env, spec, tool = self.guard.env, self.guard.spec, self.guard.tool_m
+        if first.path_violation(spec, q_from, q_to, tool) is None:
+            return True
+        if u is None:
+            return False
+        if self._leg is None:  # the leg to the via posture, once for q_from
+            self._leg = (
+                env.violations(spec, u[None], tool)[0] is None
+                and first.path_violation(spec, q_from, u, tool) is None
+            )
+        return self._leg and env.path_violation(spec, u, q_to, tool) is None
+
     def ok(self, i: int) -> bool:
         if not self.approach_ok(i):
             return False
-        if self.last is None:
+        q_from = self.where()
+        if q_from is None:
             return True
-        return self.guard.route(self.last, self.pre[i])[1] is None
+        return self.route_ok(q_from, self.pre[i])
 
     def first(self, order, scan: int | None = None) -> tuple[int | None, int]:
         """(the first pose of `order` the arm may go to, or None if none of the first `scan`
@@ -158,6 +237,86 @@ class Reach:
             if self.ok(int(i)):
                 return int(i), k
         return None, len(order)
+
+    def stuck(self, order, kind: str, shown: int = 12) -> PlanStuck:
+        """The `PlanStuck` for a plan none of whose poses `order` (best first) the arm may reach
+        from where it is: which limit the paths to the best `shown` of them cross first."""
+        env, spec, tool = self.guard.env, self.guard.spec, self.guard.tool_m
+        q_from = self.where()
+        order = [int(i) for i in order]
+        names = [path_limit(env, spec, tool, q_from, self.pre[i]) for i in order[:shown]]
+        suggest = None
+        if order:
+            clear = env.clearance(spec, self.q[order], tool)
+            suggest = self.q[order[int(np.argmax(clear))]].copy()
+        msg = (
+            f"the {kind} plan has no pose left that the arm may move to from where it is "
+            f"(q = {fmt_q(q_from)} rad): the paths to all {len(order)} of its remaining poses "
+            f"leave the envelope, also via the upright posture; those to the best "
+            f"{min(shown, len(order))} first cross {limits_summary(names)}"
+        )
+        return PlanStuck(msg, suggest)
+
+
+def fmt_q(q) -> str:
+    return "[" + ", ".join(f"{x:+.3f}" for x in np.asarray(q, float)) + "]"
+
+
+def limit_name(env: Envelope, spec: RobotSpec, tool_m: np.ndarray, q: np.ndarray) -> str:
+    """The envelope's limit the posture q is beyond, or nearest to (the one with the least
+    clearance): a joint's range, a face of the workspace box (for the SMR), or the floor (for
+    the link frames), with where it is."""
+    from workcell.kinematics.chain import base_T_frames, pack
+
+    q = np.asarray(q, float)
+    if not np.all(np.isfinite(q)):
+        return "non-finite joint values"
+    lim = np.asarray(env.joint_limits_rad, float)
+    beyond = np.maximum(lim[:, 0] - q, q - lim[:, 1])
+    if np.any(beyond > 0):
+        j = int(np.argmax(beyond))
+        return f"joint {j + 1}'s range [{lim[j, 0]:.3f}, {lim[j, 1]:.3f}] rad"
+    T = np.asarray(base_T_frames(pack(spec.dh), q[None]))[0]
+    smr = T[-1, :3, :3] @ np.asarray(tool_m, float) + T[-1, :3, 3]
+    lo, hi = np.asarray(env.box_min_m, float), np.asarray(env.box_max_m, float)
+    m = env.kinematic_margin_m
+    less = f", less the {1e3 * m:g} mm kinematic margin" if m > 0 else ""
+    faces = [
+        (smr[0] - lo[0], f"the workspace box's -x side (x = {lo[0]:g} m{less})"),
+        (hi[0] - smr[0], f"the workspace box's +x side (x = {hi[0]:g} m{less})"),
+        (smr[1] - lo[1], f"the workspace box's -y side (y = {lo[1]:g} m{less})"),
+        (hi[1] - smr[1], f"the workspace box's +y side (y = {hi[1]:g} m{less})"),
+        (smr[2] - lo[2], f"the workspace box's bottom (z = {lo[2]:g} m{less})"),
+        (hi[2] - smr[2], f"the workspace box's top (z = {hi[2]:g} m{less})"),
+        (float(T[2:, 2, 3].min()) - env.floor_z_m, f"the floor (z = {env.floor_z_m:g} m{less})"),
+    ]
+    return min(faces, key=lambda f: f[0])[1]
+
+
+def path_limit(
+    env: Envelope, spec: RobotSpec, tool_m: np.ndarray, q_from: np.ndarray, q_to: np.ndarray
+) -> str:
+    """Which limit the straight joint path q_from -> q_to crosses first (`limit_name` of the
+    first of dense samples outside the box or above the floor, else of the one with the least
+    clearance). For the one line a stopped campaign prints, not a safety check."""
+    q0, q1 = np.asarray(q_from, float), np.asarray(q_to, float)
+    if not (np.all(np.isfinite(q0)) and np.all(np.isfinite(q1))):
+        return "non-finite joint values"
+    n = max(32, int(np.ceil(np.max(np.abs(q1 - q0)) / 0.005)) + 1)
+    qs = q0 + np.linspace(0.0, 1.0, n)[:, None] * (q1 - q0)
+    c = env.clearance(spec, qs, tool_m)
+    out = np.flatnonzero(c < 0)
+    return limit_name(env, spec, tool_m, qs[out[0] if len(out) else int(np.argmin(c))])
+
+
+def limits_summary(names: list[str]) -> str:
+    """'the workspace box's top (z = 0.65 m) (11 of 12), the floor (z = 0.02 m) (1 of 12)'."""
+    from collections import Counter
+
+    counts = Counter(names).most_common()
+    if len(counts) == 1:
+        return counts[0][0]
+    return ", ".join(f"{name} ({k} of {len(names)})" for name, k in counts)
 
 
 def order_for_paths(

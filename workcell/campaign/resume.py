@@ -275,12 +275,34 @@ def campaign_block_problem(camp: dict, session: dict) -> str | None:
 
 def plan_continuation(kind: str, info: dict) -> dict:
     """run_campaign arguments that continue the old plan: static plans skip the measured pose
-    ids; adaptive plans (bo, dopt, vopt) are fed the recorded samples to rebuild their state."""
+    ids (and so measure the skipped ones again); adaptive plans (bo, dopt, vopt) are fed the
+    recorded samples to rebuild their state, and choose a new pose (new pose ids after the
+    plan's last) for each one the old run skipped (`adaptive.make_adaptive_plan`)."""
     from workcell.campaign.plans import ADAPTIVE_KINDS
 
     if kind in ADAPTIVE_KINDS:
-        return {"plan_kwargs": {"history": info["history"]}}
+        return {"plan_kwargs": {"history": info["history"], "replace_skipped": True}}
     return {"skip_ids": info["done"]}
+
+
+def to_go_line(info: dict) -> str:
+    """'7 to go': the poses the resume offers (the campaign's count less those measured); for an
+    adaptive plan that skipped poses, that it chooses new ones in their place."""
+    from workcell.campaign.plans import ADAPTIVE_KINDS
+
+    camp, done = info["campaign"], info["done"]
+    remaining = int(camp["poses"]) - len(done)
+    line = f"{remaining} to go"
+    if camp["plan"] in ADAPTIVE_KINDS and done:
+        skipped = max(done) + 1 - len(done)  # pose ids up to the last recorded, not recorded
+        if skipped > 0:
+            k, first = min(skipped, remaining), max(max(done) + 1, int(camp["poses"]))
+            ids = f"pose id {first}" if k == 1 else f"pose ids {first} on"
+            line += (
+                f" ({camp['plan']} chooses {k} new pose{'' if k == 1 else 's'} in place of "
+                f"skipped ones, {ids})"
+            )
+    return line
 
 
 def continuation(info: dict, old: str | Path) -> dict:
@@ -531,7 +553,7 @@ def resume_campaign(args: argparse.Namespace, control: CampaignControl) -> int:
     cfg = recorded_config(
         camp, cell.payload_kg, CampaignConfig(readings_per_pose=args.readings, settle_s=args.settle)
     )
-    print(f"resuming {old}: {chain_line(info)}, {remaining} to go -> {out}", file=sys.stderr)
+    print(f"resuming {old}: {chain_line(info)}, {to_go_line(info)} -> {out}", file=sys.stderr)
     extra = {
         k: v
         for k, v in camp.items()

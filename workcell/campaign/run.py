@@ -20,7 +20,13 @@ from workcell.campaign.executor import (
     CampaignResult,
     Executor,
 )
-from workcell.campaign.plans import PoseTarget, make_plan, with_reference
+from workcell.campaign.plans import (
+    ADAPTIVE_KINDS,
+    ArmPosture,
+    PoseTarget,
+    make_plan,
+    with_reference,
+)
 from workcell.campaign.watch import MarginWatch
 from workcell.drivers.protocols import DeviceError, close_quietly
 from workcell.errors import INTERRUPTED, UserError
@@ -55,8 +61,16 @@ class CellSetup:
 
 def _first_target(plan, cell, env, poses, seed, cfg, plan_kwargs) -> PoseTarget:
     """The plan's first pose, re-created fresh (a resumed campaign skips it): the reference a
-    `reference_every` campaign re-measures."""
-    kw = {k: v for k, v in (plan_kwargs or {}).items() if k != "history"}
+    `reference_every` campaign re-measures. An adaptive plan chose it from where the arm was
+    then: a resume takes it from the recording (pose 0) when it is there."""
+    history = (plan_kwargs or {}).get("history") or {}
+    first = history.get(0)
+    if plan in ADAPTIVE_KINDS and first is not None:
+        q = np.asarray(first["q_commanded_rad"], float)
+        sign = first.get("approach_sign")
+        return PoseTarget(0, q, np.asarray(sign, float) if sign is not None else np.ones(len(q)))
+    drop = ("history", "arm", "replace_skipped")
+    kw = {k: v for k, v in (plan_kwargs or {}).items() if k not in drop}
     gen, _ = make_plan(
         plan, cell.spec, env, poses, seed=seed, tool_m=cell.tool_m,
         approach_rad=cfg.approach_rad, **kw,
@@ -204,6 +218,8 @@ def run_campaign(
     (`check_same_tracker`). `notes`: events ({level, kind, message}) recorded at the start."""
     env = envelope or default_envelope(cell.spec)
     cfg = config or CampaignConfig(payload_kg=cell.payload_kg)
+    # where the arm is, read by the executor before each choice of an adaptive plan
+    arm = ArmPosture() if plan in ADAPTIVE_KINDS else None
     gen, _ = make_plan(
         plan,
         cell.spec,
@@ -213,6 +229,7 @@ def run_campaign(
         tool_m=cell.tool_m,
         skip_ids=skip_ids,
         approach_rad=cfg.approach_rad,
+        **({"arm": arm} if arm is not None else {}),
         **(plan_kwargs or {}),
     )
     if reference_every:
@@ -287,6 +304,7 @@ def run_campaign(
                 t_wall0_ns=t_wall0_ns,
                 elapsed0_s=elapsed0_s,
                 watch=watch,
+                arm=arm,
             )
             if chained_from:
                 ex.event(
@@ -346,14 +364,20 @@ def resume_hint(path: str | Path, measured: int) -> str:
 
 def campaign_stop(res: CampaignResult, path: str | Path) -> None:
     """A campaign that stopped itself (the margin watch, `margin_stop`; a protective stop
-    nobody acknowledged; protective stops or a tracker without readings again and again,
-    `executor.MAX_..._IN_A_ROW`) is one line and a non-zero exit, raised after its recording
-    was closed with what it measured."""
+    nobody acknowledged; protective stops, a tracker without readings or refused poses again
+    and again, `executor.MAX_..._IN_A_ROW`; an adaptive plan with no reachable pose left) is one
+    line and a non-zero exit, raised after its recording was closed with what it measured."""
     margin_stop(res, path)
     if res.stopped_by == "tracker":
         raise UserError(
             f"{res.stop_message}; the arm is stopped and {path} is closed and keeps "
             f"{res.measured} poses: fix the tracker, then `workcell campaign --resume {path}`",
+            exit_code=3,
+        )
+    if res.stopped_by == "refused":
+        raise UserError(
+            f"{res.stop_message}; the arm is stopped and {path} is closed and keeps "
+            f"{res.measured} poses: `workcell campaign --resume {path}` continues it",
             exit_code=3,
         )
     if res.stopped_by == "protective_stop":

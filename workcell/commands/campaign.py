@@ -212,7 +212,7 @@ def run(args: argparse.Namespace) -> int:
     )
     if args.dry_run:
         _say_planning(args)
-        return dry_run(args, cell, env, cfg)
+        return dry_run(args, cell, env, cfg, start_posture(args, robot))
     if not args.out:
         raise UserError("--out REC.mcap is required (the recording to write)")
     if Path(args.out).exists():
@@ -349,22 +349,51 @@ def _ask_on_protective_stop(control: CampaignControl, stdin=None) -> None:
     threading.Thread(target=loop, name="pstop-prompt", daemon=True).start()
 
 
-def dry_run(args, cell, env, cfg) -> int:
+def start_posture(args, robot) -> np.ndarray | None:
+    """The arm's posture when a campaign would start, when a dry run can know it without
+    connecting: the in-process simulated arm's (`--robot sim`); None for a real controller."""
+    if args.robot != "sim":
+        return None
+    try:
+        return np.asarray(robot.state().q_rad, float)
+    except Exception:  # noqa: BLE001 - a simulation that cannot say: checked when it starts
+        return None
+
+
+def start_line(start_q: np.ndarray | None, robot: str) -> str:
+    """The dry run's line on where the first move is checked from."""
+    from workcell.campaign.plans import fmt_q
+
+    if start_q is not None:
+        return (
+            f"the first move is checked from the simulated arm's start posture q = "
+            f"{fmt_q(start_q)} rad, where the campaign starts"
+        )
+    return (
+        f"the first move is not checked here: a dry run does not connect to {robot}, so the "
+        "campaign checks it when it starts, from wherever the arm is then (jog it inside the "
+        "envelope, near the plan's first pose)"
+    )
+
+
+def dry_run(args, cell, env, cfg, start_q=None) -> int:
     from workcell.campaign.executor import PREVIEW_KINDS, dry_run_plan, preview_adaptive_plan
 
     targets, problems = dry_run_plan(
-        args.plan, cell.spec, env, args.poses, seed=args.seed, tool_m=cell.tool_m, config=cfg
-    )
+        args.plan, cell.spec, env, args.poses, seed=args.seed, tool_m=cell.tool_m, config=cfg,
+        start_q=start_q,
+    )  # fmt: skip
     if targets is None:
         print(
             f"plan {args.plan}: adaptive; each pose is chosen during the campaign inside the "
-            f"envelope; {args.poses} poses"
+            f"envelope, among those the arm may move to from where it is; {args.poses} poses"
         )
         if args.plan not in PREVIEW_KINDS:
+            print(start_line(start_q, args.robot))
             return 0
         targets, problems = preview_adaptive_plan(
             args.plan, cell.spec, env, args.poses, seed=args.seed, tool_m=cell.tool_m,
-            base_in_tracker=cell.base_in_tracker, config=cfg,
+            base_in_tracker=cell.base_in_tracker, config=cfg, start_q=start_q,
         )  # fmt: skip
         print(
             f"preview: the poses {args.plan} chooses if the arm is its nominal chain (the "
@@ -373,6 +402,7 @@ def dry_run(args, cell, env, cfg) -> int:
     for t in targets:
         print(f"pose {t.pose_id:4d}  q = [" + ", ".join(f"{x:+.4f}" for x in t.q_rad) + "] rad")
     print(f"dry run: {len(targets)} poses, {len(problems)} problems; nothing moved")
+    print(start_line(start_q, args.robot))
     if args.reference_every and targets:
         print(reference_line(targets[0].pose_id, len(targets), args.reference_every))
     for p in problems:
