@@ -1,12 +1,28 @@
 """Identifiability of geometric parameters from a set of poses.
 
-The identification Jacobian J (3N x P, d p_tracker / d theta, weighted) is column-scaled to unit
-norm (so metres and radians compare), then analysed:
-- rank, singular values, condition number (of the scaled Jacobian);
-- observability indices for pose selection: O1 = (prod sigma_i)^(1/L) / sqrt(N) (Borm & Menq)
-  and the minimum singular value O3 (Nahvi & Nahavandi);
-- a greedy column selection in a stated priority order keeps a maximal identifiable subset;
-  every other parameter is reported with the kept parameters it is a combination of (its group).
+The identification Jacobian J (3 m rows for m poses, P columns, d p_tracker / d theta, weighted
+when the caller weights it) is analysed:
+- rank: a greedy column selection in a stated priority order keeps a maximal identifiable
+  subset; every other parameter is reported with the kept parameters it is a combination of (its
+  group). Singular values and condition number are those of the kept columns scaled to unit norm
+  over this pose set (column equilibration, which makes the condition number nearly the smallest
+  any column scaling gives; van der Sluis 1969);
+- observability indices (the names of Sun & Hollerbach 2008, "Observability index selection for
+  robot calibration", and Joubair & Bonev 2013, seed 002's refs [16] and [13]; seed 002 itself
+  names no index), of the Jacobian with a FIXED column scaling (`parameter_units`: metres for
+  lengths, angles as the arc they sweep at `ANGLE_LENGTH_M` = 1 m, so the scaled Jacobian is J in
+  SI units with 1 rad counted as 1 m) over the L parameters that can be identified at all
+  (`structural_identifiable`: the structurally dependent ones removed, a property of the chain,
+  not of the poses):
+  O1 = (sigma_1 ... sigma_L)^(1/L) / sqrt(m) (Borm & Menq 1991), and
+  O3 = sigma_L, the minimum singular value (Nahvi, Hollerbach & Hayward 1994).
+  Both are 0 when the poses do not identify all L parameters. O1 estimates det(E[J_k^T J_k])^(1/2L)
+  (J_k: one pose's 3 rows), so it does not grow or shrink with the pose count for poses drawn
+  from one distribution (it is lower when 3 m is close to L: such sets identify poorly); O3 grows
+  like sqrt(m). A change of units multiplies O1 by the same factor for every pose set (det of a
+  diagonally rescaled matrix), so O1 ranks pose sets the same whatever the units; O3 does not.
+  D-optimal design (`--plan dopt`) maximises log det(Js^T Js) = 2 L log(O1 sqrt(m)): at a given
+  pose count and L, the same ordering as O1 (see `workcell.campaign.adaptive`).
 """
 
 from __future__ import annotations
@@ -55,17 +71,71 @@ def candidates_for(dh, fixed=()) -> list[str]:
     ]
 
 
+ANGLE_LENGTH_M = 1.0  # an angle counts as the arc it sweeps at this distance (O1, O3)
+ANGLE_PREFIXES = ("alpha", "beta", "theta", "base_r")
+
+OBSERVABILITY_BASIS = (
+    "O1 = (sigma_1 ... sigma_L)^(1/L) / sqrt(m) (Borm & Menq 1991) and O3 = sigma_L, the minimum "
+    "singular value (Nahvi, Hollerbach & Hayward 1994), of the identification Jacobian of the m "
+    "poses (3 rows a pose) over the L parameters the chain can identify at all (structurally "
+    "dependent ones removed), columns in fixed units: metres for lengths, angles as the arc they "
+    f"sweep at {ANGLE_LENGTH_M:g} m (J in SI units, 1 rad counted as 1 m); both 0 when the poses "
+    "leave one of the L dependent. O1 does not depend on the pose count for poses drawn alike; "
+    "O3 grows like sqrt(m)"
+)
+
+
+def parameter_units(names, angle_length_m: float = ANGLE_LENGTH_M) -> np.ndarray:
+    """The fixed column scaling of the observability indices: the step of each parameter that
+    counts as one unit, (P,). Lengths 1 m; angles (alpha*, beta*, theta*, base_r*) 1 m /
+    `angle_length_m` rad, the angle that moves a point `angle_length_m` away by 1 m; any other
+    name 1 (the Jacobian's own unit). The scaled Jacobian is J * parameter_units(names)."""
+    return np.array(
+        [1.0 / angle_length_m if str(n).startswith(ANGLE_PREFIXES) else 1.0 for n in names]
+    )
+
+
+STRUCTURAL_POSES = 60  # generic configurations that reveal the chain's structural dependencies
+_STRUCTURAL: dict[tuple, list[str]] = {}
+
+
+def structural_identifiable(dh, tool_m, fixed=()) -> list[str]:
+    """The parameters of the chain `dh` (SMR at `tool_m` on the flange) that a point tracker can
+    identify at all, in `analyse`'s priority order: the rank analysis of `candidates_for(dh,
+    fixed)` at `STRUCTURAL_POSES` seeded configurations uniform over every joint's full turn
+    (generic poses: a parameter dependent there is dependent at every pose set, a property of
+    the chain). L of the observability indices: 25 for the UR arms with the SMR on the flange
+    axis (27 off it: d5 and theta5_offset then separate)."""
+    from workcell.kinematics.chain import jac_params, pack
+
+    tool_m = np.asarray(tool_m, float)
+    key = tuple(
+        tuple(np.asarray(v, float).round(12))
+        for v in (dh.a, dh.d, dh.alpha, dh.theta_offset, tool_m)
+    ) + (tuple(sorted(fixed or ())),)
+    if key not in _STRUCTURAL:
+        n_j = len(dh.a)
+        names = param_names(n_j)
+        q = np.random.default_rng(0).uniform(-np.pi, np.pi, (STRUCTURAL_POSES, n_j))
+        J = np.asarray(jac_params(pack(dh, tool=tool_m), np.eye(4), q)).reshape(-1, len(names))
+        order = priority_for(n_j)
+        ident = analyse(J, names, priority=order, candidates=candidates_for(dh, fixed))
+        _STRUCTURAL[key] = sorted(ident.identifiable, key=order.index)
+    return list(_STRUCTURAL[key])
+
+
 @dataclass
 class Identifiability:
     names: list[str]
     rank: int
     singular_values: np.ndarray
     condition: float
-    o1: float
-    min_singular_value: float
+    o1: float  # Borm & Menq, see OBSERVABILITY_BASIS
+    min_singular_value: float  # O3, same scaling and parameters as o1
     identifiable: list[str]
     dependent: dict[str, list[str]]  # dependent param -> kept params it combines
     groups: list[list[str]]
+    observability_parameters: list[str] | None = None  # the L parameters of o1 and O3
 
     def to_dict(self, cov: np.ndarray | None = None) -> dict:
         """The analysis as a report; with the fit's covariance `cov` (over `names`), also the
@@ -82,58 +152,50 @@ class Identifiability:
             "condition": self.condition,
             "o1": self.o1,
             "min_singular_value": self.min_singular_value,
+            "observability_parameters": len(self.observability_parameters or self.identifiable),
+            "observability_basis": OBSERVABILITY_BASIS
+            if self.observability_parameters is not None
+            else OBSERVABILITY_BASIS + "; here of the Jacobian as the caller gave it (a fit's is "
+            "weighted by 1 / sigma), and L = the parameters these poses identify (the chain's "
+            "structural set was not given), so a rank-deficient set is not scored 0",
             "singular_values": self.singular_values.tolist(),
             "identifiable": self.identifiable,
             "unidentifiable": self.groups,
         } | weak
 
 
-def observability(Js: np.ndarray) -> dict:
-    """Observability indices of a column-scaled Jacobian (rows 3N, columns L)."""
-    s = np.linalg.svd(Js, compute_uv=False)
-    n = max(Js.shape[0] // 3, 1)
-    L = len(s)
-    pos = s[s > 0]
-    o1 = float(np.exp(np.log(pos).sum() / L) / np.sqrt(n)) if len(pos) == L else 0.0
+def observability(Js: np.ndarray, n_poses: int | None = None, *, rank: int | None = None) -> dict:
+    """Observability indices of a Jacobian already in the fixed units (`parameter_units`), whose
+    L columns are all the parameters that should be identified, rows 3 a pose (`n_poses`
+    default rows // 3):
+
+    - ``o1``: O1 = (sigma_1 ... sigma_L)^(1/L) / sqrt(m) (Borm & Menq 1991), m = `n_poses`;
+      O1^(2 L) m^L = det(Js^T Js);
+    - ``min_singular_value``: O3 = sigma_L (Nahvi, Hollerbach & Hayward 1994);
+    - ``condition``: sigma_1 / sigma_L of `Js` (1 / O2 of Sun & Hollerbach).
+
+    When `Js` does not have full column rank (`rank` < L if given, else numpy's numerical rank
+    test: sigma_L <= sigma_1 max(rows, L) eps), the poses leave a parameter unidentified: O1 =
+    O3 = 0 and the condition infinite."""
+    Js = np.asarray(Js, float)
+    rows, L = Js.shape
+    m = max(rows // 3, 1) if n_poses is None else int(n_poses)
+    s = np.linalg.svd(Js, compute_uv=False) if L and rows else np.zeros(0)
+    full = len(s) == L and L > 0 and s[-1] > s[0] * max(rows, L) * np.finfo(float).eps
+    if rank is not None:
+        full = full and rank >= L
+    if not full:
+        return {"o1": 0.0, "min_singular_value": 0.0, "condition": float("inf")}
     return {
-        "o1": o1,
-        "min_singular_value": float(s[-1]) if L else 0.0,
-        "condition": float(s[0] / s[-1]) if L and s[-1] > 0 else float("inf"),
+        "o1": float(np.exp(np.mean(np.log(s))) / np.sqrt(m)),
+        "min_singular_value": float(s[-1]),
+        "condition": float(s[0] / s[-1]),
     }
 
 
-def analyse(
-    J: np.ndarray,
-    names: list[str] | None = None,
-    *,
-    priority: list[str] | None = None,
-    candidates: list[str] | None = None,
-    rtol: float = 1e-6,
-) -> Identifiability:
-    """Analyse a Jacobian J (rows, P) whose columns are `names` (default: all 5 n + 9 parameters
-    of an n-joint chain, n from P; 39 for the 6-joint arms).
-
-    `candidates` restricts the analysis to a subset of the columns (others are fixed anyway).
-    A column is dependent when its distance from the span of the columns kept before it, relative
-    to its norm, is below `rtol` (exact dependencies give ~1e-12; weak ones are reported through
-    the condition number instead).
-    """
-    if names is None:
-        try:
-            n_j = joints_of(np.empty(J.shape[1])) if J.ndim == 2 else N_JOINTS
-        except ValueError:
-            n_j = N_JOINTS  # the shape check below reports the mismatch
-        names = param_names(n_j)
-        if priority is None:
-            priority = priority_for(n_j)
-    names = list(names)
-    if J.ndim != 2 or J.shape[1] != len(names):
-        raise ValueError(f"Jacobian: expected shape (rows, {len(names)}), got {J.shape}")
-    cand = [n for n in (candidates or names)]
-    order = [n for n in (priority or PRIORITY) if n in cand] + [
-        n for n in cand if n not in (priority or PRIORITY)
-    ]
-    col = {n: i for i, n in enumerate(names)}
+def _greedy(J: np.ndarray, order: list[str], col: dict[str, int], rtol: float):
+    """Columns of J in `order` kept greedily (each independent of those kept before it, see
+    `analyse`), and the dependent ones with the kept columns they combine."""
     norms = np.linalg.norm(J, axis=0)
     kept: list[str] = []
     dependent: dict[str, list[str]] = {}
@@ -155,9 +217,67 @@ def analyse(
         else:
             kept.append(n)
             Q = np.column_stack([Q, r / np.linalg.norm(r)])
+    return kept, dependent
+
+
+def analyse(
+    J: np.ndarray,
+    names: list[str] | None = None,
+    *,
+    priority: list[str] | None = None,
+    candidates: list[str] | None = None,
+    rtol: float = 1e-6,
+    structural: list[str] | None = None,
+    units: np.ndarray | None = None,
+) -> Identifiability:
+    """Analyse a Jacobian J (3 rows a pose, P) whose columns are `names` (default: all 5 n + 9
+    parameters of an n-joint chain, n from P; 39 for the 6-joint arms).
+
+    `candidates` restricts the analysis to a subset of the columns (others are fixed anyway).
+    A column is dependent when its distance from the span of the columns kept before it, relative
+    to its norm, is below `rtol` (exact dependencies give ~1e-12; weak ones are reported through
+    the condition number instead). `rank`, `singular_values` and `condition` are those of the
+    kept columns, equilibrated (unit norm over these poses).
+
+    The observability indices O1 and O3 (`observability`) are of J * `units` (default
+    `parameter_units(names)`: fixed, so they compare pose sets) over the parameters `structural`
+    (`structural_identifiable`: what the chain can identify at all); 0 when these poses leave
+    one of them dependent (the same `rtol` test). Without `structural` they are over the kept
+    columns, so a rank-deficient set is not scored 0: give it for the literature's indices.
+    """
+    if names is None:
+        try:
+            n_j = joints_of(np.empty(J.shape[1])) if J.ndim == 2 else N_JOINTS
+        except ValueError:
+            n_j = N_JOINTS  # the shape check below reports the mismatch
+        names = param_names(n_j)
+        if priority is None:
+            priority = priority_for(n_j)
+    names = list(names)
+    if J.ndim != 2 or J.shape[1] != len(names):
+        raise ValueError(f"Jacobian: expected shape (rows, {len(names)}), got {J.shape}")
+    cand = [n for n in (candidates or names)]
+    prio = priority or PRIORITY
+    order = [n for n in prio if n in cand] + [n for n in cand if n not in prio]
+    col = {n: i for i, n in enumerate(names)}
+    kept, dependent = _greedy(J, order, col, rtol)
+    norms = np.linalg.norm(J, axis=0)
     Js = J[:, [col[k] for k in kept]] / norms[[col[k] for k in kept]]
     s = np.linalg.svd(Js, compute_uv=False)
-    obs = observability(Js)
+    # observability indices: fixed units, over the structurally identifiable parameters
+    u = parameter_units(names) if units is None else np.asarray(units, float)
+    if u.shape != (len(names),):
+        raise ValueError(f"units: expected shape ({len(names)},), got {u.shape}")
+    if structural is None:
+        L_names, rank_L = list(kept), len(kept)
+    else:
+        unknown = [n for n in structural if n not in col]
+        if unknown:
+            raise ValueError(f"structural parameters not among the columns: {unknown}")
+        L_names = [n for n in order if n in structural] + [n for n in structural if n not in order]
+        rank_L = len(_greedy(J, L_names, col, rtol)[0])
+    cols_L = [col[n] for n in L_names]
+    obs = observability(J[:, cols_L] * u[cols_L], rank=rank_L)
     # groups: dependent parameters sharing the same support are merged with it
     by_support: dict[tuple, list[str]] = {}
     for n, sup in dependent.items():
@@ -167,12 +287,13 @@ def analyse(
         names=names,
         rank=len(kept),
         singular_values=s,
-        condition=obs["condition"],
+        condition=float(s[0] / s[-1]) if len(s) and s[-1] > 0 else float("inf"),
         o1=obs["o1"],
         min_singular_value=obs["min_singular_value"],
         identifiable=sorted(kept, key=names.index),
         dependent=dependent,
         groups=groups,
+        observability_parameters=None if structural is None else sorted(L_names, key=names.index),
     )
 
 
@@ -235,8 +356,10 @@ def pose_set_report(
     train_share: float = 1.0,
 ) -> dict:
     """What measuring the SMR (`tool_m` on the flange) at joint angles `q` (N, n) can identify,
-    at the nominal chain, before anything moves: rank, condition and O1 of the identification
-    Jacobian (Theorem 1), and the weakly identified groups (`weak_directions` of the unit-weight
+    at the nominal chain, before anything moves: rank and condition of the identification
+    Jacobian (Theorem 1), the observability indices O1 and O3 (`min_singular_value`) over the
+    chain's `structural_identifiable` parameters (0 when `q` leaves one dependent; see
+    `OBSERVABILITY_BASIS`), and the weakly identified groups (`weak_directions` of the unit-weight
     covariance). With `reference_q`, a rich pose set, also `rank_reference` and `missing`: what
     the reference identifies that `q` leaves dependent (too few or too alike poses).
 
@@ -252,10 +375,13 @@ def pose_set_report(
     names = param_names(n_j)
     cand = candidates_for(dh)
     theta = pack(dh, tool=np.asarray(tool_m, float))
+    structural = structural_identifiable(dh, tool_m)
 
     def analysed(qs):
         J = np.asarray(jac_params(theta, np.eye(4), qs)).reshape(-1, len(names))
-        return J, analyse(J, names, priority=priority_for(n_j), candidates=cand)
+        return J, analyse(
+            J, names, priority=priority_for(n_j), candidates=cand, structural=structural
+        )
 
     J, ident = analysed(q)
     keep = [names.index(n) for n in ident.identifiable]
@@ -267,6 +393,8 @@ def pose_set_report(
         "rank": ident.rank,
         "condition": ident.condition,
         "o1": ident.o1,
+        "min_singular_value": ident.min_singular_value,
+        "observability_parameters": len(structural),
         "weakly_identified": weak_directions(cov, names),
     }
     if reference_q is not None:
