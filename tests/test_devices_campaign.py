@@ -39,6 +39,7 @@ def campaign_cmd(info, out, poses, *extra):
     ]
 
 
+@pytest.mark.slow  # moved out of `make test` on 2026-11-26 (its time); `make test-all` runs it
 def test_30_poses_with_rtde_drops_beam_breaks_and_garbage(tmp_path):
     out = tmp_path / "faults.mcap"
     with SimProcess(

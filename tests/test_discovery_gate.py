@@ -186,6 +186,7 @@ def _claims_on_clean(tmp: Path, seeds) -> dict[int, list[str]]:
     return out
 
 
+@pytest.mark.slow  # moved out of `make test` on 2026-11-26 (its time); `make test-all` runs it
 def test_clean_recordings_over_several_seeds_claim_no_effect(tmp_path):
     """Eight clean recordings (seeds 1-8; geometric errors and the simulator's tracker noise -
     per-pose systematic and random parts, beam breaks, outliers - and no physical effect).

@@ -120,6 +120,7 @@ def test_model_without_geometry_is_refused(tmp_path):
         export_ros_yaml(Blob(), tmp_path / "x.yaml")
 
 
+@pytest.mark.slow  # moved out of `make test` on 2026-11-26 (its time); `make test-all` runs it
 def test_each_value_carries_its_propagated_std(tmp_path):
     """The +- beside each YAML value is the parameter covariance propagated to first order:
     it agrees with the spread of the values over parameters drawn from that covariance."""
@@ -182,6 +183,7 @@ def _monte_carlo_std(theta_draws, like):
     return vals.std(axis=0)
 
 
+@pytest.mark.slow  # moved out of `make test` on 2026-11-26 (its time); `make test-all` runs it
 def test_augmented_model_yaml_std_is_its_geometry_marginal(tmp_path):
     """An augmented model's covariance is over [theta[free], effects]: the YAML's +- is the
     geometry's marginal, checked against draws of the joint vector (effects correlated with
