@@ -200,3 +200,20 @@ def test_bench_design_option_mistakes_are_one_line(capsys, argv, match):
     err = cap.err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and match in err[0], (rc, err)
     assert "Traceback" not in cap.err + cap.out
+
+
+def test_a_fits_indices_are_the_dry_runs_whatever_the_weights():
+    """`workcell fit` reported O1 of its 1/sigma-weighted Jacobian (19819 on real series D,
+    against about 0.4 for a planned set in the dry run): now the same definition as the dry run,
+    unweighted, over the chain's structural set, whatever the tracker's sigma."""
+    from workcell.estimation.identifiability import fit_identifiability
+
+    q = _q(30, seed=4)
+    J = jacobian_padded(pack(UR5E.dh, tool=TOOL), np.eye(4), q)
+    dry = analyse(J.reshape(-1, len(NAMES)), NAMES, candidates=candidates_for(UR5E.dh),
+                  structural=structural_identifiable(UR5E.dh, TOOL))  # fmt: skip
+    for w in (np.full(30, 1e5), np.random.default_rng(1).uniform(1e4, 1e6, 30)):
+        fit = fit_identifiability(J * w[:, None, None], w, UR5E.dh, TOOL)
+        assert fit.o1 == pytest.approx(dry.o1, rel=1e-9) and 0.1 < fit.o1 < 1.0
+        assert fit.min_singular_value == pytest.approx(dry.min_singular_value, rel=1e-9)
+        assert len(fit.observability_parameters) == 25 and fit.rank == 25

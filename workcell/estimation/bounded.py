@@ -65,7 +65,7 @@ from workcell.estimation.dh import (
     robust_solve,
     weighted_covariance,
 )
-from workcell.estimation.identifiability import Identifiability, analyse, candidates_for
+from workcell.estimation.identifiability import Identifiability, fit_identifiability
 from workcell.estimation.models import error_stats
 from workcell.kinematics.chain import (
     jac_params,
@@ -256,7 +256,7 @@ def fit_dh_bounded(
     ident: Identifiability | None = None
     if free is None:
         J0 = jacobian_padded(theta, base_ref, ds.q) * w[:, None, None]
-        ident = analyse(J0.reshape(-1, n_par), candidates=candidates_for(ds.robot.dh, fixed))
+        ident = fit_identifiability(J0, w, ds.robot.dh, ds.tool_offset_m, fixed)
         free = np.zeros(n_par, bool)
         free[[index[n] for n in ident.identifiable]] = True
     else:

@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
-from workcell.estimation.identifiability import Identifiability, analyse, candidates_for
+from workcell.estimation.identifiability import Identifiability, fit_identifiability
 from workcell.estimation.models import error_stats
 from workcell.kinematics.chain import (
     IDX,
@@ -199,7 +199,7 @@ def fit_dh(
     base_ref = register_base(ds, theta) if base_ref is None else base_ref
     w = 1.0 / pose_sigma_model(ds, tracker_mpe)
     J0 = np.asarray(jac_params(theta, base_ref, ds.q)) * w[:, None, None]
-    ident = analyse(J0.reshape(-1, N_PARAMS), candidates=candidates_for(ds.robot.dh, fixed))
+    ident = fit_identifiability(J0, w, ds.robot.dh, ds.tool_offset_m, fixed)
     free = np.zeros(N_PARAMS, bool)
     free[[IDX[n] for n in ident.identifiable]] = True
     solved = []
