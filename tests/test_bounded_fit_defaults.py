@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from simdata import dh_error_dataset
 
 from workcell.cli import main
 from workcell.errors import UserError
@@ -31,28 +32,7 @@ SMR_OFF_M = 0.015  # declared SMR this much too long, as on the real UR10 (15.8 
 def sim_ds():
     """40 random poses of a simulated UR5e with DH errors whose declared SMR offset is 15 mm too
     long (the truth's SMR is nearer the flange), tracker noise."""
-    from sim_devices.truth import NOMINAL_SMR_M, TrackerNoise, make_truth
-    from workcell.campaign.envelope import default_envelope
-    from workcell.campaign.plans import random_configurations
-
-    truth = make_truth("ur5e", "none", 5, noise=TrackerNoise())
-    rng = np.random.default_rng(5)
-    env = default_envelope(truth.nominal)
-    q = random_configurations(truth.nominal, env, 40, rng, NOMINAL_SMR_M)
-    p, s = [], []
-    for qi in q:
-        pt = truth.smr_in_tracker(qi, np.ones(6), 0.0)
-        sig = truth.noise.sigma_of_mean(float(np.linalg.norm(pt)), 5)
-        p.append(pt + rng.normal(0, sig, 3))
-        s.append(np.full(3, sig))
-    return Dataset(
-        robot=truth.nominal,
-        tool_offset_m=NOMINAL_SMR_M + np.array([0.0, 0.0, SMR_OFF_M]),
-        tracker_T_base_nominal=np.eye(4),
-        q=q,
-        p_tracker=np.array(p),
-        sigma_m=np.array(s),
-    )
+    return dh_error_dataset(40, seed=5, declared_smr_shift_m=SMR_OFF_M)[1]
 
 
 def test_default_bounds_are_on_the_dh_corrections_only(sim_ds):

@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 from scipy.optimize import least_squares
+from simdata import dh_error_dataset
 
 from workcell.errors import UserError
 from workcell.estimation.bounded import (
@@ -18,35 +19,12 @@ from workcell.estimation.bounded import (
 )
 from workcell.estimation.dh import fit_dh, nominal_theta, pose_sigma
 from workcell.kinematics.chain import IDX, PARAM_NAMES
-from workcell.recording.dataset import Dataset
 
 
 @pytest.fixture(scope="module")
 def sim_ds():
     """40 random poses of a simulated UR5e with DH errors (no other effects), tracker noise."""
-    from sim_devices.truth import NOMINAL_SMR_M, TrackerNoise, make_truth
-    from workcell.campaign.envelope import default_envelope
-    from workcell.campaign.plans import random_configurations
-
-    truth = make_truth("ur5e", "none", 5, noise=TrackerNoise())
-    rng = np.random.default_rng(5)
-    env = default_envelope(truth.nominal)
-    q = random_configurations(truth.nominal, env, 40, rng, NOMINAL_SMR_M)
-    p, s = [], []
-    for qi in q:
-        pt = truth.smr_in_tracker(qi, np.ones(6), 0.0)
-        sig = truth.noise.sigma_of_mean(float(np.linalg.norm(pt)), 5)
-        p.append(pt + rng.normal(0, sig, 3))
-        s.append(np.full(3, sig))
-    ds = Dataset(
-        robot=truth.nominal,
-        tool_offset_m=NOMINAL_SMR_M.copy(),
-        tracker_T_base_nominal=np.eye(4),
-        q=q,
-        p_tracker=np.array(p),
-        sigma_m=np.array(s),
-    )
-    return truth, ds
+    return dh_error_dataset(40, seed=5)
 
 
 def test_agrees_with_nonlinear_fit_when_bounds_inactive(sim_ds):
