@@ -130,8 +130,9 @@ def read_chain(old: str, *, remeasure_missing: bool = False) -> tuple[list, list
         if why is not None:
             if not remeasure_missing:
                 raise UserError(
-                    f"{why}: put the original back there and resume again, or resume with "
-                    f"{REMEASURE_OPTION} to measure the poses it held again"
+                    f"{why}: put the original back there and resume again, or measure the "
+                    f"poses it held again with `workcell campaign --resume {old} "
+                    f"{REMEASURE_OPTION}` (from a terminal; the TUI has no such option)"
                 )
             note = f"{why}; its poses (and any before it in the chain) are measured again"
             notes.append({"level": "warning", "kind": "chain", "message": note})
