@@ -29,8 +29,13 @@ identification Jacobian Js restricted to the identifiable parameters (Theorem 1 
 candidates) and column-scaled once, O1 = det(Js^T Js)^(1/2L) / sqrt(N); for a fixed N the
 candidate that maximises O1 of the augmented set maximises
 ``log det(I_3 + J_c (A + eps I)^-1 J_c^T)`` (matrix determinant lemma, A = information so
-far; eps regularises the first, rank-deficient steps). ``index="min_sv"`` maximises the minimum
-singular value instead once A has full rank. The Jacobian is re-linearised at the current
+far; eps regularises the first, rank-deficient steps). The column scale here is dopt's own (the
+columns' RMS over the candidates), not the fixed SI units of the printed O1
+(`identifiability.parameter_units`): a fixed diagonal scale adds a constant to log det, so once
+the poses identify every parameter the choice is the one with the highest printed O1 (tested);
+the ridge eps of the first steps depends on the scale. ``index="min_sv"`` (an API option, not a
+plan) maximises the minimum singular value in dopt's scale once A has full rank; that is not the
+printed O3, which depends on the units. The Jacobian is re-linearised at the current
 calibrated model every ``relinearise_every`` poses once a fit is possible, and skipped poses
 (sample None) add no information.
 
