@@ -342,6 +342,7 @@ def test_ctrl_c_during_a_move_stops_the_move(tmp_path, signals):
     rec = read_recording(path)
     assert rec.closed_cleanly and rec.events[-1]["kind"] == "abort"
     assert not any(e["kind"] == "reconnect" for e in rec.events)  # not taken for a lost link
+    assert slow.abort_requested is None  # the flag is the campaign's: later moves are not refused
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])

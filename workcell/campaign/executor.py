@@ -817,10 +817,22 @@ class Executor:
         return None
 
     def run(self, plan: Plan) -> CampaignResult:
+        """Run the plan to its end, or until an abort or a stop; the result says which. A driver
+        whose moves an abort can cut short (`abort_requested`, UrRobot) is given the abort flag
+        for the campaign only: a move after it (a TUI's validation on the same robot after an
+        aborted campaign) is not refused by this campaign's abort."""
+        hands_flag = hasattr(self.robot, "abort_requested")
+        if hands_flag:
+            self.robot.abort_requested = self.control.abort.is_set
+        try:
+            return self._run(plan)
+        finally:
+            if hands_flag:
+                self.robot.abort_requested = None
+
+    def _run(self, plan: Plan) -> CampaignResult:
         sample = None
         self.control.running.set()
-        if hasattr(self.robot, "abort_requested"):  # a driver whose moves an abort can cut short
-            self.robot.abort_requested = self.control.abort.is_set
         try:
             self._tell_plan()
             t = next(plan)
