@@ -168,24 +168,31 @@ def test_an_abort_stops_a_move_on_the_way(sim, robot_factory):
     assert np.max(np.abs(r.state().qd_rad_s)) < 1e-3
 
 
+def _refused_before_anything_moves(sp, host: str, model: str, **kw) -> str:
+    """Connect with `--model model`: WrongRobotModel in one line naming the host, the arm not
+    moved, no script uploaded. Returns the message."""
+    r = UrRobot(host, time_scale=TS, model=model, **kw)
+    try:
+        with pytest.raises(WrongRobotModel) as ei:
+            r.connect()
+    finally:
+        r.close()
+    msg = str(ei.value)
+    assert "\n" not in msg and host in msg
+    st = sp.state()
+    assert st["moves"] == 0 and st["stats"]["script_uploads"] == 0
+    return msg
+
+
 def test_an_e_series_controller_is_refused_for_a_cb3_model():
     """The dashboard names the family only ("UR5" for a CB3 UR5 and a UR5e alike): the driver
     tells the generations apart by the software version, over the real client, before anything
     moves. Until 2026-11-26 a UR10e passed as `--model ur10` (the CB3 arm, 53 mm lower
     shoulder)."""
     with SimProcess("127.0.0.36", time_scale=TS) as sp:  # a UR5e: PolyScope 5
-        r = UrRobot("127.0.0.36", time_scale=TS, model="ur5")
-        try:
-            with pytest.raises(WrongRobotModel) as ei:
-                r.connect()
-        finally:
-            r.close()
-        msg = str(ei.value)
-        assert "\n" not in msg and "127.0.0.36" in msg
+        msg = _refused_before_anything_moves(sp, "127.0.0.36", "ur5")
         assert "runs PolyScope 5.15.0, so the arm is a UR5e, but --model ur5 is a CB3 UR5" in msg
         assert "give --model ur5e" in msg
-        st = sp.state()
-        assert st["moves"] == 0 and st["stats"]["script_uploads"] == 0
 
 
 def test_speed_limit_enforced_on_ur10():
@@ -222,18 +229,9 @@ def test_a_controller_of_another_arm_is_refused_before_anything_moves():
         finally:
             db.disconnect()
         warned: list[str] = []
-        r = UrRobot("127.0.0.31", time_scale=TS, model="ur5e", on_warning=warned.append)
-        try:
-            with pytest.raises(WrongRobotModel) as ei:
-                r.connect()
-        finally:
-            r.close()
-        msg = str(ei.value)
-        assert "\n" not in msg and "127.0.0.31" in msg
+        msg = _refused_before_anything_moves(sp, "127.0.0.31", "ur5e", on_warning=warned.append)
         assert "the controller says it is a UR10 but --model is ur5e" in msg
         assert "give --model ur10" in msg
-        st = sp.state()
-        assert st["moves"] == 0 and st["stats"]["script_uploads"] == 0
         r = UrRobot("127.0.0.31", time_scale=TS, model="ur10", on_warning=warned.append)
         try:
             r.connect()
