@@ -13,6 +13,7 @@ import time
 
 import numpy as np
 import pytest
+from wrapped import Wrapped
 
 from sim_devices.cell import sim_cell
 from workcell.campaign.executor import (
@@ -48,16 +49,6 @@ def signals():
         for s, h in old.items():
             signal.signal(s, h)
         INTERRUPTED.clear()
-
-
-class Wrapped:
-    """A device that behaves as `inner` except where a subclass says."""
-
-    def __init__(self, inner):
-        self.inner = inner
-
-    def __getattr__(self, name):
-        return getattr(self.inner, name)
 
 
 class StopsAtMoves(Wrapped):

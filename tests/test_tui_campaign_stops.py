@@ -12,6 +12,7 @@ import time
 import numpy as np
 import pytest
 from rich.text import Text
+from wrapped import Wrapped
 
 from workcell.campaign.executor import (
     MAX_PROTECTIVE_STOPS_IN_A_ROW,
@@ -62,14 +63,6 @@ async def start(app, pilot) -> None:
     await pilot.press("f3", "s")
     await until(pilot, lambda: type(app.screen).__name__ == "ConfirmScreen", 10, "confirm")
     await pilot.press("y")
-
-
-class Wrapped:
-    def __init__(self, inner):
-        self.inner = inner
-
-    def __getattr__(self, name):
-        return getattr(self.inner, name)
 
 
 class FailsFromMove(Wrapped):
