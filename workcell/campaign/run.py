@@ -362,33 +362,36 @@ def resume_hint(path: str | Path, measured: int) -> str:
     )
 
 
+def stop_aftermath(res: CampaignResult, path: str | Path) -> str | None:
+    """What `campaign_stop`'s line says after the engine's reason: where the arm is, what the
+    recording keeps and how to continue it; None for a campaign that did not stop itself that
+    way (finished, the operator's abort, the margin watch, an error)."""
+    kept = f"{path} is closed and keeps {res.measured} poses"
+    if res.stopped_by == "tracker":
+        return (
+            f"the arm is stopped and {kept}: fix the tracker, then "
+            f"`workcell campaign --resume {path}`"
+        )
+    if res.stopped_by == "refused":
+        return f"the arm is stopped and {kept}: `workcell campaign --resume {path}` continues it"
+    if res.stopped_by == "protective_stop":
+        return f"{resume_hint(path, res.measured)} once it is fixed"
+    if res.stopped_by == "unacknowledged":
+        return f"the arm is left stopped; {resume_hint(path, res.measured)}"
+    return None
+
+
 def campaign_stop(res: CampaignResult, path: str | Path) -> None:
     """A campaign that stopped itself (the margin watch, `margin_stop`; a protective stop
     nobody acknowledged; protective stops, a tracker without readings or refused poses again
     and again, `executor.MAX_..._IN_A_ROW`; an adaptive plan with no reachable pose left) is one
-    line and a non-zero exit, raised after its recording was closed with what it measured."""
+    line and a non-zero exit (3; 2 for an unacknowledged protective stop), raised after its
+    recording was closed with what it measured."""
     margin_stop(res, path)
-    if res.stopped_by == "tracker":
-        raise UserError(
-            f"{res.stop_message}; the arm is stopped and {path} is closed and keeps "
-            f"{res.measured} poses: fix the tracker, then `workcell campaign --resume {path}`",
-            exit_code=3,
-        )
-    if res.stopped_by == "refused":
-        raise UserError(
-            f"{res.stop_message}; the arm is stopped and {path} is closed and keeps "
-            f"{res.measured} poses: `workcell campaign --resume {path}` continues it",
-            exit_code=3,
-        )
-    if res.stopped_by == "protective_stop":
-        raise UserError(
-            f"{res.stop_message}; {resume_hint(path, res.measured)} once it is fixed",
-            exit_code=3,
-        )
-    if res.stopped_by == "unacknowledged":
-        raise UserError(
-            f"{res.stop_message}; the arm is left stopped; {resume_hint(path, res.measured)}"
-        )
+    after = stop_aftermath(res, path)
+    if after is not None:
+        code = 2 if res.stopped_by == "unacknowledged" else 3
+        raise UserError(f"{res.stop_message}; {after}", exit_code=code)
 
 
 @contextmanager

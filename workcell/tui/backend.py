@@ -523,20 +523,21 @@ RESUME_HERE = " (on this screen: r)"
 
 def stop_report(res, path: str | Path, events=()) -> dict | None:
     """Why the campaign engine ended a campaign by itself (not the operator's abort, not the
-    end of the plan), in the command line's words (`run.campaign_stop`): {"kind": its
+    end of the plan), in the command line's words (`run.stop_aftermath`, `run.margin_stop`):
+    {"kind": its
     `stopped_by`, "reason": the engine's one line on why, "recording": what the recording
     keeps and how to resume it}. For the margin watch the reason is its `margin` error event
     (`events`: those the campaign sent), and a resume is refused. None otherwise."""
-    from workcell.campaign.run import campaign_stop, resume_hint
+    from workcell.campaign.run import margin_stop, resume_hint, stop_aftermath
 
     if res is None or not res.aborted or res.stopped_by in ("", "operator"):
         return None
-    try:
-        campaign_stop(res, path)
-        line = ""
-    except UserError as e:
-        line = str(e)
     if res.stopped_by == "margin":
+        try:
+            margin_stop(res, path)
+            line = ""
+        except UserError as e:
+            line = str(e)
         said = [e for e in events if e.get("kind") == "margin" and e.get("level") == "error"]
         return {
             "kind": "margin",
@@ -546,7 +547,7 @@ def stop_report(res, path: str | Path, events=()) -> dict | None:
             "SMR offset and envelope, so start a new campaign instead",
         }
     reason = res.stop_message or res.stopped_by
-    kept = line.removeprefix(f"{reason}; ") if line else resume_hint(path, res.measured)
+    kept = stop_aftermath(res, path) or resume_hint(path, res.measured)
     return {"kind": res.stopped_by, "reason": reason, "recording": kept + RESUME_HERE}
 
 
