@@ -449,3 +449,39 @@ def test_device_errors_and_a_read_only_folder_say_how_to_continue(tmp_path, caps
     finally:
         ro.chmod(0o755)
     assert code == 2 and "--out" in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_tracker_reconnect_that_reaches_another_instrument_stops_the_campaign(tmp_path):
+    """The tracker's adapter re-plugged mid-campaign and another tracker answers on the port
+    (serial number 900002, not 900001): its station, so its frame, is not the recording's.
+    A reconnect used to measure on with it. Now the campaign stops at once: the arm stopped, the
+    poses before kept, one line naming both serial numbers; over the real GeoCOM driver."""
+    from sim_devices.geocom_tracker import SimGeoComTracker
+    from workcell.drivers.serial_tracker import SerialTracker
+
+    world, robot, _, cell = sim_cell("ur5e", "none", 1, beam_break_prob=0.0)
+    started = [SimGeoComTracker(world.read_tracker, seed=1).start()]
+    driver = SerialTracker(started[0].port)
+
+    def swap(sample: dict) -> None:
+        if sample["index"] == 1:  # after the second pose
+            started.append(SimGeoComTracker(world.read_tracker, serial_number=900002).start())
+            started[0].stop()
+            driver.port = started[-1].port  # the OS gave the port name to the other one
+
+    out = tmp_path / "swapped.mcap"
+    try:
+        path, res = run_campaign(robot, driver, cell, out, poses=6, seed=1, config=FAST,
+                                 control=CampaignControl(), on_sample=swap)  # fmt: skip
+    finally:
+        for s in started:
+            s.stop()
+    assert res.aborted and res.stopped_by == "tracker" and res.measured == 2
+    rec = read_recording(out)
+    assert rec.closed_cleanly and len(rec.samples) == 2
+    assert rec.session["tracker"]["serial_number"] == 900001
+    with pytest.raises(UserError) as e:
+        campaign_stop(res, path)
+    msg = str(e.value)
+    assert "serial number 900002" in msg and "not serial number 900001" in msg, msg
+    assert e.value.exit_code == 3 and "\n" not in msg and "--resume" in msg

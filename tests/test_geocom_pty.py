@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from sim_devices.geocom_tracker import SimGeoComTracker
-from workcell.drivers.protocols import DeviceError, DeviceUnreachable, Tracker
+from workcell.drivers.protocols import DeviceError, DeviceUnreachable, OtherInstrument, Tracker
 from workcell.drivers.serial_tracker import SerialTracker
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="needs a POSIX pty")
@@ -76,6 +76,35 @@ def test_connect_and_measure(sim: SimGeoComTracker, tracker: SerialTracker, worl
 def test_reconnect_on_a_live_port(tracker: SerialTracker, world: World) -> None:
     tracker.reconnect()
     _assert_reading_is_latest(tracker.measure(), world)
+
+
+def test_connect_reads_the_serial_number(sim: SimGeoComTracker, tracker: SerialTracker) -> None:
+    assert tracker.serial_number == sim.serial_number == 900001
+
+
+@pytest.mark.parametrize("serial_number", [900001, 900002])
+def test_a_reconnect_must_reach_the_same_instrument(
+    sim: SimGeoComTracker, tracker: SerialTracker, world: World, serial_number: int
+) -> None:
+    """The adapter re-plugged and the OS gives its port name to whatever answers: the same
+    tracker (serial number) measures on; another one is refused and the port left closed."""
+    other = SimGeoComTracker(world, time_scale=1.0, serial_number=serial_number).start()
+    try:
+        sim.stop()
+        tracker.port = other.port
+        if serial_number == sim.serial_number:
+            tracker.reconnect()
+            _assert_reading_is_latest(tracker.measure(), world)
+            return
+        with pytest.raises(OtherInstrument) as e:
+            tracker.reconnect()
+        msg = str(e.value)
+        assert "serial number 900002" in msg and "not serial number 900001" in msg, msg
+        assert "\n" not in msg and not tracker.is_connected
+        with pytest.raises(DeviceError, match="not connected"):
+            tracker.measure()
+    finally:
+        other.stop()
 
 
 def test_time_scale_speeds_up_simulated_delays(world: World) -> None:
@@ -247,8 +276,9 @@ def test_vanish_gives_device_unreachable_with_clear_message(
 
 
 def test_vanish_after_n_requests(world: World) -> None:
-    # connect = 3 requests (NullProc, GetDoublePrecision, GetInstrumentName), a measure = 2
-    with SimGeoComTracker(world, faults={"vanish_after": 8}) as s:
+    # connect = 4 requests (NullProc, GetDoublePrecision, GetInstrumentName, GetInstrumentNo),
+    # a measure = 2
+    with SimGeoComTracker(world, faults={"vanish_after": 9}) as s:
         t = SerialTracker(s.port, timeout_s=TIMEOUT_S)
         t.connect()
         _assert_reading_is_latest(t.measure(), world)

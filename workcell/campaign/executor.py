@@ -11,6 +11,8 @@ MCAP. Faults become `/campaign/event` records and are handled by a small policy:
   with the arm left stopped (`CampaignResult.stopped_by == "protective_stop"`);
 - a tracker that gives not one usable reading at `MAX_TRACKER_SKIPS_IN_A_ROW` poses in a row (no
   pose recorded between them) ends the campaign (`stopped_by == "tracker"`): it has stopped measuring;
+  so does a tracker reconnect that reaches another instrument (`OtherInstrument`: another serial
+  number, so another station and frame);
 - `MAX_REFUSED_IN_A_ROW` poses in a row refused before any motion (their paths from where the arm
   is leave the envelope; no pose recorded, no move made between them), or an adaptive plan with
   no pose left that the arm may reach from where it is (`plans.PlanStuck`), end the campaign
@@ -56,6 +58,7 @@ from workcell.campaign.plans import (
 from workcell.drivers.protocols import (
     DeviceError,
     DeviceUnreachable,
+    OtherInstrument,
     ProtectiveStop,
     Robot,
     Tracker,
@@ -408,6 +411,10 @@ class Executor:
             try:
                 reconnect()
                 return True
+            except OtherInstrument as e:  # another tracker: its frame is not the recording's
+                msg = f"{e}"[:600]
+                self.event("error", "stopped", f"{msg}; the campaign stops, the arm stopped")
+                raise _CampaignStop("tracker", msg) from None
             except DeviceError as e:
                 err = e
         return False

@@ -86,21 +86,14 @@ def tracker_identity(tracker) -> dict:
     compared by a resume (`check_same_tracker`): `instrument_name` and `serial_number` of a GeoCOM
     instrument (CSV_GetInstrumentName, CSV_GetInstrumentNo); {} for a tracker that does not say
     (the in-process simulation). An instrument that does not answer the serial number query is
-    recorded without one."""
+    recorded without one. The driver reads both on connect."""
     ident: dict = {}
     name = getattr(tracker, "instrument_name", None)
     if isinstance(name, str) and name.strip():
         ident["instrument_name"] = name.strip()
-    call = getattr(tracker, "call", None)
-    if callable(call):
-        from workcell.drivers import geocom as gc
-
-        try:
-            rep = call(gc.Rpc.CSV_GetInstrumentNo)
-            if rep.ok:
-                ident["serial_number"] = gc.decode_single(rep, gc.decode_long)
-        except (DeviceError, ValueError):
-            pass
+    sn = getattr(tracker, "serial_number", None)
+    if isinstance(sn, int) and not isinstance(sn, bool):
+        ident["serial_number"] = sn
     return ident
 
 

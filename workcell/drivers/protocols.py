@@ -19,6 +19,11 @@ class DeviceUnreachable(DeviceError):
     """The device cannot be reached at all (address, port, cable)."""
 
 
+class OtherInstrument(DeviceError):
+    """A reconnect reached a device, but not the one connected before (another serial number):
+    its frame is not the campaign's. Not retried: the campaign stops."""
+
+
 class ProtectiveStop(DeviceError):
     """The robot controller entered a protective stop."""
 

@@ -56,7 +56,12 @@ import numpy as np
 import serial
 
 from workcell.drivers import geocom as gc
-from workcell.drivers.protocols import DeviceError, DeviceUnreachable, TrackerReading
+from workcell.drivers.protocols import (
+    DeviceError,
+    DeviceUnreachable,
+    OtherInstrument,
+    TrackerReading,
+)
 from workcell.recording.checks import TRACKER_RANGE_M
 
 try:  # pyserial's POSIX backend lets termios.error (not an OSError) escape from flush()
@@ -133,6 +138,7 @@ class SerialTracker:
         self._trid = 0
         self._lock = threading.RLock()
         self.instrument_name: str | None = None
+        self.serial_number: int | None = None  # CSV_GetInstrumentNo, read on connect
         self.precision: int = 15
         self.fault_log: list[tuple[str, str]] = []
         self.fault_counts: Counter[str] = Counter()
@@ -198,14 +204,41 @@ class SerialTracker:
                 self.instrument_name = self._call_value(
                     gc.Rpc.CSV_GetInstrumentName, gc.decode_string
                 )
+                self.serial_number = self._serial_number()
                 self._lost = False
             except BaseException:
                 self.close()
                 raise
 
+    def _serial_number(self) -> int | None:
+        """CSV_GetInstrumentNo; None from an instrument that does not answer it."""
+        try:
+            rep = self._call(gc.Rpc.CSV_GetInstrumentNo)
+            if rep.rc != gc.Grc.OK:
+                return None
+            return int(gc.decode_single(rep, gc.decode_long))
+        except DeviceUnreachable:
+            raise
+        except (DeviceError, ValueError):
+            return None
+
     def reconnect(self) -> None:
-        """Close and connect again (after `DeviceUnreachable`, e.g. a USB adapter re-plugged)."""
+        """Close and connect again (after `DeviceUnreachable`, e.g. a USB adapter re-plugged).
+        The instrument that answers must be the one connected before: another serial number
+        (another tracker on the port name: its station, and so its frame, is not the
+        campaign's) raises `OtherInstrument` and leaves the port closed."""
+        before = (self.instrument_name, self.serial_number)
         self.connect()
+        after = (self.instrument_name, self.serial_number)
+        if before[1] is not None and after[1] != before[1]:
+            self.close()
+            now = "gives no serial number" if after[1] is None else f"is serial number {after[1]}"
+            raise OtherInstrument(
+                f"tracker on {self.port!r}: the instrument that answers after reconnecting "
+                f"{now} ({after[0]}), not serial number {before[1]} ({before[0]}) this "
+                "session measured with: its frame is not this session's; connect that tracker "
+                "again"
+            )
 
     def close(self) -> None:
         with self._lock:
