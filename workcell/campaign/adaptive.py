@@ -34,8 +34,8 @@ columns' RMS over the candidates), not the fixed SI units of the printed O1
 (`identifiability.parameter_units`): a fixed diagonal scale adds a constant to log det, so once
 the poses identify every parameter the choice is the one with the highest printed O1 (tested);
 the ridge eps of the first steps depends on the scale. ``index="min_sv"`` (an API option, not a
-plan) maximises the minimum singular value in dopt's scale once A has full rank; that is not the
-printed O3, which depends on the units. The Jacobian is re-linearised at the current
+plan) maximises, once A has full rank, the minimum singular value in the printed indices' fixed
+units: the printed O3 (tested). The Jacobian is re-linearised at the current
 calibrated model every ``relinearise_every`` poses once a fit is possible, and skipped poses
 (sample None) add no information.
 
@@ -82,7 +82,7 @@ from workcell.campaign.plans import (
     approach_signs,
     random_configurations,
 )
-from workcell.estimation.identifiability import analyse, candidates_for
+from workcell.estimation.identifiability import analyse, candidates_for, parameter_units
 from workcell.kinematics.chain import (
     base_T_flange,
     pack,
@@ -487,6 +487,9 @@ def _dopt_plan(
     def scaled(J):
         return J[:, :, free] / scale  # (M, 3, L)
 
+    # the printed indices' fixed units (metres; angles as the arc at 1 m): J_SI = Js * si
+    si = scale * parameter_units(np.array(param_names(spec.n_joints))[free])
+
     def mean_information(Js):  # W: the mean prediction-variance weight over the candidates
         return np.einsum("mkl,mkp->lp", Js, Js) / len(Js) if index == "v" else None
 
@@ -532,7 +535,7 @@ def _dopt_plan(
             full_rank = len(measured_idx) * 3 >= L and np.linalg.matrix_rank(A) == L
             if index == "min_sv" and full_rank:
                 M = A[None] + np.einsum("mkl,mkp->mlp", Js[cand], Js[cand])
-                score = np.linalg.eigvalsh(M)[:, 0]
+                score = np.linalg.eigvalsh(M * np.outer(si, si))[:, 0]  # O3^2 as printed
                 info["rule"] = "max min singular value"
             elif index == "v" and full_rank:
                 # decrease of the mean prediction variance over the candidates, tr(W A^-1),
