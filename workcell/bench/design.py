@@ -51,6 +51,7 @@ Envelope: the WAM's joint limits less 5 deg, links above z = -0.25 m (its mounti
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import sys
@@ -297,24 +298,79 @@ def summarise(runs: dict[str, list[dict]]) -> dict:
     return res
 
 
+HALF_WIDTH_DEG = 30.0  # the compact envelope's default half-width
+
+
+def _holdout_count(text: str) -> int:
+    """`--holdout`: a number of poses (`fit --holdout` takes a fraction: say which is meant)."""
+    try:
+        return int(text)
+    except ValueError:
+        pass
+    try:
+        frac = float(text)
+    except ValueError:
+        frac = None
+    what = (
+        "a fraction, as `workcell fit --holdout` takes"
+        if frac is not None and 0 < frac < 1
+        else "not a whole number"
+    )
+    raise argparse.ArgumentTypeError(
+        f"{text!r} is {what}; here it is the number of held-out poses per simulated cell, a "
+        "whole number >= 10 (e.g. --holdout 100)"
+    )
+
+
 def main(argv: list[str]) -> int:
     ap = OneLineParser(prog="workcell bench design", description=__doc__.split("\n")[0])
-    ap.add_argument("--seeds", type=int, default=10, help="number of simulated cells (>= 1)")
-    ap.add_argument("--seed0", type=int, default=0, help="first seed")
-    ap.add_argument("--max-poses", type=int, default=80, help="poses per run at most")
-    ap.add_argument("--holdout", type=int, default=100, help="held-out poses per cell")
-    ap.add_argument("--plans", default=",".join(PLANS), help=f"comma list of {','.join(PLANS)}")
     ap.add_argument(
-        "--target-factor", type=float, default=2.0, help="target: held-out RMS <= this x floor"
+        "--seeds",
+        type=int,
+        default=10,
+        help="number of simulated cells (>= 1; default: %(default)s)",
+    )
+    ap.add_argument("--seed0", type=int, default=0, help="first seed (>= 0; default: %(default)s)")
+    ap.add_argument(
+        "--max-poses",
+        type=int,
+        default=80,
+        help="poses per run at most (>= 12; default: %(default)s)",
+    )
+    ap.add_argument(
+        "--holdout",
+        type=_holdout_count,
+        default=100,
+        metavar="N",
+        help="held-out poses per simulated cell: N extra random poses that score the fits, a "
+        "count (>= 10), not a fraction as in `workcell fit --holdout` (default: %(default)s)",
+    )
+    ap.add_argument(
+        "--plans",
+        default=",".join(PLANS),
+        help=f"comma list of {','.join(PLANS)}, each at most once (default: %(default)s)",
+    )
+    ap.add_argument(
+        "--target-factor",
+        type=float,
+        default=2.0,
+        help="target: held-out RMS <= this x floor (default: %(default)s)",
     )
     ap.add_argument(
         "--envelope",
         choices=["default", "compact"],
         default="default",
         help="default: the campaign's default envelope; compact: joints within "
-        "+-HALF_WIDTH of the home pose (0,-90,90,-90,-90,0) deg",
+        "+-HALF_WIDTH of the home pose (0,-90,90,-90,-90,0) deg (default: %(default)s)",
     )
-    ap.add_argument("--half-width-deg", type=float, default=30.0, help="compact envelope")
+    ap.add_argument(
+        "--half-width-deg",
+        type=float,
+        metavar="DEG",
+        default=None,  # None: not given (refused without --envelope compact)
+        help=f"with --envelope compact: the joints' half-width around the home pose in deg "
+        f"(default: {HALF_WIDTH_DEG:g})",
+    )
     ap.add_argument(
         "--robot",
         choices=ROBOTS,
@@ -324,21 +380,43 @@ def main(argv: list[str]) -> int:
     ap.add_argument(
         "--small-errors",
         action="store_true",
-        help="wam7: add the UR cell's small random DH errors to the paper's four",
+        help="with --robot wam7: add the UR cell's small random DH errors to the paper's four",
     )
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     ap.add_argument("--runs", action="store_true", help="include per-run curves in the JSON")
     a = ap.parse_args(argv)
     if not (math.isfinite(a.target_factor) and a.target_factor > 0):
         ap.error(f"--target-factor must be a positive number, got {a.target_factor:g}")
+    if a.half_width_deg is None:
+        a.half_width_deg = HALF_WIDTH_DEG
+    elif a.envelope != "compact":
+        ap.error(
+            "--half-width-deg goes with --envelope compact (the default envelope has no "
+            "half-width); add --envelope compact or leave it out"
+        )
     if not (math.isfinite(a.half_width_deg) and 0 < a.half_width_deg <= 180):
         ap.error(f"--half-width-deg must be in (0, 180], got {a.half_width_deg:g}")
+    if a.small_errors and a.robot != "wam7":
+        ap.error(
+            f"--small-errors goes with --robot wam7 (the {a.robot} cell has small random DH "
+            "errors already); add --robot wam7 or leave it out"
+        )
+    if a.seed0 < 0:
+        ap.error(f"--seed0 must be >= 0, got {a.seed0}")
     plans = [p.strip() for p in a.plans.split(",") if p.strip()]
+    if not plans:
+        ap.error(f"--plans {a.plans!r} names no plan; give at least one of {','.join(PLANS)}")
     for p in plans:
         if p not in PLANS:
             ap.error(f"unknown plan {p!r}; choose from {', '.join(PLANS)}")
-    if a.seeds < 1 or a.max_poses < 12 or a.holdout < 10:
-        ap.error("need --seeds >= 1, --max-poses >= 12, --holdout >= 10")
+    twice = sorted({p for p in plans if plans.count(p) > 1}, key=plans.index)
+    if twice:
+        ap.error(f"--plans names {', '.join(twice)} more than once; give each plan once")
+    low = [f"--{k} >= {m} (got {v})" for k, v, m in
+           (("seeds", a.seeds, 1), ("max-poses", a.max_poses, 12), ("holdout", a.holdout, 10))
+           if v < m]  # fmt: skip
+    if low:
+        ap.error(f"need {', '.join(low)}")
     log = (lambda m: print(m, file=sys.stderr, flush=True)) if a.json else print
     t0 = time.perf_counter()
     runs: dict[str, list[dict]] = {p: [] for p in plans}

@@ -107,7 +107,6 @@ def identification_lines(
     """The dry run's identification summary: one line, then what a DH fit of these poses
     should reach if the geometric model holds, then a line per warning (each starts with
     'warning:'). `reference_q`: `reference_poses`, drawn here if not given."""
-    from workcell.estimation.fitting import MIN_TRAIN_POSES, min_poses_for_fit
     from workcell.estimation.identifiability import pose_set_report
 
     q = np.atleast_2d(np.asarray(q, float))
@@ -143,12 +142,7 @@ def identification_lines(
             f"warning: these poses leave {len(r['missing'])} parameter(s) dependent, fixed at "
             f"nominal by the fit: {', '.join(r['missing'])} ({why})"
         )
-    n_fit = min_poses_for_fit()
-    if r["poses"] < n_fit:
-        lines.append(
-            f"warning: too few poses to fit ({r['poses']}): a fit needs at least "
-            f"{MIN_TRAIN_POSES} training poses, {n_fit} poses with the default 25 % held out"
-        )
+    lines += too_few_to_fit(r["poses"])
     weak = r["weakly_identified"]
     for g in weak[:3]:
         lines.append(
@@ -244,3 +238,16 @@ def plan_pose_count_line(
         return None
     curve = pose_count_curve(spec, env, q_for, tool_m, base_in_tracker, reference_q=reference_q)
     return pose_count_line(curve, kind)
+
+
+def too_few_to_fit(poses: int) -> list[str]:
+    """The warning for a pose count too small to fit (empty when it is enough)."""
+    from workcell.estimation.fitting import MIN_TRAIN_POSES, min_poses_for_fit
+
+    n_fit = min_poses_for_fit()
+    if poses >= n_fit:
+        return []
+    return [
+        f"warning: too few poses to fit ({poses}): a fit needs at least {MIN_TRAIN_POSES} "
+        f"training poses, {n_fit} poses with the default 25 % held out"
+    ]

@@ -12,7 +12,7 @@ import numpy as np
 
 from workcell.campaign.devices import open_cell
 from workcell.campaign.executor import CampaignConfig, CampaignControl
-from workcell.campaign.plans import MAX_POSES, reference_line
+from workcell.campaign.plans import MAX_POSES, reference_line, reference_repeats
 from workcell.campaign.run import (
     campaign_stop,
     device_errors_say_resume,
@@ -389,8 +389,7 @@ def dry_run(args, cell, env, cfg, start_q=None) -> int:
             f"envelope, among those the arm may move to from where it is; {args.poses} poses"
         )
         if args.plan not in PREVIEW_KINDS:
-            print(start_line(start_q, args.robot))
-            return 0
+            return _dry_run_unlisted(args, cell, env, start_q)
         targets, problems = preview_adaptive_plan(
             args.plan, cell.spec, env, args.poses, seed=args.seed, tool_m=cell.tool_m,
             base_in_tracker=cell.base_in_tracker, config=cfg, start_q=start_q,
@@ -428,3 +427,49 @@ def dry_run(args, cell, env, cfg, start_q=None) -> int:
         if line:
             print(line)
     return 1 if problems else 0
+
+
+def _dry_run_unlisted(args, cell, env, start_q=None) -> int:
+    """The dry run of an adaptive plan with no preview (bo): why its poses are not listed, and
+    what does not need them: where the first move is checked from, the reference pose, and the
+    warnings that depend on the pose count alone."""
+    print(
+        f"{args.plan} chooses each pose from the position errors measured so far, which the "
+        "nominal chain does not have, so its poses cannot be listed before the campaign; each "
+        "move is checked against the envelope when it is made"
+    )
+    print(f"dry run: {args.poses} poses, chosen during the campaign; nothing moved")
+    print(start_line(start_q, args.robot))
+    if args.reference_every:
+        # the live campaign's reference is the plan's first pose (`plans.with_reference`)
+        print(
+            f"reference: pose 0 (the first pose {args.plan} chooses) measured again after every "
+            f"{args.reference_every} poses and at the end "
+            f"({reference_repeats(args.poses, args.reference_every)} more measurements; each "
+            "move to it is checked against the envelope when it is made)"
+        )
+    for line in pose_count_warnings(cell, env, args.poses):
+        print(line)
+    return 0
+
+
+def pose_count_warnings(cell, env, poses: int) -> list[str]:
+    """The dry run's warnings that need only the number of poses: too few for a point tracker
+    to identify what well-spread poses do (3 equations a pose), and too few to fit (the same
+    words as `identification.identification_lines`, which gives them for listed poses)."""
+    from workcell.campaign.identification import too_few_to_fit
+    from workcell.estimation.identifiability import param_names, pose_set_report
+
+    lines = []
+    if 3 * poses < len(param_names(len(cell.spec.dh.a))):
+        from workcell.campaign.identification import reference_poses
+
+        ref = reference_poses(cell.spec, env, cell.tool_m)
+        full = pose_set_report(cell.spec.dh, ref, cell.tool_m)["rank"]
+        if 3 * poses < full:
+            lines.append(
+                f"warning: {poses} poses leave at least {full - 3 * poses} of the {full} "
+                "parameters that well-spread poses give dependent, fixed at nominal by the fit "
+                f"(a point tracker needs at least {-(-full // 3)} poses)"
+            )
+    return lines + too_few_to_fit(poses)
