@@ -47,6 +47,21 @@ def test_a_bo_dry_run_says_why_no_poses_and_what_it_can_check(capsys):
     assert "chosen during the campaign" not in out
 
 
+def test_the_tui_plan_check_of_bo_gives_the_pose_count_warnings():
+    """The TUI's Plan screen check of a bo plan (no preview) gave nothing but "adaptive"."""
+    from workcell.tui import backend
+
+    dev = backend.open_devices(backend.DeviceConfig(effects="none", seed=3))
+    try:
+        res = backend.dry_run(backend.PlanConfig(kind="bo", poses=5, out="x.mcap"), dev)
+    finally:
+        dev.close()
+    assert res["adaptive"] and res["ok"]
+    warnings = res["identification"]
+    assert any(w.startswith("warning: too few poses to fit (5)") for w in warnings), warnings
+    assert any("5 poses leave at least 10 of the 25 parameters" in w for w in warnings), warnings
+
+
 def test_a_bo_dry_run_with_enough_poses_warns_of_nothing(capsys):
     assert main([*DRY, "--plan", "bo", "--poses", "30"]) == 0
     out = capsys.readouterr().out

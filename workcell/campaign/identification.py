@@ -251,3 +251,23 @@ def too_few_to_fit(poses: int) -> list[str]:
         f"warning: too few poses to fit ({poses}): a fit needs at least {MIN_TRAIN_POSES} "
         f"training poses, {n_fit} poses with the default 25 % held out"
     ]
+
+
+def pose_count_warnings(spec, env, tool_m, poses: int) -> list[str]:
+    """The dry run's warnings that need only the number of poses (a plan whose poses cannot be
+    listed before the campaign, bo): too few for a point tracker to identify what well-spread
+    poses do (3 equations a pose), and too few to fit (`too_few_to_fit`)."""
+    from workcell.estimation.identifiability import pose_set_report
+    from workcell.kinematics.chain import param_names
+
+    lines = []
+    if 3 * poses < len(param_names(len(spec.dh.a))):
+        ref = reference_poses(spec, env, tool_m)
+        full = pose_set_report(spec.dh, ref, tool_m)["rank"]
+        if 3 * poses < full:
+            lines.append(
+                f"warning: {poses} poses leave at least {full - 3 * poses} of the {full} "
+                "parameters that well-spread poses give dependent, fixed at nominal by the fit "
+                f"(a point tracker needs at least {-(-full // 3)} poses)"
+            )
+    return lines + too_few_to_fit(poses)

@@ -433,6 +433,8 @@ def _dry_run_unlisted(args, cell, env, start_q=None) -> int:
     """The dry run of an adaptive plan with no preview (bo): why its poses are not listed, and
     what does not need them: where the first move is checked from, the reference pose, and the
     warnings that depend on the pose count alone."""
+    from workcell.campaign.identification import pose_count_warnings
+
     print(
         f"{args.plan} chooses each pose from the position errors measured so far, which the "
         "nominal chain does not have, so its poses cannot be listed before the campaign; each "
@@ -448,28 +450,6 @@ def _dry_run_unlisted(args, cell, env, start_q=None) -> int:
             f"({reference_repeats(args.poses, args.reference_every)} more measurements; each "
             "move to it is checked against the envelope when it is made)"
         )
-    for line in pose_count_warnings(cell, env, args.poses):
+    for line in pose_count_warnings(cell.spec, env, cell.tool_m, args.poses):
         print(line)
     return 0
-
-
-def pose_count_warnings(cell, env, poses: int) -> list[str]:
-    """The dry run's warnings that need only the number of poses: too few for a point tracker
-    to identify what well-spread poses do (3 equations a pose), and too few to fit (the same
-    words as `identification.identification_lines`, which gives them for listed poses)."""
-    from workcell.campaign.identification import too_few_to_fit
-    from workcell.estimation.identifiability import param_names, pose_set_report
-
-    lines = []
-    if 3 * poses < len(param_names(len(cell.spec.dh.a))):
-        from workcell.campaign.identification import reference_poses
-
-        ref = reference_poses(cell.spec, env, cell.tool_m)
-        full = pose_set_report(cell.spec.dh, ref, cell.tool_m)["rank"]
-        if 3 * poses < full:
-            lines.append(
-                f"warning: {poses} poses leave at least {full - 3 * poses} of the {full} "
-                "parameters that well-spread poses give dependent, fixed at nominal by the fit "
-                f"(a point tracker needs at least {-(-full // 3)} poses)"
-            )
-    return lines + too_few_to_fit(poses)

@@ -219,7 +219,11 @@ def dry_run(plan: PlanConfig, dev: Devices, *, preview: bool = True) -> dict:
     tens of poses) and the expected fit is given for other pose counts; the campaign's own check
     before it starts does without (each adaptive pose is checked before it moves)."""
     from workcell.campaign.executor import PREVIEW_KINDS, dry_run_plan, preview_adaptive_plan
-    from workcell.campaign.identification import identification_lines, reference_poses
+    from workcell.campaign.identification import (
+        identification_lines,
+        pose_count_warnings,
+        reference_poses,
+    )
 
     plan.validate()
     env = envelope_for(plan, dev)
@@ -230,8 +234,11 @@ def dry_run(plan: PlanConfig, dev: Devices, *, preview: bool = True) -> dict:
     )
     if targets is None:
         out = {"adaptive": True, "targets": plan.poses, "problems": [], "ok": True}
-        if not preview or plan.kind not in PREVIEW_KINDS:
+        if not preview:
             return out
+        if plan.kind not in PREVIEW_KINDS:  # bo: its poses cannot be listed; what needs none
+            return {**out, "identification": pose_count_warnings(
+                cell.spec, env, cell.tool_m, plan.poses)}  # fmt: skip
         # what the design would choose if the arm were its nominal chain
         targets, problems = preview_adaptive_plan(
             plan.kind, cell.spec, env, plan.poses, seed=plan.seed, tool_m=cell.tool_m,
