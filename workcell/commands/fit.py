@@ -45,8 +45,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--on", default="auto", help="lddmm/gp: base model (dh, nominal or auto)")
     p.add_argument(
         "--bounds",
-        help="dh: parameter bounds file (JSON) or 'default' (bounded QP; default bounds the DH "
-        "corrections to +-5 mm, +-10 mrad, base and SMR offset unbounded)",
+        help="dh: parameter bounds file (JSON, SI units: m, rad), 'default' or 'none' (bounded "
+        "QP; default bounds the DH corrections to +-5 mm, +-10 mrad, base and SMR offset "
+        "unbounded; none: the QP without bounds; leave --bounds out for the unbounded fit)",
     )
     add_tracker_mpe(p)
 
@@ -58,8 +59,8 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--holdout must be in [0, 0.9), got {args.holdout}")
     if args.bounds is not None and not args.bounds.strip():
         raise UserError(
-            "--bounds is empty: give a JSON file of bounds or 'default' (leave --bounds out for "
-            "the unbounded fit)"
+            "--bounds is empty: give a JSON file of bounds or 'default' (leave --bounds out, "
+            "or give 'none', for the unbounded fit)"
         )
     if args.bounds and args.method != "dh":
         raise UserError(f"--bounds applies to --method dh only (the bounded QP), not {args.method}")
@@ -110,6 +111,23 @@ def _vec_m(v) -> str:
 
 def um(x: float) -> str:
     return f"{x * 1e6:9.1f} um"
+
+
+def identification_line(i: dict) -> str:
+    """Rank, condition (labelled by its basis) and the observability indices O1 and O3 of a
+    fit's `identifiability` report, each figure with the Jacobian it is of."""
+    cond = f"condition {i['condition']:.3g} ({i.get('condition_label') or 'unit-norm columns'}"
+    cu = i.get("condition_unweighted")
+    if cu is not None:
+        cond += f"; {cu:.3g} unweighted, the dry run's definition"
+    cond += ")"
+    line = f"identification  rank {i['rank']}/{i['n_parameters']}, {cond}"
+    if i.get("o1") is not None:
+        line += (
+            f"; O1 {i['o1']:.3g}, O3 {i['min_singular_value']:.3g} (SI Jacobian, 1 rad = 1 m, "
+            f"over the {i.get('observability_parameters')} parameters the chain can identify)"
+        )
+    return line
 
 
 def print_report(r: dict) -> None:
@@ -170,9 +188,7 @@ def print_report(r: dict) -> None:
             print("   {" + ", ".join(f"{n}*" if kept.get(n) == n else n for n in g) + "}")
     if r.get("identifiability"):
         i = r["identifiability"]
-        print(
-            f"identification  rank {i['rank']}/{i['n_parameters']}, condition {i['condition']:.3g}"
-        )
+        print(textwrap.fill(identification_line(i), width=100, subsequent_indent=" " * 16))
         weak = i.get("weakly_identified") or []
         if weak:
             print(
@@ -203,6 +219,8 @@ def print_report(r: dict) -> None:
                 why = (
                     (f"x/ {v['factor_95']:.3g}" if v["factor_95"] < 1e3 else "x/ >1000")
                     if v.get("factor_95")
+                    else "fixed"
+                    if v.get("fixed_by_bound")
                     else "at bound"
                     if v.get("at_bound")
                     else "CV grid"

@@ -41,6 +41,14 @@ reports). Parameters not listed keep their default bound. Optionally
 is refused (it used to mean no bounds, silently).
 A dict of the same forms is accepted too. A bound on a parameter the fit does not estimate
 (dependent, fixed at nominal) has no effect; `info["bounds_not_estimated"]` names them.
+A bound [v, v] fixes the parameter at v (v must be the nominal value, where the fit starts):
+it is not estimated, and is reported like a parameter held at a bound (`active_bounds`, also
+`pinned_by_bounds`); the other parameters' stds are then conditional on the held ones
+(`std_conditional_on`). A file is refused in one line when a bound is not a number, empty,
+excludes the nominal value, or reaches further from the nominal than any calibration correction:
+0.1 m for lengths (DH a_i, d_i, base translation, SMR offset; read as millimetres) and 0.5 rad
+(29 deg) for angles (read as degrees); also a key given twice, and "mode" without a "bounds"
+object.
 
 Shapes: all Jacobians are evaluated on pose arrays padded to a few fixed sizes (powers of two),
 so that JAX compiles each kernel once per size class instead of once per pose count.
@@ -143,6 +151,106 @@ def resolve_bounds(
     return lo, hi
 
 
+PLAUSIBLE_LENGTH_M = 0.1  # a bound reaching further from nominal than this is not metres
+PLAUSIBLE_ANGLE_RAD = 0.5  # ~29 deg: a bound reaching further than this is not radians
+
+
+class _DuplicateKey(ValueError):
+    pass
+
+
+def _no_duplicates(pairs):
+    """json object_pairs_hook: refuse a key given twice (json keeps the last, silently)."""
+    seen = {}
+    for k, v in pairs:
+        if k in seen:
+            raise _DuplicateKey(k)
+        seen[k] = v
+    return seen
+
+
+def _kind(name: str) -> str:
+    """'m' for lengths (DH a_i, d_i, base translations, the SMR offset), else 'rad'."""
+    if (name[0] in "ad" and name[1:].isdigit()) or name.startswith(("base_t", "tool")):
+        return "m"
+    return "rad"
+
+
+def _check_bound(where, name, a, b, nominal, mode) -> None:
+    """Refuse, in one line, a bound [a, b] (absolute, or offsets from `nominal` in delta mode)
+    that is not a number, is empty, excludes the nominal value (where the fit starts) or reaches
+    further from the nominal than any calibration correction (PLAUSIBLE_LENGTH_M,
+    PLAUSIBLE_ANGLE_RAD): millimetres or degrees given for metres or radians."""
+    if np.isnan(a) or np.isnan(b):
+        raise UserError(
+            f"{where}: {name} bound [{a:g}, {b:g}] is not a number (NaN; JSON files may "
+            "carry NaN): give two numbers [lo, hi] in SI units (m, rad)"
+        )
+    if a > b:
+        raise UserError(f"{where}: {name} bound [{a:g}, {b:g}] is empty (need lo <= hi)")
+    unit = _kind(name)
+    off = nominal if mode == "delta" else 0.0
+    lo, hi = a + off, b + off
+    contains = lo <= nominal <= hi
+    reach = max((abs(x - nominal) for x in (lo, hi) if np.isfinite(x)), default=0.0)
+    if unit == "m":
+        limit, factor, big, small = PLAUSIBLE_LENGTH_M, 1e-3, "millimetres", "metres"
+        limit_s = f"{PLAUSIBLE_LENGTH_M:g} m"
+    else:
+        limit, factor, big, small = PLAUSIBLE_ANGLE_RAD, np.pi / 180.0, "degrees", "radians"
+        limit_s = f"{PLAUSIBLE_ANGLE_RAD:g} rad = {np.degrees(PLAUSIBLE_ANGLE_RAD):.0f} deg"
+    sa, sb = a * factor, b * factor  # the bound read as millimetres or degrees
+    converted = f"[{sa:.6g}, {sb:.6g}] {unit}"
+    given = f"{name} bound [{a:g}, {b:g}] {unit} ({mode})"
+    if not contains:
+        read_small = (sa + off <= nominal <= sb + off) if mode == "absolute" else False
+        old_mm = unit == "m" and max(abs(a), abs(b)) > 300 * max(abs(nominal), 0.01)
+        if read_small:
+            raise UserError(
+                f"{where}: {given} does not contain the nominal value {nominal:.6g} {unit}, "
+                f"which {converted}, the same numbers read as {big}, does; it looks like "
+                f"{big}, give {small}"
+            )
+        if old_mm:
+            raise UserError(
+                f"{where}: {given} does not contain the nominal value {nominal:.6g} {unit}, "
+                f"where the fit starts, and reaches {reach:.3g} m from it; it looks like "
+                "millimetres, give metres"
+                + (
+                    " (and include 0: delta bounds are offsets from nominal)"
+                    if mode == "delta"
+                    else ""
+                )
+            )
+        advice = (
+            "widen it to include 0 (delta bounds are offsets from nominal, where the fit starts)"
+            if mode == "delta"
+            else 'widen it, or give offsets from nominal with {"mode": "delta"}'
+        )
+        far = (
+            f", and reaches {reach:.3g} {unit} from it, beyond any calibration correction "
+            f"({limit_s}): check its sign and units ({small}, not {big})"
+            if reach > limit
+            else ""
+        )
+        raise UserError(
+            f"{where}: {given} does not contain the nominal value {nominal:.6g} {unit}, where "
+            f"the fit starts{far}; {advice}"
+        )
+    if reach > limit:
+        if mode == "delta" or sa <= nominal <= sb:
+            hint = f"{'offsets ' if mode == 'delta' else ''}{converted} if {big} were meant"
+        else:
+            hint = f"if {small} were meant, keep it within {limit_s} of the nominal"
+        if name.startswith(("base_", "tool")):
+            hint += "; leave it out to keep it unbounded"
+        raise UserError(
+            f"{where}: {given} reaches {reach:.3g} {unit} from the nominal value "
+            f"{nominal:.6g} {unit}, beyond any calibration correction ({limit_s}); it looks "
+            f"like {big}, give {small} ({hint})"
+        )
+
+
 def _resolve(bounds, theta_nominal) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """`resolve_bounds` and the names the file or dict lists (none for default and none)."""
     th = np.asarray(theta_nominal, float)
@@ -161,22 +269,48 @@ def _resolve(bounds, theta_nominal) -> tuple[np.ndarray, np.ndarray, list[str]]:
         spec, where = bounds, "bounds"
     else:
         path = Path(bounds)
+        if path.is_dir():
+            raise UserError(
+                f"bounds file {path} is a directory: give a JSON file of bounds, 'default' or "
+                "'none'"
+            )
         if not path.is_file():
             raise UserError(f"bounds file {path} not found (give a JSON file or 'default')")
         try:
-            spec = json.loads(path.read_text(encoding="utf-8-sig"))
-        except (OSError, json.JSONDecodeError) as e:
+            spec = json.loads(
+                path.read_text(encoding="utf-8-sig"), object_pairs_hook=_no_duplicates
+            )
+        except _DuplicateKey as e:
+            raise UserError(
+                f"bounds file {path}: key {e.args[0]!r} is given twice (JSON readers keep only "
+                "the last): give each once"
+            ) from None
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
             raise UserError(f"bounds file {path}: not valid JSON ({e})") from None
         where = str(path)
+    form = '{name: [lo, hi]} or {"mode": "delta", "bounds": {name: [lo, hi]}}'
     if not isinstance(spec, dict):
-        raise UserError(f"{where}: expected a JSON object {{name: [lo, hi]}}")
+        raise UserError(f"{where}: expected a JSON object {form}")
     mode = "absolute"
-    if "bounds" in spec and isinstance(spec["bounds"], dict):
-        mode = str(spec.get("mode", "absolute"))
+    if "bounds" in spec:
+        if not isinstance(spec["bounds"], dict):
+            raise UserError(
+                f'{where}: "bounds" must be an object {{name: [lo, hi]}}, got '
+                f"{type(spec['bounds']).__name__} {spec['bounds']!r:.40}"
+            )
+        mode = spec.get("mode", "absolute")
         extra = set(spec) - {"bounds", "mode"}
         if extra:
-            raise UserError(f"{where}: unexpected keys {sorted(extra)}")
+            raise UserError(
+                f'{where}: unexpected keys {sorted(extra)} beside "bounds" (only "mode" '
+                'goes there; put parameter bounds inside "bounds")'
+            )
         spec = spec["bounds"]
+    elif "mode" in spec:
+        raise UserError(
+            f'{where}: "mode" goes with a "bounds" object: {{"mode": "delta", "bounds": '
+            '{name: [lo, hi]}} (the parameter bounds inside "bounds")'
+        )
     if mode not in ("absolute", "delta"):
         raise UserError(f"{where}: mode must be 'absolute' or 'delta', got {mode!r}")
     for name, v in spec.items():
@@ -188,24 +322,13 @@ def _resolve(bounds, theta_nominal) -> tuple[np.ndarray, np.ndarray, list[str]]:
             or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v)
         ):
             raise UserError(f"{where}: {name} must be [lo, hi] (two numbers), got {v!r}")
-        a, b = float(v[0]), float(v[1])
-        if np.isnan(a) or np.isnan(b) or a > b:
-            raise UserError(f"{where}: {name} bound [{a}, {b}] is empty (need lo <= hi)")
+        try:
+            a, b = float(v[0]), float(v[1])
+        except OverflowError:
+            raise UserError(f"{where}: {name} bound {v!r:.60} is too large a number") from None
         i = index[name]
+        _check_bound(where, name, a, b, float(th[i]), mode)
         off = th[i] if mode == "delta" else 0.0
-        if not (a + off <= th[i] <= b + off):
-            metres = name[0] in "ad" and name[1:].isdigit()
-            unit = "m" if metres or name.startswith(("base_t", "tool")) else "rad"
-            mm = unit == "m" and max(abs(a), abs(b)) > 300 * max(abs(th[i]), 0.01)
-            raise UserError(
-                f"{where}: {name} bound [{a:g}, {b:g}] {unit} ({mode}) does not contain the "
-                f"nominal value {th[i]:.6g} {unit}, where the fit starts; "
-                + (
-                    "it looks like millimetres, give metres"
-                    if mm
-                    else 'widen it, or give offsets from nominal with {"mode": "delta"}'
-                )
-            )
         lo[i], hi[i] = a + off, b + off
     return lo, hi, list(spec)
 
@@ -234,7 +357,9 @@ def fit_dh_bounded(
     `free` (bool (5 n + 9,)) skips the identifiability analysis and estimates exactly those
     parameters (used by adaptive plans that refit after every pose). Returns a `DHModel`
     (method "dh") whose `info` adds `bounds` (for the estimated parameters), `active_bounds`
-    (the estimated parameters held at a bound: their std is not given), `qp_iterations`,
+    (the estimated parameters held at a bound, and those a bound [v, v] fixes at v, which
+    `pinned_by_bounds` names: their std is not given; the other stds are conditional on them,
+    `std_conditional_on`), `qp_iterations`,
     `converged` and `bounds_not_estimated` (parameters a bounds file lists that the fit does
     not estimate: dependent or fixed, so the bound has no effect).
     """
@@ -263,23 +388,25 @@ def fit_dh_bounded(
         free = np.asarray(free, bool).copy()
         if free.shape != (n_par,):
             raise ValueError(f"free: expected shape ({n_par},), got {free.shape}")
-    # a parameter pinned by lo == hi is not estimated; fixed parameters stay where they are
+    # a parameter pinned by lo == hi is fixed at that value by its bound: not estimated (the QP
+    # leaves it out), but reported like a parameter held at a bound (`active_bounds`, no std,
+    # the unbounded fit's held-out RMS beside the bounded one), and named in `pinned_by_bounds`
     pinned = free & (hi - lo <= 0)
     theta[pinned] = lo[pinned]
     # listed bounds on parameters that are neither estimated nor pinned by them do nothing
     not_estimated = [n for n in listed if not free[index[n]]]
-    free &= ~pinned
+    est = free & ~pinned  # what the QP estimates
     bad = (theta < lo) | (theta > hi)
-    theta[free] = np.clip(theta[free], lo[free], hi[free])  # feasible start
-    if np.any(bad & ~free):
-        out = [names[i] for i in np.where(bad & ~free)[0]]
+    theta[est] = np.clip(theta[est], lo[est], hi[est])  # feasible start
+    if np.any(bad & ~est):
+        out = [names[i] for i in np.where(bad & ~est)[0]]
         raise UserError(
             f"bounds exclude the nominal value of parameters that are not estimated: {out}"
         )
     runs = []  # (iterations, converged) of each solve
 
     def solve(keep, th):
-        th, it, conv = _iterate_qp(ds, keep, w, th, base_ref, free, lo, hi, max_iter, xtol)
+        th, it, conv = _iterate_qp(ds, keep, w, th, base_ref, est, lo, hi, max_iter, xtol)
         runs.append((it, conv))
         return th
 
@@ -287,12 +414,13 @@ def fit_dh_bounded(
     iters, converged = sum(r[0] for r in runs), runs[-1][1]
     n_rejected = int((~keep).sum())
     span = np.where(np.isfinite(hi - lo), hi - lo, 1.0)
-    at_lo = free & np.isfinite(lo) & (theta - lo <= 1e-9 * np.maximum(span, 1e-12))
-    at_hi = free & np.isfinite(hi) & (hi - theta <= 1e-9 * np.maximum(span, 1e-12))
-    active = at_lo | at_hi
-    # uncertainty of the parameters not held by a bound (as in fit_dh)
+    at_lo = est & np.isfinite(lo) & (theta - lo <= 1e-9 * np.maximum(span, 1e-12))
+    at_hi = est & np.isfinite(hi) & (hi - theta <= 1e-9 * np.maximum(span, 1e-12))
+    active = at_lo | at_hi | pinned
+    # uncertainty of the parameters not held by a bound (as in fit_dh): conditional on the held
+    # ones, which it takes as exactly known at their bound values (`std_conditional_on`)
     qk = ds.q[keep]
-    cov, s0_2 = weighted_covariance(ds, theta, base_ref, w, keep, free & ~active, int(free.sum()))
+    cov, s0_2 = weighted_covariance(ds, theta, base_ref, w, keep, est & ~active, int(est.sum()))
     stats = error_stats(predict_padded(theta, base_ref, qk), ds.p_tracker[keep])
     finite = lambda x: float(x) if np.isfinite(x) else None  # noqa: E731
     info = {
@@ -308,6 +436,8 @@ def fit_dh_bounded(
         "converged": bool(converged),
         "bounds": {names[i]: [finite(lo[i]), finite(hi[i])] for i in np.where(free)[0]},
         "active_bounds": [names[i] for i in np.where(active)[0]],
+        "pinned_by_bounds": [names[i] for i in np.where(pinned)[0]],
+        "std_conditional_on": [names[i] for i in np.where(active)[0]],
         "bounds_not_estimated": not_estimated,
         "recording": ds.source,
         "recording_sha256": ds.source_sha256,

@@ -29,7 +29,13 @@ from workcell.estimation.models import (
     save_model,
     unexplained_error,
 )
-from workcell.kinematics.chain import PARAMETER_FRAMES, joints_of, p_tracker, param_names
+from workcell.kinematics.chain import (
+    PARAMETER_FRAMES,
+    joints_of,
+    p_tracker,
+    param_names,
+    param_unit,
+)
 from workcell.recording.dataset import HOLDOUT_SEED, Dataset, distinct_poses, read_warnings
 
 MIN_TRAIN_POSES = 12  # a fit refuses fewer training poses (or distinct configurations)
@@ -80,6 +86,14 @@ def parameter_std_basis(model: object) -> str:
         )
         + "; it holds for this model: an effect it leaves out biases beyond it"
     ]
+    held = list(info.get("std_conditional_on") or info.get("active_bounds") or ())
+    if held:
+        parts.append(
+            "conditional on the parameters a bound holds ("
+            + ", ".join(held)
+            + "), taken as exactly known at their bound values: with them estimated the "
+            "others' stds would be larger (compare the fit without --bounds)"
+        )
     if hasattr(model, "log_hyper_std"):
         parts.append(
             "gp_*: Laplace, the inverse Hessian of the negative log marginal likelihood in log "
@@ -183,6 +197,9 @@ def fit_dataset(
     train_stats = error_stats(model.predict(dtr.q, **aux_from_dataset(dtr)), dtr.p_tracker)
     params = model.parameters()
     info = getattr(model, "info", {}) or {}
+    for n in info.get("pinned_by_bounds") or ():
+        if n in params:  # a bound [v, v] fixes it at v: not estimated, no std
+            params[n].update(std=None, at_bound=True, fixed_by_bound=True)
     report = {
         "method": method,
         "recording": ds.source,
@@ -240,19 +257,31 @@ def fit_dataset(
 
 def bounds_summary(model, bounds, heldout_rms_m: float, dtr, ev, tracker_mpe) -> dict:
     """What the bounds of a bounded DH fit (`--bounds`) did: the estimated parameters held at
-    a bound (`at_bound`: name, side, value, bound), the bounds on parameters the fit does not
-    estimate (`not_estimated`, no effect), and, when some bound holds, the held-out RMS of the
-    unbounded fit of the same training poses (`heldout_rms_unbounded_m`: what `--method dh`
-    without --bounds gives; one more fit, only then). `line` says it in one line."""
+    a bound (`at_bound`: name, side (lower, upper, or fixed: a bound [v, v] fixes it at v),
+    value, bound, unit), the bounds on parameters the fit does not estimate (`not_estimated`, no
+    effect), and, when some bound holds, the held-out RMS of the unbounded fit of the same
+    training poses (`heldout_rms_unbounded_m`: what `--method dh` without --bounds gives; one
+    more fit, only then). `line` says it in one line."""
     info = getattr(model, "info", {}) or {}
     names = param_names(joints_of(model.theta))
     lim = info.get("bounds") or {}
     at = []
+    pinned = set(info.get("pinned_by_bounds") or ())
     for n in info.get("active_bounds") or []:
         v = float(model.theta[names.index(n)])
         lo, hi = (lim.get(n) or [None, None])[:2]
         side = "lower" if lo is not None and (hi is None or abs(v - lo) <= abs(v - hi)) else "upper"
-        at.append({"name": n, "side": side, "value": v, "bound": lo if side == "lower" else hi})
+        if n in pinned:
+            side = "fixed"  # lo == hi: the bound fixes it, it was never estimated
+        at.append(
+            {
+                "name": n,
+                "side": side,
+                "value": v,
+                "bound": lo if side in ("lower", "fixed") else hi,
+                "unit": param_unit(n),
+            }
+        )
     ref = None
     if at:
         unb = fit_dh(dtr, tracker_mpe=tracker_mpe)
@@ -278,7 +307,13 @@ def bounds_line(b: dict) -> str:
             f"bounds ({b['given']}): none holds a parameter; the fit is the unbounded one "
             "(`--method dh` without --bounds)"
         )
-    held = ", ".join(f"{a['name']} ({a['side']})" for a in b["at_bound"])
+    held = ", ".join(
+        f"{a['name']} (fixed at {a['value']:.6g} {a.get('unit', '')} by its bound "
+        f"[{a['value']:.6g}, {a['value']:.6g}])"
+        if a["side"] == "fixed"
+        else f"{a['name']} ({a['side']})"
+        for a in b["at_bound"]
+    )
     tool = [a["name"] for a in b["at_bound"] if a["name"].startswith("tool_")]
     n = len(b["at_bound"])
     line = (
@@ -384,6 +419,9 @@ def keep_in_model(model, ds: Dataset, report: dict) -> None:
     info = getattr(model, "info", None)
     if isinstance(info, dict):
         info.setdefault("recording", ds.source)
+        if "active_bounds" in info and report.get("parameter_std_basis"):
+            # a bounded fit: its stds are conditional on the parameters a bound holds
+            info["parameter_std_basis"] = report["parameter_std_basis"]
         info.setdefault("recording_sha256", ds.source_sha256)
         if not report.get("heldout_poses"):
             # no held-out poses (--holdout 0): training figures say nothing of what the model

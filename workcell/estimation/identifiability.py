@@ -136,6 +136,11 @@ class Identifiability:
     dependent: dict[str, list[str]]  # dependent param -> kept params it combines
     groups: list[list[str]]
     observability_parameters: list[str] | None = None  # the L parameters of o1 and O3
+    # what Jacobian `singular_values` and `condition` are of (short label, see to_dict)
+    jacobian_label: str = "the Jacobian as given"
+    # a fit's: the condition of its unweighted (SI) Jacobian, columns scaled the same way, the
+    # dry run's definition (`pose_set_report`); None when not computed
+    condition_unweighted: float | None = None
 
     def to_dict(self, cov: np.ndarray | None = None) -> dict:
         """The analysis as a report; with the fit's covariance `cov` (over `names`), also the
@@ -146,10 +151,26 @@ class Identifiability:
                 "weakly_identified": weak_directions(cov, self.names),
                 "weakly_identified_basis": WEAK_BASIS,
             }
+        sv_basis = (
+            f"of the identification Jacobian ({self.jacobian_label}) over the {self.rank} "
+            "parameters the rank test keeps, each column scaled to unit norm over these poses "
+            "(column equilibration); condition = largest / smallest of them"
+        )
+        cu = {}
+        if self.condition_unweighted is not None:
+            cu = {
+                "condition_unweighted": self.condition_unweighted,
+                "condition_unweighted_basis": "the same for the unweighted Jacobian (SI units), "
+                "unit-norm columns: the dry run's `condition` (`workcell campaign --dry-run`, "
+                "there at the nominal chain and the planned poses)",
+            }
         return {
             "rank": self.rank,
             "n_parameters": len(self.names),
             "condition": self.condition,
+            "condition_label": f"{self.jacobian_label}, unit-norm columns",
+            "condition_basis": sv_basis,
+            **cu,
             "o1": self.o1,
             "min_singular_value": self.min_singular_value,
             "observability_parameters": len(self.observability_parameters or self.identifiable),
@@ -158,7 +179,11 @@ class Identifiability:
             else OBSERVABILITY_BASIS + "; here of the Jacobian as the caller gave it (a fit's is "
             "weighted by 1 / sigma), and L = the parameters these poses identify (the chain's "
             "structural set was not given), so a rank-deficient set is not scored 0",
+            "min_singular_value_basis": "O3 (observability_basis): fixed units over the "
+            "observability parameters, not unit-norm columns, so not the smallest of "
+            "singular_values",
             "singular_values": self.singular_values.tolist(),
+            "singular_values_basis": sv_basis,
             "identifiable": self.identifiable,
             "unidentifiable": self.groups,
         } | weak
@@ -304,7 +329,9 @@ def fit_identifiability(
     pose i's rows times `w[i]`, 1 / sigma) over `candidates_for(dh, fixed)`, with the
     observability indices O1 and O3 as the dry run gives them: of the unweighted Jacobian (SI
     units) over the chain's structural set (`structural_identifiable`), 0 when these poses leave
-    one of it dependent. (Before 2026-11-26 a fit reported O1 of its weighted Jacobian, about
+    one of it dependent. `singular_values` and `condition` stay those of the weighted Jacobian
+    (unit-norm columns; `jacobian_label` says so); `condition_unweighted` is the condition of the
+    unweighted one, the dry run's definition. (Before 2026-11-26 a fit reported O1 of its weighted Jacobian, about
     1 / sigma times the dry run's: 19819 on series D against 0.4 for a planned pose set.)"""
     Jw = np.asarray(J_weighted, float)
     n_par = Jw.shape[-1]
@@ -317,6 +344,8 @@ def fit_identifiability(
         o1=obs.o1,
         min_singular_value=obs.min_singular_value,
         observability_parameters=obs.observability_parameters,
+        jacobian_label="rows weighted by 1 / sigma per pose",
+        condition_unweighted=obs.condition,
     )
 
 
