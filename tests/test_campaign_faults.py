@@ -485,3 +485,39 @@ def test_a_tracker_reconnect_that_reaches_another_instrument_stops_the_campaign(
     msg = str(e.value)
     assert "serial number 900002" in msg and "not serial number 900001" in msg, msg
     assert e.value.exit_code == 3 and "\n" not in msg and "--resume" in msg
+
+
+class OneGoodReading(Wrapped):
+    """A tracker whose beam breaks after the first reading at every pose: each pose keeps 1
+    reading of 5, too few, so it is skipped; never a pose without any reading (no tracker stop)."""
+
+    def __init__(self, inner):
+        super().__init__(inner)
+        self.calls = 0
+
+    def measure(self):
+        self.calls += 1
+        if self.calls % 8 == 1:
+            return self.inner.measure()
+        return TrackerReading(np.full(3, np.nan), np.full(3, 1e-5), status="beam_broken")
+
+
+def test_a_campaign_that_records_no_pose_is_not_a_success(tmp_path):
+    """Every pose skipped with a few readings (not one in a row without any, so the tracker
+    stop does not act): the campaign went through its plan, 'recorded 0 poses', exit 0. Now one
+    line and exit 3, the recording closed with its events. Also --readings has a ceiling."""
+    _, robot, tracker, cell = sim_cell("ur5e", "none", seed=1, beam_break_prob=0.0)
+    cfg = CampaignConfig(readings_per_pose=5, settle_s=0.1, beam_retry_wait_s=0.0,
+                         max_beam_retries=6)  # fmt: skip
+    out = tmp_path / "none.mcap"
+    path, res = run_campaign(robot, OneGoodReading(tracker), cell, out, poses=4, seed=1,
+                             config=cfg, control=CampaignControl())  # fmt: skip
+    assert not res.aborted and res.measured == 0 and res.skipped == 4
+    assert read_recording(out).closed_cleanly
+    with pytest.raises(UserError) as e:
+        campaign_stop(res, path)
+    msg = str(e.value)
+    assert e.value.exit_code == 3 and "\n" not in msg, msg
+    assert msg.startswith("no pose recorded: all 4 poses were skipped") and str(path) in msg
+    with pytest.raises(UserError, match=r"--readings \(readings_per_pose\) 100000 is more than"):
+        CampaignConfig(readings_per_pose=100000)

@@ -121,6 +121,12 @@ class CampaignConfig:
                 raise UserError(
                     f"campaign setting {name} must be a whole number >= {lo}, got {v!r}"
                 )
+        if self.readings_per_pose > MAX_READINGS_PER_POSE:
+            raise UserError(
+                f"{_setting('readings_per_pose')} {self.readings_per_pose} is more than "
+                f"{MAX_READINGS_PER_POSE} readings a pose (a tracker reading takes about a "
+                "second): give the readings to average at each pose, e.g. 5"
+            )
         positive = ("settle_speed_rad_s", "speed_rad_s", "accel_rad_s2", "outlier_k")
         non_negative = (
             "settle_s",
@@ -144,6 +150,9 @@ class CampaignConfig:
             v = getattr(self, name)
             if v > most:
                 raise UserError(f"{_setting(name)} {v:g} s is more than {most:g} s; give seconds")
+
+
+MAX_READINGS_PER_POSE = 1000  # as `workcell validate --readings`
 
 
 def _setting(name: str) -> str:

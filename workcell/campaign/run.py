@@ -377,10 +377,18 @@ def stop_aftermath(res: CampaignResult, path: str | Path) -> str | None:
 def campaign_stop(res: CampaignResult, path: str | Path) -> None:
     """A campaign that stopped itself (the margin watch, `margin_stop`; a protective stop
     nobody acknowledged; protective stops, a tracker without readings or refused poses again
-    and again, `executor.MAX_..._IN_A_ROW`; an adaptive plan with no reachable pose left) is one
-    line and a non-zero exit (3; 2 for an unacknowledged protective stop), raised after its
-    recording was closed with what it measured."""
+    and again, `executor.MAX_..._IN_A_ROW`; an adaptive plan with no reachable pose left), and
+    one that went through its plan recording no pose at all, is one line and a non-zero exit
+    (3; 2 for an unacknowledged protective stop), raised after its recording was closed with
+    what it measured."""
     margin_stop(res, path)
+    if not res.aborted and res.measured == 0 and res.skipped > 0:
+        raise UserError(
+            f"no pose recorded: all {res.skipped} poses were skipped (the events above say why); "
+            f"{path} is closed and keeps the events (`workcell info {path}`): fix the cause, "
+            f"then run the campaign again with a new --out",
+            exit_code=3,
+        )
     after = stop_aftermath(res, path)
     if after is not None:
         code = 2 if res.stopped_by == "unacknowledged" else 3
