@@ -333,3 +333,40 @@ def test_the_parser_returns_valid_targets_or_a_one_line_user_error(tmp_path_fact
         assert t.P is not None and np.linalg.norm(t.rotvec, axis=1).max() <= 2 * math.pi + 1e-9
     assert (t.q is None) == (t.q_role is None)
     assert all("\n" not in x for x in t.notes)
+
+
+def test_commanded_joints_outside_the_cells_envelope_are_refused(tmp_path, capsys):
+    """A target 0.5 m below the base, with a model whose recording ran in the default envelope:
+    `export --format targets` wrote commanded joints outside that envelope (q1 3.06 rad against
+    +-2.97) with only an extrapolation warning. Now the line is refused; a target inside is
+    written and the output says what the joints were checked against."""
+    from sim_devices.cell import sim_cell
+    from workcell.campaign.executor import CampaignConfig, CampaignControl
+    from workcell.campaign.run import run_campaign
+
+    _, robot, tracker, cell_ = sim_cell("ur5e", "none", 1, beam_break_prob=0.0)
+    rec = tmp_path / "r.mcap"
+    run_campaign(robot, tracker, cell_, rec, poses=2, seed=1,
+                 config=CampaignConfig(readings_per_pose=1, settle_s=0.1),
+                 control=CampaignControl())  # fmt: skip
+    m = make_model(8)
+    m.info["recording"] = str(rec)
+    model = save_model(m, tmp_path / "m.json")
+    below, inside = tmp_path / "below.csv", tmp_path / "inside.csv"
+    below.write_text("x,y,z\n-0.4,0.1,0.3\n0.4,0.1,-0.5\n")
+    inside.write_text("x,y,z\n-0.4,0.1,0.3\n")
+    out = tmp_path / "t.csv"
+    rc, _, err = _run(["export", model, "--format", "targets", "--in", below, "--out", out], capsys)
+    assert rc == 2 and len(err) == 1 and not out.exists(), err
+    assert "line 3: the corrected target's commanded joints" in err[0], err
+    assert f"leave the envelope the model's recording {rec} ran in (joint 1 target" in err[0]
+    rc, lines, _ = _run(["export", model, "--format", "targets", "--in", inside, "--out", out],
+                        capsys)  # fmt: skip
+    assert rc == 0 and f"  commanded joints inside the envelope the model's recording {rec}" in (
+        "\n".join(lines)
+    )
+    m.info.pop("recording")
+    bare = save_model(m, tmp_path / "bare.json")
+    rc, lines, _ = _run(["export", bare, "--format", "targets", "--in", inside, "--out",
+                         tmp_path / "t2.csv"], capsys)  # fmt: skip
+    assert rc == 0 and any("checked against the arm's joint ranges only" in x for x in lines)

@@ -295,6 +295,40 @@ def _check_joints(src: Path, q: np.ndarray, nom, lines: list[int], names=()) -> 
             raise UserError(p[0])
 
 
+def _check_commanded(src: Path, q: np.ndarray, model, nom, lines: list[int]) -> str:
+    """The commanded joints (what the controller will be sent) must lie in the envelope the
+    model's recording ran in (the cell's configured one), or, without that recording, in the
+    arm's joint ranges; refuse the first that does not with its line in the file. -> the line
+    saying what they were checked against."""
+    from workcell.campaign.envelope import envelope_of_session
+    from workcell.export.build import model_session
+    from workcell.kinematics.robots import robot_by_name
+
+    names = [f"q{j}_cmd_rad" for j in range(1, 7)]
+    _check_joints(src, q, nom, lines, names)  # the arm's own ranges first (degrees, 2 pi off)
+    try:
+        spec = robot_by_name(nom.robot)
+    except ValueError:
+        return "commanded joints: unknown arm, not checked (its controller checks its limits)"
+    session, why = model_session(model)
+    rec = (getattr(model, "info", {}) or {}).get("recording")
+    env = envelope_of_session(session.get("campaign") or {}, spec, str(rec)) if session else None
+    if env is None:
+        return (
+            "commanded joints checked against the arm's joint ranges only: "
+            + (why or f"the model's recording {rec} records no envelope")
+            + "; check them against the cell's envelope before sending them"
+        )
+    for i, v in enumerate(env.violations(spec, q, nom.tool_m)):
+        if v is not None:
+            raise UserError(
+                f"{src}: line {lines[i]}: the corrected target's commanded joints "
+                f"{np.round(q[i], 3).tolist()} rad leave the envelope the model's recording "
+                f"{rec} ran in ({v}): check the target's frame and units, or leave it out"
+            )
+    return f"commanded joints inside the envelope the model's recording {rec} ran in"
+
+
 def _targets(args, model, cond, summary, log, logged: list[str]) -> int:
     from workcell.export.build import model_recording, nominal_for_model, note_unexplained
     from workcell.export.correction import Q_REF, Corrector, matrix_to_rotvec, rotvec_to_matrix
@@ -355,6 +389,7 @@ def _targets(args, model, cond, summary, log, logged: list[str]) -> int:
             f"reach or at a singularity){f'; and {bad.sum() - 1} more' if bad.sum() > 1 else ''}"
         )
     check_corrections(c - P, P, args.max_correction, where="target")  # finite: checked above
+    log("  " + _check_commanded(src, q, model, nom, lines))
     rv = matrix_to_rotvec(R)
     mags = np.linalg.norm(c - P, axis=1)
     # as a table's export says them: extrapolated targets, the 1-sigma, what the model leaves out
