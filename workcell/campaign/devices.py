@@ -83,9 +83,12 @@ def open_cell(args):
     spec = robot_by_name(args.model)
     env = envelope_from_args(args, spec)  # refused before any connection
     # the driver asks the controller which arm it is and refuses another family before any
-    # motion: plans and envelope checks use `spec`'s kinematics
+    # motion: plans and envelope checks use `spec`'s kinematics; it also measures the
+    # controller's clock and refuses a time scale faster than it (on a real arm,
+    # --time-scale 50 would cut a 1 s settle to 20 ms)
+    time_scale = getattr(args, "time_scale", None)
     robot = UrRobot(
-        args.robot[len("ur://") :], time_scale=getattr(args, "time_scale", 1.0), model=spec.model
+        host, time_scale=1.0 if time_scale is None else float(time_scale), model=spec.model
     )
     tracker = SerialTracker(args.tracker[len("serial://") :])
     cell = CellSetup(

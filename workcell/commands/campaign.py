@@ -72,7 +72,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=float,
         help="exercise the arm this many seconds before measuring (default 0)",
     )
-    p.add_argument("--time-scale", type=float, default=1.0, help="simulators: time scale")
+    p.add_argument(
+        "--time-scale",
+        type=float,
+        help="with `workcell sim --time-scale X` and --robot ur://...: the same X (default 1, "
+        "a real controller; checked against the controller's clock before anything moves)",
+    )
     p.add_argument(
         "--envelope",
         metavar="FILE",
@@ -156,6 +161,22 @@ def _check_resume_options(args: argparse.Namespace) -> None:
         )
 
 
+def _check_time_scale(args: argparse.Namespace) -> None:
+    """--time-scale: a positive number, only for a controller (the in-process simulation runs on
+    virtual time: it would ignore it); None becomes 1 (real time)."""
+    if args.time_scale is None:
+        args.time_scale = 1.0
+        return
+    if not (math.isfinite(args.time_scale) and args.time_scale > 0):
+        raise UserError(f"--time-scale must be a positive number, got {args.time_scale}")
+    if args.robot == "sim":  # None on a resume: the recorded robot (the driver checks it)
+        raise UserError(
+            f"--time-scale {args.time_scale:g} with --robot sim: the in-process simulation runs "
+            "on virtual time, so it has no effect; leave it out (it is for a `workcell sim "
+            "--time-scale X` controller, given with --robot ur://HOST)"
+        )
+
+
 def _control(args: argparse.Namespace) -> CampaignControl:
     """Ctrl-C, SIGTERM and SIGHUP abort cleanly; after a protective stop, ask on the terminal
     (default when interactive) or resume at once."""
@@ -178,6 +199,7 @@ def run(args: argparse.Namespace) -> int:
         from workcell.campaign.resume import resume_campaign
 
         _check_resume_options(args)
+        _check_time_scale(args)
         for k in ("readings", "settle", "effects", "model"):
             setattr(args, k, DEFAULTS[k])  # for recordings that do not say (older ones)
         control = _control(args)
@@ -201,8 +223,7 @@ def run(args: argparse.Namespace) -> int:
         )
     if args.seed < 0:
         raise UserError(f"--seed must be >= 0, got {args.seed}")
-    if not (math.isfinite(args.time_scale) and args.time_scale > 0):
-        raise UserError(f"--time-scale must be a positive number, got {args.time_scale}")
+    _check_time_scale(args)
     cell, robot, tracker, env = open_cell(args)
     cfg = CampaignConfig(
         readings_per_pose=args.readings,

@@ -27,8 +27,20 @@ Errors (all `DeviceError`, the campaign fault policy decides):
   something unreadable is a warning (`warnings`, and `on_warning`, by default one stderr line),
   not a refusal.
 
+- `DeviceUnreachable` also when the address answers, but not as a UR controller: the dashboard
+  port (29999) sends bytes that are not text or not a dashboard's answers, or the RTDE port
+  (30004) accepts connections but does not answer an RTDE protocol-version request within
+  `rtde_answer_timeout_s` (checked on a socket of our own first: the ur_rtde receive
+  constructor waits for that answer forever, holding the GIL, so neither a timeout nor Ctrl-C
+  could end it).
+
 Time: `time_scale` is the simulated-controller speed-up (1.0 for a real robot). `sleep(s)` waits
-s / time_scale wall seconds and move timeouts are scaled the same way.
+s / time_scale wall seconds and move timeouts are scaled the same way. At the first connect the
+driver measures the controller's clock (its RTDE `timestamp` over `time_scale_check_s` wall
+seconds) and refuses (`TimeScaleMismatch`, before anything moves) a `time_scale` above the
+measured rate by more than `TIME_SCALE_TOLERANCE` (+ `TIME_SCALE_SLACK`): on a real controller
+`time_scale` 50 would make a 1 s settle last 20 ms. A `time_scale` below the measured rate only
+makes every wait longer than asked: a warning.
 
 The RTDEControlInterface lives in a small worker process (`python -m workcell.drivers.ur_robot
 --control-worker`), driven over a pipe. Reason: after its RTDE connection drops, ur_rtde 1.6.5's
@@ -49,6 +61,7 @@ import os
 import re
 import select
 import socket
+import struct
 import subprocess
 import sys
 import threading
@@ -102,6 +115,10 @@ SAFETY_MODES = {
     10: "VALIDATE_JOINT_ID",
     11: "UNDEFINED_SAFETY_MODE",
 }
+RTDE_REQUEST_PROTOCOL_VERSION = 86  # 'V'
+RTDE_PROTOCOL_VERSION = 2
+TIME_SCALE_TOLERANCE = 0.2  # relative: measuring over ~0.4 s is good to a few per cent
+TIME_SCALE_SLACK = 0.05  # absolute, in x real time: scheduling jitter near 1x
 BIT_PROTECTIVE_STOP = 1 << 2
 BIT_EMERGENCY_STOP = 1 << 7
 RUNTIME_PLAYING = 2
@@ -119,7 +136,15 @@ def _import_ur_rtde():
     return rtde_receive, rtde_control, dashboard_client
 
 
+def _two_digits(x: float) -> str:
+    """49.87 -> '50', 2.513 -> '2.5', 399.2 -> '400'."""
+    return f"{float(f'{x:.2g}'):g}"
+
+
 def _one_line(e: BaseException) -> str:
+    if isinstance(e, UnicodeDecodeError):  # ur_rtde hands any bytes to Python as str
+        bad = e.object[e.start : e.start + 1].hex() if isinstance(e.object, bytes) else "?"
+        return f"an answer that is not text (byte 0x{bad} at {e.start})"
     return " ".join(str(e).split()) or type(e).__name__
 
 
@@ -129,6 +154,10 @@ class MoveAborted(DeviceError):
 
 class WrongRobotModel(DeviceError):
     """The controller is another arm than the one the caller plans with (`UrRobot(model=)`)."""
+
+
+class TimeScaleMismatch(DeviceError):
+    """`time_scale` is faster than the controller's clock: every wait would be cut short."""
 
 
 _UR_NAME_RE = re.compile(r"\s*ur\s*(\d+)\s*(?:e|cb3)?\s*", re.IGNORECASE)
@@ -330,6 +359,8 @@ class UrRobot:
         poll_s: float = 0.002,
         model: str | None = None,
         on_warning: Callable[[str], None] | None = None,
+        rtde_answer_timeout_s: float = 10.0,
+        time_scale_check_s: float = 0.4,
     ) -> None:
         if not host or not isinstance(host, str):
             raise ValueError(f"host must be a non-empty string, got {host!r}")
@@ -355,6 +386,9 @@ class UrRobot:
         self.settle_speed_rad_s = float(settle_speed_rad_s)
         self.auto_power_on = bool(auto_power_on)
         self.poll_s = float(poll_s)
+        self.rtde_answer_timeout_s = float(rtde_answer_timeout_s)
+        self.time_scale_check_s = float(time_scale_check_s)  # 0: do not measure
+        self.controller_time_scale: float | None = None  # measured at the first connect
         # set by a campaign (its abort flag's `is_set`): a move in progress stops at once when
         # it turns true, instead of running to its target before the abort is seen
         self.abort_requested: Callable[[], bool] | None = None
@@ -377,6 +411,7 @@ class UrRobot:
             self._check_powered(mode)
             if self._rr is None or not self._rr.isConnected():
                 self._bury("_rr")
+                self._rtde_precheck()
                 try:
                     self._rr = rtde_receive.RTDEReceiveInterface(
                         self.host, self.frequency, RECEIVE_VARIABLES
@@ -385,6 +420,8 @@ class UrRobot:
                     raise self._conn_error("RTDE receive", e) from None
                 if not self._rr.isConnected():
                     raise DeviceError(f"UR {self.host}: RTDE receive connection closed at start")
+            if self.controller_time_scale is None and self.time_scale_check_s > 0:
+                self._check_time_scale(self._rr)  # before the control program, before any move
             if not self._protective_stopped():
                 self._ensure_program()
 
@@ -529,10 +566,12 @@ class UrRobot:
                 try:
                     try:
                         db.closeSafetyPopup()
-                    except RuntimeError:
+                    except (RuntimeError, UnicodeDecodeError):
                         pass
                     db.unlockProtectiveStop()
                     break
+                except UnicodeDecodeError as e:
+                    raise self._not_a_dashboard(f"unlock protective stop: {_one_line(e)}") from None
                 except RuntimeError as e:
                     msg = _one_line(e)
                     if "Cannot unlock" in msg and time.monotonic() < deadline:
@@ -561,6 +600,116 @@ class UrRobot:
                     "(check the address, the network and that the controller is on)"
                 ) from None
 
+    def _rtde_precheck(self) -> None:
+        """Ask the RTDE port for its protocol version on a socket of our own, with a timeout.
+
+        The ur_rtde receive constructor sends the same request and waits for the answer with no
+        timeout, holding the GIL: a device that accepts TCP on 30004 but does not speak RTDE
+        would hang the program beyond the reach of Ctrl-C. A socket read here is interruptible."""
+        where = f"{self.host}:{RTDE_PORT}"
+        wait = self.rtde_answer_timeout_s
+        check = (
+            "check this is a UR controller's address and that the controller has finished "
+            "booting (its RTDE interface answers then)"
+        )
+        t_end = time.monotonic() + wait
+        try:
+            with socket.create_connection((self.host, RTDE_PORT), self.connect_timeout_s) as s:
+                s.sendall(struct.pack(">HBH", 5, RTDE_REQUEST_PROTOCOL_VERSION, 2))
+                reply = b""
+                while len(reply) < 3 or len(reply) < struct.unpack(">H", reply[:2])[0]:
+                    left = t_end - time.monotonic()
+                    if left <= 0:
+                        raise TimeoutError
+                    s.settimeout(left)
+                    chunk = s.recv(64)
+                    if not chunk:
+                        raise DeviceUnreachable(
+                            f"{where} accepts connections but closed one without an RTDE "
+                            f"answer: {check}"
+                        )
+                    reply += chunk
+                    if len(reply) >= 3 and (
+                        reply[2] != RTDE_REQUEST_PROTOCOL_VERSION
+                        or struct.unpack(">H", reply[:2])[0] != 4
+                    ):
+                        raise DeviceUnreachable(
+                            f"{where} answers, but not as a UR RTDE server (it sent "
+                            f"{reply[:12]!r} to a protocol-version request): {check}"
+                        )
+        except TimeoutError:
+            raise DeviceUnreachable(
+                f"{where} accepts connections but gives no RTDE answer within {wait:g} s: {check}"
+            ) from None
+        except DeviceUnreachable:
+            raise
+        except OSError as e:
+            raise DeviceUnreachable(
+                f"UR controller {self.host} unreachable: port {RTDE_PORT}: "
+                f"{e.strerror or type(e).__name__} (check the address, the network and that "
+                "the controller is on)"
+            ) from None
+
+    def _check_time_scale(self, rr) -> None:
+        """Measure the controller's clock (RTDE timestamp against the wall clock) and refuse a
+        `time_scale` faster than it, before anything moves."""
+        ratio, wall = self._measure_controller_clock(rr)
+        self.controller_time_scale = ratio
+        ts = self.time_scale
+        if abs(ratio - 1.0) <= TIME_SCALE_TOLERANCE * 1.0 + TIME_SCALE_SLACK:
+            suggest = "1 (the controller runs in real time)"
+        else:
+            suggest = f"{_two_digits(ratio)} (a `workcell sim --time-scale X` runs at X)"
+        if ts > ratio * (1.0 + TIME_SCALE_TOLERANCE) + TIME_SCALE_SLACK:
+            self.controller_time_scale = None  # measure again at the next connect
+            raise TimeScaleMismatch(
+                f"UR {self.host}: the controller's clock runs at {_two_digits(ratio)}x real time "
+                f"(its RTDE timestamp over {wall:.2f} s), but --time-scale {ts:g} would cut "
+                f"every wait {_two_digits(ts / ratio)}x short: a 1 s settle to "
+                f"{_two_digits(1000.0 * ratio / ts)} ms, move timeouts likewise; give --time-scale "
+                f"{suggest} (nothing moved)"
+            )
+        if ratio > ts * (1.0 + TIME_SCALE_TOLERANCE) + TIME_SCALE_SLACK:
+            self._warn(
+                f"UR {self.host}: the controller's clock runs at {ratio:.3g}x real time but "
+                f"the time scale is {ts:g}: every settle and wait lasts {ratio / ts:.3g}x "
+                f"longer than asked; give --time-scale {suggest}"
+            )
+
+    def _measure_controller_clock(self, rr) -> tuple[float, float]:
+        """(controller seconds per wall second, wall seconds measured over): from one new RTDE
+        timestamp to another `time_scale_check_s` later, each seen as it arrives."""
+        limit = max(1.0, 2.0 * self.time_scale_check_s)
+
+        def next_stamp(prev: float) -> tuple[float, float]:
+            t_end = time.monotonic() + limit
+            while True:
+                stamp, now = float(rr.getTimestamp()), time.monotonic()
+                if stamp != prev:
+                    return stamp, now
+                if now > t_end or not rr.isConnected():
+                    raise DeviceError(
+                        f"UR {self.host}: the controller's RTDE timestamp did not advance "
+                        f"within {limit:g} s; check the controller (restart it if it persists)"
+                    )
+                time.sleep(0.0005)
+
+        c0, w0 = next_stamp(float(rr.getTimestamp()))
+        time.sleep(self.time_scale_check_s)
+        c1, w1 = next_stamp(float(rr.getTimestamp()))
+        if c1 <= c0:
+            raise DeviceError(
+                f"UR {self.host}: the controller's RTDE timestamp went back while connecting "
+                "(a restart?); connect again"
+            )
+        return (c1 - c0) / (w1 - w0), w1 - w0
+
+    def _not_a_dashboard(self, why: str) -> DeviceUnreachable:
+        return DeviceUnreachable(
+            f"{self.host}:{DASHBOARD_PORT} answers, but not as a UR dashboard server ({why}); "
+            "is this the robot controller's address?"
+        )
+
     def _conn_error(self, what: str, e: BaseException) -> DeviceError:
         msg = _one_line(e)
         if "connect" in msg.lower() or "timeout" in msg.lower():
@@ -570,6 +719,8 @@ class UrRobot:
     def _db_connect(self) -> None:
         try:
             self._db.connect(int(self.connect_timeout_s * 1000))
+        except UnicodeDecodeError as e:
+            raise self._not_a_dashboard(f"greeting: {_one_line(e)}") from None
         except RuntimeError as e:
             if "cancel" in str(e).lower():  # the port answered TCP, then no greeting in time
                 raise DeviceError(
@@ -590,14 +741,12 @@ class UrRobot:
     def _robotmode(self) -> str:
         try:
             mode = self._db.robotmode().strip()
+        except UnicodeDecodeError as e:
+            raise self._not_a_dashboard(f"robotmode -> {_one_line(e)}") from None
         except RuntimeError as e:
             raise DeviceError(f"UR {self.host}: dashboard robotmode: {_one_line(e)}") from None
         if not mode.startswith("Robotmode:"):  # every UR dashboard server answers this way
-            raise DeviceError(
-                f"UR {self.host}: the device at this address does not answer like a UR "
-                f"dashboard server (robotmode -> {mode[:40]!r}); is this the robot controller's "
-                "address?"
-            )
+            raise self._not_a_dashboard(f"robotmode -> {mode[:40]!r}")
         return mode
 
     def _warn(self, msg: str) -> None:
@@ -708,6 +857,8 @@ class UrRobot:
                     db.brakeRelease()
                     released = True
                 time.sleep(0.05)
+        except UnicodeDecodeError as e:
+            raise self._not_a_dashboard(f"power on: {_one_line(e)}") from None
         except RuntimeError as e:
             raise DeviceError(f"UR {self.host}: power on: {_one_line(e)}") from None
         raise DeviceError(f"UR {self.host}: arm did not reach RUNNING after power on ({mode})")
