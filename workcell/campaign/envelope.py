@@ -5,6 +5,7 @@ Every motion target is checked before any motion; a target outside is refused wi
 
 from __future__ import annotations
 
+import difflib
 import json
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -26,8 +27,54 @@ ACCEL_CEILING_RAD_S2 = 40.0
 DEFAULT_KINEMATIC_MARGIN_M = 0.01
 
 
+# What an envelope (a file, a recorded session's `campaign.envelope`) may hold: the keys
+# `Envelope.to_dict` writes, and has written in every version (older ones without
+# `kinematic_margin_m`; never metadata). Any other key is refused: a misspelt one ("floor_z") was
+# ignored and its limit silently replaced by the default.
+ENVELOPE_KEYS = (
+    "joint_limits_rad",
+    "box_min_m",
+    "box_max_m",
+    "floor_z_m",
+    "max_speed_rad_s",
+    "max_accel_rad_s2",
+    "kinematic_margin_m",
+)
+# What a recorded session made by another tool may leave out (every file and session this tool
+# writes has them; an envelope file must give them): their defaults.
+_SESSION_DEFAULTS = {"floor_z_m": 0.02, "max_speed_rad_s": 1.0, "max_accel_rad_s2": 2.0}
+
+
 class EnvelopeViolation(ValueError):
     """A target outside the configured envelope; nothing moved."""
+
+
+class _DuplicateKey(ValueError):
+    pass
+
+
+def _no_duplicates(pairs):
+    """json object_pairs_hook: refuse a key given twice (json keeps the last, silently)."""
+    seen = {}
+    for k, v in pairs:
+        if k in seen:
+            raise _DuplicateKey(k)
+        seen[k] = v
+    return seen
+
+
+def _unknown_keys_message(unknown: list) -> str:
+    """'unknown key 'floor_z' (did you mean 'floor_z_m'?)...': the keys, the nearest known ones,
+    and what an envelope may hold."""
+    parts = []
+    for k in unknown:
+        near = difflib.get_close_matches(str(k), ENVELOPE_KEYS, n=1, cutoff=0.5)
+        parts.append(f"{k!r}" + (f" (did you mean {near[0]!r}?)" if near else ""))
+    return (
+        f"envelope: unknown key{'s' if len(parts) > 1 else ''} {', '.join(parts)}: a limit under "
+        f"another name would be ignored; an envelope holds only {', '.join(ENVELOPE_KEYS)} "
+        "(`workcell envelope --out FILE` writes one to edit)"
+    )
 
 
 @dataclass
@@ -41,6 +88,9 @@ class Envelope:
     # the box and the floor are kept this far from every checked point (the nominal kinematics'
     # error; 0 trusts the model exactly, e.g. in a simulation with a known arm)
     kinematic_margin_m: float = DEFAULT_KINEMATIC_MARGIN_M
+    # the keys `from_dict` filled in with defaults (absent from the file or session), for a
+    # reader to say so; not part of the envelope (not in `to_dict`, not compared)
+    defaulted: tuple[str, ...] = field(default=(), compare=False, repr=False)
 
     def __post_init__(self) -> None:
         """An envelope with NaN, an empty range or a non-positive cap would let motions through
@@ -122,29 +172,44 @@ class Envelope:
         }
 
     @classmethod
-    def from_dict(cls, d: dict, margin_if_absent_m: float = DEFAULT_KINEMATIC_MARGIN_M) -> Envelope:
-        """The `to_dict` layout. A dict without `kinematic_margin_m` (written before it existed)
-        gets `margin_if_absent_m`: the default for a file, 0 for a recorded session (what that
-        campaign ran with, so that its resumption plans the same poses)."""
+    def from_dict(
+        cls,
+        d: dict,
+        margin_if_absent_m: float = DEFAULT_KINEMATIC_MARGIN_M,
+        *,
+        limits_required: bool = False,
+    ) -> Envelope:
+        """The `to_dict` layout; any other key is refused (ValueError naming it and the nearest
+        known one). A dict without `kinematic_margin_m` (written before it existed) gets
+        `margin_if_absent_m`: the default for a file, 0 for a recorded session (what that
+        campaign ran with, so that its resumption plans the same poses). Without `floor_z_m`,
+        `max_speed_rad_s` or `max_accel_rad_s2` (never left out by this tool): refused when
+        `limits_required` (an envelope file), else their defaults (a session of another tool).
+        `defaulted` names every key filled in."""
         if not isinstance(d, dict):
             raise ValueError("envelope: expected a JSON object")
+        unknown = [k for k in d if k not in ENVELOPE_KEYS]
+        if unknown:
+            raise ValueError(_unknown_keys_message(unknown))
         for key, v in d.items():
             flat = np.ravel(np.asarray(v, dtype=object)) if isinstance(v, list) else [v]
             bad = [x for x in flat if isinstance(x, (bool, str)) or x is None]
             if bad:
                 raise ValueError(f"envelope {key}: every value must be a number, got {bad[0]!r}")
-        try:
-            return cls(
-                joint_limits_rad=d["joint_limits_rad"],
-                box_min_m=d["box_min_m"],
-                box_max_m=d["box_max_m"],
-                floor_z_m=d.get("floor_z_m", 0.02),
-                max_speed_rad_s=d.get("max_speed_rad_s", 1.0),
-                max_accel_rad_s2=d.get("max_accel_rad_s2", 2.0),
-                kinematic_margin_m=d.get("kinematic_margin_m", margin_if_absent_m),
+        missing = [k for k in ENVELOPE_KEYS[:3] if k not in d]
+        if limits_required:
+            missing += [k for k in _SESSION_DEFAULTS if k not in d]
+        if missing:
+            raise ValueError(
+                f"envelope: missing {', '.join(map(repr, missing))}: give every limit "
+                f"({', '.join(ENVELOPE_KEYS[:6])}; kinematic_margin_m may be left out, default "
+                f"{DEFAULT_KINEMATIC_MARGIN_M:g} m); `workcell envelope --out FILE` writes a "
+                "complete file to edit"
             )
-        except KeyError as e:
-            raise ValueError(f"envelope: missing {e.args[0]!r}") from None
+        filled = {k: v for k, v in _SESSION_DEFAULTS.items() if k not in d}
+        if "kinematic_margin_m" not in d:
+            filled["kinematic_margin_m"] = margin_if_absent_m
+        return cls(**{**filled, **d}, defaulted=tuple(filled))
 
     def violations(self, spec: RobotSpec, q: np.ndarray, tool_m: np.ndarray) -> list[str | None]:
         """For each row of q (N, n): None if inside, else the reason."""
@@ -341,6 +406,18 @@ def check_envelope_for(env: Envelope, spec: RobotSpec, source: str = "envelope")
             f"({r:.3g} m with a tool); "
             + millimetre_hint(far, r, "give the box in metres (base frame)")
         )
+    links = reach_m(spec.dh, np.zeros(3))  # no link frame gets further from the base
+    if env.floor_z_m < -links:
+        raise UserError(
+            f"{source}: floor_z_m {env.floor_z_m:g} m is further below the base than any link "
+            f"frame of the {spec.model} reaches ({links:.3g} m, the sum of its link lengths): "
+            "the floor check would never act; "
+            + (
+                f"it looks like millimetres, give metres ({env.floor_z_m / 1e3:g} m)"
+                if abs(env.floor_z_m) > 3 * r
+                else "give the table's height in metres, base frame (negative below the base)"
+            )
+        )
     if not env.floor_z_m < env.box_max_m[2]:
         raise UserError(
             f"{source}: floor_z_m {env.floor_z_m:g} m is above the box's top "
@@ -370,7 +447,16 @@ def load_envelope(path, spec: RobotSpec) -> Envelope:
             "(`workcell envelope --out FILE` writes one to edit)"
         ) from None
     try:
-        env = Envelope.from_dict(json.loads(text))
+        d = json.loads(text, object_pairs_hook=_no_duplicates)
+    except _DuplicateKey as e:
+        raise UserError(
+            f"envelope file {p}: key {e.args[0]!r} is given twice (JSON readers keep only the "
+            "last): give each once"
+        ) from None
+    except ValueError as e:
+        raise UserError(f"envelope file {p}: {e}") from None
+    try:
+        env = Envelope.from_dict(d, limits_required=True)
     except ValueError as e:
         raise UserError(f"envelope file {p}: {e}") from None
     return check_envelope_for(env, spec, f"envelope file {p}")

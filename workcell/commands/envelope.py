@@ -165,4 +165,9 @@ def describe(env, spec, title: str) -> str:
     lines.append(
         f"  caps     {env.max_speed_rad_s:g} rad/s, {env.max_accel_rad_s2:g} rad/s^2 per joint"
     )
+    if getattr(env, "defaulted", ()):
+        lines.append(
+            f"  default  {', '.join(env.defaulted)}: not in the file, the value above is the "
+            "default"
+        )
     return "\n".join(lines)
