@@ -4,7 +4,8 @@ Reads what survived in OLD (a file cut short by a crash is fine), re-creates the
 the session's `campaign` block (plan, poses, seed, devices, readings, settle), skips every pose
 already measured (by `pose_id`) and records the rest into a new file whose session carries
 `chained_from` {path, sha256, samples}. The old file is never modified. When OLD is itself a
-resume, its `chained_from` chain is followed back (`read_chain`: each path relative to the file
+resume, its `chained_from` chain is followed back (`read_chain`, over
+`workcell.recording.chain.follow_chain`, which the fits use too: each path relative to the file
 that names it, each sha256 checked) and the poses of every file of the chain count as measured;
 a link missing or changed is refused in one line unless `remeasure_missing`. Sample `index`
 continues from the chain's count; `elapsed_s` continues from its last value plus the time the
@@ -31,7 +32,7 @@ from workcell.campaign.run import campaign_stop, exit_code, progress, run_campai
 from workcell.drivers.protocols import DeviceUnreachable
 from workcell.errors import UserError, check_output_path
 from workcell.recording import checks
-from workcell.recording.dataset import file_sha256
+from workcell.recording.chain import file_sha256, follow_chain
 from workcell.recording.reader import read_recording
 from workcell.recording.repeats import RepeatWatch
 
@@ -69,50 +70,6 @@ def _read_for_resume(old: str):
 
 
 REMEASURE_OPTION = "--remeasure-missing"
-MAX_CHAIN = 1000  # links followed back; a longer chain is refused (a loop made by hand?)
-
-
-def _link_candidates(path: str, named_by: Path) -> list[Path]:
-    """Where the file a `chained_from.path` names may be: relative to the file that names it
-    (how workcell records it), as given (recordings made before, relative to the folder the
-    resume ran in), or beside the file that names it (the two moved together)."""
-    p = Path(path)
-    cands = [p] if p.is_absolute() else [named_by.parent / p, p]
-    cands.append(named_by.parent / p.name)
-    seen, out = set(), []
-    for c in cands:
-        key = str(c.resolve()) if c.exists() else str(c)
-        if key not in seen:
-            seen.add(key)
-            out.append(c)
-    return out
-
-
-def _chain_link(rec, named_by: Path) -> tuple[Path | None, str | None, dict]:
-    """The file `rec`'s `chained_from` names: (path, None) when found with the recorded sha256,
-    (None, why) when it is missing or has changed, (None, None) when `rec` continues nothing.
-    Third: the `chained_from` block."""
-    link = rec.session.get("chained_from")
-    if not link:
-        return None, None, {}
-    if not isinstance(link, dict) or not isinstance(link.get("path"), str) or not link["path"]:
-        return None, f"{named_by}: its chained_from block names no file", {}
-    want = link.get("sha256")
-    cands = _link_candidates(link["path"], named_by)
-    found = [c for c in cands if c.is_file()]
-    for c in found:
-        if not isinstance(want, str) or file_sha256(c) == want.lower():
-            return c, None, link
-    n = link.get("samples")
-    held = f" ({n} samples)" if isinstance(n, int) and not isinstance(n, bool) else ""
-    if not found:
-        why = f"{named_by} continues {link['path']}{held}, which is not at {cands[0]}"
-    else:
-        why = (
-            f"{named_by} continues {found[0]}{held}, but that file has changed since (its sha256 "
-            f"is not the one {named_by.name} recorded)"
-        )
-    return None, why, link
 
 
 def read_chain(old: str, *, remeasure_missing: bool = False) -> tuple[list, list[dict]]:
@@ -121,35 +78,18 @@ def read_chain(old: str, *, remeasure_missing: bool = False) -> tuple[list, list
     changed is refused in one line (its poses would be measured twice, or a changed file's
     counted as this campaign's), unless `remeasure_missing`: the chain then stops there, the
     poses it held are measured again and a warning says so."""
-    newest = _read_for_resume(old)
-    chain, notes = [newest], []
-    seen = {str(Path(old).resolve())}
-    named_by, rec = Path(old), newest
-    while True:
-        path, why, link = _chain_link(rec, named_by)
-        if why is not None:
-            if not remeasure_missing:
-                raise UserError(
-                    f"{why}: put the original back there and resume again, or measure the "
-                    f"poses it held again with `workcell campaign --resume {old} "
-                    f"{REMEASURE_OPTION}` (from a terminal; the TUI has no such option)"
-                )
-            note = f"{why}; its poses (and any before it in the chain) are measured again"
-            notes.append({"level": "warning", "kind": "chain", "message": note})
-            break
-        if path is None:
-            break
-        key = str(path.resolve())
-        if key in seen or len(chain) >= MAX_CHAIN:
+    chain, why, _ = follow_chain(_read_for_resume(old))
+    notes = []
+    if why:
+        if not remeasure_missing:
             raise UserError(
-                f"{named_by}: its chained_from links lead back to {path} again (edited by "
-                "hand?); cannot tell which poses were measured"
+                f"{why}: put the original back there and resume again, or measure the "
+                f"poses it held again with `workcell campaign --resume {old} "
+                f"{REMEASURE_OPTION}` (from a terminal; the TUI has no such option)"
             )
-        seen.add(key)
-        rec = read_recording(path)
-        chain.append(rec)
-        named_by = path
-    return chain[::-1], notes
+        note = f"{why}; its poses (and any before it in the chain) are measured again"
+        notes.append({"level": "warning", "kind": "chain", "message": note})
+    return chain, notes
 
 
 def resume_plan(old: str, *, remeasure_missing: bool = False) -> dict:

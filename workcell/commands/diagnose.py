@@ -19,6 +19,7 @@ from workcell.atomic import write_text
 from workcell.commands.options import add_tracker_mpe, parse_tracker_mpe
 from workcell.errors import UserError, check_output_path, replace_or_refuse
 from workcell.estimation.models import interval_um
+from workcell.recording.chain import add_chain_option
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -47,6 +48,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "replaced without it)",
     )
     p.add_argument("--no-np", action="store_true", help="skip the non-parametric residual check")
+    add_chain_option(p)
 
 
 def _json_default(o):
@@ -83,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
     if not 0.0 < args.alpha < 0.5:
         raise UserError(f"--alpha must be in (0, 0.5), got {args.alpha}")
     mpe = parse_tracker_mpe(args.tracker_mpe)
-    ds = Dataset.from_recording(args.recording)
+    ds = Dataset.from_recording(args.recording, chain_missing=args.chain_missing)
     log = lambda m: print(m, file=sys.stderr, flush=True)  # noqa: E731 - progress and warnings
     for line in read_warnings(ds):
         log(line)
@@ -157,6 +159,8 @@ def um(x) -> str:
 
 def print_report(r: dict) -> None:
     print(f"recording   {r['recording']}")
+    if r.get("chain"):  # a resumed recording: diagnosed with every file it continues
+        print(f"chain       {r['chain']}")
     print(
         f"poses       {r['train_poses']} train, {r['heldout_poses']} held out "
         f"({r['outliers_rejected']} outliers set aside)"

@@ -19,6 +19,7 @@ from workcell.estimation.models import (
     interval_um,
     unexplained_text,
 )
+from workcell.recording.chain import add_chain_option
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -50,6 +51,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "unbounded; none: the QP without bounds; leave --bounds out for the unbounded fit)",
     )
     add_tracker_mpe(p)
+    add_chain_option(p)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -89,6 +91,7 @@ def run(args: argparse.Namespace) -> int:
         tracker_mpe=mpe,
         progress=None if args.json else lambda m: print(m, file=sys.stderr),
         warn=lambda m: print(m, file=sys.stderr),
+        chain_missing=args.chain_missing,
     )
     if args.json:
         print(json.dumps(report, default=_json_default))
@@ -133,6 +136,8 @@ def identification_line(i: dict) -> str:
 def print_report(r: dict) -> None:
     print(f"method          {r['method']}")
     print(f"recording       {r['recording']}")
+    if r.get("chain"):  # a resumed recording: fitted with every file it continues
+        print(f"chain           {r['chain']}")
     print(f"poses           {r['train_poses']} train, {r['heldout_poses']} held out ({r['split']})")
     on = "held-out RMS" if r["heldout_poses"] else "train RMS   "  # --holdout 0: no held-out
     nci = interval_um(r.get("nominal_rms_ci95_m"))

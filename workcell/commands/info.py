@@ -29,17 +29,42 @@ def value_problems(rec: Recording) -> tuple[list[str], list[str]]:
     out = checks.problems_of(rec.session, rec.samples)
     if out or not rec.samples:
         return out, []
+    from workcell.recording.chain import Chain, file_sha256
     from workcell.recording.dataset import Dataset
     from workcell.recording.reader import RecordingError
 
-    try:
-        ds = Dataset.from_recording(rec)
+    try:  # this file's own values (`chain_summary` reports the files it continues)
+        ds = Dataset.from_recording(Chain([rec], [file_sha256(rec.path)]))
     except RecordingError as e:
         msg = str(e)
         for where in (str(rec.path), os.path.abspath(rec.path)):
             msg = msg.removeprefix(f"{where}: ")
         return [msg], []
     return [], [n for n in ds.read_notes if "set aside" in n or "exact copies" in n]
+
+
+def chain_summary(rec: Recording) -> dict | None:
+    """What a fit of this resumed recording uses (`workcell.recording.chain.load_chain`): every
+    file of its `chained_from` chain ({path, samples} oldest first) and their total, or why a fit
+    refuses it (a link missing or changed); None for a recording that continues nothing."""
+    if not rec.session.get("chained_from"):
+        return None
+    from workcell.errors import UserError
+    from workcell.recording.chain import load_chain
+
+    try:
+        ch = load_chain(rec)
+    except UserError as e:
+        recs, notes, problem = [rec], [], str(e)
+    else:
+        recs, notes, problem = ch.recordings, ch.notes, None
+    files = [{"path": str(r.path), "samples": len(r.samples)} for r in recs]
+    return {
+        "files": files,
+        "samples": sum(f["samples"] for f in files),
+        "problem": problem,
+        "notes": notes,
+    }
 
 
 def summary(path: str) -> dict:
@@ -67,6 +92,7 @@ def summary(path: str) -> dict:
         "plan": _get(s.get("campaign"), "plan"),
         "envelope": _get(s.get("campaign"), "envelope"),
         "chained_from": s.get("chained_from"),
+        "chain": chain_summary(rec),
         "size_bytes": rec.size_bytes,
         "repeats": repeats_of(rec),
     }
@@ -92,6 +118,16 @@ def run(args: argparse.Namespace) -> int:
         print(f"envelope    {envelope_line(d['envelope'])}")
     if d["chained_from"]:
         print(f"continues   {_get(d['chained_from'], 'path')}")
+    ch = d["chain"]
+    if ch and ch["problem"]:
+        print(f"chain       fits refuse this file: {ch['problem']}")
+    elif ch:
+        names = " + ".join(f"{f['samples']} ({os.path.basename(f['path'])})" for f in ch["files"])
+        print(
+            f"chain       {ch['samples']} samples in {len(ch['files'])} files, all used by fits: {names}"
+        )
+        for n in ch["notes"]:
+            print(f"chain       {n}")
     from workcell.recording.repeats import repeat_line
 
     for r in d["repeats"][:3]:

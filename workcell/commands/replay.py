@@ -16,6 +16,7 @@ import textwrap
 import time
 
 from workcell.errors import UserError, check_output_path
+from workcell.recording.chain import add_chain_option
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -31,19 +32,27 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "replaced without it)",
     )
     p.add_argument("--every", type=int, default=1, help="print every Nth progress line")
+    add_chain_option(p)
 
 
-def screened_samples(rec, name: str) -> list[dict]:
-    """The fits' screen (`workcell.recording.consistency`) on a replay: a recording whose tracker
-    positions do not follow the arm is refused; exact copies of a sample and gross readings are
-    skipped, with the warnings `fit` prints, so the filter sees what the fits see."""
+def screened_samples(rec, name: str, chain_missing: str = "refuse"):
+    """The fits' data on a replay: the samples of `rec` and of every file it continues (a
+    resumed campaign's chain, `Dataset.from_recording`), screened as the fits screen them
+    (`workcell.recording.consistency`): a recording whose tracker positions do not follow the
+    arm is refused; exact copies of a sample and gross readings are skipped, with the warnings
+    `fit` prints, so the filter sees what the fits see. -> (samples, the data set)."""
+    from workcell.recording.chain import load_chain
     from workcell.recording.dataset import Dataset
 
-    ds = Dataset.from_recording(rec)  # refuses a recording that does not follow the arm
+    chain = load_chain(rec, missing=chain_missing)
+    ds = Dataset.from_recording(chain)  # refuses a recording that does not follow the arm
     for note in ds.read_notes:
         if "set aside" in note or "exact copies" in note:
             print(f"warning: {name}: {note} (skipped by the replay too)", file=sys.stderr)
-    return [rec.samples[i] for i in ds.row]
+        elif note in chain.notes:
+            print(f"warning: {name}: {note}", file=sys.stderr)
+    samples = chain.samples
+    return [samples[i] for i in ds.row], ds
 
 
 def geometric_lines(est: dict) -> list[str]:
@@ -116,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
             args.save, args.recording, force=args.force, say=lambda m: print(m, file=sys.stderr)
         )
     rec = read_recording(args.recording, streams=False)
-    if not rec.samples:
+    if not rec.samples and not rec.session.get("chained_from"):
         why = f" ({rec.problems[0]})" if rec.problems else ""
         raise UserError(f"{args.recording}: no /campaign/sample messages{why}; nothing to replay")
     problems = checks.problems_of(rec.session, rec.samples)
@@ -124,7 +133,12 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"{args.recording}: {checks.first_problem(problems)}")
     for line in read_warnings(rec):
         print(line, file=sys.stderr)
-    rec.samples = screened_samples(rec, args.recording)
+    n_own_problems = len(rec.problems)
+    rec.samples, ds = screened_samples(rec, args.recording, args.chain_missing)
+    for p in ds.read_problems[n_own_problems:]:  # of the files it continues
+        print(f"warning: {args.recording}: {p}", file=sys.stderr)
+    if ds.chain_line:  # a resumed recording: replayed with every file it continues
+        print(f"recording {ds.chain_line}", file=sys.stderr)
     lf = LiveFilter.from_session(rec.session)
     out = sys.stderr if args.json else sys.stdout
     t_wall0 = time.perf_counter()
@@ -153,6 +167,8 @@ def run(args: argparse.Namespace) -> int:
             model = lf.model()
             model.info.setdefault("recording", os.path.abspath(args.recording))
             model.info.setdefault("recording_sha256", file_sha256(args.recording))
+            if ds.chain:  # a resumed recording: every file of its chain
+                model.info.setdefault("recording_chain", [dict(f) for f in ds.chain])
             save_model(model, args.save)
         except ValueError as e:
             raise UserError(str(e)) from None

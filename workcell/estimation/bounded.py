@@ -439,8 +439,7 @@ def fit_dh_bounded(
         "pinned_by_bounds": [names[i] for i in np.where(pinned)[0]],
         "std_conditional_on": [names[i] for i in np.where(active)[0]],
         "bounds_not_estimated": not_estimated,
-        "recording": ds.source,
-        "recording_sha256": ds.source_sha256,
+        **ds.provenance(),  # the recording, and every file of a resumed one
     }
     return DHModel(
         robot_model=ds.robot.model,

@@ -222,8 +222,7 @@ def fit_dh(
         "identifiability": ident.to_dict(cov),
         "fit_seconds": time.perf_counter() - t0,
         "nfev": int(res.nfev),
-        "recording": ds.source,
-        "recording_sha256": ds.source_sha256,
+        **ds.provenance(),  # the recording, and every file of a resumed one
     }
     return DHModel(
         robot_model=ds.robot.model,

@@ -689,8 +689,7 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
         cov=cov,
         nominal_tool_m=np.asarray(ds.tool_offset_m, float),
         info={
-            "recording": ds.source,
-            "recording_sha256": ds.source_sha256,
+            **ds.provenance(),  # the recording, and every file of a resumed one
             "train_poses": int(len(train)),
             "outliers_rejected": n_out,
             "thermal_source": src,
@@ -828,8 +827,8 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
     geometry = _geometry_items(model)
     weak = weak_directions(model.theta_cov(), PARAM_NAMES)
     report = {
-        "recording": ds.source,
-        "recording_sha256": ds.source_sha256,
+        **ds.provenance(),
+        **({"chain": ds.chain_line} if ds.chain_line else {}),
         "robot": ds.robot.model,
         "poses": int(len(ds)),
         "train_poses": int(len(train)),

@@ -202,8 +202,8 @@ def fit_dataset(
             params[n].update(std=None, at_bound=True, fixed_by_bound=True)
     report = {
         "method": method,
-        "recording": ds.source,
-        "recording_sha256": ds.source_sha256,
+        **ds.provenance(),
+        **({"chain": ds.chain_line} if ds.chain_line else {}),
         "robot": ds.robot.model,
         "train_poses": int(len(train)),
         "heldout_poses": int(len(test)),
@@ -351,10 +351,13 @@ def fit_recording(
     tracker_mpe=TRACKER_MPE_M,
     progress=None,
     warn=None,
+    chain_missing="refuse",
 ) -> dict:
     """`warn(line)` hears what the reader could not read (damaged chunk, cut-off end) before
-    the fit starts; the report lists it as `recording_problems`."""
-    ds = Dataset.from_recording(path)
+    the fit starts; the report lists it as `recording_problems`. A resumed recording is fitted
+    with every file it continues (`Dataset.from_recording`; `chain_missing` "ignore" leaves out
+    a missing link and the files before it, with a warning)."""
+    ds = Dataset.from_recording(path, chain_missing=chain_missing)
     for line in read_warnings(ds) if warn else ():
         warn(line)
     model, report = fit_dataset(
@@ -423,6 +426,8 @@ def keep_in_model(model, ds: Dataset, report: dict) -> None:
             # a bounded fit: its stds are conditional on the parameters a bound holds
             info["parameter_std_basis"] = report["parameter_std_basis"]
         info.setdefault("recording_sha256", ds.source_sha256)
+        if ds.chain:  # a resumed recording: every file of its chain
+            info.setdefault("recording_chain", [dict(f) for f in ds.chain])
         if not report.get("heldout_poses"):
             # no held-out poses (--holdout 0): training figures say nothing of what the model
             # leaves unexplained elsewhere; `export` then states none

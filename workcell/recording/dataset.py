@@ -1,21 +1,21 @@
 """In-memory dataset every estimator takes: arrays of pose samples plus the session's nominal model.
 
-Built from a recording (`Dataset.from_recording`) or directly from arrays (simulation, tests).
+Built from a recording (`Dataset.from_recording`; a resumed one with every file it continues,
+`workcell.recording.chain`) or directly from arrays (simulation, tests).
 """
 
 from __future__ import annotations
 
-import hashlib
 import os
 from dataclasses import dataclass, field, replace
-from pathlib import Path
 
 import numpy as np
 
 from workcell.kinematics.frames import matrix_from_quat_wxyz, transform_from
 from workcell.kinematics.robots import RobotSpec
 from workcell.recording import checks, consistency
-from workcell.recording.reader import Recording, RecordingError, is_finite_list, read_recording
+from workcell.recording.chain import Chain, file_sha256, load_chain  # noqa: F401 - file_sha256: here since before
+from workcell.recording.reader import Recording, RecordingError, is_finite_list
 
 HOLDOUT_SEED = 20240601
 
@@ -71,7 +71,8 @@ class Dataset:
     payload_kg: np.ndarray | None = None
     payload_com_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
     pose_id: np.ndarray | None = None
-    # (N,) index of each sample among the recording's samples (log-time order): the screens of
+    # (N,) index of each sample among the recording's samples (log-time order; of a resumed
+    # recording, among its chain's, oldest file first: `Chain.samples`): the screens of
     # `from_recording` leave some out (`consistency`); a replay streams the same ones
     row: np.ndarray | None = None
     session: dict = field(default_factory=dict)
@@ -83,6 +84,10 @@ class Dataset:
     # what the reader assumed for fields the format requires and the recording lacks (a file
     # written by another tool): commands print these as warnings too
     read_notes: tuple[str, ...] = ()
+    # a resumed recording: {path, sha256, samples} of every file of its chain, oldest first
+    # (this one last; `row` indexes their samples in that order), and the line that says so
+    chain: tuple[dict, ...] = ()
+    chain_line: str = ""
 
     def __post_init__(self) -> None:
         n = len(self.q)
@@ -147,22 +152,33 @@ class Dataset:
         return np.asarray(g).ravel()
 
     @classmethod
-    def from_recording(cls, rec: Recording | str | os.PathLike) -> Dataset:
-        if not isinstance(rec, Recording):
-            rec = read_recording(rec, streams=False)
+    def from_recording(
+        cls, rec: Recording | Chain | str | os.PathLike, *, chain_missing: str = "refuse"
+    ) -> Dataset:
+        """The data set of a recording and of every file it continues (a resumed campaign's
+        `chained_from` chain, `workcell.recording.chain.load_chain`): their samples in the order
+        of measurement, the nominal model of the newest file's session. A link of the chain
+        missing or changed is refused in one line unless `chain_missing` is "ignore"."""
+        ch = rec if isinstance(rec, Chain) else load_chain(rec, missing=chain_missing)
+        rec = ch.newest
         s = rec.session
         try:
             robot = checks.session_robot(s)
         except ValueError as e:
             raise RecordingError(f"{rec.path}: {e}") from None
-        rows = list(rec.samples)
+        rows = ch.samples
         if not rows:
             why = f" ({rec.problems[0]})" if rec.problems else ""
             raise RecordingError(f"{rec.path}: no /campaign/sample messages{why}; nothing to fit")
-        problems = checks.recording_problems(s, rows, robot)
-        if problems:
-            raise RecordingError(f"{rec.path}: {checks.first_problem(problems)}")
-        notes = []
+        read_problems = list(rec.problems)
+        for r in ch.recordings:
+            if r is not rec:
+                _check_same_cell(rec, r)
+                read_problems += [f"in {r.path.name}, which it continues: {p}" for p in r.problems]
+            problems = checks.recording_problems(r.session, r.samples, robot)
+            if problems:
+                raise RecordingError(f"{r.path}: {checks.first_problem(problems)}")
+        notes = list(ch.notes)
         kept = list(range(len(rows)))
         copies = consistency.exact_copies(rows)
         if copies:
@@ -229,11 +245,21 @@ class Dataset:
             row=np.asarray(kept, int),
             session=s,
             source=os.path.abspath(rec.path),
-            source_sha256=file_sha256(rec.path),
-            read_problems=tuple(rec.problems),
+            source_sha256=ch.sha256[-1],
+            chain=tuple(ch.files()) if len(ch.recordings) > 1 else (),
+            chain_line=ch.line(),
+            read_problems=tuple(read_problems),
             read_notes=tuple(notes),
         )
         return ds.screened()
+
+    def provenance(self) -> dict:
+        """What a model file records of the data it was fitted on: the recording (path and
+        sha256) and, for a resumed one, every file of its chain."""
+        out = {"recording": self.source, "recording_sha256": self.source_sha256}
+        if self.chain:
+            out["recording_chain"] = [dict(f) for f in self.chain]
+        return out
 
     def screened(self) -> Dataset:
         """Refuse data that does not follow the arm; set gross readings aside, with a note
@@ -255,6 +281,22 @@ class Dataset:
         return replace(kept, read_notes=(*self.read_notes, note))
 
 
+def _check_same_cell(rec: Recording, older: Recording) -> None:
+    """The files of a chain are fitted together: they must declare the same arm and SMR offset
+    (a resume keeps them; a difference is a hand-edited or foreign file)."""
+    a, b = rec.session, older.session
+    for what, get in (
+        ("robot model", lambda s: (s.get("robot") or {}).get("model")),
+        ("nominal DH", lambda s: (s.get("robot") or {}).get("dh")),
+        ("SMR offset", lambda s: (s.get("tool") or {}).get("smr_offset_m")),
+    ):
+        if get(a) != get(b):
+            raise RecordingError(
+                f"{rec.path} continues {older.path}, which declares another {what}; their poses "
+                "cannot be fitted together (edited by hand?): restore the files as recorded"
+            )
+
+
 def read_warnings(ds: Dataset | Recording) -> list[str]:
     """One warning line per reader problem: data may be missing and the fit would not show it."""
     notes: tuple[str, ...] = ()
@@ -266,14 +308,6 @@ def read_warnings(ds: Dataset | Recording) -> list[str]:
     return [
         f"warning: {source}: {p}; using the {n} samples that could be read" for p in problems
     ] + [f"warning: {source}: {x}" for x in notes]
-
-
-def file_sha256(path: str | os.PathLike) -> str:
-    h = hashlib.sha256()
-    with open(Path(path), "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def distinct_poses(q: np.ndarray, tol_rad: float = 1e-6) -> int:

@@ -71,12 +71,17 @@ def repeat_beyond_noise(r: dict, level: float = 0.99) -> bool:
 
 
 def repeats_of(rec) -> list[dict]:
-    """`repeat_drift` of a read recording; none when its samples do not make a dataset (a
-    damaged or foreign file: its problems are reported elsewhere)."""
-    if not rec.samples:
+    """`repeat_drift` of a read recording, with the files it continues (a resumed campaign's
+    reference pose is compared with its first reading, in the first file); none when its
+    samples do not make a dataset (a damaged or foreign file: its problems are reported
+    elsewhere). A link of the chain that is missing or changed is left out here (`workcell
+    info` says so)."""
+    if not rec.samples and not rec.session.get("chained_from"):
         return []
     try:
-        return repeat_drift(Dataset.from_recording(rec))
+        from workcell.recording.chain import load_chain
+
+        return repeat_drift(Dataset.from_recording(load_chain(rec, missing="ignore")))
     except Exception:  # noqa: BLE001 - an optional extra must not sink a report on a bad file
         return []
 
