@@ -246,3 +246,43 @@ def test_recording_and_estimation_do_not_import_the_campaign():
                     else []
                 )
                 assert not any(n.startswith("workcell.campaign") for n in names), p
+
+
+def test_the_tuis_online_fit_is_fed_every_file_of_the_chain(chain, monkeypatch):
+    """The TUI's EKF-ANN fit of a resumed recording fed the filter the newest file's samples
+    only, while its data set held the chain's."""
+    import importlib
+    import types
+
+    from workcell.tui import backend
+
+    fed = []
+
+    class Stop(Exception):
+        pass
+
+    class FakeFilter:
+        n_init = 1
+
+        @classmethod
+        def from_session(cls, session):
+            return cls()
+
+        def update(self, smp):
+            fed.append(int(smp["index"]))
+            return ""
+
+        def model(self):
+            raise Stop
+
+    real = importlib.import_module
+    fake = types.SimpleNamespace(LiveFilter=FakeFilter)
+    monkeypatch.setattr(
+        backend.importlib,
+        "import_module",
+        lambda name, *a: fake if name == "workcell.estimation.ekf_ann.live" else real(name, *a),
+    )
+    with pytest.raises(Stop):
+        backend._replay(chain / FILES[-1], None, 0.25, chain / "m.json")
+    per_file = [{int(s["index"]) for s in f} for f in _samples(chain)]
+    assert all(any(i in f for i in fed) for f in per_file), (fed, per_file)

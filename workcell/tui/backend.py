@@ -681,15 +681,16 @@ def _replay(recording, progress, holdout: float, out: Path) -> dict:
     from workcell.estimation.dh import nominal_registered
     from workcell.estimation.models import aux_from_dataset, error_stats, save_model
     from workcell.kinematics.chain import p_tracker
+    from workcell.recording.chain import load_chain
     from workcell.recording.dataset import Dataset
-    from workcell.recording.reader import read_recording
 
-    rec = read_recording(recording)
-    ds = Dataset.from_recording(rec)
+    chain = load_chain(recording)  # a resumed recording: every file it continues
+    rec = chain.newest
+    ds = Dataset.from_recording(chain)
     warnings = _read_warnings(ds, progress)
     train, test = ds.holdout_split(holdout)
     keep = {int(ds.pose_id[i]) for i in train}
-    samples = [s for s in rec.samples if int(s["pose_id"]) in keep]
+    samples = [s for s in chain.samples if int(s["pose_id"]) in keep]
     try:
         lf = live.LiveFilter.from_session(rec.session)
     except (KeyError, ValueError) as e:
@@ -713,8 +714,8 @@ def _replay(recording, progress, holdout: float, out: Path) -> dict:
     held = error_stats(pred, ev.p_tracker, interval=True)
     nom_pred = np.asarray(p_tracker(th, base, ev.q))
     nominal = error_stats(nom_pred, ev.p_tracker)
-    model.info.setdefault("recording", ds.source)  # for the next fit to know it as its own
-    model.info.setdefault("recording_sha256", ds.source_sha256)
+    for k, v in ds.provenance().items():  # for the next fit to know it as its own
+        model.info.setdefault(k, v)
     report = {
         "method": "ekf-ann",
         "recording": ds.source,
