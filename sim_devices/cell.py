@@ -40,12 +40,15 @@ def sim_cell(
     outlier_prob: float = 0.005,
     dh_error_scale: float = 1.0,
     noise: TrackerNoise | None = None,
+    noise_stream: int = 0,
 ):
-    """An in-process simulated cell: (SimWorld, SimRobot, SimTracker, CellSetup)."""
+    """An in-process simulated cell: (SimWorld, SimRobot, SimTracker, CellSetup).
+    `noise_stream` > 0: the same simulated truth, another draw of the noise (a resumed campaign
+    is a new run on the same cell, not a replay of the first run's readings)."""
     from sim_devices.inprocess import SimRobot, SimTracker
     from sim_devices.world import SimWorld
 
     nz = noise or TrackerNoise(beam_break_prob=beam_break_prob, outlier_prob=outlier_prob)
     truth = make_truth(robot, effects, seed, noise=nz, dh_error_scale=dh_error_scale)
-    world = SimWorld(truth, seed=seed)
+    world = SimWorld(truth, seed=seed, noise_stream=noise_stream)
     return world, SimRobot(world), SimTracker(world), declared_cell(truth, seed)

@@ -100,10 +100,14 @@ class SimWorld:
         clock: VirtualClock | ScaledClock | None = None,
         seed: int = 0,
         q0: np.ndarray | None = None,
+        noise_stream: int = 0,
     ) -> None:
         self.truth = truth
         self.clock = clock or VirtualClock()
-        self.rng = np.random.default_rng(seed + 7919)
+        # noise_stream > 0: another run on the same truth (a resumed campaign) draws other noise
+        self.rng = np.random.default_rng(
+            seed + 7919 if not noise_stream else [seed + 7919, int(noise_stream)]
+        )
         self.lock = threading.RLock()
         q0 = np.array([0.0, -1.57, 1.57, -1.57, -1.57, 0.0]) if q0 is None else np.asarray(q0)
         self._traj = Trajectory(0.0, q0, q0, 1.0, 1.0, np.full(6, 1.0))

@@ -8,6 +8,7 @@ import re
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from workcell.recording.reader import read_recording
@@ -312,3 +313,34 @@ def test_check_same_cell_lets_a_new_tracker_port_through_but_not_another_robot()
     with pytest.raises(UserError, match="robot at ur://10.0.0.5"):
         check_same_cell(camp, "x.mcap", robot_url="ur://10.0.0.6",
                         tracker_url="serial:///dev/ttyUSB1", **kw)  # fmt: skip
+
+
+def test_a_resumed_simulated_cell_draws_new_noise_on_the_same_truth(tmp_path, monkeypatch):
+    """A resume of a simulated campaign re-created the simulated cell with the first run's noise
+    stream (a replay of its readings' noise, not a new run: the same pose measured first in both
+    gave bit-identical readings, which the fits set aside as an "exact copy"). Now the resume
+    asks for noise stream k (k files in the chain) on the same simulated truth."""
+    import sim_devices.cell as sc
+
+    streams = []
+    real = sc.sim_cell
+
+    def spy(*a, **kw):
+        streams.append(kw.get("noise_stream", 0))
+        return real(*a, **kw)
+
+    first = tmp_path / "ref.mcap"
+    _campaign(first, 2)
+    monkeypatch.setattr(sc, "sim_cell", spy)
+    assert _resume(first, "--out", str(tmp_path / "ref.resumed.mcap")) == 0
+    assert streams == [1]
+    # same truth, other noise: the same pose read in both streams differs by the noise only
+    readings = []
+    for k in (0, 1):
+        world, robot, tracker, _ = real("ur5e", "none", 1, beam_break_prob=0.0, noise_stream=k)
+        robot.connect()
+        tracker.connect()
+        robot.move_joints(np.array([0.3, -1.2, 1.1, -1.4, -1.5, 0.2]), 1.0, 2.0)
+        readings.append(tracker.measure().position_m)
+    d = np.linalg.norm(readings[0] - readings[1])
+    assert 0 < d < 1e-3, d

@@ -60,7 +60,10 @@ def open_cell(args):
     if args.robot == "sim" and args.tracker == "sim":
         from sim_devices.cell import sim_cell  # the simulator only when asked for
 
-        _, robot, tracker, cell = sim_cell(args.model, args.effects, args.seed)
+        _, robot, tracker, cell = sim_cell(
+            args.model, args.effects, args.seed,
+            noise_stream=int(getattr(args, "sim_noise_stream", 0) or 0),
+        )  # fmt: skip
         if declared:  # else the simulated cell's own nominal SMR
             cell.tool_m = tool_m
         return cell, robot, tracker, envelope_from_args(args, cell.spec)

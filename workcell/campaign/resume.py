@@ -487,6 +487,7 @@ def resume_campaign(args: argparse.Namespace, control: CampaignControl) -> int:
     ns.seed = recorded_sim_seed(camp)
     ns.model = (info["recording"].session.get("robot") or {}).get("model") or args.model
     ns.envelope = None
+    ns.sim_noise_stream = len(info["chain"])  # a simulated cell: new noise, same truth
     cell, robot, tracker, env = open_cell(ns)
     cell.tool_m = np.asarray(recorded_tool(info["recording"].session))
     env = recorded_envelope(camp, cell.spec, str(old), default=env)
