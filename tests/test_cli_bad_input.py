@@ -359,7 +359,21 @@ def test_a_copy_cut_short_names_the_damage(cell, capsys, tmp_path):
     _, rec, _ = cell
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(rec.read_bytes()[:100])
-    one_line_refusal(capsys, ["fit", str(cut)], "file ends or is damaged near byte 100 of 100")
+    one_line_refusal(capsys, ["fit", str(cut)], "file ends or is damaged after byte 33 of 100")
+
+
+def test_damage_is_placed_where_it_is_and_an_empty_file_is_called_empty(cell, capsys, tmp_path):
+    """A byte flipped in the MCAP header was reported "near byte N of N" (the file's end, where
+    the reader had got to), a 0-byte file as "bad magic bytes"."""
+    _, rec, _ = cell
+    data = bytearray(rec.read_bytes())
+    data[20] ^= 0xFF
+    flipped = tmp_path / "flipped.mcap"
+    flipped.write_bytes(bytes(data))
+    one_line_refusal(capsys, ["fit", str(flipped)], "file ends or is damaged after byte 8 of")
+    empty = tmp_path / "empty.mcap"
+    empty.write_bytes(b"")
+    one_line_refusal(capsys, ["info", str(empty)], "empty.mcap: is empty (0 bytes)")
 
 
 def test_a_dh_chain_in_millimetres_is_refused(cell, capsys, tmp_path):

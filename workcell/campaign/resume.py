@@ -89,6 +89,13 @@ def read_chain(old: str, *, remeasure_missing: bool = False) -> tuple[list, list
             )
         note = f"{why}; its poses (and any before it in the chain) are measured again"
         notes.append({"level": "warning", "kind": "chain", "message": note})
+    for r in chain:  # damage inside a file (not a crash's cut end): its poses are measured again
+        for p in r.problems:
+            if "damaged chunk" in p:
+                notes.append({
+                    "level": "warning", "kind": "damaged",
+                    "message": f"{r.path.name}: {p}; the poses in it are measured again",
+                })  # fmt: skip
     return chain, notes
 
 

@@ -64,6 +64,11 @@ def read_recording(path: str | os.PathLike, *, streams: bool = True) -> Recordin
         raise RecordingError(f"{p}: not a regular file (a pipe or device); give a recording file")
     with open(p, "rb") as f:
         head = f.read(len(MAGIC))
+        if not head:
+            raise RecordingError(
+                f"{p}: is empty (0 bytes): nothing was recorded in it; give the recording file "
+                "(or copy it again from where it was recorded)"
+            )
         if head != MAGIC:
             raise RecordingError(f"{p}: not an MCAP file (bad magic bytes); expected a recording")
         f.seek(0)
@@ -80,8 +85,10 @@ def read_recording(path: str | os.PathLike, *, streams: bool = True) -> Recordin
             elif isinstance(r, Message):
                 _message(rec, channels, schemas, r, streams)
 
+        good = len(MAGIC)  # the end of the last record read whole
         try:
             for r in reader.records:
+                good = f.tell()
                 if isinstance(r, Chunk):
                     try:
                         inner = breakup_chunk(r, validate_crc=True)
@@ -105,9 +112,8 @@ def read_recording(path: str | os.PathLike, *, streams: bool = True) -> Recordin
                 )
         except (McapError, EOFError, ValueError, OSError, MemoryError, KeyError) as e:
             rec.closed_cleanly = False
-            where = f.tell()
             rec.problems.append(
-                f"file ends or is damaged near byte {where} of {rec.size_bytes} "
+                f"file ends or is damaged after byte {good} of {rec.size_bytes} "
                 f"({type(e).__name__}); read everything before it"
             )
         except Exception as e:  # noqa: BLE001 - a reader must never crash on a bad file
