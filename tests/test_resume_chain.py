@@ -370,3 +370,10 @@ def test_a_resume_says_a_damaged_chunk_is_measured_again(tmp_path):
     assert any(e["kind"] == "damaged" and "measured again" in e["message"] for e in events), [
         e["kind"] for e in events
     ]
+
+
+def test_a_resume_of_a_simulated_campaign_refuses_a_time_scale(chain, capsys):
+    """--time-scale on a resume of an in-process simulated campaign had no effect, silently."""
+    assert _resume(chain / "x.resumed1.mcap", "--time-scale", "20") == 2
+    err = [x for x in capsys.readouterr().err.splitlines() if ": error:" in x]
+    assert len(err) == 1 and "--time-scale 20:" in err[0] and "virtual time" in err[0], err

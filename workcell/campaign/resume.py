@@ -489,6 +489,11 @@ def resume_campaign(args: argparse.Namespace, control: CampaignControl) -> int:
                 f"continues on the same cell; leave --{opt} out"
             )
         setattr(ns, opt, recorded or given or "sim")
+    if ns.robot == "sim" and getattr(args, "time_scale_given", False):
+        raise UserError(
+            f"--time-scale {args.time_scale:g}: {old} was recorded with the in-process simulation, "
+            "which runs on virtual time, so it has no effect; leave it out"
+        )
     if camp.get("effects") is not None:
         ns.effects = camp["effects"]
     ns.seed = recorded_sim_seed(camp)

@@ -164,6 +164,7 @@ def _check_resume_options(args: argparse.Namespace) -> None:
 def _check_time_scale(args: argparse.Namespace) -> None:
     """--time-scale: a positive number, only for a controller (the in-process simulation runs on
     virtual time: it would ignore it); None becomes 1 (real time)."""
+    args.time_scale_given = args.time_scale is not None  # a resume checks it on its robot
     if args.time_scale is None:
         args.time_scale = 1.0
         return
