@@ -50,6 +50,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "QP; default bounds the DH corrections to +-5 mm, +-10 mrad, base and SMR offset "
         "unbounded; none: the QP without bounds; leave --bounds out for the unbounded fit)",
     )
+    p.add_argument(
+        "--smr-offset",
+        metavar="X,Y,Z",
+        help="dh, lddmm, gp: the SMR offset on the flange in m (the controller's TCP) for this "
+        "fit, in place of the one the recording declares (e.g. the fitted one a note below "
+        "suggests); the model and its exports are for a controller with this TCP",
+    )
     add_tracker_mpe(p)
     add_chain_option(p)
 
@@ -71,6 +78,13 @@ def run(args: argparse.Namespace) -> int:
     if args.on != "auto" and args.method == "dh":
         raise UserError("--on chooses the base model of lddmm and gp; --method dh has none")
     mpe = parse_tracker_mpe(args.tracker_mpe)
+    smr = None
+    if getattr(args, "smr_offset", None) is not None:
+        from workcell.campaign.devices import parse_smr_offset
+
+        if not args.smr_offset.strip():
+            raise UserError("--smr-offset is empty: give X,Y,Z in metres on the flange")
+        smr = parse_smr_offset(args.smr_offset)
     if args.out:
         out = Path(args.out)
     else:
@@ -92,6 +106,7 @@ def run(args: argparse.Namespace) -> int:
         progress=None if args.json else lambda m: print(m, file=sys.stderr),
         warn=lambda m: print(m, file=sys.stderr),
         chain_missing=args.chain_missing,
+        smr_offset_m=smr,
     )
     if args.json:
         print(json.dumps(report, default=_json_default))
@@ -138,6 +153,12 @@ def print_report(r: dict) -> None:
     print(f"recording       {r['recording']}")
     if r.get("chain"):  # a resumed recording: fitted with every file it continues
         print(f"chain           {r['chain']}")
+    sd = r.get("smr_declared") or {}
+    if sd.get("by") == "--smr-offset":
+        print(
+            f"SMR offset      {_vec_m(sd['offset_m'])} on the flange, by --smr-offset (the "
+            f"recording declares {_vec_m(sd['recording_m'])})"
+        )
     print(f"poses           {r['train_poses']} train, {r['heldout_poses']} held out ({r['split']})")
     on = "held-out RMS" if r["heldout_poses"] else "train RMS   "  # --holdout 0: no held-out
     nci = interval_um(r.get("nominal_rms_ci95_m"))
@@ -264,9 +285,11 @@ def print_report(r: dict) -> None:
                 f"note: the fitted SMR is {smr['change_m'] * 1e3:.1f} mm (std "
                 f"{smr['std_m'] * 1e3:.2f} mm) from the offset the recording declares "
                 f"{_vec_m(smr['declared_m'])}: a controller with the declared TCP needs "
-                "corrections of that order. Declare the fitted offset "
-                f"{_vec_m(smr['fitted_m'])} and fit again (the base registered with the "
-                "declared one absorbs part of the difference)",
+                "corrections of that order. Declare the fitted offset and fit again, `workcell "
+                f"fit {r['recording']} --smr-offset="
+                + ",".join(f"{x:.4f}" for x in smr["fitted_m"])
+                + "` (the base registered with the declared one absorbs part of the "
+                "difference), and set the controller's TCP to it",
                 width=100,
             )
         )

@@ -9,6 +9,7 @@ from __future__ import annotations
 import importlib
 import time
 from collections.abc import Callable
+from dataclasses import replace
 
 import numpy as np
 
@@ -352,14 +353,20 @@ def fit_recording(
     progress=None,
     warn=None,
     chain_missing="refuse",
+    smr_offset_m=None,
 ) -> dict:
     """`warn(line)` hears what the reader could not read (damaged chunk, cut-off end) before
     the fit starts; the report lists it as `recording_problems`. A resumed recording is fitted
     with every file it continues (`Dataset.from_recording`; `chain_missing` "ignore" leaves out
-    a missing link and the files before it, with a warning)."""
+    a missing link and the files before it, with a warning). `smr_offset_m` (3,): the SMR
+    offset on the flange (the controller's TCP) declared for this fit in place of the one the
+    recording declares (`fit --smr-offset`); the report's `smr_declared` says which."""
     ds = Dataset.from_recording(path, chain_missing=chain_missing)
     for line in read_warnings(ds) if warn else ():
         warn(line)
+    recorded_smr = np.asarray(ds.tool_offset_m, float).tolist()
+    if smr_offset_m is not None:
+        ds = replace(ds, tool_offset_m=np.asarray(smr_offset_m, float))
     model, report = fit_dataset(
         ds,
         method=method,
@@ -370,6 +377,11 @@ def fit_recording(
         progress=progress,
     )
     report["recording_problems"] = list(ds.read_problems)
+    report["smr_declared"] = {
+        "offset_m": np.asarray(ds.tool_offset_m, float).tolist(),
+        "by": "recording" if smr_offset_m is None else "--smr-offset",
+        "recording_m": recorded_smr,
+    }
     b = report.get("bounds")
     if warn and b and b["not_estimated"]:
         ne = b["not_estimated"]
