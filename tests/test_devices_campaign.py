@@ -87,6 +87,10 @@ def test_kill9_over_real_protocols_then_resume(tmp_path):
         first = read_recording(out)
         done = [s["pose_id"] for s in first.samples]
         assert len(done) >= 5 and not first.closed_cleanly
+        # the joint-state stream shows the moves themselves (until 2026-11-26: only the
+        # postures between moves, 0 moving states of 134)
+        moving = [js for js in first.joint_states if max(map(abs, js["qd_rad_s"])) > 0.05]
+        assert len(moving) >= 5 * len(done), (len(moving), len(first.joint_states))
         r = subprocess.run(
             [
                 sys.executable,

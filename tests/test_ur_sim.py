@@ -144,6 +144,24 @@ def test_urrobot_moves_and_reports_state(sim, robot_factory):
     assert r.state().t_s - t_r > 0.5
 
 
+def test_the_arms_state_is_reported_while_it_moves(sim, robot_factory):
+    """`state_during_move` (a campaign records them): states between the two poses, moving,
+    at most every `state_during_move_every_s` of controller time."""
+    r = robot_factory("127.0.0.21")
+    r.connect()
+    r.move_joints(QA, 1.0, 2.0)
+    seen = []
+    r.state_during_move = seen.append
+    r.move_joints(QB, 1.0, 2.0)
+    r.state_during_move = None
+    moving = [s for s in seen if np.max(np.abs(s.qd_rad_s)) > 0.05]
+    assert len(moving) >= 5, len(seen)
+    lo, hi = np.minimum(QA, QB) - 1e-3, np.maximum(QA, QB) + 1e-3
+    assert all(np.all((s.q_rad >= lo) & (s.q_rad <= hi)) for s in seen)
+    dt = np.diff([s.t_s for s in seen])
+    assert np.all(dt >= r.state_during_move_every_s - 1e-9), dt.min()
+
+
 def test_an_abort_stops_a_move_on_the_way(sim, robot_factory):
     """A campaign's abort flag (`abort_requested`) turning true during a move sends stopJ at
     once: the arm stops between the two poses. Until 2026-11-26 a Ctrl-C waited for the move to

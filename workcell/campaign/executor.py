@@ -316,7 +316,10 @@ class Executor:
         """Seconds since the campaign started, on the robot's clock (virtual time for a
         time-scaled simulation). A robot clock that went back (the controller restarted during a
         reconnect) continues from the last reading plus the local time since."""
-        t = self._robot_call(lambda: self.robot.state()).t_s
+        return self._elapsed_at(self._robot_call(lambda: self.robot.state()).t_s)
+
+    def _elapsed_at(self, t: float) -> float:
+        """`elapsed` for a robot clock reading t (s)."""
         if self._t_robot0 is None:
             self._t_robot0 = t
         e = self._elapsed0 + t - self._t_robot0
@@ -363,6 +366,13 @@ class Executor:
                 self._t_ns(e), st.q_rad, st.qd_rad_s, st.torque_nm, st.temperature_c
             )
         return st
+
+    def _state_during_move(self, st) -> None:
+        """A state the driver read while a move runs (`state_during_move`, UrRobot): into the
+        joint-state stream, so that the recording shows the motion itself."""
+        e = self._elapsed_at(st.t_s)
+        self._last_js = e
+        self.sink.joint_state(self._t_ns(e), st.q_rad, st.qd_rad_s, st.torque_nm, st.temperature_c)
 
     # ------------------------------------------------------------------ robot with fault policy
     def _robot_call(self, fn, *, repeat: bool = True):
@@ -836,15 +846,21 @@ class Executor:
         """Run the plan to its end, or until an abort or a stop; the result says which. A driver
         whose moves an abort can cut short (`abort_requested`, UrRobot) is given the abort flag
         for the campaign only: a move after it (a TUI's validation on the same robot after an
-        aborted campaign) is not refused by this campaign's abort."""
+        aborted campaign) is not refused by this campaign's abort. A driver that reports the
+        arm's state while it moves (`state_during_move`) has those states recorded too."""
         hands_flag = hasattr(self.robot, "abort_requested")
         if hands_flag:
             self.robot.abort_requested = self.control.abort.is_set
+        streams = hasattr(self.robot, "state_during_move")
+        if streams:
+            self.robot.state_during_move = self._state_during_move
         try:
             return self._run(plan)
         finally:
             if hands_flag:
                 self.robot.abort_requested = None
+            if streams:
+                self.robot.state_during_move = None
 
     def _run(self, plan: Plan) -> CampaignResult:
         sample = None

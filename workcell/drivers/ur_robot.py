@@ -57,6 +57,7 @@ therefore run in another process (see sim_devices/ur_process.py).
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import select
@@ -392,6 +393,11 @@ class UrRobot:
         # set by a campaign (its abort flag's `is_set`): a move in progress stops at once when
         # it turns true, instead of running to its target before the abort is seen
         self.abort_requested: Callable[[], bool] | None = None
+        # set by a campaign: called with the arm's state while a move runs, at most every
+        # `state_during_move_every_s` of controller time (the recording's joint-state stream
+        # then shows the motion, not only the postures between moves)
+        self.state_during_move: Callable[[RobotState], None] | None = None
+        self.state_during_move_every_s = 0.04
         self._rr = None
         self._rc = None
         self._db = None
@@ -966,6 +972,7 @@ class UrRobot:
         timeout = (2.0 * expected_s + 2.0) / self.time_scale + 2.0
         t_end = time.monotonic() + timeout
         rr = self._rr
+        last_state_t = -math.inf
         while True:
             if self.abort_requested is not None and self.abort_requested():
                 try:
@@ -984,6 +991,11 @@ class UrRobot:
                 # change a packet before the safety bits are seen (CI caught this race)
                 self._raise_if_stopped_soon(rr, "during a move")
                 raise DeviceError(f"UR {self.host}: control program stopped during a move")
+            if self.state_during_move is not None:
+                t = float(rr.getTimestamp())
+                if t - last_state_t >= self.state_during_move_every_s or t < last_state_t:
+                    last_state_t = t
+                    self.state_during_move(self.state())
             err = float(np.max(np.abs(np.array(rr.getActualQ()) - q)))
             if err < self.arrival_tol_rad:
                 qd = float(np.max(np.abs(rr.getActualQd())))
