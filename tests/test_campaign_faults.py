@@ -521,3 +521,43 @@ def test_a_campaign_that_records_no_pose_is_not_a_success(tmp_path):
     assert msg.startswith("no pose recorded: all 4 poses were skipped") and str(path) in msg
     with pytest.raises(UserError, match=r"--readings \(readings_per_pose\) 100000 is more than"):
         CampaignConfig(readings_per_pose=100000)
+
+
+class StoppedBefore(Wrapped):
+    """An arm in a protective stop from before the campaign: every state says so, every move
+    raises it. Counts moves and unlocks."""
+
+    def __init__(self, inner):
+        super().__init__(inner)
+        self.moves = self.unlocks = 0
+
+    def state(self):
+        from dataclasses import replace
+
+        return replace(self.inner.state(), safety="PROTECTIVE_STOP")
+
+    def move_joints(self, *a):
+        self.moves += 1
+        raise ProtectiveStop("UR sim: protective stop before a move")
+
+    def unlock_protective_stop(self):
+        self.unlocks += 1
+
+
+def test_a_protective_stop_from_before_the_campaign_is_not_released_by_itself(tmp_path):
+    """Without a terminal the policy is to resume at once after a protective stop; a stop the
+    arm was already in (the last campaign ended on 3 of them) was released the same way and the
+    arm moved on. Now the campaign stops before any motion, saying who releases it."""
+    _, robot, tracker, cell = sim_cell("ur5e", "none", seed=1, beam_break_prob=0.0)
+    arm = StoppedBefore(robot)
+    out = tmp_path / "ps.mcap"
+    control = CampaignControl()  # auto_resume_protective_stop: the non-interactive default
+    path, res = run_campaign(arm, tracker, cell, out, poses=3, seed=1, config=FAST,
+                             control=control)  # fmt: skip
+    assert res.aborted and res.stopped_by == "protective_stop"
+    assert arm.moves == 0 and arm.unlocks == 0
+    with pytest.raises(UserError) as e:
+        campaign_stop(res, path)
+    msg = str(e.value)
+    assert msg.startswith("the arm is in a protective stop from before this campaign"), msg
+    assert "nothing moved" in msg and "\n" not in msg and e.value.exit_code == 3

@@ -459,7 +459,7 @@ class Executor:
         try:
             self._robot_call(lambda: self.robot.move_joints(q, speed, accel), repeat=False)
         except ProtectiveStop as e:
-            self.event("error", "protective_stop", f"protective stop during a move: {e}")
+            self.event("error", "protective_stop", f"protective stop: {e}")
             self._pstops_in_a_row += 1
             if self._pstops_in_a_row >= MAX_PROTECTIVE_STOPS_IN_A_ROW:
                 msg = (
@@ -472,6 +472,25 @@ class Executor:
             self._wait_protective_stop()
             raise _MoveInterrupted("protective stop during a move") from None
         self._last_cmd = np.array(q, float)
+
+    def _stopped_before_start(self) -> None:
+        """An arm already in a protective stop when the campaign starts (the last campaign
+        stopped for protective stops, or the cell stopped it since): the resume-at-once policy
+        is for stops the campaign sees happen during its own moves; this one is released by
+        someone who has checked the cell. With the ask policy the operator is asked at the first
+        move, as for any stop."""
+        if not self.control.auto_resume_protective_stop:
+            return
+        st = self._robot_call(lambda: self.robot.state())
+        if getattr(st, "safety", "NORMAL") != "PROTECTIVE_STOP":
+            return
+        msg = (
+            "the arm is in a protective stop from before this campaign, which it did not see "
+            "happen and does not release by itself: check the cell, release the stop on the "
+            "teach pendant (or run the campaign from a terminal, where it asks); nothing moved"
+        )
+        self.event("error", "stopped", msg)
+        raise _CampaignStop("protective_stop", msg)
 
     def _wait_protective_stop(self) -> None:
         self.event("warning", "pause", "campaign paused by a protective stop")
@@ -866,6 +885,7 @@ class Executor:
         sample = None
         self.control.running.set()
         try:
+            self._stopped_before_start()
             self._tell_plan()
             t = next(plan)
             self.warm_up(t.q_rad)
