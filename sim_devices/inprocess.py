@@ -36,7 +36,7 @@ class SimRobot:
         tau = self._torques(q)
         return RobotState(
             t_s=self.world.clock.now(),
-            q_rad=q + self.world.rng.normal(0.0, 2e-6, 6),  # encoder noise
+            q_rad=q + self.world.encoder_rng.normal(0.0, 2e-6, 6),  # encoder noise
             qd_rad_s=qd,
             temperature_c=self.world.joint_temperatures_c(),
             torque_nm=-tau,  # the motors hold against gravity

@@ -108,6 +108,9 @@ class SimWorld:
         self.rng = np.random.default_rng(
             seed + 7919 if not noise_stream else [seed + 7919, int(noise_stream)]
         )
+        # the encoders' noise has its own stream: how often a campaign reads the arm's state
+        # must not change the tracker's noise draws (the data)
+        self.encoder_rng = np.random.default_rng([seed + 7919, int(noise_stream), 1])
         self.lock = threading.RLock()
         q0 = np.array([0.0, -1.57, 1.57, -1.57, -1.57, 0.0]) if q0 is None else np.asarray(q0)
         self._traj = Trajectory(0.0, q0, q0, 1.0, 1.0, np.full(6, 1.0))

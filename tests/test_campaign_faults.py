@@ -561,3 +561,39 @@ def test_a_protective_stop_from_before_the_campaign_is_not_released_by_itself(tm
     msg = str(e.value)
     assert msg.startswith("the arm is in a protective stop from before this campaign"), msg
     assert "nothing moved" in msg and "\n" not in msg and e.value.exit_code == 3
+
+
+class RealTimeArm(Wrapped):
+    """A simulated arm whose controller clock runs in real time (as a real one does)."""
+
+    def state(self):
+        from dataclasses import replace
+
+        return replace(self.inner.state(), t_s=time.monotonic())
+
+
+class Times:
+    """A sink that keeps the log times of its events."""
+
+    def __init__(self):
+        self.ns = []
+
+    def event(self, t_ns, *a):
+        self.ns.append(t_ns)
+
+
+def test_log_times_are_when_things_happen_on_a_real_time_controller():
+    """The robot's clock was read first at the first record, seconds after the campaign's wall
+    start when the plan's first step took long: every log time came that much early (4 s in an
+    audit: an abort logged before the signal that caused it)."""
+    from workcell.campaign.envelope import default_envelope
+    from workcell.campaign.executor import Executor
+
+    _, robot, tracker, cell = sim_cell("ur5e", "none", seed=1, beam_break_prob=0.0)
+    robot.connect()
+    sink = Times()
+    ex = Executor(RealTimeArm(robot), tracker, cell.spec, default_envelope(cell.spec), sink,
+                  tool_m=cell.tool_m, config=FAST)  # fmt: skip
+    time.sleep(0.5)  # a plan's first step
+    ex.event("info", "x", "now")
+    assert abs(sink.ns[-1] - time.time_ns()) < 0.15e9, (sink.ns[-1] - time.time_ns()) * 1e-9

@@ -310,6 +310,10 @@ class Executor:
         self._refused: list[tuple[int, str, np.ndarray | None, np.ndarray]] = []
         self.arm = arm  # where the arm is, for an adaptive plan (`plans.ArmPosture`)
         self._refused_from: np.ndarray | None = None  # where the arm was at the last refusal
+        # the robot's clock at the campaign's start (`t_wall0_ns`): read now, not at the first
+        # record (a plan's first step can take seconds, and every log time came that much early)
+        if robot is not None:  # None: a dry run's checks (`check_plan`)
+            self.elapsed()
 
     # ------------------------------------------------------------------ time and records
     def elapsed(self) -> float:
