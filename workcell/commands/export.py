@@ -123,6 +123,7 @@ def run(args: argparse.Namespace) -> int:
         parse_vec,
     )
     from workcell.export.files import check_export_outputs, output_files
+    from workcell.export.frame import frame_lines
     from workcell.export.table import is_warning
 
     check_unused_options(args)
@@ -163,6 +164,9 @@ def run(args: argparse.Namespace) -> int:
         )
         summary["files"] = [str(path)]
         _copy_unexplained(info, summary)
+        for key in ("base_ref", "base_correction"):
+            summary[key] = info.get(key)
+        log(info["base_correction_line"])
         return _report(args, summary)
     summary["conditions"] = conditions_note(model, cond, strict=True)
     if not args.json:
@@ -186,6 +190,9 @@ def run(args: argparse.Namespace) -> int:
         recording=args.recording,
         log=log,
     )
+    log("  " + frame_lines(table.meta, "the table's nodes")[2])
+    for key in ("base_ref", "base_correction"):
+        summary[key] = table.meta.get(key)
     summary["grid"] = {"shape": list(table.shape), "spacing_m": table.spacing_m.tolist()}
     summary["max_interp_error_m"] = table.meta["max_interp_error_m"]
     summary["max_correction_m"] = table.meta["max_correction_m"]
@@ -329,17 +336,36 @@ def _check_commanded(src: Path, q: np.ndarray, model, nom, lines: list[int]) -> 
     return f"commanded joints inside the envelope the model's recording {rec} ran in"
 
 
+def _configuration_line(q: np.ndarray, nom) -> str:
+    """The arm configurations (shoulder, elbow, wrist signs) the targets' corrections were solved
+    on (`CONFIGURATION_BASIS`): the correction holds on that branch only."""
+    from workcell.export.correction import configuration, configuration_dh
+
+    c = configuration(q, configuration_dh(nom.theta))
+    uniq, counts = np.unique(c, axis=0, return_counts=True)
+    parts = "; ".join(
+        f"shoulder {s:+d}, elbow {e:+d}, wrist {w:+d} ({n} target{'s' if n > 1 else ''})"
+        for (s, e, w), n in zip(uniq.tolist(), counts.tolist(), strict=True)
+    )
+    return (
+        f"arm configuration of the corrected joints q*_cmd_rad: {parts}; each correction holds "
+        "on its configuration only: command the joints, or keep the arm on it"
+    )
+
+
 def _targets(args, model, cond, summary, log, logged: list[str]) -> int:
     from workcell.export.build import model_recording, nominal_for_model, note_unexplained
     from workcell.export.correction import Q_REF, Corrector, matrix_to_rotvec, rotvec_to_matrix
     from workcell.export.files import TARGETS_CSV_MARK
+    from workcell.export.frame import frame_lines, frame_meta
     from workcell.export.table import (
-        NO_STD_LINE,
         STD_BASIS,
         check_corrections,
         coverage_line,
         is_warning,
         joint_coverage,
+        no_std_line,
+        no_std_why,
         node_std,
         undetermined_line,
         unexplained_lines,
@@ -398,7 +424,7 @@ def _targets(args, model, cond, summary, log, logged: list[str]) -> int:
     summary["joint_coverage"] = coverage
     sd = node_std(corr, q)  # (N, 3) or None: the model carries no covariance
     summary["median_std_m"] = summary["max_std_m"] = None
-    summary["std_basis"] = "none: the model carries no covariance of its prediction"
+    summary["std_basis"] = f"none: {no_std_why(model)}"
     if sd is not None:
         s3 = np.linalg.norm(sd, axis=1)
         summary["median_std_m"], summary["max_std_m"] = float(np.median(s3)), float(s3.max())
@@ -411,8 +437,10 @@ def _targets(args, model, cond, summary, log, logged: list[str]) -> int:
         if (line := undetermined_line(s3, mags, what="targets")) is not None:
             log(f"  {line}")
     else:
-        log(f"  {NO_STD_LINE}")
+        log(f"  {no_std_line(model)}")
     note_unexplained(model, summary, log)
+    summary.update(frame_meta(model, nom.base_ref, P))
+    log("  " + frame_lines(summary, "these targets")[2])
     summary["warnings"] = [line.strip() for line in logged if is_warning(line)]
     rec_sha = model_recording(model)[1]
     out = Path(args.out)
@@ -423,13 +451,25 @@ def _targets(args, model, cond, summary, log, logged: list[str]) -> int:
             f"model: {args.model} ({getattr(model, 'method', '?')})",
             f"recording_sha256: {rec_sha}",
             f"robot: {nom.robot}",
-            "frame: base = the model's registered nominal base (tracker_T_base = base_ref); "
-            "positions are the SMR/TCP in base; x_m..rz_rad the desired pose, *_cmd_* what to "
-            "command (the nominal orientation is kept)",
+            *frame_lines(summary, "these targets"),
+            "columns: x_m..rz_rad the desired pose, *_cmd_* what to command (the nominal "
+            "orientation is kept): commanded = desired + correction",
             "units: m, rad (UR rotation vectors)",
+            f"TCP (SMR) in flange: {np.asarray(nom.tool_m).tolist()} m, the one the correction "
+            "assumes: set this TCP in the controller",
             *(f"conditions: {x}" for x in summary["conditions"]),
+            *(
+                []
+                if summary["conditions"]
+                else [
+                    f"conditions: approach {[int(x) for x in cond.approach_sign]} per joint as "
+                    "computed; the model declares no payload-, approach- or thermal-dependent "
+                    "term: the correction is the same under any"
+                ]
+            ),
+            _configuration_line(q, nom),
             coverage_line(coverage, what="targets"),
-            f"sx_m, sy_m, sz_m: {STD_BASIS}" if sd is not None else NO_STD_LINE,
+            f"sx_m, sy_m, sz_m: {STD_BASIS}" if sd is not None else no_std_line(model),
             *unexplained_lines(summary),
         ):
             f.write(f"# {' '.join(line.split())}\n")

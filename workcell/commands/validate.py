@@ -26,6 +26,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="safety envelope JSON; default: the one recorded with the model's campaign, else "
         "the arm's default",
     )
+    p.add_argument(
+        "--max-correction",
+        type=float,
+        help="refuse corrections above this, m (default 5e-3; when building the table)",
+    )
     p.add_argument("--seed", type=int, default=12345, help="seed of the random targets")
     p.add_argument("--sim-seed", type=int, help="simulated truth seed (default: the recording's)")
     p.add_argument("--effects", help="simulated effects (default: the recording's)")
@@ -53,6 +58,11 @@ def check_options(args: argparse.Namespace) -> None:
             "--volume: not used with --table, whose volume is the table's own grid (it is for "
             "the table validate builds from the model); leave one of them out"
         )
+    if args.table and getattr(args, "max_correction", None) is not None:
+        raise UserError(
+            "--max-correction: not used with --table, which was built with its own bound (it is "
+            "for the table validate builds from the model); leave one of them out"
+        )
     sim = args.robot == "sim" and args.tracker == "sim"
     if sim and (args.readings is not None or args.robot_model):
         given = [
@@ -63,6 +73,22 @@ def check_options(args: argparse.Namespace) -> None:
             "simulation rebuilds the model's robot and scores against its true positions "
             "(leave them out, or give --robot ur://HOST --tracker serial://PORT)"
         )
+
+
+def print_table(res: dict, interval_um) -> None:
+    """The before/after table: columns as wide as their widest number, one space at least
+    between them (a 3 m error no longer runs into the next column)."""
+    keys = ("mean_m", "rms_m", "max_m")
+    vals = [f"{res[k][c] * 1e6:.1f}" for k in ("before", "after") for c in keys]
+    w = max(9, 1 + max(len(v) for v in vals))
+    print(
+        f"{'':10}{'mean':>{w + 3}}{'RMS':>{w + 3}}{'max':>{w + 3}}   95 % CI of the RMS   "
+        f"({res['targets']} targets, truth: {res['truth']})"
+    )
+    for key in ("before", "after"):
+        s = res[key]
+        cells = "".join(f"{s[c] * 1e6:>{w}.1f} um" for c in keys)
+        print(f"{key:10}{cells}   {interval_um(s.get('rms_ci95_m'), label=False)}")
 
 
 def recorded_end_s(rec: str | None) -> float | None:
@@ -96,6 +122,7 @@ def run(args: argparse.Namespace) -> int:
     from workcell.export.correction import Conditions
     from workcell.export.table import load_table
     from workcell.export.validate import (
+        real_cell,
         robot_mover,
         run_validation,
         sim_measure,
@@ -122,13 +149,28 @@ def run(args: argparse.Namespace) -> int:
     if args.robot == "sim" and args.tracker == "sim":
         from sim_devices.cell import sim_cell
 
+        if (where := real_cell(session)) is not None:
+            raise UserError(
+                f"{args.model} was fitted on a real cell ({rec or 'its recording'}: {where}): "
+                "a simulator has "
+                "another arm; validate it on that cell: --robot ur://HOST --tracker "
+                "serial://PORT"
+            )
+        if not session and (args.sim_seed is None or args.effects is None):
+            why = missing or "the model names no recording"
+            raise UserError(
+                f"simulation: {why}; put the recording beside the model, or, for a model "
+                "fitted on a simulated cell whose recording moved, pass --sim-seed and --effects "
+                "(they must match the recording's campaign)"
+            )
         seed = args.sim_seed if args.sim_seed is not None else recorded_sim_seed(camp)
         effects = args.effects or camp.get("effects")
         if seed is None or effects is None:
-            why = missing or "the model's recording does not give the simulated seed/effects"
             raise UserError(
-                f"simulation: {why}; pass --sim-seed and --effects (they must match the "
-                "recording's campaign), or put the recording beside the model"
+                f"simulation: the model's recording {rec} does not say which simulated cell it "
+                "was made on (seed and effects); if it was a simulation, pass --sim-seed and "
+                "--effects as its campaign ran, else validate on the real cell: --robot "
+                "ur://HOST --tracker serial://PORT"
             )
         robot_name = (session.get("robot") or {}).get("model") or getattr(
             model, "robot_model", "ur5e"
@@ -182,7 +224,16 @@ def run(args: argparse.Namespace) -> int:
                 payload_kg=float(cell.payload_kg),
             )
             table, corr = make_table(
-                model, model_path=args.model, volume=vol, conditions=cond, log=log
+                model,
+                model_path=args.model,
+                volume=vol,
+                conditions=cond,
+                log=log,
+                **(
+                    {}
+                    if getattr(args, "max_correction", None) is None
+                    else {"max_correction_m": args.max_correction}
+                ),
             )
             nominal = corr.nominal
         res = run_validation(
@@ -205,16 +256,7 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(res))
         return 0
-    print(
-        f"{'':10}{'mean':>12}{'RMS':>12}{'max':>12}   95 % CI of the RMS   ({res['targets']} "
-        f"targets, truth: {res['truth']})"
-    )
-    for key in ("before", "after"):
-        s = res[key]
-        print(
-            f"{key:10}{s['mean_m'] * 1e6:>9.1f} um{s['rms_m'] * 1e6:>9.1f} um"
-            f"{s['max_m'] * 1e6:>9.1f} um   {interval_um(s.get('rms_ci95_m'), label=False)}"
-        )
+    print_table(res, interval_um)
     if res.get("skipped"):
         print(
             f"skipped   {len(res['skipped'])} target(s) before any motion; first: {res['skipped'][0]}"

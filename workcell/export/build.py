@@ -283,7 +283,16 @@ def note_unexplained(model, meta: dict, log=None) -> None:
         return
     meta["model_unexplained"] = u
     if log:
-        log(f"  not in that 1-sigma: the model leaves {unexplained_text(u)} on its held-out poses")
+        if meta.get("median_std_m") is None:
+            log(
+                f"  the model gives no 1-sigma; what it leaves unexplained: {unexplained_text(u)} "
+                "on its held-out poses"
+            )
+        else:
+            log(
+                f"  not in that 1-sigma: the model leaves {unexplained_text(u)} on its held-out "
+                "poses"
+            )
         if isinstance(sel := model.info.get("heldout_selection"), str):
             log(f"  ({sel})")
     w = model_unexplained(model, without_outliers=True)

@@ -29,6 +29,7 @@ from workcell.export.correction import (
     matrix_to_rotvec,
     rotvec_to_matrix,
 )
+from workcell.export.frame import frame_lines, frame_meta
 from workcell.recording.checks import DH_LENGTH_MAX_M
 
 TABLE_FORMAT = "workcell-correction-table/1"
@@ -198,7 +199,7 @@ class CorrectionTable:
             "format": TABLE_FORMAT,
             "meta": self.meta,
             "grid": {
-                "frame": "base (registered nominal base of the model)",
+                "frame": "base_ref (meta.base_ref: tracker_T_base; see meta.frame)",
                 "units": "m",
                 "lo_m": self.lo_m.tolist(),
                 "hi_m": self.hi_m.tolist(),
@@ -327,18 +328,18 @@ class CorrectionTable:
         # both files whole or neither replaced: a failure (full disk) keeps an earlier pair
         with atomic_files(pj, pc, newline="") as (fj, f):
             fj.write(text)
-            for key in ("model", "recording_sha256", "robot", "frame", "units"):
-                if key in self.meta:
-                    f.write(f"# {key}: {self.meta[key]}\n")
             f.write(f"# grid: lo {self.lo_m.tolist()} hi {self.hi_m.tolist()} shape {self.shape}\n")
             f.write(f"# max_interp_error_m: {self.meta.get('max_interp_error_m')}\n")
-            if isinstance(self.meta.get("joint_coverage"), dict):
-                f.write(f"# {coverage_line(self.meta['joint_coverage'])}\n")
-            for line in unexplained_lines(self.meta):
-                f.write(f"# {line}\n")
+            for line in header_lines(self):
+                f.write(f"# {' '.join(line.split())}\n")
             w = csv.writer(f)
             if self.std_m is not None and "std_basis" in self.meta:
                 f.write(f"# sx_m, sy_m, sz_m: {self.meta['std_basis']}\n")
+            f.write(
+                "# columns: orientation index and its rotation vector rx, ry, rz (rad), grid "
+                "index i, j, k, node position x_m, y_m, z_m (base_ref), correction dx_m, dy_m, "
+                "dz_m (commanded = desired + delta)\n"
+            )
             w.writerow(
                 ["orientation", "rx", "ry", "rz", "i", "j", "k", "x_m", "y_m", "z_m"]
                 + ["dx_m", "dy_m", "dz_m"]
@@ -364,16 +365,28 @@ class CorrectionTable:
 def unexplained_lines(meta: dict) -> list[str]:
     """What the model leaves unexplained on its held-out poses (`model_unexplained` in a table's
     or summary's meta, and without the named outliers), which the correction's 1-sigma does not
-    hold: the lines export files state it with."""
+    hold (or, when the model gives none, what it leaves out): the lines export files state it
+    with."""
     from workcell.estimation.models import unexplained_text
 
+    has_std = meta.get("median_std_m") is not None
+    lead = "not in that 1-sigma:" if has_std else "the model gives no 1-sigma; what it leaves"
     u = meta.get("model_unexplained")
     if not isinstance(u, dict):
+        if has_std:
+            return [
+                "not in that 1-sigma: what the model leaves unexplained (its file states no "
+                "held-out figure)"
+            ]
         return [
-            "not in that 1-sigma: what the model leaves unexplained (its file states no "
-            "held-out figure)"
+            "the model gives no 1-sigma; what it leaves unexplained: not stated (its file "
+            "states no held-out figure)"
         ]
-    out = [f"not in that 1-sigma: the model leaves {unexplained_text(u)} on its held-out poses"]
+    if has_std:
+        first = f"{lead} the model leaves {unexplained_text(u)} on its held-out poses"
+    else:
+        first = f"{lead} unexplained: {unexplained_text(u)} on its held-out poses"
+    out = [first]
     w = meta.get("model_unexplained_without_outliers")
     if isinstance(w, dict):
         ids = ", ".join(str(i) for i in w.get("pose_ids", []))
@@ -382,6 +395,88 @@ def unexplained_lines(meta: dict) -> list[str]:
             f"{unexplained_text(w)}"
         )
     return out
+
+
+def header_lines(table: CorrectionTable) -> list[str]:
+    """What a controller needs to use the table, one line each (without `# `), shared by the
+    table CSV's and the URScript's headers: model, recording, robot and units, the frame (with
+    tracker_T_base and the base correction), the sign convention, the TCP, the volume, the
+    interpolation error, the 1-sigma and what the model leaves out, the conditions and the arm
+    configuration."""
+    m = table.meta if isinstance(table.meta, dict) else {}
+    K = len(table.orientations_rotvec)
+    nx, ny, nz = table.shape
+    ie = m.get("max_interp_error_m")
+    ie = float("nan") if not isinstance(ie, int | float) else float(ie)
+    return [
+        f"model: {m.get('model', '?')}  method: {m.get('method', '?')}",
+        f"recording sha256: {m.get('recording_sha256', '?')}",
+        f"robot: {m.get('robot', '?')}",
+        "units: m, rad (UR rotation vectors)",
+        *frame_lines(m, "the table's nodes"),
+        "semantics: commanded = desired + delta(desired), delta trilinear in the grid; the "
+        "orientation is commanded as desired (the nominal one)",
+        f"TCP (SMR) in flange: {m.get('tcp_m', '?')} m, the one the table assumes: set this TCP "
+        "in the controller",
+        f"volume {table.lo_m.tolist()}..{table.hi_m.tolist()} m (base_ref), grid {nx}x{ny}x{nz}, "
+        f"{K} orientation(s)",
+        f"interpolation error: largest on {m.get('interp_error_points', '?')} random points "
+        f"{ie:.3g} m (a sample maximum, not a bound)",
+        *uncertainty_lines(m),
+        *conditions_lines(m),
+        *configuration_lines(table),
+    ]
+
+
+def conditions_lines(meta: dict) -> list[str]:
+    """The conditions the correction was computed for (`conditions:` lines)."""
+    notes = meta.get("conditions_note") or []
+    cond = meta.get("conditions") if isinstance(meta.get("conditions"), dict) else {}
+    out = [f"conditions: {c}" for c in notes]
+    sign = cond.get("approach_sign")
+    sign = "" if sign is None else f"approach {[int(x) for x in sign]} per joint as computed; "
+    if not notes:
+        out.append(
+            f"conditions: {sign}the model declares no payload-, approach- or thermal-dependent "
+            "term: the correction is the same under any"
+        )
+    elif sign and not any("approach" in str(c) for c in notes):
+        out.append(f"conditions: {sign}the model has no backlash term: it does not depend on it")
+    return out
+
+
+def uncertainty_lines(m: dict) -> list[str]:
+    """The correction's 1-sigma, where it is undetermined, which nodes are extrapolations and
+    what the model leaves unexplained (as `export` prints them), without `# `."""
+    if m.get("median_std_m") is not None:
+        out = [
+            f"correction 1-sigma (3-D, model uncertainty): median {m['median_std_m']:.3g} m, "
+            f"max {m.get('max_std_m', float('nan')):.3g} m; per node in the table's JSON/CSV"
+        ]
+    else:
+        basis = m.get("std_basis")
+        why = (
+            basis[len("none: ") :] if isinstance(basis, str) and basis.startswith("none: ") else ""
+        )
+        out = [f"correction 1-sigma: not given ({why or NO_STD_WHY})"]
+    if m.get("nodes_std_exceeds_correction"):
+        out.append(
+            f"WARNING: at {m['nodes_std_exceeds_correction']} nodes the correction's 1-sigma is "
+            "larger than the correction itself: the measured poses do not determine it there"
+        )
+    if isinstance(m.get("joint_coverage"), dict):
+        out.append(coverage_line(m["joint_coverage"]))
+    return out + unexplained_lines(m)
+
+
+def configuration_lines(table: CorrectionTable) -> list[str]:
+    if table.configurations is None:
+        return ["arm configuration: not recorded in this table (not checked)"]
+    sg = "; ".join(
+        f"orientation {k}: shoulder {s:+d}, elbow {e:+d}, wrist {w:+d}"
+        for k, (s, e, w) in enumerate(np.asarray(table.configurations, int).tolist())
+    )
+    return [f"arm configuration (checked, halts otherwise): {sg}"]
 
 
 def table_files(path: str | os.PathLike) -> tuple[Path, Path]:
@@ -594,12 +689,39 @@ def undetermined_line(s3: np.ndarray, mags: np.ndarray, what: str = "nodes") -> 
     )
 
 
-NO_STD_LINE = "correction 1-sigma: not given (the model carries no covariance of its prediction)"
+NO_STD_WHY = "the model carries no covariance of its prediction"
+NO_STD_LINE = f"correction 1-sigma: not given ({NO_STD_WHY})"
+# an ekf-ann model keeps its geometric states' covariance (the ROS YAML's +-) but not its
+# network weights' covariance with them: its prediction's covariance cannot be propagated
+EKF_NO_STD_WHY = (
+    "the ekf-ann model keeps the filter's covariance of its geometric states only (the ROS "
+    "YAML's +-), not its network weights' joint covariance with them, so the covariance of its "
+    "prediction (geometry plus network) cannot be propagated from it"
+)
+
+
+def no_std_why(model) -> str:
+    """Why a model's correction has no 1-sigma (`node_std` gave None)."""
+    if getattr(model, "method", None) == "ekf-ann" and _has_theta_cov(model):
+        return EKF_NO_STD_WHY
+    return NO_STD_WHY
+
+
+def no_std_line(model) -> str:
+    return f"correction 1-sigma: not given ({no_std_why(model)})"
+
+
+def _has_theta_cov(model) -> bool:
+    f = getattr(model, "theta_cov", None)
+    try:
+        return f is not None and f() is not None
+    except Exception:  # noqa: BLE001 - a statement only
+        return False
 
 
 def is_warning(line: str) -> bool:
     """Whether an export log line is a warning (`export --json` lists those in `warnings`)."""
-    return line.strip().startswith(("WARNING", "warning:", NO_STD_LINE))
+    return line.strip().startswith(("WARNING", "warning:", "correction 1-sigma: not given"))
 
 
 def _configurations(corr: Corrector, tab: CorrectionTable) -> tuple[np.ndarray, tuple]:
@@ -723,7 +845,7 @@ def build_table(
     coverage = joint_coverage(corr, tab.q_nodes)
     log("  " + coverage_line(coverage))
     tab.std_m = node_std(corr, tab.q_nodes)
-    std_meta: dict = {"std_basis": "none: the model carries no covariance of its prediction"}
+    std_meta: dict = {"std_basis": f"none: {no_std_why(corr.model)}"}
     if tab.std_m is not None:
         s3 = np.linalg.norm(tab.std_m.reshape(-1, 3), axis=1)
         std_meta = {
@@ -741,15 +863,13 @@ def build_table(
         if (line := undetermined_line(s3, mags)) is not None:
             log(f"  {line}")
     else:
-        log(f"  {NO_STD_LINE}")
+        log(f"  {no_std_line(corr.model)}")
     tab.meta = {
         **(meta or {}),
-        "frame": "base = model's registered nominal base (tracker_T_base = base_ref); "
-        "positions are the SMR/TCP in base",
+        **frame_meta(corr.model, corr.nominal.base_ref, X),
         "units": "m, rad (UR rotation vectors)",
         "semantics": "commanded = desired + delta(desired), delta trilinear in the grid",
         "conditions": corr.conditions.to_dict(),
-        "base_ref": np.asarray(corr.nominal.base_ref).tolist(),
         "tcp_m": np.asarray(corr.nominal.tool_m).tolist(),
         "target_interp_error_m": float(target_error_m),
         "max_interp_error_m": float(err.max()),

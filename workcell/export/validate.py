@@ -384,6 +384,25 @@ def thermal_shift_rms_m(model, t_table_c, t_now_c, n: int = 64) -> float | None:
     return float(np.sqrt(np.mean(np.sum((p_now - p_tab) ** 2, axis=1))))
 
 
+def real_cell(session: dict) -> str | None:
+    """What says the recording of `session` was made on a real cell, not a simulation this
+    program runs (None when it does not say so): a campaign on devices that recorded no
+    simulated truth (`effects`, which the in-process and the protocol simulators record), or
+    measurements imported from another system. A simulator has another arm than such a
+    recording's, so a simulated validation of its model scores a model of one arm on another."""
+    camp = (session or {}).get("campaign")
+    if not isinstance(camp, dict) or camp.get("effects") is not None:
+        return None
+    if camp.get("sim_seed") is not None:
+        return None
+    url = camp.get("robot_url")
+    if isinstance(url, str) and url and url != "sim":
+        return f"robot {url}"
+    if camp.get("plan") == "imported" or camp.get("source") is not None:
+        return f"measurements imported from {camp.get('source') or 'another system'}"
+    return None
+
+
 def validation_envelope(given, session: dict, spec, source: str, default=None):
     """The envelope a closed-loop validation moves in -> (envelope, what it is): the one
     `given` (chosen by the user), else the one the model's campaign recorded (the cell's, as
