@@ -106,7 +106,7 @@ def test_cli_writes_report_plots_and_a_replayable_model(clean, tmp_path, capsys)
     ns = type("A", (), {})()
     ns.recording, ns.json, ns.report, ns.out = str(c["path"]), True, str(tmp_path / "rep"), None
     ns.holdout, ns.alpha, ns.tracker_mpe, ns.no_np = 0.25, 0.01, "15e-6,6e-6", True
-    ns.force = False
+    ns.force, ns.chain_missing = False, "refuse"
     assert cmd.run(ns) == 0
     out = json.loads(capsys.readouterr().out)
     for key in (

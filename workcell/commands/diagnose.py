@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -181,15 +182,69 @@ def print_report(r: dict) -> None:
     )
     npm = r["unexplained"].get("np_model")
     if npm:
+        ci = interval_um(npm.get("heldout_rms_ci95_m"), False)
         print(
-            f"{'final + non-parametric residual (GP)':42s}{um(npm['heldout_rms_m']):>14}{um(npm['heldout_max_m']):>12}"
+            f"{'final + non-parametric residual (GP)':42s}{um(npm['heldout_rms_m']):>14}"
+            f"{um(npm['heldout_max_m']):>12}   {ci + ' ' if ci else ''}(optimistic: see below)"
         )
-    print(f"{'noise floor (expected)':42s}{um(r['noise_floor_m']):>14}")
+    print(f"{'noise floor (expected)':42s}{um(r['noise_floor_m']):>14}   tracker + geometric fit")
+    if r.get("tracker_noise_floor_m") is not None:
+        print(f"{'  tracker alone (as `fit` states it)':42s}{um(r['tracker_noise_floor_m']):>14}")
+    note = f"Held-out RMS and max: on the {r['heldout_poses']} held-out poses."
+    if r["steps"]:
+        note += (
+            " The '+' rows are cumulative, in the order the selection accepted the effects: each "
+            "adds one effect to those above it (linearised, fitted on the "
+            f"{r['train_poses']} training poses), so a row's drop depends on that order and is "
+            "not the effect's own held-out gain (leave-one-out, below)."
+        )
+    if npm:
+        note += f" GP row: {npm.get('heldout_selection', GP_CAVEAT_FALLBACK)}."
+    print(textwrap.fill(note, width=100))
+    if r["effects"]:
+        print()
+        print(effects_table(r))
     if r.get("model"):
         print(f"\nmodel       {r['model']}")
+    if npm and npm.get("model"):
+        print(f"GP model    {npm['model']}   (the augmented model + the residual GP)")
     if r.get("plots"):
         for p in r["plots"].values():
             print(f"plot        {p}")
+
+
+GP_CAVEAT_FALLBACK = (
+    "the residual GP was accepted on these held-out poses, so its held-out RMS is somewhat "
+    "optimistic"
+)
+
+
+def _gain(g) -> str:
+    return "-" if g is None else f"{g * 1e6:.1f} um"
+
+
+def effects_table(r: dict) -> str:
+    """Each accepted effect's own held-out test: the final model without it minus with it
+    (leave-one-out, paired 95 % interval), and whether that confirms it."""
+    lines = [
+        "leave-one-out on the held-out poses: the final model without the effect, minus with it",
+        f"{'effect':42s}{'gain':>14}   {'95 % CI of the gain':24s}held-out verdict",
+    ]
+    for e in r["effects"]:
+        ev = e["evidence"]
+        ci = ev.get("heldout_gain_ci95_m")
+        cis = (
+            f"{ci[0] * 1e6:.1f} to {ci[1] * 1e6:.1f} um"
+            if ci is not None and all(np.isfinite(ci))
+            else "-"
+        )
+        verdict = (
+            "confirmed" if ev.get("heldout_confirms", True) else "NOT confirmed (kept in the model)"
+        )
+        lines.append(
+            f"{'  ' + e['key']:42s}{_gain(ev.get('heldout_gain_m')):>14}   {cis:24s}{verdict}"
+        )
+    return "\n".join(lines)
 
 
 def write_plots(diag, outdir: Path) -> dict:
@@ -238,6 +293,10 @@ def write_plots(diag, outdir: Path) -> dict:
     ax.axhline(rep["noise_floor_m"] * 1e6, color="k", ls="--", lw=1, label="noise floor")
     ax.set_xticks(range(len(vals)), labels, rotation=20, ha="right", fontsize=8)
     ax.set_ylabel("held-out RMS (um)")
+    ax.set_title(
+        "held-out RMS, effects added cumulatively in acceptance order (not each one's own gain)",
+        fontsize=8,
+    )
     ax.legend(fontsize=8)
     fig.tight_layout()
     out2 = outdir / REPORT_FILES[3]

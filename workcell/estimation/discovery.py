@@ -47,7 +47,11 @@ Pipeline (`diagnose(ds)`):
    wrong pick.
 5. Model. The accepted effects are re-estimated with the geometry by nonlinear least squares
    (full augmented model); covariance with the a-posteriori variance factor.
-6. Show. Held-out RMS / max before (geometry) and after, step by step per accepted effect.
+6. Show. Held-out RMS / max before (geometry) and after, step by step per accepted effect
+   (cumulative, in acceptance order), and each effect's own held-out test: the final model
+   without it minus with it, paired 95 % interval. An effect is confirmed on the held-out poses
+   only when that interval lies above zero; the others stay in the model (the held-out poses
+   judge, they do not select) and the summary lists them apart, as not established.
 7. Unknown effects. A GP over joint space (`discovery_np`, or `gp_residual` if present) is fitted
    to the final training residual and judged on the held-out poses (one-sided paired test,
    level 0.01, and at least 5 % RMS reduction). If it helps, a structured residual remains that
@@ -97,6 +101,29 @@ from workcell.estimation.models import (
 from workcell.kinematics.chain import PARAM_NAMES, PARAMETER_FRAMES, jac_joints
 from workcell.recording.dataset import Dataset, distinct_poses
 from workcell.recording.repeats import repeat_beyond_noise, repeat_drift, repeat_line
+
+GP_HELDOUT_CAVEAT = (
+    "the residual GP was accepted on these held-out poses (paired test), so its "
+    "held-out RMS is somewhat optimistic; the closed-loop check measures it afresh"
+)
+HELDOUT_CONFIRMS_BASIS = (
+    "an effect is confirmed on the held-out poses when the paired 95 % interval (bootstrap over "
+    "the held-out poses) of its held-out gain - the RMS of the final model without it minus with "
+    "it, both linearised - lies above zero; an interval reaching zero is within chance. Effects "
+    "not confirmed stay in the model: the selection accepts on the training poses (F test and "
+    "cross-validation), the held-out poses only judge"
+)
+EXPLAINED_FRACTION_BASIS = (
+    "share of the geometry-only residual power that the effect takes out in cross-validation on "
+    "the training poses (folds by pose), when it is added to the effects accepted before it (in "
+    "acceptance order: the shares add up to the total; not a held-out figure)"
+)
+STEPS_BASIS = (
+    "cumulative, in acceptance order: each step adds one effect to those of the steps above it "
+    "(linearised, fitted on the training poses) and gives the held-out RMS and max of that "
+    "model; a step's drop depends on the order. An effect's own held-out test is its leave-one-"
+    "out gain (effects[].evidence.heldout_gain_m: the final model without it minus with it)"
+)
 
 
 @dataclass
@@ -723,6 +750,9 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
     # explained fractions (CV, training) and per-effect held-out change when left out
     cv_geo = lin.cv_errors([])
     floor = noise_floor_m(dh, dtr, dte, sig[train], sig[test])
+    # the tracker's part alone: what `workcell fit` calls its tracker-accuracy floor (the same
+    # per-pose sigma on the same held-out poses), without the geometric fit's uncertainty
+    tracker_floor = float(np.sqrt(np.mean(3.0 * sig[test] ** 2)))
     effects_out = []
     step_of = {s.cand.key: s for s in steps if s.action == "add"}
     for k, c in enumerate(M):
@@ -739,6 +769,9 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
         e_wo = np.linalg.norm(p_wo - dte.p_tracker, axis=1)
         gain = float(np.sqrt(np.mean(e_wo**2)) - np.sqrt(np.mean(e_all_te**2)))
         gain_ci = list(rms_gain_interval(e_wo, e_all_te))
+        # confirmed: the paired 95 % interval of the held-out gain lies above zero (a point gain
+        # whose interval reaches zero is within chance and does not confirm it)
+        confirms = bool(gain_ci[0] > 0.0) if np.all(np.isfinite(gain_ci)) else bool(gain > 0.0)
         s = step_of.get(c.key)
         effects_out.append(
             {
@@ -759,7 +792,7 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
                     "identifiability_rho": s.rho if s else None,
                     "heldout_rms_without_m": wo["rms_m"],
                     "heldout_rms_with_m": after["rms_m"],
-                    "heldout_confirms": bool(wo["rms_m"] > after["rms_m"]),
+                    "heldout_confirms": confirms,
                     "heldout_gain_m": gain,
                     "heldout_gain_ci95_m": gain_ci,
                     # after the joint refit with the other terms (the selection checked its own)
@@ -808,6 +841,13 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
     model.info.update(
         heldout_rms_m=after["rms_m"], heldout_rms_ci95_m=after["rms_ci95_m"], unexplained=excess
     )
+    # effects the model holds that the held-out poses do not confirm (kept: the selection
+    # accepts on the training poses), so the file says which of its terms are not established
+    if not_confirmed := [e["key"] for e in effects_out if not e["evidence"]["heldout_confirms"]]:
+        model.info["effects_not_confirmed_on_heldout"] = {
+            "effects": not_confirmed,
+            "basis": HELDOUT_CONFIRMS_BASIS,
+        }
     note_joint_range(model, dfit.q)
     unexplained["serial_correlation"] = _serial_correlation(res_tr, dfit.elapsed_s)
     model_np = None
@@ -850,8 +890,13 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
             f"per-pose sigma = max(recorded, tracker MPE ({cfg.tracker_mpe[0] * 1e6:.0f} um + "
             f"{cfg.tracker_mpe[1] * 1e6:.0f} um/m) / 4), plus the geometric fit's uncertainty"
         ),
+        # the tracker's part alone, on the held-out poses: `workcell fit`'s tracker floor
+        "tracker_noise_floor_m": tracker_floor,
         "effects": effects_out,
+        "explained_fraction_basis": EXPLAINED_FRACTION_BASIS,
+        "heldout_confirms_basis": HELDOUT_CONFIRMS_BASIS,
         "steps": per_step,
+        "steps_basis": STEPS_BASIS,
         "selection": [
             {
                 "action": s.action,
@@ -998,10 +1043,7 @@ def _nonparametric(
             heldout_rms_m=rms1,
             heldout_rms_ci95_m=ci1,
             unexplained=unexplained_error(rms1, ci1, floor),
-            heldout_selection=(
-                "the residual GP was accepted on these held-out poses (paired test), so its "
-                "held-out RMS is somewhat optimistic; the closed-loop check measures it afresh"
-            ),
+            heldout_selection=GP_HELDOUT_CAVEAT,
         )
         if "drift_check" in out:  # for `export` to say when the GP may be carrying a drift
             info["residual_drift_check"] = {
@@ -1014,6 +1056,7 @@ def _nonparametric(
             "heldout_rms_m": rms1,
             "heldout_rms_ci95_m": ci1,
             "heldout_max_m": float(np.sqrt(e1.max())),
+            "heldout_selection": GP_HELDOUT_CAVEAT,
         }
     log(
         f"non-parametric check: held-out RMS {after['rms_m'] * 1e6:.1f} -> {rms1 * 1e6:.1f} um "
@@ -1201,7 +1244,7 @@ def effect_sentence(e: dict) -> str:
     ci = ev.get("heldout_gain_ci95_m")
     if ci is not None and ev.get("heldout_gain_m") is not None and all(np.isfinite(ci)):
         gain = (
-            f", a held-out gain of {ev['heldout_gain_m'] * 1e6:.1f} um (95 % CI "
+            f", a gain of {ev['heldout_gain_m'] * 1e6:.1f} um (95 % CI "
             f"{ci[0] * 1e6:.1f} to {ci[1] * 1e6:.1f} um"
             + ("; within chance)" if ci[0] <= 0.0 else ")")
         )
@@ -1211,10 +1254,11 @@ def effect_sentence(e: dict) -> str:
             "the term stands in for a cause outside the library"
         )
     return (
-        f"{e['description']}: {size}; explains {100 * e['explained_fraction']:.0f} % of the "
-        f"geometry-only residual power (F test p = {ev['p_value']:.1g}, CV p = "
-        f"{ev['cv_p_value']:.1g}; held-out RMS without it "
-        f"{ev['heldout_rms_without_m'] * 1e6:.1f} um{gain}){conf}{_range_note(e)}"
+        f"{e['description']}: {size}; training poses: takes out "
+        f"{100 * e['explained_fraction']:.0f} % of the geometry-only residual power in "
+        f"cross-validation, added in acceptance order (F test p = {ev['p_value']:.1g}, CV p = "
+        f"{ev['cv_p_value']:.1g}); held-out poses: RMS without it "
+        f"{ev['heldout_rms_without_m'] * 1e6:.1f} um{gain}{conf}{_range_note(e)}"
     )
 
 
@@ -1267,11 +1311,17 @@ def _ci(r: dict, key: str) -> str:
 
 def summary_text(r: dict) -> str:
     um = lambda x: f"{x * 1e6:.1f} um"  # noqa: E731
+    tracker = r.get("tracker_noise_floor_m")
+    floor_what = (
+        f"expected from the tracker ({um(tracker)}, the tracker floor `workcell fit` states) and "
+        "the geometric fit's own uncertainty is"
+        if tracker is not None
+        else "expected from the tracker and the geometric fit's own uncertainty is"
+    )
     lines = [
         f"Geometric calibration alone (DH, joint offsets, base, SMR; estimated jointly) leaves a "
         f"held-out RMS of {um(r['rms_before_m'])} ({_ci(r, 'rms_before_ci95_m')}max "
-        f"{um(r['max_before_m'])}); the noise floor "
-        f"expected from the tracker is {um(r['noise_floor_m'])} "
+        f"{um(r['max_before_m'])}); the noise floor {floor_what} {um(r['noise_floor_m'])} "
         f"({r['rms_before_m'] / r['noise_floor_m']:.1f}x).",
     ]
     if r["locate"]["statements"]:
@@ -1280,12 +1330,34 @@ def summary_text(r: dict) -> str:
         )
     aside_sign = [st for st in r.get("selection", []) if st["action"] == "set aside (sign)"]
     if r["effects"]:
-        lines.append(
-            "Physics left out of the nominal model (each accepted by an F test, by "
-            "cross-validation and, for a compliance or a flexibility, by its physical sign):"
-        )
-        for e in r["effects"]:
-            lines.append("  - " + effect_sentence(e))
+        confirmed = [e for e in r["effects"] if e["evidence"].get("heldout_confirms", True)]
+        unconfirmed = [e for e in r["effects"] if e not in confirmed]
+        if confirmed:
+            lines.append(
+                "Physics left out of the nominal model, confirmed on the held-out poses (each "
+                "accepted on the training poses by an F test, by cross-validation and, for a "
+                "compliance or a flexibility, by its physical sign; leaving it out of the final "
+                "model raises the held-out RMS by more than chance, 95 % interval above zero):"
+            )
+            for e in confirmed:
+                lines.append("  - " + effect_sentence(e))
+        else:
+            lines.append(
+                "Physics left out of the nominal model, confirmed on the held-out poses: none of "
+                "the accepted effects."
+            )
+        if unconfirmed:
+            lines.append(
+                "Accepted on the training poses (F test, cross-validation and, for a "
+                "compliance or a flexibility, the physical sign) but NOT confirmed on the "
+                "held-out poses (the 95 % interval of the held-out gain reaches zero): "
+                + ("this effect is" if len(unconfirmed) == 1 else "these effects are")
+                + " kept in the augmented model and in what is exported from it, because the "
+                "selection accepts on the training poses and the held-out poses only judge; "
+                "treat " + ("it" if len(unconfirmed) == 1 else "them") + " as not established:"
+            )
+            for e in unconfirmed:
+                lines.append("  - " + effect_sentence(e))
         lines.append(f"  ({r.get('parameter_std_basis', PARAMETER_STD_BASIS)}.)")
         sh = r.get("split_half")
         if sh:
@@ -1324,7 +1396,12 @@ def summary_text(r: dict) -> str:
                     "during the recording rather than the gear; a random plan separates the two."
                 )
         lines.append(
-            f"With these effects the held-out RMS is {um(r['rms_after_m'])} "
+            (
+                "With all the accepted effects (the not-confirmed ones included) "
+                if unconfirmed
+                else "With these effects "
+            )
+            + f"the held-out RMS is {um(r['rms_after_m'])} "
             f"({_ci(r, 'rms_after_ci95_m')}max "
             f"{um(r['max_after_m'])}), {r['rms_after_m'] / r['noise_floor_m']:.2f}x the noise floor."
         )
@@ -1385,7 +1462,13 @@ def summary_text(r: dict) -> str:
             f"the noise floor remains that no candidate explains; it "
             + "; ".join(u["where"])
             + f". A non-parametric correction (GP over joint space) lowers the held-out RMS from "
-            f"{um(u['np_test']['heldout_rms_without_m'])} to {um(u['np_test']['heldout_rms_with_m'])}."
+            f"{um(u['np_test']['heldout_rms_without_m'])} to {um(u['np_test']['heldout_rms_with_m'])}"
+            + (
+                f" ({ci_np})"
+                if (ci_np := interval_um((u.get("np_model") or {}).get("heldout_rms_ci95_m")))
+                else ""
+            )
+            + f"; {GP_HELDOUT_CAVEAT} (`workcell validate`)."
         )
     elif "np_test" in u:
         sc = u.get("serial_correlation", {})
