@@ -362,6 +362,12 @@ def test_sigterm_and_sighup_abort_like_ctrl_c(tmp_path, sig):
     assert r.closed_cleanly and not r.problems
     assert r.events[-1]["kind"] == "abort" and signal.Signals(sig).name in r.events[-1]["message"]
     assert "Traceback" not in err
+    if sig == signal.SIGTERM:  # stderr is gone after a SIGHUP (the terminal closed)
+        # it says how to continue, as the other stops do (it did not until 2026-11-26)
+        assert (
+            f"aborted: {rec} is closed and keeps {len(r.samples)} poses: `workcell "
+            f"campaign --resume {rec}` continues it" in err
+        ), err[-1500:]
 
 
 def test_a_full_disk_at_the_start_leaves_no_file(tmp_path, monkeypatch):

@@ -377,3 +377,13 @@ def test_a_resume_of_a_simulated_campaign_refuses_a_time_scale(chain, capsys):
     assert _resume(chain / "x.resumed1.mcap", "--time-scale", "20") == 2
     err = [x for x in capsys.readouterr().err.splitlines() if ": error:" in x]
     assert len(err) == 1 and "--time-scale 20:" in err[0] and "virtual time" in err[0], err
+
+
+def test_a_resume_prints_a_line_per_pose_as_a_first_run_does(chain, capsys):
+    """A resumed campaign printed no per-pose progress (a first run prints one line a pose)."""
+    capsys.readouterr()
+    assert _resume(chain / "x.resumed1.mcap") == 0
+    err = capsys.readouterr().err
+    lines = [x for x in err.splitlines() if re.match(r"pose +\d+ +\d+/\d+ more", x)]
+    left = POSES - len(_pose_ids(chain / "x.mcap")) - len(_pose_ids(chain / "x.resumed1.mcap"))
+    assert len(lines) == left and lines[-1].split()[2] == f"{left}/{left}", err[-1500:]

@@ -28,7 +28,14 @@ import numpy as np
 from workcell.campaign.devices import open_cell
 from workcell.campaign.envelope import envelope_of_session
 from workcell.campaign.executor import CampaignConfig, CampaignControl
-from workcell.campaign.run import campaign_stop, exit_code, progress, run_campaign, summary
+from workcell.campaign.run import (
+    abort_note,
+    campaign_stop,
+    exit_code,
+    progress,
+    run_campaign,
+    summary,
+)
 from workcell.drivers.protocols import DeviceUnreachable
 from workcell.errors import UserError, check_output_path
 from workcell.recording import checks
@@ -528,8 +535,22 @@ def resume_campaign(args: argparse.Namespace, control: CampaignControl) -> int:
         extra["tracker_url"] = ns.tracker
     watch, repeats = RepeatWatch(info["history"]), [0]
 
-    def count_repeats(sample: dict) -> None:
-        repeats[0] += watch.update(sample) is not None
+    measured = [0]
+
+    def count_repeats(sample: dict) -> None:  # and a progress line per pose, as a first run
+        r = watch.update(sample)
+        if r is not None:
+            repeats[0] += 1
+            progress(
+                f"pose {sample['pose_id']:4d}  reference   elapsed {sample['elapsed_s']:8.1f} s  "
+                f"{r['displacement_m'] * 1e6:.1f} um from its first reading"
+            )
+            return
+        measured[0] += 1
+        progress(
+            f"pose {sample['pose_id']:4d}  {measured[0]:4d}/{remaining} more  "
+            f"elapsed {sample['elapsed_s']:8.1f} s"
+        )
 
     try:
         _, res = run_campaign(
@@ -564,4 +585,5 @@ def resume_campaign(args: argparse.Namespace, control: CampaignControl) -> int:
         control,
     )
     campaign_stop(res, out)
+    abort_note(res, out)
     return exit_code(res, control)

@@ -418,6 +418,13 @@ def summary(line: str, control: CampaignControl) -> None:
             raise
 
 
+def abort_note(res, path: str | Path) -> None:
+    """After an operator's abort (Ctrl-C, SIGTERM, SIGHUP, the TUI's abort): one line on stderr
+    saying what the recording keeps and how to continue it, as the other stops say."""
+    if res.stopped_by == "operator":
+        progress(f"aborted: {resume_hint(path, res.measured)}")
+
+
 def exit_code(res, control: CampaignControl) -> int:
     """0, or for an aborted campaign 128 + the signal that stopped it (130 Ctrl-C, 143
     SIGTERM, 129 SIGHUP; 130 for an abort without a signal), what a shell reports for a

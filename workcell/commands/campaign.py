@@ -14,6 +14,7 @@ from workcell.campaign.devices import open_cell
 from workcell.campaign.executor import CampaignConfig, CampaignControl
 from workcell.campaign.plans import MAX_POSES, reference_line, reference_repeats
 from workcell.campaign.run import (
+    abort_note,
     campaign_stop,
     device_errors_say_resume,
     exit_code,
@@ -305,6 +306,7 @@ def run(args: argparse.Namespace) -> int:
         control,
     )
     campaign_stop(res, path)
+    abort_note(res, path)
     return exit_code(res, control)
 
 
