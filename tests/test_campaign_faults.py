@@ -214,7 +214,10 @@ def test_a_tracker_that_stopped_measuring_stops_the_campaign(tmp_path, mode):
     path, res = run_campaign(robot, dead, cell, out, poses=10, seed=1, config=FAST,
                              control=CampaignControl())  # fmt: skip
     assert res.aborted and res.stopped_by == "tracker"
-    assert res.measured == 0 and res.skipped == MAX_TRACKER_SKIPS_IN_A_ROW and stops
+    # a port that every reconnect failed to reach stops at once: the arm is not moved to
+    # another pose without the tracker (it went on to 2 more poses until 2026-11-26)
+    skipped = 1 if mode == "vanished" else MAX_TRACKER_SKIPS_IN_A_ROW
+    assert res.measured == 0 and res.skipped == skipped and stops
     rec = read_recording(out)
     assert rec.closed_cleanly and "stopped" in [e["kind"] for e in rec.events]
     with pytest.raises(UserError) as e:

@@ -269,7 +269,7 @@ def test_vanish_gives_device_unreachable_with_clear_message(
     msg = str(ei.value)
     assert port in msg and "vanished" in msg and "reconnect" in msg
     assert not tracker.is_connected
-    with pytest.raises(DeviceUnreachable, match="call reconnect"):
+    with pytest.raises(DeviceUnreachable, match="lost earlier and is not back"):
         tracker.measure()
     with pytest.raises(DeviceUnreachable, match="cannot be opened"):
         tracker.reconnect()

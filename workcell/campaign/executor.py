@@ -11,6 +11,7 @@ MCAP. Faults become `/campaign/event` records and are handled by a small policy:
   with the arm left stopped (`CampaignResult.stopped_by == "protective_stop"`);
 - a tracker that gives not one usable reading at `MAX_TRACKER_SKIPS_IN_A_ROW` poses in a row (no
   pose recorded between them) ends the campaign (`stopped_by == "tracker"`): it has stopped measuring;
+  so does a tracker every reconnect attempt failed to reach, at once (no move to another pose);
   so does a tracker reconnect that reaches another instrument (`OtherInstrument`: another serial
   number, so another station and frame);
 - `MAX_REFUSED_IN_A_ROW` poses in a row refused before any motion (their paths from where the arm
@@ -305,6 +306,7 @@ class Executor:
         # faults since the last recorded pose (`MAX_..._IN_A_ROW`)
         self._pstops_in_a_row = 0
         self._tracker_skips_in_a_row = 0
+        self._tracker_gone = ""  # why, once every tracker reconnect has failed
         # poses refused since the last move to a pose: (pose id, the limit their paths cross,
         # where the arm was, the pose's pre-pose)
         self._refused: list[tuple[int, str, np.ndarray | None, np.ndarray]] = []
@@ -440,6 +442,7 @@ class Executor:
                 raise _CampaignStop("tracker", msg) from None
             except DeviceError as e:
                 err = e
+        self._tracker_gone = str(err)  # every reconnect failed: no more motion without it
         return False
 
     def _pause(self, seconds: float) -> None:
@@ -657,7 +660,18 @@ class Executor:
         self.result.skipped += 1
         self.result.skipped_ids.append(t.pose_id)
 
+    def _stop_if_tracker_gone(self) -> None:
+        """Every tracker reconnect failed: stop before the arm moves to another pose."""
+        if self._tracker_gone:
+            msg = (
+                f"tracker unreachable after {self.cfg.max_reconnects} reconnect attempts "
+                f"({self._tracker_gone}); the arm is not moved to another pose without it"
+            )[:600]
+            self.event("error", "stopped", f"{msg}; the campaign stops, the arm stopped")
+            raise _CampaignStop("tracker", msg)
+
     def run_pose(self, t: PoseTarget) -> dict | None:
+        self._stop_if_tracker_gone()
         problems = self._pose_problems(t)
         if problems:
             self.event("error", "refused", problems[0])
@@ -767,6 +781,7 @@ class Executor:
             self.result.skipped_ids.append(t.pose_id)
             # no reading at all: the tracker may have stopped measuring (some: it measures)
             self._tracker_skips_in_a_row = self._tracker_skips_in_a_row + 1 if not good else 0
+            self._stop_if_tracker_gone()
             if self._tracker_skips_in_a_row >= MAX_TRACKER_SKIPS_IN_A_ROW:
                 msg = (
                     f"tracker gave no usable reading at {self._tracker_skips_in_a_row} poses in a "

@@ -395,7 +395,7 @@ class SerialTracker:
             gone = f" (the device node {where} no longer exists)"
         msg = (
             f"tracker serial port {where!r} vanished during {during}{gone}: {exc}; check the "
-            f"cable / USB adapter and power, then reconnect (connect())"
+            f"cable / USB adapter and power, then reconnect"
         )
         self._fault("port_vanished", msg)
         self.close()
@@ -406,9 +406,10 @@ class SerialTracker:
         if self._ser is None:
             if self._lost:
                 raise DeviceUnreachable(
-                    f"tracker on {self.port!r}: the port was lost earlier; call reconnect()"
+                    f"tracker on {self.port!r}: the port was lost earlier and is not back; check the "
+                    "cable / USB adapter and power"
                 )
-            raise DeviceError(f"tracker on {self.port!r} is not connected; call connect() first")
+            raise DeviceError(f"tracker on {self.port!r} is not connected")
         return self._ser
 
     def _write(self, data: bytes) -> None:
