@@ -505,3 +505,19 @@ def test_sim_fault_settings_are_bounded(world: World) -> None:
             SimGeoComTracker(world, faults=faults)
     faults = {"garbage_rate": 1.0, "garbage_mode": "before", "garbage_len": 4096}
     assert SimGeoComTracker(world, faults=faults).faults["garbage_mode"] == "before"
+
+
+def test_a_clean_resync_answer_to_com_nullproc_is_an_answer(world: World) -> None:
+    """A noisy line (30 % garbled replies, seed 3): each COM_NullProc of the connect check was
+    garbled while the resync's COM_NullProc between them got a clean reply, and the driver gave
+    up with "no GeoCOM answer ... something answers on the port, but not GeoCOM". The resync's
+    clean reply to the very call being made now counts."""
+    faults = {"garbage_rate": 0.3, "drop_rate": 0.0, "slow_rate": 0.0}
+    with SimGeoComTracker(world, faults=faults, seed=3, time_scale=50) as s:
+        t = SerialTracker(s.port, timeout_s=0.2)
+        try:
+            t.connect()
+            assert t.instrument_name == s.instrument_name
+            assert any(k == "resync" for k, _ in t.pop_faults())
+        finally:
+            t.close()

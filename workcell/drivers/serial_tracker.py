@@ -480,8 +480,9 @@ class SerialTracker:
                 continue
             return rep
 
-    def _resync(self, reason: str) -> bool:
-        """Flush, LF, then COM_NullProc until one clean reply with a matching id."""
+    def _resync(self, reason: str) -> gc.Reply | None:
+        """Flush, LF, then COM_NullProc until one clean reply with a matching id (returned;
+        None when none came)."""
         self._flush_input()
         self._write(b"\n")
         for _attempt in range(self.retries + 1):
@@ -494,9 +495,9 @@ class SerialTracker:
                 continue
             if rep.com_rc == 0:
                 self._fault("resync", f"link resynchronised after {reason}")
-                return True
+                return rep
         self._fault("resync_failed", f"no clean COM_NullProc reply after {reason}")
-        return False
+        return None
 
     def _call(
         self,
@@ -524,7 +525,10 @@ class SerialTracker:
             except _Timeout:
                 last = f"no reply within {self.timeout_s + extra_timeout_s:.3g} s"
                 self._fault("timeout", f"{name} (attempt {attempt + 1}): {last}")
-                if not self._resync(f"a time-out on {name}"):
+                clean = self._resync(f"a time-out on {name}")
+                if clean is not None and rpc == gc.Rpc.COM_NullProc:
+                    return clean  # the resync made the very call: a clean answer is one
+                if clean is None:
                     # not even COM_NullProc answers: re-sending the request is pointless
                     waited = (
                         f"no reply to {name} within {self.timeout_s + extra_timeout_s:.3g} s "
@@ -550,18 +554,24 @@ class SerialTracker:
             except gc.GeoComChecksumError as exc:
                 last = f"bad checksum: {exc}"
                 self._fault("checksum", f"{name} (attempt {attempt + 1}): {exc}")
-                self._resync(f"a checksum error on {name}")
+                clean = self._resync(f"a checksum error on {name}")
+                if clean is not None and rpc == gc.Rpc.COM_NullProc:
+                    return clean
                 continue
             except gc.GeoComParseError as exc:
                 last = f"garbled reply: {exc}"
                 self._fault("garbage", f"{name} (attempt {attempt + 1}): {exc}")
-                self._resync(f"a garbled reply to {name}")
+                clean = self._resync(f"a garbled reply to {name}")
+                if clean is not None and rpc == gc.Rpc.COM_NullProc:
+                    return clean
                 continue
             if rep.com_rc != 0:
                 last = "COM " + gc.describe_return_code(rep.com_rc)
                 self._fault("com_error", f"{name} (attempt {attempt + 1}): {last}")
                 if rep.com_rc in gc.COM_TRANSIENT_CODES:
-                    self._resync(f"a COM error on {name}")
+                    clean = self._resync(f"a COM error on {name}")
+                    if clean is not None and rpc == gc.Rpc.COM_NullProc:
+                        return clean
                     continue
                 raise DeviceError(f"tracker on {self.port!r}: {name} failed: {last}")
             return rep
