@@ -21,6 +21,7 @@ from workcell.commands.sim import parse_faults
         ('{"robot": {"rtde_drop_at_move": [1, true]}}', "must be a number or a list"),
         ('{"tracker": {"beam_break_rate": 2}}', r"must be in \[0, 1\]"),
         ('{"robot": {"bogus": 3}}', "unknown UR controller fault"),
+        ('{"robot": {"restart_power_off": 1}}', "restart_power_off must be true or false"),
     ],
 )
 def test_bad_faults_are_one_line(capsys, text, match):
@@ -35,6 +36,9 @@ def test_presets_and_good_json_parse():
     assert parse_faults("none") == ({}, {})
     r, t = parse_faults('{"robot": {"rtde_drop_at_move": [3]}, "tracker": {"garbage_rate": 0.1}}')
     assert r == {"rtde_drop_at_move": [3]} and t == {"garbage_rate": 0.1}
+    # a documented boolean setting (it was refused as "must be a number")
+    r, _ = parse_faults('{"robot": {"restart_at_move": [4], "restart_power_off": true}}')
+    assert r == {"restart_at_move": [4], "restart_power_off": True}
 
 
 def _listening(host: str, port: int) -> bool:

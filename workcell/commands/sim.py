@@ -68,6 +68,12 @@ def parse_faults(text: str) -> tuple[dict, dict]:
             for k, v in (block or {}).items():
                 if (dev, k) == ("tracker", "garbage_mode") and isinstance(v, str):
                     continue  # "before" / "instead" / "mixed", checked by the simulator
+                if (dev, k) == ("robot", "restart_power_off"):
+                    if not isinstance(v, bool):
+                        raise UserError(
+                            f"--faults robot.restart_power_off must be true or false, got {v!r}"
+                        )
+                    continue
                 items = v if isinstance(v, list) else [v]
                 if not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in items):
                     raise UserError(

@@ -849,7 +849,7 @@ class UrRobot:
         if not self.auto_power_on:
             raise DeviceError(
                 f"UR {self.host}: {mode}; on the teach pendant, power the arm on and release "
-                "the brakes (the Initialize screen: ON, then START), then start again"
+                "the brakes (the Initialize screen: ON, then START), then try again"
             )
         try:
             db.powerOn()
