@@ -188,7 +188,7 @@ def test_real_ur10_series_b_fits(capsys):
     print_report(rep)
     out = " ".join(capsys.readouterr().out.split())
     assert re.search(
-        r"note: the fitted SMR is 1[5-6]\.\d mm .* \(-?0\.000\d, 0\.000\d, 0\.093\d\) m", out
+        r"note: the fitted SMR is 1[5-6]\.\d mm .* --smr-offset=-?0\.000\d,0\.000\d,0\.093\d`", out
     )
 
 

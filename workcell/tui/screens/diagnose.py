@@ -53,7 +53,11 @@ class DiagnoseScreen(WorkcellScreen):
 
     def on_mount(self) -> None:
         self.query_one("#effects", DataTable).add_columns(
-            "model / effect", "joint", "explains", "held-out RMS", "gain um (95 %)"
+            "model / effect",
+            "joint",
+            "train CV share",
+            "held-out RMS, cumulative",
+            "held-out gain um (95 %)",
         )
         super().on_mount()
 
@@ -110,7 +114,8 @@ class DiagnoseScreen(WorkcellScreen):
                 str(e.get("joint") if e.get("joint") is not None else "-"),
                 f"{100 * float(e.get('explained_fraction', 0.0)):.0f} %",
                 um(step_rms.get(e.get("key"))) if e.get("key") in step_rms else "",
-                gain_cell(e.get("evidence", {})),
+                gain_cell(e.get("evidence", {}))
+                + ("" if e.get("evidence", {}).get("heldout_confirms", True) else " NOT confirmed"),
             )
         t.add_row("final (all effects)", "", "", um(r.get("rms_after_m")), "")
         t.add_row("noise floor (expected)", "", "", um(r.get("noise_floor_m")), "")
