@@ -6,12 +6,12 @@ Every motion target is checked before any motion; a target outside is refused wi
 from __future__ import annotations
 
 import difflib
-import json
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
+from workcell import strict_json
 from workcell.errors import UserError
 from workcell.kinematics.chain import base_T_frames, pack
 from workcell.kinematics.robots import RobotSpec
@@ -47,20 +47,6 @@ _SESSION_DEFAULTS = {"floor_z_m": 0.02, "max_speed_rad_s": 1.0, "max_accel_rad_s
 
 class EnvelopeViolation(ValueError):
     """A target outside the configured envelope; nothing moved."""
-
-
-class _DuplicateKey(ValueError):
-    pass
-
-
-def _no_duplicates(pairs):
-    """json object_pairs_hook: refuse a key given twice (json keeps the last, silently)."""
-    seen = {}
-    for k, v in pairs:
-        if k in seen:
-            raise _DuplicateKey(k)
-        seen[k] = v
-    return seen
 
 
 def _unknown_keys_message(unknown: list) -> str:
@@ -447,8 +433,8 @@ def load_envelope(path, spec: RobotSpec) -> Envelope:
             "(`workcell envelope --out FILE` writes one to edit)"
         ) from None
     try:
-        d = json.loads(text, object_pairs_hook=_no_duplicates)
-    except _DuplicateKey as e:
+        d = strict_json.loads(text)
+    except strict_json.DuplicateKey as e:
         raise UserError(
             f"envelope file {p}: key {e.args[0]!r} is given twice (JSON readers keep only the "
             "last): give each once"

@@ -63,6 +63,7 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import lsq_linear
 
+from workcell import strict_json
 from workcell.errors import UserError
 from workcell.estimation.dh import (
     TRACKER_MPE_M,
@@ -153,20 +154,6 @@ def resolve_bounds(
 
 PLAUSIBLE_LENGTH_M = 0.1  # a bound reaching further from nominal than this is not metres
 PLAUSIBLE_ANGLE_RAD = 0.5  # ~29 deg: a bound reaching further than this is not radians
-
-
-class _DuplicateKey(ValueError):
-    pass
-
-
-def _no_duplicates(pairs):
-    """json object_pairs_hook: refuse a key given twice (json keeps the last, silently)."""
-    seen = {}
-    for k, v in pairs:
-        if k in seen:
-            raise _DuplicateKey(k)
-        seen[k] = v
-    return seen
 
 
 def _kind(name: str) -> str:
@@ -277,10 +264,8 @@ def _resolve(bounds, theta_nominal) -> tuple[np.ndarray, np.ndarray, list[str]]:
         if not path.is_file():
             raise UserError(f"bounds file {path} not found (give a JSON file or 'default')")
         try:
-            spec = json.loads(
-                path.read_text(encoding="utf-8-sig"), object_pairs_hook=_no_duplicates
-            )
-        except _DuplicateKey as e:
+            spec = strict_json.loads(path.read_text(encoding="utf-8-sig"))
+        except strict_json.DuplicateKey as e:
             raise UserError(
                 f"bounds file {path}: key {e.args[0]!r} is given twice (JSON readers keep only "
                 "the last): give each once"
