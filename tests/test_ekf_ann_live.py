@@ -209,6 +209,7 @@ def test_trajectory_recording_in_shared_format(tmp_path):
     assert rec.duration_s < tr.t_s[-1] + 60.0, rec.duration_s
 
 
+@pytest.mark.slow  # moved out of `make test` on 2026-11-26 (its time); `make test-all` runs it
 def test_live_filter_predicts_new_poses_far_better_than_nominal(tmp_path):
     """Default live filter (30 initial samples, geometric states, random network) on a realistic
     simulated campaign: the a-priori innovations of the poses after initialisation are well below

@@ -27,6 +27,10 @@ def _recording(tmp_path_factory, poses: int, seed: int) -> Dataset:
     return Dataset.from_recording(p)
 
 
+# the 120-pose LDDMM fits (a shared 18 s fixture): moved out of `make test` on 2026-11-26 (its time); `make test-all` runs it
+pytestmark = pytest.mark.slow
+
+
 @pytest.fixture(scope="module")
 def small(tmp_path_factory):
     ds = _recording(tmp_path_factory, 120, 7)

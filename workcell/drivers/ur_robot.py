@@ -118,7 +118,7 @@ SAFETY_MODES = {
 }
 RTDE_REQUEST_PROTOCOL_VERSION = 86  # 'V'
 RTDE_PROTOCOL_VERSION = 2
-TIME_SCALE_TOLERANCE = 0.2  # relative: measuring over ~0.4 s is good to a few per cent
+TIME_SCALE_TOLERANCE = 0.2  # relative: measuring over ~0.2 s is good to a few per cent
 TIME_SCALE_SLACK = 0.05  # absolute, in x real time: scheduling jitter near 1x
 BIT_PROTECTIVE_STOP = 1 << 2
 BIT_EMERGENCY_STOP = 1 << 7
@@ -361,7 +361,7 @@ class UrRobot:
         model: str | None = None,
         on_warning: Callable[[str], None] | None = None,
         rtde_answer_timeout_s: float = 10.0,
-        time_scale_check_s: float = 0.4,
+        time_scale_check_s: float = 0.2,
     ) -> None:
         if not host or not isinstance(host, str):
             raise ValueError(f"host must be a non-empty string, got {host!r}")
