@@ -4,9 +4,13 @@
 import subprocess
 import sys
 
+import pytest
+
 from sim_devices.ur_process import SimProcess
 
 
+@pytest.mark.slow  # moved out of `make test` on 2026-11-26 (its time; tests/test_ur_sim.py
+# refuses another arm at the driver); `make test-all` runs it
 def test_campaign_refuses_a_ur10_controller_with_model_ur5e(tmp_path):
     out = tmp_path / "c.mcap"
     with SimProcess("127.0.0.46", seed=2, time_scale=20.0, with_tracker=True, robot="ur10") as sim:
