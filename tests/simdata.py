@@ -36,3 +36,31 @@ def dh_error_dataset(n: int = 40, seed: int = 5, declared_smr_shift_m: float = 0
         sigma_m=np.array(s),
     )
     return truth, ds
+
+
+def aborted_sim_campaign(out, stop_after: int, *, poses: int, noise_stream: int = 0, **kw):
+    """A simulated campaign (in-process UR5e, no hidden effects, virtual time) of `poses` poses,
+    aborted after `stop_after` samples, recorded as a simulated cell -> (path, CampaignResult).
+    `noise_stream`: the simulated tracker's noise draw (a resumed run is another one); `kw` goes
+    to `run_campaign` (a resume's `continuation`, `reference_every`)."""
+    from sim_devices.cell import sim_cell
+    from workcell.campaign.executor import CampaignConfig, CampaignControl
+    from workcell.campaign.run import run_campaign
+
+    _, robot, tracker, cell = sim_cell(
+        "ur5e", "none", 1, beam_break_prob=0.0, noise_stream=noise_stream
+    )
+    control = CampaignControl()
+    n = [0]
+
+    def on_sample(s: dict) -> None:
+        n[0] += 1
+        if n[0] >= stop_after:
+            control.abort.set()
+
+    return run_campaign(
+        robot, tracker, cell, out, poses=poses, seed=1,
+        config=CampaignConfig(readings_per_pose=1, settle_s=0.1), control=control,
+        on_sample=on_sample,
+        extra_campaign={"robot_url": "sim", "tracker_url": "sim", "effects": "none"}, **kw,
+    )  # fmt: skip

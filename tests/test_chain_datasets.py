@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from simdata import aborted_sim_campaign
 
 from workcell.recording.reader import read_recording
 
@@ -20,38 +21,18 @@ POSES = 24
 REF = 4  # the reference pose (plan pose 0) measured again after every 4 poses
 
 
-def _campaign(out, stop_after: int, noise_seed: int = 0, **kw):
-    """A simulated campaign (virtual time) aborted after `stop_after` samples. `noise_seed`: the
-    simulated tracker's noise (the simulator restarts it with each run, so the first reference
-    of two resumed runs would be exact copies, which no instrument gives)."""
-    from sim_devices.cell import sim_cell
-    from workcell.campaign.executor import CampaignConfig, CampaignControl
-    from workcell.campaign.run import run_campaign
-
-    world, robot, tracker, cell = sim_cell("ur5e", "none", 1, beam_break_prob=0.0)
-    world.rng = np.random.default_rng(1000 + noise_seed)
-    control = CampaignControl()
-    n = [0]
-
-    def on_sample(s: dict) -> None:
-        n[0] += 1
-        if n[0] >= stop_after:
-            control.abort.set()
-
+def _campaign(out, stop_after: int, noise_stream: int = 0, **kw):
+    """A simulated campaign (virtual time) aborted after `stop_after` samples; each run of a
+    chain draws its own tracker noise (`noise_stream`), as a resume does."""
     kw.setdefault("reference_every", REF)
-    return run_campaign(
-        robot, tracker, cell, out, poses=POSES, seed=1,
-        config=CampaignConfig(readings_per_pose=1, settle_s=0.1), control=control,
-        on_sample=on_sample,
-        extra_campaign={"robot_url": "sim", "tracker_url": "sim", "effects": "none"}, **kw,
-    )  # fmt: skip
+    return aborted_sim_campaign(out, stop_after, poses=POSES, noise_stream=noise_stream, **kw)
 
 
-def _resume(old: Path, new: Path, stop_after: int, noise_seed: int, **kw) -> None:
+def _resume(old: Path, new: Path, stop_after: int, noise_stream: int, **kw) -> None:
     from workcell.campaign.resume import continuation, resume_plan
 
     info = resume_plan(str(old), **kw)
-    _campaign(new, stop_after, noise_seed, **continuation(info, old))
+    _campaign(new, stop_after, noise_stream, **continuation(info, old))
 
 
 @pytest.fixture(scope="module")

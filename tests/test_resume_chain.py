@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from simdata import aborted_sim_campaign
 
 from workcell.recording.reader import read_recording
 
@@ -18,25 +19,7 @@ POSES = 10
 
 def _campaign(out, stop_after: int, **kw):
     """A simulated 10-pose campaign (virtual time) aborted after `stop_after` samples."""
-    from sim_devices.cell import sim_cell
-    from workcell.campaign.executor import CampaignConfig, CampaignControl
-    from workcell.campaign.run import run_campaign
-
-    _, robot, tracker, cell = sim_cell("ur5e", "none", 1, beam_break_prob=0.0)
-    control = CampaignControl()
-    n = [0]
-
-    def on_sample(s: dict) -> None:
-        n[0] += 1
-        if n[0] >= stop_after:
-            control.abort.set()
-
-    return run_campaign(
-        robot, tracker, cell, out, poses=POSES, seed=1,
-        config=CampaignConfig(readings_per_pose=1, settle_s=0.1), control=control,
-        on_sample=on_sample,
-        extra_campaign={"robot_url": "sim", "tracker_url": "sim", "effects": "none"}, **kw,
-    )  # fmt: skip
+    return aborted_sim_campaign(out, stop_after, poses=POSES, **kw)
 
 
 @pytest.fixture(scope="module")

@@ -367,18 +367,17 @@ class Executor:
         st = self._robot_call(lambda: self.robot.state())
         e = self.elapsed()
         if force or e - self._last_js >= self.cfg.joint_state_every_s:
-            self._last_js = e
-            self.sink.joint_state(
-                self._t_ns(e), st.q_rad, st.qd_rad_s, st.torque_nm, st.temperature_c
-            )
+            self._write_state(st, e)
         return st
+
+    def _write_state(self, st, e: float) -> None:
+        self._last_js = e
+        self.sink.joint_state(self._t_ns(e), st.q_rad, st.qd_rad_s, st.torque_nm, st.temperature_c)
 
     def _state_during_move(self, st) -> None:
         """A state the driver read while a move runs (`state_during_move`, UrRobot): into the
         joint-state stream, so that the recording shows the motion itself."""
-        e = self._elapsed_at(st.t_s)
-        self._last_js = e
-        self.sink.joint_state(self._t_ns(e), st.q_rad, st.qd_rad_s, st.torque_nm, st.temperature_c)
+        self._write_state(st, self._elapsed_at(st.t_s))
 
     # ------------------------------------------------------------------ robot with fault policy
     def _robot_call(self, fn, *, repeat: bool = True):

@@ -499,6 +499,12 @@ class SerialTracker:
         self._fault("resync_failed", f"no clean COM_NullProc reply after {reason}")
         return None
 
+    def _resync_answering(self, rpc: int, reason: str) -> gc.Reply | None:
+        """`_resync`; its clean COM_NullProc reply when the call being retried is COM_NullProc
+        itself (the resync made the very call: that is its answer), else None."""
+        clean = self._resync(reason)
+        return clean if rpc == gc.Rpc.COM_NullProc else None
+
     def _call(
         self,
         rpc: int,
@@ -554,24 +560,27 @@ class SerialTracker:
             except gc.GeoComChecksumError as exc:
                 last = f"bad checksum: {exc}"
                 self._fault("checksum", f"{name} (attempt {attempt + 1}): {exc}")
-                clean = self._resync(f"a checksum error on {name}")
-                if clean is not None and rpc == gc.Rpc.COM_NullProc:
-                    return clean
+                if (
+                    answer := self._resync_answering(rpc, f"a checksum error on {name}")
+                ) is not None:
+                    return answer
                 continue
             except gc.GeoComParseError as exc:
                 last = f"garbled reply: {exc}"
                 self._fault("garbage", f"{name} (attempt {attempt + 1}): {exc}")
-                clean = self._resync(f"a garbled reply to {name}")
-                if clean is not None and rpc == gc.Rpc.COM_NullProc:
-                    return clean
+                if (
+                    answer := self._resync_answering(rpc, f"a garbled reply to {name}")
+                ) is not None:
+                    return answer
                 continue
             if rep.com_rc != 0:
                 last = "COM " + gc.describe_return_code(rep.com_rc)
                 self._fault("com_error", f"{name} (attempt {attempt + 1}): {last}")
                 if rep.com_rc in gc.COM_TRANSIENT_CODES:
-                    clean = self._resync(f"a COM error on {name}")
-                    if clean is not None and rpc == gc.Rpc.COM_NullProc:
-                        return clean
+                    if (
+                        answer := self._resync_answering(rpc, f"a COM error on {name}")
+                    ) is not None:
+                        return answer
                     continue
                 raise DeviceError(f"tracker on {self.port!r}: {name} failed: {last}")
             return rep
