@@ -190,6 +190,14 @@ def test_real_ur10_series_b_fits(capsys):
     assert re.search(
         r"note: the fitted SMR is 1[5-6]\.\d mm .* --smr-offset=-?0\.000\d,0\.000\d,0\.093\d`", out
     )
+    # the command in the note survives the wrap whatever the path's length: a CI checkout's
+    # longer path once split it at the hyphen, `--smr-` / `offset=...`
+    for n in range(0, 60):
+        rep["recording"] = f"/check/work-{'d' * n}/series-b.mcap"
+        print_report(rep)
+        text = capsys.readouterr().out
+        joined = " ".join(text.split())
+        assert f"`workcell fit {rep['recording']} --smr-offset=" in joined, (n, text)
 
 
 @pytest.mark.parametrize("worse", [1.0, 3.0])

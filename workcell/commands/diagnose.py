@@ -11,12 +11,12 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import textwrap
 from pathlib import Path
 
 import numpy as np
 
 from workcell.atomic import write_text
+from workcell.commands import prose
 from workcell.commands.options import add_tracker_mpe, parse_tracker_mpe
 from workcell.errors import UserError, check_output_path, replace_or_refuse
 from workcell.estimation.models import interval_um
@@ -200,7 +200,7 @@ def print_report(r: dict) -> None:
         )
     if npm:
         note += f" GP row: {npm.get('heldout_selection', GP_CAVEAT_FALLBACK)}."
-    print(textwrap.fill(note, width=100))
+    print(prose.fill(note, width=100))
     if r["effects"]:
         print()
         print(effects_table(r))

@@ -5,11 +5,11 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import textwrap
 from pathlib import Path
 
 import numpy as np
 
+from workcell.commands import prose
 from workcell.commands.options import add_tracker_mpe, display_unit, parse_tracker_mpe
 from workcell.errors import UserError, check_output_path
 from workcell.estimation.fitting import FIT_METHODS, fit_recording
@@ -214,7 +214,7 @@ def print_report(r: dict) -> None:
             print("   {" + ", ".join(f"{n}*" if kept.get(n) == n else n for n in g) + "}")
     if r.get("identifiability"):
         i = r["identifiability"]
-        print(textwrap.fill(identification_line(i), width=100, subsequent_indent=" " * 16))
+        print(prose.fill(identification_line(i), width=100, subsequent_indent=" " * 16))
         weak = i.get("weakly_identified") or []
         if weak:
             print(
@@ -261,7 +261,7 @@ def print_report(r: dict) -> None:
             print(f"{name:>16} {v['value']:14.6f} {d_s} {std_s}  {unit}")
         if any(v.get("std") is None and v.get("factor_95") for _, v in shown):
             print(
-                textwrap.fill(
+                prose.fill(
                     "x/ F: 95 % range from value / F to value x F (the uncertainty is Gaussian "
                     "in the log of the value; a +- std beyond half the value would say nothing)",
                     width=100,
@@ -269,7 +269,7 @@ def print_report(r: dict) -> None:
             )
         if any(v.get("stands_for") for _, v in shown):
             print(
-                textwrap.fill(
+                prose.fill(
                     "*: value and std are those of the parameter's dependent group (listed "
                     "above) taken together, not of the parameter alone: the poses cannot tell "
                     "the group's members apart",
@@ -277,11 +277,11 @@ def print_report(r: dict) -> None:
                 )
             )
         if r.get("parameter_std_basis"):
-            print(textwrap.fill(f"std: {r['parameter_std_basis']}", width=100))
+            print(prose.fill(f"std: {r['parameter_std_basis']}", width=100))
     smr = r.get("smr_change")
     if smr is not None:
         print(
-            textwrap.fill(
+            prose.fill(
                 f"note: the fitted SMR is {smr['change_m'] * 1e3:.1f} mm (std "
                 f"{smr['std_m'] * 1e3:.2f} mm) from the offset the recording declares "
                 f"{_vec_m(smr['declared_m'])}: a controller with the declared TCP needs "
@@ -299,11 +299,11 @@ def print_report(r: dict) -> None:
         print(f"{k:>16} {v}")
     b = r.get("bounds")
     if b:
-        print(textwrap.fill(b["line"], width=100))
+        print(prose.fill(b["line"], width=100))
     if (r.get("extra") or {}).get("converged") is False:
         if r.get("method") == "dh":
             print(
-                textwrap.fill(
+                prose.fill(
                     "warning: the bounded QP stopped after "
                     f"{r['extra'].get('qp_iterations')} iterations before its step fell below "
                     "its tolerance; the parameters may be short of the bounded optimum: compare "

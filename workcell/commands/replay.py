@@ -12,9 +12,9 @@ import argparse
 import json
 import os
 import sys
-import textwrap
 import time
 
+from workcell.commands import prose
 from workcell.errors import UserError, check_output_path
 from workcell.recording.chain import add_chain_option
 
@@ -91,13 +91,13 @@ def geometric_lines(est: dict) -> list[str]:
                 f"{m} (correlation {c:+.2f})" if len(partners) > 1 else f"{m}, correlation {c:+.2f}"
                 for m, c in partners.items()
             )
-        out.extend(textwrap.wrap(f"({why})", width=100, initial_indent=" " * 30,
+        out.extend(prose.wrap(f"({why})", width=100, initial_indent=" " * 30,
                                  subsequent_indent=" " * 31))  # fmt: skip
-    out += textwrap.wrap(f"std: {est['geometric_std_basis']}", width=100)
+    out += prose.wrap(f"std: {est['geometric_std_basis']}", width=100)
     held = est.get("held_by_prior") or []
     if held:
         r = est.get("held_by_prior_ratio", 0.5)
-        out += textwrap.wrap(
+        out += prose.wrap(
             f"held by its prior: {', '.join(held)} - not measured (std_filter / std_prior > "
             f"{r}); `workcell fit` on the recording says which combination is weakly identified",
             width=100,

@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import textwrap
 
 import numpy as np
 
+from workcell.commands import prose
 from workcell.errors import UserError
 from workcell.export.validate import DEFAULT_READINGS, DEFAULT_TARGETS, MAX_READINGS, MAX_TARGETS
 
@@ -262,5 +262,5 @@ def run(args: argparse.Namespace) -> int:
             f"skipped   {len(res['skipped'])} target(s) before any motion; first: {res['skipped'][0]}"
         )
     print(f"improvement (RMS): {res['improvement']:.1f}x")
-    print(textwrap.fill(f"CI: {RMS_INTERVAL_BASIS} (here the targets)", width=100))
+    print(prose.fill(f"CI: {RMS_INTERVAL_BASIS} (here the targets)", width=100))
     return 0
