@@ -553,14 +553,18 @@ class StoppedBefore(Wrapped):
         self.unlocks += 1
 
 
-def test_a_protective_stop_from_before_the_campaign_is_not_released_by_itself(tmp_path):
-    """Without a terminal the policy is to resume at once after a protective stop; a stop the
-    arm was already in (the last campaign ended on 3 of them) was released the same way and the
-    arm moved on. Now the campaign stops before any motion, saying who releases it."""
+@pytest.mark.parametrize("policy", ["resume", "stop"])
+def test_a_protective_stop_from_before_the_campaign_is_not_released_by_itself(tmp_path, policy):
+    """Under `resume` a stop the arm was already in (the last campaign ended on 3 of them) was
+    released like the campaign's own and the arm moved on. Now the campaign stops before any
+    motion, saying who releases it; under `stop` (the default without a terminal) it says the
+    stop is from before, not "during a move"."""
     _, robot, tracker, cell = sim_cell("ur5e", "none", seed=1, beam_break_prob=0.0)
     arm = StoppedBefore(robot)
     out = tmp_path / "ps.mcap"
-    control = CampaignControl()  # auto_resume_protective_stop: the non-interactive default
+    control = CampaignControl()  # auto_resume_protective_stop: the library's default
+    if policy == "stop":  # what `campaign` without a terminal sets
+        control.auto_resume_protective_stop, control.stop_at_protective_stop = False, True
     path, res = run_campaign(arm, tracker, cell, out, poses=3, seed=1, config=FAST,
                              control=control)  # fmt: skip
     assert res.aborted and res.stopped_by == "protective_stop"

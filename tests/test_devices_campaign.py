@@ -125,7 +125,7 @@ def _campaign_with_a_protective_stop(host, out, policy, stdin=None):
         faults={"protective_stop_at_move": [3]},
     ) as sim:
         return subprocess.run(
-            campaign_cmd(sim.info, out, 4, "--on-protective-stop", policy),
+            campaign_cmd(sim.info, out, 4, *(["--on-protective-stop", policy] if policy else [])),
             stdin=stdin,
             capture_output=True,
             text=True,
@@ -141,6 +141,27 @@ def test_protective_stop_pauses_and_resumes(tmp_path):
     kinds = [e["kind"] for e in rec.events]
     assert "protective_stop" in kinds and "pause" in kinds and "resume" in kinds, kinds
     assert {s["pose_id"] for s in rec.samples} == set(range(4))
+
+
+def test_without_a_terminal_a_protective_stop_ends_the_campaign(tmp_path):
+    """With no terminal (a script, cron, `< /dev/null`) and no `--on-protective-stop`, the
+    default released every protective stop at once and moved on, with nobody there to check
+    the cell after what may have been a collision. Now the default is `stop`: the arm is left
+    stopped (not unlocked), the recording closed with what it measured, one line saying how to
+    continue, exit 3."""
+    out = tmp_path / "default.mcap"
+    r = _campaign_with_a_protective_stop("127.0.0.45", out, None, stdin=subprocess.DEVNULL)
+    assert r.returncode == 3, r.stderr[-3000:]
+    last = r.stderr.strip().splitlines()[-1]
+    assert "protective stop during a move" in last and "left stopped" in last, last
+    assert f"`workcell campaign --resume {out}`" in last, last
+    assert "Traceback" not in r.stderr
+    rec = read_recording(out)
+    assert rec.closed_cleanly
+    kinds = [e["kind"] for e in rec.events]
+    assert "protective_stop" in kinds and "resume" not in kinds, kinds
+    assert "stopped" in kinds
+    assert 0 < len({s["pose_id"] for s in rec.samples}) < 4
 
 
 def test_ask_with_no_operator_does_not_release_a_protective_stop(tmp_path):

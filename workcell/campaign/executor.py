@@ -170,6 +170,9 @@ class CampaignControl:
     # after a protective stop: resume at once (True) or wait until `resume` is set (a UI asks
     # the operator, who checks the cell, then sets it)
     auto_resume_protective_stop: bool = True
+    # the `stop` policy (the command line's default without a terminal): a protective stop
+    # ends the campaign with the arm left stopped, for someone to check the cell and resume
+    stop_at_protective_stop: bool = False
     resume: threading.Event = field(default_factory=threading.Event)
     waiting_for_resume: threading.Event = field(default_factory=threading.Event)
     # set while an executor runs: before it (planning, connecting) nothing moves and nothing is
@@ -475,6 +478,14 @@ class Executor:
                 )
                 self.event("error", "stopped", msg)
                 raise _CampaignStop("protective_stop", msg) from None
+            if self.control.stop_at_protective_stop:
+                msg = (
+                    f"protective stop during a move ({e}); the arm is left stopped: nobody is at "
+                    "a terminal to check the cell (--on-protective-stop stop, the default "
+                    "without one), so release it on the teach pendant once the cell is checked"
+                )
+                self.event("error", "stopped", msg)
+                raise _CampaignStop("protective_stop", msg) from None
             self._wait_protective_stop()
             raise _MoveInterrupted("protective stop during a move") from None
         self._last_cmd = np.array(q, float)
@@ -483,9 +494,10 @@ class Executor:
         """An arm already in a protective stop when the campaign starts (the last campaign
         stopped for protective stops, or the cell stopped it since): the resume-at-once policy
         is for stops the campaign sees happen during its own moves; this one is released by
-        someone who has checked the cell. With the ask policy the operator is asked at the first
+        someone who has checked the cell (the `stop` policy names it as from before). With the ask policy the operator is asked at the first
         move, as for any stop."""
-        if not self.control.auto_resume_protective_stop:
+        c = self.control
+        if not (c.auto_resume_protective_stop or c.stop_at_protective_stop):
             return
         st = self._robot_call(lambda: self.robot.state())
         if getattr(st, "safety", "NORMAL") != "PROTECTIVE_STOP":

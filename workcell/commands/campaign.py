@@ -108,11 +108,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--online", choices=["ekf-ann"], help="feed samples to an online estimator")
     p.add_argument(
         "--on-protective-stop",
-        choices=["ask", "resume"],
+        choices=["ask", "resume", "stop"],
         default=None,
         help="after a protective stop: ask on the terminal before resuming (default "
-        "when interactive; the end of input, e.g. < /dev/null, stops the campaign) or resume at "
-        "once; 3 protective stops in a row with no pose measured between them stop it",
+        "when interactive; the end of input, e.g. < /dev/null, stops the campaign), stop the "
+        "campaign with the arm left stopped (default without a terminal) or resume at once "
+        "(3 protective stops in a row with no pose measured between them stop it)",
     )
 
 
@@ -181,12 +182,16 @@ def _check_time_scale(args: argparse.Namespace) -> None:
 
 def _control(args: argparse.Namespace) -> CampaignControl:
     """Ctrl-C, SIGTERM and SIGHUP abort cleanly; after a protective stop, ask on the terminal
-    (default when interactive) or resume at once."""
+    (default when interactive), stop the campaign (default without a terminal: nobody checks
+    the cell before the arm moves again) or resume at once."""
     control = CampaignControl()
     control.install_sigint()
-    mode = args.on_protective_stop or ("ask" if sys.stdin.isatty() else "resume")
-    if mode == "ask":
+    mode = args.on_protective_stop or ("ask" if sys.stdin.isatty() else "stop")
+    if mode in ("ask", "stop"):
         control.auto_resume_protective_stop = False
+    if mode == "stop":
+        control.stop_at_protective_stop = True
+    if mode == "ask":
         _ask_on_protective_stop(control)
     return control
 
