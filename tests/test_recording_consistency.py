@@ -190,3 +190,22 @@ def test_replay_refuses_what_the_fits_refuse(base, tmp_path, capsys):
     p = _write(tmp_path, "constant.mcap", session, s2, times)
     rc, err = run_cli(["replay", str(p), "--online", "ekf-ann"], capsys)
     assert rc != 0 and len(err) == 1 and "do not follow" in err[0]
+
+
+def test_the_tui_replay_feeds_the_filter_what_the_fits_keep(base, tmp_path):
+    """The TUI's EKF-ANN replay fed the filter every sample of its training poses: a
+    recording written twice over (exact copies, which `workcell replay` and the fits use once)
+    went through the filter twice, as twice the evidence."""
+    from workcell.recording.chain import load_chain
+    from workcell.tui.backend import replay_samples
+
+    session, samples, times, _ = base
+    s2 = copy.deepcopy(samples) + copy.deepcopy(samples)
+    t2 = list(times) + [t + 1 for t in times]
+    chain = load_chain(_write(tmp_path, "dup.mcap", session, s2, t2))
+    ds = Dataset.from_recording(chain)
+    train, _ = ds.holdout_split(0.25)
+    fed = replay_samples(chain, ds, train)
+    assert len(fed) == len(train) < len(samples)
+    assert len({s["pose_id"] for s in fed}) == len(fed)
+    assert [s["index"] for s in fed] == sorted(s["index"] for s in fed)

@@ -671,6 +671,13 @@ def _read_warnings(ds, progress) -> list[str]:
     return lines
 
 
+def replay_samples(chain, ds, rows) -> list[dict]:
+    """The recorded samples behind data-set rows `rows`, in recording order: what the fits
+    kept (`Dataset` screens out gross readings and exact copies, as `workcell replay` does),
+    not every sample of those poses."""
+    return [chain.samples[int(ds.row[i])] for i in np.sort(np.asarray(rows, int))]
+
+
 def _replay(recording, progress, holdout: float, out: Path) -> dict:
     """EKF-ANN replay (what `workcell replay --online ekf-ann` does): the training samples in
     recording order through `LiveFilter`, then the final model on the held-out poses."""
@@ -689,8 +696,7 @@ def _replay(recording, progress, holdout: float, out: Path) -> dict:
     ds = Dataset.from_recording(chain)
     warnings = _read_warnings(ds, progress)
     train, test = ds.holdout_split(holdout)
-    keep = {int(ds.pose_id[i]) for i in train}
-    samples = [s for s in chain.samples if int(s["pose_id"]) in keep]
+    samples = replay_samples(chain, ds, train)
     try:
         lf = live.LiveFilter.from_session(rec.session)
     except (KeyError, ValueError) as e:
