@@ -305,6 +305,8 @@ def run(args: argparse.Namespace) -> int:
             },
             reference_every=args.reference_every or 0,
         )
+    if online is not None:  # the filter's final estimate, or why there is none
+        _online_report(online, path, control)
     again = f" (and the reference {res.measured - n[0]} more times)" if res.measured > n[0] else ""
     summary(
         f"recorded {n[0]} poses{again}, skipped {res.skipped}, events {res.events} -> {path}",
@@ -313,6 +315,21 @@ def run(args: argparse.Namespace) -> int:
     campaign_stop(res, path)
     abort_note(res, path)
     return exit_code(res, control)
+
+
+def _online_report(online, path, control: CampaignControl) -> None:
+    """The online filter's closing report on stdout (`replay.final_lines`): its estimate with
+    groups, base frame and uncertainty, or one line saying it never started; best effort, the
+    recording is closed already."""
+    from workcell.commands.replay import final_lines
+
+    try:
+        lines = final_lines(online, str(path))
+    except Exception as e:  # noqa: BLE001 - a report failure must not fail a recorded campaign
+        progress(f"ekf-ann: no final estimate ({type(e).__name__}: {e})")
+        return
+    for line in lines:
+        summary(line, control)
 
 
 NOT_ACKNOWLEDGED = (

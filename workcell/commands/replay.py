@@ -68,9 +68,20 @@ def geometric_lines(est: dict) -> list[str]:
         f"geometric estimate at the last sample (variance factor s0^2 {s0:.3g}, "
         f"{'passes' if est.get('variance_test_ok') else 'fails'} the 95 % chi^2 test):"
     ]
+    groups = est.get("unidentifiable") or []
+    stands = {n for n, g in est["geometric"].items() if g.get("stands_for")}
+    if groups:
+        out += prose.wrap(
+            f"not separately identifiable from the first {est.get('n_init', 'n_init')} samples "
+            "(fixed at nominal; where the filter estimates one of a group, marked *, it carries "
+            "the whole group's effect):",
+            width=100,
+        )
+        out += ["   {" + ", ".join(f"{n}*" if n in stands else n for n in g) + "}" for g in groups]
     for n, g in est["geometric"].items():
         k, u = display_unit(g["unit"])
-        head = f"  {n:>14} {g['value'] * k:12.4f}"
+        name = f"{n}*" if n in stands else n
+        head = f"  {name:>14} {g['value'] * k:12.4f}"
         if g.get("determined_by") != "prior":
             out.append(
                 f"{head} +- {g['std'] * k:.3g} {u}   (filter alone +- {g['std_filter'] * k:.3g})"
@@ -93,6 +104,14 @@ def geometric_lines(est: dict) -> list[str]:
             )
         out.extend(prose.wrap(f"({why})", width=100, initial_indent=" " * 30,
                                  subsequent_indent=" " * 31))  # fmt: skip
+    if stands:
+        out += prose.wrap(
+            "*: value and std are those of the parameter's dependent group (listed above) taken "
+            "together, not of the parameter alone: the poses cannot tell the group's members apart",
+            width=100,
+        )
+    out += base_lines(est)
+    out += split_lines(est)
     out += prose.wrap(f"std: {est['geometric_std_basis']}", width=100)
     held = est.get("held_by_prior") or []
     if held:
@@ -103,6 +122,73 @@ def geometric_lines(est: dict) -> list[str]:
             width=100,
         )
     return out
+
+
+def base_lines(est: dict) -> list[str]:
+    """The combined base and the frame of the base offsets (`LiveFilter.estimate`)."""
+    T = est.get("tracker_T_base")
+    if not T:
+        return []
+    t, q = T["translation_m"], T["quaternion_wxyz"]
+    st, sr = T.get("translation_std_m"), T.get("rotation_std_rad")
+    pm_t = f" +- ({', '.join(f'{x * 1e3:.3g}' for x in st)}) mm" if st else ""
+    pm_r = f"  +- ({', '.join(f'{x * 1e3:.3g}' for x in sr)}) mrad about the tracker's x, y, z"
+    n = est.get("n_init", "n_init")
+    return [
+        "base (combined, tracker_T_base: the one to compare with other models):",
+        f"  translation ({', '.join(f'{x * 1e3:.4f}' for x in t)}) mm{pm_t}",
+        f"  rotation quaternion wxyz ({', '.join(f'{x:.8f}' for x in q)})",
+        *([pm_r] if sr else []),
+        *prose.wrap(
+            f"base_t*, base_r* above are offsets from base_ref, this filter's own registration "
+            f"(the nominal chain fitted rigidly to its first {n} samples), which differs from "
+            "`workcell fit`'s: compare the combined bases (tracker_T_base; a model file has "
+            "it), not the offsets (the combined base too is part of the filter's split between "
+            "geometry and network, below)",
+            width=100,
+        ),
+    ]
+
+
+def split_lines(est: dict) -> list[str]:
+    """How the estimate splits the samples between geometry and network (`LiveFilter.estimate`,
+    `geometry_split_basis`)."""
+    if est.get("geometric_part_rms_m") is None:
+        return []
+    return prose.wrap(
+        f"geometry vs network: the geometry alone (network off) fits the {est['fit_samples']} "
+        f"samples at {est['geometric_part_rms_m'] * 1e6:.0f} um RMS, geometry and network at "
+        f"{est['rms_m'] * 1e6:.0f} um (in-sample, final state). The geometric parameters are the "
+        "filter's split between geometry and network, which absorbs part of the geometry: not "
+        "comparable one by one with `workcell fit --method dh`'s (compare its RMS with the "
+        "geometry-alone figure); their stds are conditional on the network",
+        width=100,
+    )
+
+
+def final_lines(lf, recording: str) -> list[str]:
+    """The closing report of a live filter fed during a campaign: its estimate, or why there is
+    none, and how to get and save one from the recording (commands on lines of their own, so a
+    copy and paste gets them whole)."""
+    est = lf.estimate()
+    if not est.get("initialised"):
+        from workcell.estimation.fitting import MIN_TRAIN_POSES
+
+        return [
+            f"ekf-ann: no estimate: the filter never started (it initialises on its first "
+            f"{lf.n_init} samples and was given {lf.n})",
+            f"  a batch estimate: workcell fit {recording}",
+            f"    (it needs {MIN_TRAIN_POSES} training poses; --holdout 0 trains on all of them)",
+            f"  the filter's: workcell replay {recording} --online ekf-ann",
+            f"    (once the recording has {lf.n_init} samples or more)",
+        ]
+    out = ["ekf-ann estimate at the end of the campaign:"]
+    out += geometric_lines(est) if est.get("geometric") else []
+    return out + [
+        f"save it: workcell replay {recording} --online ekf-ann --save MODEL",
+        "  (feeds the recorded samples to the filter again, screened as `workcell fit` screens "
+        "them)",
+    ]
 
 
 def run(args: argparse.Namespace) -> int:

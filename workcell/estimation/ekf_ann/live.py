@@ -20,6 +20,13 @@ Initialisation (documented scheme for a random network, issue item 2b):
 Model adequacy (2c): the innovation-based variance factor s0^2 = mean(e^T S^-1 e) / 3 over the
 last `window` samples is reported on every line with the chi^2 test (95 %): "ok" if
 sum(e^T S^-1 e) <= chi2_0.95(3 n), else "REJECT" (the model or the stated noise is inadequate).
+
+What the estimate says about itself (`LiveFilter.estimate`, printed by `workcell replay` and at the
+end of `workcell campaign --online ekf-ann`): the frame of its base offsets (`base_ref`, its own
+registration, and the combined `tracker_T_base` to compare with other models), the dependent
+groups a state stands for (as `workcell fit` marks them), and how the final state splits the
+samples between geometry and network (`GEOMETRY_SPLIT_BASIS`). `LiveFilter.model` stores the
+declared SMR offset as `info.nominal_tool_m`, the TCP an export commands with.
 """
 
 from __future__ import annotations
@@ -33,18 +40,19 @@ from workcell.estimation.dh import TRACKER_MPE_M
 from workcell.estimation.ekf_ann import ann as A
 from workcell.estimation.ekf_ann.filter import EkfAnnFilter, FilterConfig, prefit_weights
 from workcell.estimation.ekf_ann.model import EkfAnnModel
-from workcell.estimation.identifiability import analyse, candidates_for
+from workcell.estimation.identifiability import Identifiability, analyse, candidates_for
 from workcell.estimation.models import note_joint_range
 from workcell.kinematics.chain import (
     N_PARAMS,
     PARAM_NAMES,
     PARAM_UNITS,
+    PARAMETER_FRAMES,
     jac_params,
     p_tracker,
     pack,
     tracker_T_base,
 )
-from workcell.kinematics.frames import kabsch
+from workcell.kinematics.frames import kabsch, quat_wxyz_from_matrix
 from workcell.kinematics.robots import DH, RobotSpec, robot_from_session
 
 # A geometric state is "held by its prior" when the data left its (unscaled) filter std above
@@ -74,19 +82,72 @@ GEOMETRIC_STD_BASIS = (
     "uncertainty"
 )
 
+BASE_REF_BASIS = (
+    "base_t*, base_r* (geometric) are offsets from base_ref, this filter's own registration: the "
+    "nominal chain with the declared SMR offset fitted rigidly (Kabsch) to its first n_init "
+    "samples. `workcell fit` registers its own base_ref (on all its poses), so the offsets of the "
+    "two are in different frames and not comparable; compare the combined base tracker_T_base = "
+    "base_ref @ Trans(t) @ Rot(r) (a model file's tracker_T_base) instead. tracker_T_base: "
+    "translation_m, quaternion_wxyz (rotation tracker <- base), std of the translation (m) and of "
+    "the rotation (rad, small rotation about the tracker's x, y, z), propagated from the "
+    "geometric states' covariance times std_scale^2"
+)
+
+UNIDENTIFIABLE_BASIS = (
+    "groups of geometric parameters the first n_init samples cannot tell apart (the rank test "
+    "`workcell fit` uses, `workcell.estimation.identifiability.analyse` of their weighted "
+    "Jacobian); the group's other members stay at nominal, and where the filter estimates one "
+    "member alone (geometric.*.stands_for, marked * in the text) its value and std are those of "
+    "the whole group taken together, not of the parameter alone"
+)
+
+GEOMETRY_SPLIT_BASIS = (
+    "the geometric states are the filter's split of the position error between the geometry "
+    "and the network, which learns alongside them and absorbs part of what a geometry-only "
+    "model puts into the DH parameters, base and SMR: they are not comparable one by one with "
+    "`workcell fit --method dh` (compare predictions, or the combined base tracker_T_base). "
+    "Their stds are those of this split: conditional on the network (its form, its prior "
+    "sigma_w0 and its linearisation at the current weights), not the uncertainty of a "
+    "geometry-only fit. geometric_part_rms_m: RMS of y - f(q; theta) (the geometry alone, network "
+    "off) over the samples the filter saw, at its final state; rms_m: the whole model's (geometry "
+    "plus network) on the same samples, in-sample (not predictions). Their difference is what the "
+    "network carries; `workcell fit --method dh` reports the RMS of a geometry-only fit"
+)
+
 
 def _std_scale(s0: float) -> float:
     """sqrt(max(1, s0^2)) (1 when s0^2 is not known yet): the factor on the filter's stds."""
     return float(np.sqrt(max(s0, 1.0))) if np.isfinite(s0) else 1.0
 
 
+def geometry_identification(
+    dh: DH, theta: np.ndarray, base_ref: np.ndarray, q: np.ndarray, sigma: np.ndarray
+) -> Identifiability:
+    """The identifiability analysis of these samples (weighted Jacobian, the candidates and
+    priority order `workcell fit` uses): what is identifiable and the dependent groups."""
+    w = 1.0 / np.sqrt(np.mean(np.asarray(sigma) ** 2, axis=1))
+    J = np.asarray(jac_params(theta, base_ref, np.asarray(q))) * w[:, None, None]
+    return analyse(J.reshape(-1, N_PARAMS), candidates=candidates_for(dh))
+
+
 def identifiable_geometry(
     dh: DH, theta: np.ndarray, base_ref: np.ndarray, q: np.ndarray, sigma: np.ndarray
 ) -> list[str]:
     """Geometric parameters separately identifiable from these samples (weighted Jacobian)."""
-    w = 1.0 / np.sqrt(np.mean(np.asarray(sigma) ** 2, axis=1))
-    J = np.asarray(jac_params(theta, base_ref, np.asarray(q))) * w[:, None, None]
-    return analyse(J.reshape(-1, N_PARAMS), candidates=candidates_for(dh)).identifiable
+    return geometry_identification(dh, theta, base_ref, q, sigma).identifiable
+
+
+def group_representatives(groups: list[list[str]], estimated) -> dict[str, list[str]]:
+    """{state: its group} for each dependent group of which exactly one member is estimated:
+    that member carries the whole group's effect (the rule of `DhModel.parameters`, whose
+    `stands_for` `workcell fit` marks with *)."""
+    est = set(estimated)
+    out = {}
+    for g in groups:
+        kept = [n for n in g if n in est]
+        if len(g) > 1 and len(kept) == 1:
+            out[kept[0]] = list(g)
+    return out
 
 
 class LiveFilter:
@@ -126,6 +187,8 @@ class LiveFilter:
         self.n = 0
         self.last_innovation_m = float("nan")
         self.prefit_accepted: bool | None = None  # None until initialised
+        # the identifiability analysis of the initialisation samples (None until initialised)
+        self.identification: Identifiability | None = None
 
     @classmethod
     def for_cell(cls, cell, **kw) -> LiveFilter:
@@ -191,11 +254,15 @@ class LiveFilter:
         th = pack(self.robot.dh, tool=self.tool_m)
         base_ref = kabsch(np.asarray(p_tracker(th, np.eye(4), Q)), Y)
         cfg = self.cfg
-        if self.adaptive_geometry and cfg.mode == "adaptive" and not cfg.geometric:
-            names = identifiable_geometry(self.robot.dh, th, base_ref, Q, S)
-            from dataclasses import replace
+        if cfg.mode == "adaptive":
+            # what these samples identify, and the dependent groups (`estimate` reports which
+            # state stands for a group, as `workcell fit` marks it)
+            ident = geometry_identification(self.robot.dh, th, base_ref, Q, S)
+            self.identification = ident
+            if self.adaptive_geometry and not cfg.geometric:
+                from dataclasses import replace
 
-            cfg = replace(cfg, geometric=tuple(names))
+                cfg = replace(cfg, geometric=tuple(ident.identifiable))
         spec = A.AnnSpec.from_joints(Q, hidden=self.hidden)
         w0 = A.random_weights(self.hidden, self.seed)
         if cfg.geometric:
@@ -259,6 +326,7 @@ class LiveFilter:
             "variance_factor": s0,
             "variance_test_ok": ok,
             "initialised": f is not None,
+            "n_init": self.n_init,
         }
         if f is not None:
             k = _std_scale(s0)
@@ -280,6 +348,16 @@ class LiveFilter:
                     "held_by_prior_ratio": PRIOR_HELD_RATIO,
                     "geometric": geo,
                     "geometric_std_basis": GEOMETRIC_STD_BASIS,
+                    "unidentifiable": self._groups(),
+                    "unidentifiable_basis": UNIDENTIFIABLE_BASIS.replace(
+                        "n_init", str(self.n_init)
+                    ),
+                    "parameter_frames": PARAMETER_FRAMES,
+                    "base_ref": np.asarray(f.base_ref, float).tolist(),
+                    "tracker_T_base": self._base_pose(f, k),
+                    "base_ref_basis": BASE_REF_BASIS.replace("n_init", str(self.n_init)),
+                    **self._split(f),
+                    "geometry_split_basis": GEOMETRY_SPLIT_BASIS,
                     "ann_iterations": f.ann_iterations,
                     "ann_iterations_accepted": f.ann_accepted,
                     "state_norm": float(np.linalg.norm(f.x)),
@@ -287,8 +365,55 @@ class LiveFilter:
             )
         return out
 
+    def _groups(self) -> list[list[str]]:
+        """The dependent groups of the initialisation samples (`geometry_identification`)."""
+        return [] if self.identification is None else [list(g) for g in self.identification.groups]
+
     @staticmethod
-    def _geometric(f: EkfAnnFilter, s0: float) -> dict[str, dict]:
+    def _theta_cov(f: EkfAnnFilter) -> np.ndarray:
+        """Covariance (39, 39) of theta from the filter's geometric states (unscaled)."""
+        K, E = f.n_weights, f.E  # E: (39, 0) in paper mode (no geometric states)
+        n = E.shape[1]
+        return E @ np.asarray(f.P[K : K + n, K : K + n], float) @ E.T
+
+    @classmethod
+    def _base_pose(cls, f: EkfAnnFilter, k: float) -> dict:
+        """The combined base tracker_T_base = base_ref @ Trans(t) @ Rot(r) with the std of its
+        translation and rotation (first order, from the geometric states' covariance, scaled by
+        `k`); the rotation std is of a small rotation about the tracker's axes."""
+        from workcell._jax import jax, jnp
+
+        base_ref = jnp.asarray(f.base_ref)
+        T = np.asarray(tracker_T_base(f.theta, f.base_ref), float)
+        J = np.asarray(jax.jacfwd(lambda th: tracker_T_base(th, base_ref))(jnp.asarray(f.theta)))
+        W = np.einsum("ijp,kj->ikp", J[:3, :3, :], T[:3, :3])  # dR R^T: skew in each column
+        Jb = np.vstack([J[:3, 3, :], np.stack([W[2, 1], W[0, 2], W[1, 0]])])
+        C = Jb @ cls._theta_cov(f) @ Jb.T * k**2
+        sd = np.sqrt(np.clip(np.diag(C), 0, None))
+        return {
+            "translation_m": T[:3, 3].tolist(),
+            "quaternion_wxyz": quat_wxyz_from_matrix(T[:3, :3]).tolist(),
+            "translation_std_m": sd[:3].tolist(),
+            "rotation_std_rad": sd[3:].tolist(),
+        }
+
+    @staticmethod
+    def _split(f: EkfAnnFilter) -> dict:
+        """How the final state splits the samples seen between geometry and network: the RMS of
+        the whole model and of the geometry alone (network off), in-sample."""
+        q = f.q_seen()
+        if not len(q):
+            return {}
+        y = np.concatenate(f._y)
+        geo = np.asarray(p_tracker(f.theta, f.base_ref, q)) + f.offset_m()
+        full = geo + f.ann_tracker_m(q)
+        return {
+            "fit_samples": len(q),
+            "rms_m": float(np.sqrt(np.mean(np.sum((y - full) ** 2, axis=1)))),
+            "geometric_part_rms_m": float(np.sqrt(np.mean(np.sum((y - geo) ** 2, axis=1)))),
+        }
+
+    def _geometric(self, f: EkfAnnFilter, s0: float) -> dict[str, dict]:
         """Each estimated geometric state: value, the filter's std, that std scaled by the
         innovation variance factor, and (adaptive mode) the starting std and whether the data
         or the prior determined the state (`GEOMETRIC_STD_BASIS`, `PRIOR_HELD_RATIO`)."""
@@ -325,24 +450,27 @@ class LiveFilter:
                         and abs(corr[i, j]) >= PARTNER_CORRELATION
                     }
             out[n] = g
+        for n, group in group_representatives(self._groups(), out).items():
+            out[n]["stands_for"] = group
         return out
 
     def model(self) -> EkfAnnModel:
         if self.filter is None:
             raise ValueError(f"not initialised yet: {self.n} of {self.n_init} samples seen")
         s0, _ = self.variance_test()
-        model = EkfAnnModel.from_filter(
-            self.filter,
-            self.robot.model,
-            self.robot.dh,
-            info={"variance_factor": s0} if np.isfinite(s0) else {},
-        )
+        info = {"variance_factor": s0} if np.isfinite(s0) else {}
+        # the recording's declared SMR offset, as the batch fits store it: the controller's TCP
+        # an export commands with (`export.correction.nominal_for`), not the filter's fitted SMR
+        info["nominal_tool_m"] = self.tool_m.tolist()
+        model = EkfAnnModel.from_filter(self.filter, self.robot.model, self.robot.dh, info=info)
         # which states only the prior holds (`PRIOR_HELD_RATIO`): their covariance in the model is
         # the prior's spread, not a measurement uncertainty
+        geo = self._geometric(self.filter, s0)
         model.info["geometric_held_by_prior"] = [
-            n
-            for n, g in self._geometric(self.filter, s0).items()
-            if g.get("determined_by") == "prior"
+            n for n, g in geo.items() if g.get("determined_by") == "prior"
         ]
+        stands = {n: g["stands_for"] for n, g in geo.items() if "stands_for" in g}
+        if stands:  # the states that carry a dependent group (`group_representatives`)
+            model.info["geometric_stands_for"] = stands
         note_joint_range(model, self.filter.q_seen())
         return model
