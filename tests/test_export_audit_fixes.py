@@ -282,3 +282,235 @@ def test_the_before_after_table_keeps_its_columns_apart(capsys):
     out = capsys.readouterr().out.splitlines()
     assert out[1].startswith("before        150.0 um    151.5 um    165.0 um")
     assert out[0].startswith(f"{'':10}{'mean':>12}{'RMS':>12}{'max':>12}")
+
+
+# ---------------------------------------------------------------- second export/validate audit
+def _tilt(rotvec, axes, angle):
+    """Rotations (N, 3, 3): the orientation `rotvec` tilted by `angle` about unit `axes` (N, 3)."""
+    from workcell.export.correction import rotvec_to_matrix
+
+    return rotvec_to_matrix(rotvec)[0] @ rotvec_to_matrix(np.asarray(axes) * angle)
+
+
+def test_the_orientation_tolerance_keeps_the_stated_error():
+    """Item 1: the table accepted a tool orientation 0.05 rad off its own, where it was off the
+    exact correction by ~10x its stated interpolation error. The tolerance is now measured: a
+    tilt that far changes the correction by at most the interpolation error target, and the
+    table's error there (interpolation included) is measured and stated."""
+    from workcell.export.correction import matrix_to_rotvec
+
+    m = make_model(3)
+    corr = Corrector(m, nominal_for(m))
+    tab = build_table(corr, LO, HI, [DOWN], target_error_m=5e-6, spacing_m=0.1, n_check=40)
+    meta = tab.meta
+    tol = tab.orientation_tol_rad
+    assert 1e-4 <= tol < 0.05 and meta["orientation_tol_rad"] == tol
+    assert meta["orientation_change_at_tol_m"] <= 5e-6
+    assert meta["orientation_error_at_tol_m"] <= meta["max_interp_error_m"] + 5e-6
+    rng = np.random.default_rng(11)
+    P = rng.uniform(LO, HI, (30, 3))
+    axes = rng.normal(size=(30, 3))
+    axes /= np.linalg.norm(axes, axis=1)[:, None]
+    c0, _, _ = corr.correct_positions(P, _tilt(DOWN, axes, 0.0), tab.seed_for(P))
+
+    def change(angle):  # how far a tilt moves the exact correction, fresh points and axes
+        c, _, _ = corr.correct_positions(P, _tilt(DOWN, axes, angle), tab.seed_for(P))
+        return np.linalg.norm(c - c0, axis=1).max()
+
+    assert change(0.999 * tol) <= 5e-6 * 1.02
+    assert change(0.049) > 5 * 5e-6  # what the old 0.05 rad tolerance let through
+    with pytest.raises(UserError, match="from the nearest orientation of the table"):
+        tab.orientation_index(matrix_to_rotvec(_tilt(DOWN, [[0, 1.0, 0]], 1.05 * tol))[0])
+    # stated in the URScript's (and the CSV's) header; wc_otol is the tolerance
+    text = generate_urscript(tab)
+    line = [x for x in _head(text) if x.startswith("orientation tolerance:")]
+    assert len(line) == 1 and f"{tol:.3g} rad" in line[0] and "interpolation" in line[0]
+    assert f"global wc_otol = {tol!r}" in text
+
+
+def test_validate_states_the_bias_in_base_ref_axes():
+    """Item 2: `bias_base_m` was the mean error in tracker axes. An arm that lands a fixed b
+    (base_ref axes) off every commanded position must report bias b before correction, and b
+    plus the mean table correction after (hand computation); base_ref here is turned 90 deg
+    about z, so tracker axes would differ."""
+    from workcell.export.validate import random_targets, run_validation
+
+    m = _model_with_base()
+    corr = Corrector(m, nominal_for(m))
+    tab = build_table(corr, LO, HI, [DOWN], spacing_m=0.1, n_check=20)
+    nom = corr.nominal
+    b = np.array([1e-4, -2e-4, 3e-4])
+    at = {}
+
+    def move(q):
+        at["q"] = np.asarray(q, float)
+
+    def measure():
+        return nom.to_tracker(nom.fk(at["q"])[0][0] + b)
+
+    res = run_validation(nom, tab, move, measure, n=6, seed=2)
+    assert res["targets"] == 6
+    assert np.allclose(res["before"]["bias_base_m"], b, rtol=0, atol=1e-9)
+    P, _ = random_targets(tab, 6, 2)
+    want = b + tab.interpolate(P, 0).mean(0)
+    assert np.allclose(res["after"]["bias_base_m"], want, rtol=0, atol=1e-9)
+    assert res["before"]["rms_m"] == pytest.approx(np.linalg.norm(b), rel=1e-6)
+
+
+def _sim_validate_args(model, table, **kw):
+    return _validate_args(str(model), table=str(table), sim_seed=3, effects="none", **kw)
+
+
+def test_validate_refuses_a_table_for_another_payload(tmp_path, monkeypatch):
+    """Item 3: a table exported for 5 kg validated on the simulated arm carrying 0.5 kg gave
+    ten times the error of the matching table, silently. Now refused before any motion, with
+    the payloads and the remedy (a model without payload-dependent terms is not concerned)."""
+    from test_export_table import _thermal_model
+
+    import workcell.export.build as build
+    from workcell.commands import validate
+    from workcell.export.correction import Conditions
+
+    m = _thermal_model("joint")
+    m.info["joint_range_rad"] = [[-0.5, 0.5], [-2.0, -1.0], [0.5, 2.0], [-2, -1], [-2, -1], [0, 1]]
+    mp = save_model(m, tmp_path / "aug.json")
+    nom = nominal_for(make_model(8))
+    monkeypatch.setattr(build, "nominal_for_model", lambda model, recording=None: nom)
+    tables = {}
+    for kg in (5.0, 0.5):
+        corr = Corrector(m, nom, Conditions(payload_kg=kg))
+        tab = build_table(corr, LO, HI, [DOWN], spacing_m=0.2, n_check=10)
+        tables[kg] = (tab, tab.save(tmp_path / f"t{kg:g}")[0])
+    with pytest.raises(UserError, match=r"payload of 5 kg \(given at export\); the arm carries "):
+        validate.run(_sim_validate_args(mp, tables[5.0][1]))
+    from workcell.export.validate import payload_mismatch
+
+    assert "--payload 0.5" in payload_mismatch(m, tables[5.0][0], 0.5)
+    assert payload_mismatch(m, tables[0.5][0], 0.5) is None
+    assert payload_mismatch(make_model(1), tables[5.0][0], 0.5) is None  # no compliance
+
+
+def test_validate_refuses_a_model_of_another_arm_before_any_motion(tmp_path, monkeypatch):
+    """Item 4: with a UR10 connected, validate said "give --model ur10" (an abbreviation of
+    --model-name), which then moved the UR10 through the validation with the UR5e model's IK.
+    Now --model-name other than the model's arm is refused, and the driver's refusal is said
+    with validate's remedy, not --model."""
+    import types
+
+    import workcell.campaign.devices as devices
+    from workcell.commands import validate
+    from workcell.drivers.ur_robot import WrongRobotModel
+
+    mp = save_model(make_model(1), tmp_path / "m.json")
+    real = dict(robot="ur://127.0.0.1", tracker="serial:///dev/null")
+    with pytest.raises(UserError, match=r"--model-name ur10: the model .* is of a ur5e") as e:
+        validate.run(_validate_args(str(mp), robot_model="ur10", **real))
+    assert "fit a model on the ur10" in str(e.value)
+
+    class Arm:
+        def connect(self):
+            raise WrongRobotModel(
+                "UR h: the controller says it is a UR10 but --model is ur5e: plans and envelope "
+                "checks would use the wrong arm's kinematics; give --model ur10 (nothing moves "
+                "until they agree)"
+            )
+
+    cell = types.SimpleNamespace(spec=UR5E, payload_kg=0.0)
+    monkeypatch.setattr(devices, "open_cell", lambda ns: (cell, Arm(), Arm(), None))
+    with pytest.raises(UserError, match="controller's arm is a UR10, not the ur5e") as e:
+        validate.run(_validate_args(str(mp), **real))
+    assert "--model" not in str(e.value) and "nothing moved" in str(e.value)
+
+
+def test_a_table_volume_outside_the_envelope_is_refused(tmp_path, monkeypatch, capsys):
+    """Item 5: a URScript for a volume 10 cm below the base (the recorded envelope's box starts
+    at z 0.05 m) was written, exit 0, where --format targets refuses the same points. Now one
+    line, exit 2, nothing written; a volume inside the box whose nodes need joints outside the
+    envelope's ranges is refused too."""
+    import dataclasses
+
+    import workcell.export.build as build
+    from workcell.campaign.envelope import default_envelope
+    from workcell.cli import main
+    from workcell.export.build import make_table
+
+    env = default_envelope(UR5E)
+    session = {"campaign": {"envelope": env.to_dict()}}
+    monkeypatch.setattr(build, "model_session", lambda model: (session, ""))
+    mp = save_model(make_model(1), tmp_path / "m.json")
+    out = tmp_path / "low.script"
+    argv = ["export", str(mp), "--format", "urscript", "--out", str(out)]
+    assert main([*argv, "--volume=-0.2,-0.5,-0.1,0.2,-0.3,0.1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "reaches outside the envelope" in err and "z range -0.1..0.1 m" in err
+    assert len(err.splitlines()) == 1 and not list(tmp_path.glob("low.*"))
+    lim = env.joint_limits_rad.copy()
+    lim[0] = [1.5, 1.7]  # joint 1 near pi/2 only: the box's corners need more
+    narrow = dataclasses.replace(env, joint_limits_rad=lim)
+    with pytest.raises(UserError, match=r"reaches outside a narrow envelope: \d+ node.*joint 1"):
+        make_table(
+            make_model(1),
+            volume=np.r_[LO, HI],
+            spacing_m=0.1,
+            envelope=(narrow, "a narrow envelope"),
+        )
+    tab, _ = make_table(make_model(1), volume=np.r_[LO, HI], spacing_m=0.1, envelope=(env, "E"))
+    assert tab.meta["envelope_check"] == "nodes' corrected joints inside E"
+
+
+@pytest.mark.parametrize(
+    ("edit", "match"),
+    [
+        (lambda m: m.__setitem__("conditions", None), "meta conditions must be an object"),
+        (
+            lambda m: m["conditions"].__setitem__("approach_sign", "x"),
+            "approach_sign must be 6 signs",
+        ),
+        (
+            lambda m: m.__setitem__("max_interp_error_m", "x"),
+            "max_interp_error_m must be a non-negative number",
+        ),
+        (lambda m: m["conditions"].__setitem__("payload_kg", "5"), "payload_kg must be"),
+    ],
+)
+def test_a_table_with_edited_meta_is_refused_on_loading(table_files, tmp_path, edit, match):
+    """Item 6: `validate --table` crashed with a traceback on a table whose meta conditions were
+    null, approach_sign "x" or max_interp_error_m "x" (the last after every move). Now refused
+    when the table is loaded, one line."""
+    _, _, pj, _ = table_files
+    d = json.loads(pj.read_text())
+    edit(d["meta"])
+    p = tmp_path / "edited.json"
+    p.write_text(json.dumps(d))
+    with pytest.raises(UserError, match=match) as e:
+        load_table(p)
+    assert "\n" not in str(e.value)
+
+
+def test_a_model_whose_covariance_is_not_one_is_refused(tmp_path):
+    """Item 7: a covariance with a positive diagonal but a negative eigenvalue was accepted and
+    gave a 1-sigma twice the true one. Refused now, naming the file; and (minor) a model whose
+    robot name is not the arm of its nominal chain, or whose nominal SMR is NaN, is refused
+    with that reason, not as "no finite correction ... shrink the volume"."""
+    from workcell.estimation.models import load_model
+
+    m = make_model(2)
+    C = np.zeros((39, 39))
+    C[:3, :3] = np.diag([1e-8, 1e-8, 1e-8])
+    m.cov = C.copy()
+    load_model(save_model(m, tmp_path / "ok.json"))  # positive semi-definite: accepted
+    C[0, 1] = C[1, 0] = 1.5e-8  # |correlation| 1.5: an eigenvalue -0.5e-8
+    m.cov = C
+    p = save_model(m, tmp_path / "nonpsd.json")
+    with pytest.raises(UserError, match=r"nonpsd\.json: the dh model's cov is not a covariance"):
+        load_model(p)
+    d = json.loads((tmp_path / "ok.json").read_text())
+    d["robot"] = "ur10"
+    (tmp_path / "ur10.json").write_text(json.dumps(d))
+    with pytest.raises(UserError, match="says robot 'ur10' but its nominal chain is not a ur10's"):
+        load_model(tmp_path / "ur10.json")
+    d = json.loads((tmp_path / "ok.json").read_text())
+    d["info"]["nominal_tool_m"] = [0, 0, float("nan")]
+    (tmp_path / "nan.json").write_text(json.dumps(d))
+    with pytest.raises(UserError, match="nominal_tool_m must be 3 finite numbers"):
+        load_model(tmp_path / "nan.json")

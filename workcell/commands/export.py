@@ -198,6 +198,10 @@ def run(args: argparse.Namespace) -> int:
     summary["max_correction_m"] = table.meta["max_correction_m"]
     summary["interp_error_target_met"] = table.meta["interp_error_target_met"]
     summary["target_interp_error_m"] = table.meta["target_interp_error_m"]
+    # the orientation tolerance, chosen so that the table's error stays within that stated error
+    summary["orientation_tol_rad"] = table.orientation_tol_rad
+    for key in ("orientation_change_at_tol_m", "orientation_error_at_tol_m"):
+        summary[key] = table.meta.get(key)
     summary["joint_coverage"] = table.meta["joint_coverage"]
     if "nodes_std_exceeds_correction" in table.meta:
         summary["nodes_std_exceeds_correction"] = table.meta["nodes_std_exceeds_correction"]
@@ -257,6 +261,18 @@ def _report(args, summary: dict) -> int:
             )
             if (w := _interp_warning(args, summary)) is not None:
                 print(w)
+            if "orientation_tol_rad" in summary:
+                c, e = summary["orientation_change_at_tol_m"], summary["orientation_error_at_tol_m"]
+                at = (
+                    "not measured"
+                    if c is None or e is None
+                    else f"the tilt changes the correction by up to {c * 1e6:.2f} um, the table "
+                    f"is off by up to {e * 1e6:.2f} um"
+                )
+                print(
+                    f"orientation tolerance {summary['orientation_tol_rad']:.3g} rad (there {at}); "
+                    "a tool orientation further from the table's is refused"
+                )
         elif "targets" in summary:
             print(
                 f"{summary['targets']} targets, max correction "

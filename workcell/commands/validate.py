@@ -9,6 +9,7 @@ import json
 import numpy as np
 
 from workcell.commands import prose
+from workcell.drivers.protocols import DeviceError
 from workcell.errors import UserError
 from workcell.export.validate import DEFAULT_READINGS, DEFAULT_TARGETS, MAX_READINGS, MAX_TARGETS
 
@@ -75,6 +76,37 @@ def check_options(args: argparse.Namespace) -> None:
         )
 
 
+def check_robot_model(args: argparse.Namespace, arm: str) -> None:
+    """Refuse, before any device, a --model-name other than the arm the model is of: validate
+    would command that arm with the model's kinematics (its IK and corrections)."""
+    given = getattr(args, "robot_model", None)
+    if not given or not arm or arm == "unknown" or given.strip().lower() == arm.lower():
+        return
+    raise UserError(
+        f"--model-name {given}: the model {args.model} is of a {arm} (its nominal chain gives "
+        f"the IK and the corrections validate commands); on a {given} it would move the arm "
+        f"with the {arm}'s kinematics; validate it on the {arm} it was fitted on (leave "
+        f"--model-name out), or fit a model on the {given} (`workcell campaign`, `workcell fit`)"
+    )
+
+
+def wrong_arm(e: Exception, args: argparse.Namespace, arm: str) -> Exception:
+    """The driver's refusal of a controller that is another arm than the model's, said for
+    validate (whose arm is the model's, not an option to change), else `e` itself."""
+    import re
+
+    if type(e).__name__ != "WrongRobotModel":
+        return e
+    m = re.search(r"says it is an? (\S+?) but|so the arm is an? (.+?), but", str(e))
+    said = next((g for g in m.groups() if g), None) if m else None
+    return UserError(
+        f"{args.robot}: the controller's arm is {'a ' + said if said else 'another arm'}, not "
+        f"the {arm} the model {args.model} is of: validate would command it with the {arm}'s "
+        f"kinematics (nothing moved); validate the model on the {arm} it was fitted on, or fit "
+        f"a model on this arm (`workcell campaign`, `workcell fit`)"
+    )
+
+
 def print_table(res: dict, interval_um) -> None:
     """The before/after table: columns as wide as their widest number, one space at least
     between them (a 3 m error no longer runs into the next column)."""
@@ -122,6 +154,7 @@ def run(args: argparse.Namespace) -> int:
     from workcell.export.correction import Conditions
     from workcell.export.table import load_table
     from workcell.export.validate import (
+        payload_mismatch,
         real_cell,
         robot_mover,
         run_validation,
@@ -139,11 +172,13 @@ def run(args: argparse.Namespace) -> int:
     table = vol = None
     if args.table:  # a table of another model, or in other units, is refused before any device
         table = load_table(args.table)
-        nominal = nominal_for_model(model)
-        if (why := table_model_mismatch(table, nominal, sha, model=model)) is not None:
-            raise UserError(f"{args.table}: {why}")
     elif args.volume:
         vol = parse_vec(args.volume, 6, "--volume")
+    # the arm the model's nominal chain (the IK validate commands with) is of
+    nominal = nominal_for_model(model)
+    check_robot_model(args, nominal.robot)
+    if table is not None and (why := table_model_mismatch(table, nominal, sha, model=model)):
+        raise UserError(f"{args.table}: {why}")
     session, missing = model_session(model)
     camp = session.get("campaign", {}) or {}
     if args.robot == "sim" and args.tracker == "sim":
@@ -196,7 +231,7 @@ def run(args: argparse.Namespace) -> int:
         ns = argparse.Namespace(
             robot=args.robot,
             tracker=args.tracker,
-            model=args.robot_model or getattr(model, "robot_model", "ur5e"),
+            model=args.robot_model or nominal.robot,
             effects=None,
             seed=0,
         )
@@ -207,10 +242,23 @@ def run(args: argparse.Namespace) -> int:
         envelope_from_args(args, spec) if args.envelope else None, session, spec, str(rec)
     )
     log(f"moves checked against {env_what}")
-    robot.connect()
+    warnings: list[str] = []
+    if table is not None and (why := payload_mismatch(model, table, cell.payload_kg)):
+        if args.robot == "sim":  # the simulated arm's payload is known: a wrong table
+            raise UserError(f"{args.table}: {why}")
+        # a real controller's payload is not read: the cell setup's is an assumption
+        w = (
+            f"{why} (the cell setup's payload: the controller's is not read; if the arm "
+            "carries the table's, disregard this)"
+        )
+        log(f"warning: {w}")
+        warnings.append(w)
+    try:
+        robot.connect()
+    except DeviceError as e:
+        raise wrong_arm(e, args, nominal.robot) from None
     tracker.connect()
     try:
-        warnings: list[str] = []
         # the arm's joint temperatures now (the controller reports them; None if it does not)
         temps = robot.state().temperature_c
         if table is not None:
@@ -228,6 +276,10 @@ def run(args: argparse.Namespace) -> int:
                 model_path=args.model,
                 volume=vol,
                 conditions=cond,
+                nominal=nominal,
+                # not handed to a controller: the guard checks each of validate's moves and
+                # skips a target outside the envelope (`run_validation`)
+                check_envelope=False,
                 log=log,
                 **(
                     {}

@@ -256,19 +256,39 @@ def model_from_dict(d: dict, source: str = "model") -> FittedModel:
     _check_derived_fields(d, model, source, method)
     _check_nominal_units(model, source, method)
     # a std may be "not given" (None/NaN: a hyperparameter at its bound, a CV-chosen one), but
-    # a covariance with a negative variance (beyond rounding) is malformed
-    for attr in ("cov", "geometric_cov"):
-        c = getattr(model, attr, None)
-        if c is None:
-            continue
-        c = np.asarray(c, dtype=float)
-        v = np.diag(c) if c.ndim == 2 else np.array([np.nan])
-        if not np.all(np.isfinite(c)) or np.any(v < -1e-9 * np.abs(v).max()):
-            raise UserError(
-                f"{source}: the {method} model's {attr} has a negative or non-finite variance; "
-                "fit it again with `workcell fit`"
-            )
+    # a covariance with a negative variance (beyond rounding) is malformed, and so is one that
+    # is not positive semi-definite: some combination of its parameters would have a negative
+    # variance, and the 1-sigma propagated from it is wrong (larger or smaller)
+    for m, where in ((model, ""), (getattr(model, "base", None), "base ")):
+        for attr in ("cov", "geometric_cov"):
+            c = getattr(m, attr, None) if m is not None else None
+            if c is None or isinstance(m, np.ndarray):
+                continue
+            _check_covariance(np.asarray(c, dtype=float), source, method, where + attr)
     return model
+
+
+COV_PSD_RTOL = 1e-9  # eigenvalues down to -this x the largest are rounding
+
+
+def _check_covariance(c: np.ndarray, source: str, method: str, attr: str) -> None:
+    """Refuse a covariance that is not square, not finite, has a negative variance or (once
+    symmetrised) an eigenvalue below -COV_PSD_RTOL x its largest: not a covariance."""
+    again = "fit it again with `workcell fit`"
+    v = np.diag(c) if c.ndim == 2 else np.array([np.nan])
+    if not np.all(np.isfinite(c)) or np.any(v < -COV_PSD_RTOL * np.abs(v).max()):
+        raise UserError(
+            f"{source}: the {method} model's {attr} has a negative or non-finite variance; {again}"
+        )
+    if c.shape[0] != c.shape[1] or not c.size:
+        raise UserError(f"{source}: the {method} model's {attr} is not a square matrix; {again}")
+    w = np.linalg.eigvalsh(0.5 * (c + c.T))
+    if w[0] < -COV_PSD_RTOL * max(float(w[-1]), 0.0):
+        raise UserError(
+            f"{source}: the {method} model's {attr} is not a covariance (not positive "
+            f"semi-definite: eigenvalue {w[0]:.3g} against the largest {w[-1]:.3g}), so the "
+            f"1-sigma propagated from it would be wrong; edited by hand? {again}"
+        )
 
 
 MAX_PREDICTED_M = 1e3  # a laser tracker measures within ~100 m
@@ -497,6 +517,39 @@ def error_stats(p_pred: np.ndarray, p_meas: np.ndarray, *, interval: bool = Fals
     return out
 
 
+ROBOT_CHAIN_TOL_M = 0.02  # a controller's own calibration moves a nominal length by mm
+
+
+def _check_robot_chain(m, nd, source: str, method: str, where: str) -> None:
+    """A model's `robot` must be the arm its nominal chain is of (a catalogue arm's link lengths
+    within ROBOT_CHAIN_TOL_M): `export` scales its default volume and `validate` picks the arm
+    by that name, while the IK uses the chain; one edited without the other is refused."""
+    from workcell.kinematics.robots import CATALOGUE
+
+    name = getattr(m, "robot_model", None)
+    spec = CATALOGUE.get(name.strip().lower()) if isinstance(name, str) else None
+    if spec is None:
+        return
+    lengths = np.r_[np.asarray(nd.a, float), np.asarray(nd.d, float)]
+    want = np.r_[spec.dh.a, spec.dh.d]
+    if lengths.shape != want.shape:
+        return
+    j = int(np.argmax(np.abs(lengths - want)))
+    if abs(lengths[j] - want[j]) <= ROBOT_CHAIN_TOL_M:
+        return
+    other = [
+        k
+        for k, sp in CATALOGUE.items()
+        if np.allclose(lengths, np.r_[sp.dh.a, sp.dh.d], rtol=0, atol=ROBOT_CHAIN_TOL_M)
+    ]
+    is_ = f" (it is a {other[0]}'s)" if other else ""
+    raise UserError(
+        f"{source}: the {method} model says robot {name!r} but its {where}nominal chain is not a "
+        f"{name}'s{is_}: {'ad'[j // 6]}{j % 6 + 1} is {lengths[j]:.4g} m, a {name}'s "
+        f"{want[j]:.4g} m; edited by hand? restore the file or fit it again with `workcell fit`"
+    )
+
+
 def _check_nominal_units(model, source: str, method: str) -> None:
     """The nominal chain and SMR a model file carries (what `export` and `validate` command the
     arm with: `export.correction.nominal_for`) in the format's units, with the recording's
@@ -526,10 +579,20 @@ def _check_nominal_units(model, source: str, method: str) -> None:
                     f"{v[j]:.4g} {unit} (more than {lim:.4g} {unit}): it looks like {other}; "
                     f"{again}"
                 )
+        _check_robot_chain(m, nd, source, method, where)
         info = getattr(m, "info", None)
         tool = info.get("nominal_tool_m") if isinstance(info, dict) else None
         if tool is not None:
-            r = float(np.linalg.norm(np.asarray(tool, float)))
+            try:
+                tv = np.asarray(tool, float)
+            except (TypeError, ValueError):
+                tv = None
+            if tv is None or tv.shape != (3,) or not np.all(np.isfinite(tv)):
+                raise UserError(
+                    f"{source}: the {method} model's {where}nominal_tool_m must be 3 finite "
+                    f"numbers (the SMR on the flange, m), got {tool!r}; {again}"
+                )
+            r = float(np.linalg.norm(tv))
             if r > SMR_OFFSET_MAX_M:
                 raise UserError(
                     f"{source}: the {method} model's {where}nominal_tool_m is {r:.4g} m from "

@@ -233,9 +233,16 @@ def make_table(
     max_correction_m: float = DEFAULT_MAX_CORRECTION_M,
     spacing_m: float | None = None,
     recording: str | None = None,
+    envelope: tuple | None = None,
+    check_envelope: bool = True,
+    nominal: Nominal | None = None,
     log=None,
 ) -> tuple[CorrectionTable, Corrector]:
-    nominal = nominal_for_model(model, recording)
+    """The table of `model` over `volume` (default: `default_volume`). A table for a controller
+    (`check_envelope`) is refused when its volume reaches outside the envelope
+    (`check_volume_box`, `check_table_envelope`): `envelope` (Envelope, what it is), default
+    the one the model's recording ran in (`table_envelope`)."""
+    nominal = nominal if nominal is not None else nominal_for_model(model, recording)
     corr = Corrector(model, nominal, conditions)
     if volume is None:
         try:
@@ -248,6 +255,10 @@ def make_table(
     else:
         lo, hi = np.asarray(volume[:3], float), np.asarray(volume[3:], float)
         check_volume(lo, hi, nominal)
+    if check_envelope:
+        env, env_what = envelope if envelope is not None else table_envelope(model, nominal)
+        what = "--volume" if volume is not None else "the default volume (give --volume)"
+        check_volume_box(lo, hi, env, env_what, what)  # before any IK: a box typed outside it
     rv = np.asarray(orientations or [DEFAULT_ORIENTATION], float).reshape(-1, 3)
     rec, sha = model_recording(model)
     meta = {
@@ -270,8 +281,83 @@ def make_table(
         meta=meta,
         log=log,
     )
+    if check_envelope:
+        tab.meta["envelope_check"] = check_table_envelope(tab, nominal, env, env_what, what)
+        if log:
+            log(f"  {tab.meta['envelope_check']}")
     note_unexplained(model, tab.meta, log)
     return tab, corr
+
+
+def table_envelope(model, nominal: Nominal):
+    """The envelope a table's commanded positions must lie in -> (Envelope or None, what it is):
+    the one the model's recording ran in (the cell's configured one), as `export --format
+    targets` checks its commanded joints; None (with why) when the recording records none or
+    is not readable: then the nodes are checked against the arm's joint ranges only."""
+    from workcell.campaign.envelope import envelope_of_session
+
+    try:
+        spec = robot_by_name(nominal.robot)
+    except ValueError:
+        return None, f"unknown arm {nominal.robot!r}, whose envelope is not known"
+    session, why = model_session(model)
+    rec = model_recording(model)[0]
+    env = envelope_of_session(session.get("campaign") or {}, spec, str(rec)) if session else None
+    if env is None:
+        return None, why or f"the model's recording {rec} records no envelope"
+    return env, f"the envelope the model's recording {rec} ran in"
+
+
+def check_volume_box(lo, hi, env, env_what: str, what: str) -> None:
+    """Refuse a table volume (SMR positions, base) reaching outside the envelope's workspace box
+    less its kinematic margin: the controller would be handed corrections for places the arm
+    must not go (one line, before any IK)."""
+    if env is None:
+        return
+    m = env.kinematic_margin_m
+    blo, bhi = np.asarray(env.box_min_m) + m, np.asarray(env.box_max_m) - m
+    out = (np.asarray(lo) < blo - 1e-12) | (np.asarray(hi) > bhi + 1e-12)
+    if out.any():
+        a = int(np.flatnonzero(out)[0])
+        raise UserError(
+            f"{what} {np.round(np.r_[lo, hi], 4).tolist()} m reaches outside {env_what}: its "
+            f"{'xyz'[a]} range {lo[a]:.4g}..{hi[a]:.4g} m leaves the workspace box "
+            f"({blo[a]:.4g}..{bhi[a]:.4g} m inside its {m * 1e3:g} mm kinematic margin); give a "
+            "volume inside it"
+        )
+
+
+def check_table_envelope(tab: CorrectionTable, nominal: Nominal, env, env_what, what) -> str:
+    """Refuse a table one of whose nodes' corrected joints (what the controller is sent there)
+    leaves the envelope (`Envelope.violations`: joint ranges, the workspace box, the floor under
+    the link frames), or, without an envelope, the arm's joint ranges. -> the line saying what
+    the nodes were checked against."""
+    try:
+        spec = robot_by_name(nominal.robot)
+    except ValueError:
+        return "nodes not checked against an envelope: unknown arm (its controller checks)"
+    q = np.asarray(tab.q_nodes, float).reshape(-1, 6)
+    X = np.broadcast_to(tab.node_positions(), (*np.shape(tab.q_nodes)[:-1], 3)).reshape(-1, 3)
+    if env is None:
+        lim = np.asarray(spec.joint_limits_rad, float)
+        bad = np.any((q < lim[:, 0]) | (q > lim[:, 1]), axis=1)
+        why = [None if not b else "joints outside the arm's ranges" for b in bad]
+        said = (
+            f"nodes' corrected joints checked against the arm's joint ranges only: {env_what}; "
+            "check the volume against the cell's envelope before using the table"
+        )
+    else:
+        why = env.violations(spec, q, nominal.tool_m)
+        said = f"nodes' corrected joints inside {env_what}"
+    i = next((i for i, v in enumerate(why) if v is not None), None)
+    if i is not None:
+        n = sum(v is not None for v in why)
+        raise UserError(
+            f"{what} reaches outside {env_what if env is not None else 'the arm'}: "
+            f"{n} node(s), first at {np.round(X[i], 4).tolist()} m (base): {why[i]}; give a "
+            "volume the arm may go to"
+        )
+    return said
 
 
 def note_unexplained(model, meta: dict, log=None) -> None:

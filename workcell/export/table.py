@@ -101,8 +101,11 @@ class CorrectionTable:
         k = int(np.argmin(ang))
         if ang[k] > self.orientation_tol_rad:
             raise UserError(
-                f"orientation {np.round(rotvec, 4).tolist()} is {ang[k]:.3f} rad from the nearest "
-                f"orientation of the table (tolerance {self.orientation_tol_rad} rad)"
+                f"orientation {np.round(rotvec, 4).tolist()} is {ang[k]:.3g} rad from the nearest "
+                f"orientation of the table (tolerance {self.orientation_tol_rad:.3g} rad: a "
+                "tilt within it changes the correction by at most the interpolation error "
+                "target); command the table's orientation, or export a table for this one "
+                "(--orientation)"
             )
         return k
 
@@ -275,8 +278,18 @@ class CorrectionTable:
                 )
             if not (np.all(np.isfinite(self.std_m)) and np.all(self.std_m >= 0)):
                 raise ValueError("std_m must be finite and non-negative")
-        if not (np.isfinite(self.orientation_tol_rad) and self.orientation_tol_rad > 0):
-            raise ValueError("orientation_tol_rad must be a positive number")
+        tol = self.orientation_tol_rad
+        if not (np.isfinite(tol) and 0 < tol <= DEFAULT_ORIENTATION_TOL_RAD):
+            raise ValueError(
+                f"orientation_tol_rad must be a number of radians in (0, "
+                f"{DEFAULT_ORIENTATION_TOL_RAD:g}], got {tol!r}"
+            )
+        measured_at = (self.meta if isinstance(self.meta, dict) else {}).get("orientation_tol_rad")
+        if measured_at is not None and measured_at != tol:
+            raise ValueError(
+                f"orientation_tol_rad {tol!r} is not the tolerance the table's error was measured "
+                f"at (meta orientation_tol_rad {measured_at!r}): edited by hand?"
+            )
         # units: a controller moves the arm by these numbers, so a table in millimetres or
         # degrees (a hand edit, another tool's file) is refused, not used
         again = "export the table again with `workcell export`"
@@ -294,6 +307,7 @@ class CorrectionTable:
                 f"turn: {DEGREES_HINT}; {again}"
             )
         meta = self.meta if isinstance(self.meta, dict) else {}
+        check_meta(meta, again)
         bound = meta.get("correction_bound_m")
         if bound is None:
             bound = MAX_CORRECTION_BOUND_M
@@ -362,6 +376,70 @@ class CorrectionTable:
         return pj, pc
 
 
+# the table meta's numbers a reader (header lines, `validate`) computes with: each a finite
+# non-negative number or absent/null
+META_NUMBERS = (
+    "target_interp_error_m",
+    "max_interp_error_m",
+    "rms_interp_error_m",
+    "max_correction_m",
+    "median_std_m",
+    "max_std_m",
+    "orientation_error_at_tol_m",
+    "orientation_change_at_tol_m",
+    "orientation_change_budget_m",
+)
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def check_meta(meta: dict, again: str) -> None:
+    """Raise ValueError naming the first meta field of a wrong type (a hand edit): the numbers
+    `validate` and the headers compute with, and the conditions the correction was computed
+    for (`conditions`: approach_sign, joint_temperature_c, elapsed_s, payload_kg)."""
+    for key in META_NUMBERS:
+        v = meta.get(key)
+        if v is not None and not (_is_number(v) and v >= 0):
+            raise ValueError(
+                f"meta {key} must be a non-negative number of metres, got {v!r}; {again}"
+            )
+    notes = meta.get("conditions_note")
+    if notes is not None and not (
+        isinstance(notes, list) and all(isinstance(x, str) for x in notes)
+    ):
+        raise ValueError(f"meta conditions_note must be a list of lines, got {notes!r}; {again}")
+    if "conditions" not in meta:
+        return
+    cond = meta["conditions"]
+    if not isinstance(cond, dict):
+        raise ValueError(
+            f"meta conditions must be an object (approach_sign, joint_temperature_c, elapsed_s, "
+            f"payload_kg), got {cond!r}; {again}"
+        )
+    sign = cond.get("approach_sign")
+    if sign is not None and not (
+        isinstance(sign, list)
+        and len(sign) == 6
+        and all(_is_number(x) and x in (-1, 0, 1) for x in sign)
+    ):
+        raise ValueError(
+            f"meta conditions approach_sign must be 6 signs (-1, 0 or 1), got {sign!r}; {again}"
+        )
+    t = cond.get("joint_temperature_c")
+    if t is not None and not (isinstance(t, list) and len(t) == 6 and all(map(_is_number, t))):
+        raise ValueError(
+            f"meta conditions joint_temperature_c must be 6 numbers (degC), got {t!r}; {again}"
+        )
+    for key, unit in (("elapsed_s", "seconds"), ("payload_kg", "kilograms")):
+        v = cond.get(key)
+        if v is not None and not (_is_number(v) and v >= 0):
+            raise ValueError(
+                f"meta conditions {key} must be a non-negative number of {unit}, got {v!r}; {again}"
+            )
+
+
 def unexplained_lines(meta: dict) -> list[str]:
     """What the model leaves unexplained on its held-out poses (`model_unexplained` in a table's
     or summary's meta, and without the named outliers), which the correction's 1-sigma does not
@@ -422,6 +500,7 @@ def header_lines(table: CorrectionTable) -> list[str]:
         f"{K} orientation(s)",
         f"interpolation error: largest on {m.get('interp_error_points', '?')} random points "
         f"{ie:.3g} m (a sample maximum, not a bound)",
+        orientation_line(m, table.orientation_tol_rad),
         *uncertainty_lines(m),
         *conditions_lines(m),
         *configuration_lines(table),
@@ -577,6 +656,136 @@ def check_corrections(
             f"orientation {orientation}, exceeds the bound {bound_m * 1e3:g} mm "
             f"({(mag > bound_m).sum()} {where}(s) over); check the model or raise --max-correction"
         )
+
+
+ORIENTATION_PROBE_RAD = 0.01  # tilt of the finite differences that estimate the slope
+ORIENTATION_POINTS = 100  # random points of the volume the tolerance is measured on
+ORIENTATION_TOL_MIN_RAD = 1e-4  # below: the orientation is commanded as the table's anyway
+ORIENTATION_TOL_NARROW_RAD = 1e-3  # below: a taught pose may miss it (said when exporting)
+ORIENTATION_TOL_BASIS = (
+    "largest angle between the commanded tool orientation and the nearest of the table's at "
+    "which the table (and wc_correct) still applies that orientation's corrections: a tilt by "
+    "that angle about any axis changes the exact correction by at most the interpolation error "
+    "target (the tilt costs no more than the interpolation may), on random points of the "
+    "volume: each point's most sensitive axis is found from the correction's finite-difference "
+    "response to the tilt and checked with exact corrections about it. Also measured there: "
+    "how far the table is off the exact correction for the tilted orientation, the "
+    "interpolation error included (each point's worst of 256 axes). Sample maxima, not bounds. "
+    "A tool orientation further off is refused (the URScript halts)"
+)
+
+
+def _tilted(R: np.ndarray, axes: np.ndarray, angle: float) -> np.ndarray:
+    """Rotations (N, 3, 3): R (3, 3) tilted by `angle` about each unit axis (N, 3) of the tool."""
+    return R @ rotvec_to_matrix(np.asarray(axes, float) * angle)
+
+
+def _exact_at(corr: Corrector, tab: CorrectionTable, P: np.ndarray, k: int, Rs: np.ndarray):
+    """Exact corrections (N, 3) of positions P (N, 3) at rotations Rs (N, 3, 3), seeded from the
+    table's orientation k (NaN rows where IK or the model did not converge)."""
+    c, _, _ = corr.correct_positions(P, Rs, tab.seed_for(P, k))
+    return c - P
+
+
+def _sphere(n: int = 256) -> np.ndarray:
+    """n unit vectors spread evenly over the sphere (a Fibonacci lattice), (n, 3)."""
+    i = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * i / n
+    r = np.sqrt(1.0 - z**2)
+    phi = np.pi * (1.0 + 5**0.5) * i
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
+def orientation_tolerance(
+    corr: Corrector,
+    tab: CorrectionTable,
+    P: np.ndarray,
+    exact: list,
+    budget_m: float,
+    tol_max: float = DEFAULT_ORIENTATION_TOL_RAD,
+) -> dict:
+    """The orientation tolerance of the table (`ORIENTATION_TOL_BASIS`) and what was measured at
+    it -> the meta entries. Per point, the exact correction's response to a tilt of the tool is
+    estimated by finite differences (a 3x3 Jacobian J); a tilt by angle a about unit axis u
+    changes the correction by ~ a J u, at most a times J's largest singular value, so the
+    tolerance is the largest angle (at most `tol_max`) keeping that within `budget_m` on every
+    point. It is then checked with exact corrections at +-tolerance about each point's most
+    sensitive axis and narrowed until the check holds. `exact[k]`: the exact corrections (N, 3)
+    at P for orientation k."""
+    n = min(len(P), ORIENTATION_POINTS)
+    P = np.asarray(P, float)[:n]
+    K = len(tab.orientations_rotvec)
+    Rk = rotvec_to_matrix(tab.orientations_rotvec)
+    probe = min(ORIENTATION_PROBE_RAD, tol_max)
+    U = _sphere()
+    per = []  # per orientation: exact (N, 3), table (N, 3), J (N, 3, 3), most sensitive axes
+    est = [tol_max]
+    for k in range(K):
+        ex, D = exact[k][:n], tab.interpolate(P, k)
+        eye = np.repeat(np.eye(3), n, axis=0)  # tool axes x, y, z, each for every point
+        d = _exact_at(corr, tab, np.tile(P, (3, 1)), k, _tilted(Rk[k], eye, probe))
+        J = (d - np.tile(ex, (3, 1))).reshape(3, n, 3).transpose(1, 2, 0) / probe
+        ok = np.all(np.isfinite(J.reshape(n, -1)), axis=1) & np.all(np.isfinite(ex), axis=1)
+        J = np.where(ok[:, None, None], J, 0.0)
+        _, sv, Vt = np.linalg.svd(J)
+        per.append((ex, D, J, Vt[:, 0, :]))
+        top = sv[:, 0][ok]
+        if top.size and top.max() > 0:
+            est.append(0.98 * budget_m / float(top.max()))  # a little under: checked below
+    tol = float(np.clip(min(est), ORIENTATION_TOL_MIN_RAD, tol_max))
+    while True:
+        change, error = [], []
+        for k, (ex, D, J, u1) in enumerate(per):
+            # each point's worst axis for the table's error (interpolation and tilt together)
+            lin = np.linalg.norm(
+                (D - ex)[:, None, :] - tol * np.einsum("nij,mj->nmi", J, U), axis=2
+            )
+            axes = np.concatenate([u1, -u1, U[lin.argmax(axis=1)]])
+            d = _exact_at(corr, tab, np.tile(P, (3, 1)), k, _tilted(Rk[k], axes, tol))
+            c = np.linalg.norm(d[: 2 * n] - np.tile(ex, (2, 1)), axis=1)
+            e = np.linalg.norm(np.tile(D, (3, 1)) - d, axis=1)
+            change.append(c[np.isfinite(c)])
+            error.append(e[np.isfinite(e)])
+        c, e = np.concatenate(change), np.concatenate(error)
+        if not c.size:  # no tilted correction converged: the orientation as the table's only
+            tol, c_max, e_max = ORIENTATION_TOL_MIN_RAD, None, None
+            break
+        c_max, e_max = float(c.max()), float(e.max())
+        if c_max <= budget_m or tol <= ORIENTATION_TOL_MIN_RAD:
+            break
+        tol = max(ORIENTATION_TOL_MIN_RAD, 0.9 * tol * min(1.0, budget_m / c_max))
+    return {
+        "orientation_tol_rad": tol,
+        "orientation_change_at_tol_m": c_max,
+        "orientation_change_budget_m": float(budget_m),
+        "orientation_error_at_tol_m": e_max,
+        "orientation_error_points": int(n * K),
+        "orientation_tol_basis": ORIENTATION_TOL_BASIS,
+    }
+
+
+def orientation_line(m: dict, tol: float | None = None) -> str:
+    """The orientation tolerance and what was measured at it, one line (the export log, the
+    table CSV's and the URScript's headers); `m`: the table's meta (`orientation_tolerance`)."""
+    tol = float(m.get("orientation_tol_rad") if tol is None else tol)
+    c, e = m.get("orientation_change_at_tol_m"), m.get("orientation_error_at_tol_m")
+    if not (_is_number(c) and _is_number(e)):
+        why = (
+            "no tilted correction converged"
+            if "orientation_tol_basis" in m
+            else "a table written before it was; export it again"
+        )
+        return (
+            f"orientation tolerance: {tol:.3g} rad (what a tilt that far costs was not measured: "
+            f"{why}); command the table's orientation(s)"
+        )
+    return (
+        f"orientation tolerance: {tol:.3g} rad ({math.degrees(tol):.2g} deg) from the table's "
+        f"orientation(s), further off is refused; a tilt that far changes the exact correction by "
+        f"up to {c:.3g} m (within the interpolation error target), and the table is off the exact "
+        f"correction there by up to {e:.3g} m, interpolation included, on "
+        f"{m.get('orientation_error_points', '?')} random points (sample maxima, not bounds)"
+    )
 
 
 STD_BASIS = (
@@ -835,6 +1044,16 @@ def build_table(
         h /= 1.5
     mags = np.linalg.norm(tab.delta_m.reshape(-1, 3), axis=1)
     tab.configurations, tab.configuration_dh_m = _configurations(corr, tab)
+    # the orientation tolerance: as wide as a tilt changes the correction by no more than the
+    # interpolation error target (the table's error there is measured and stated too)
+    ori = orientation_tolerance(corr, tab, P, exact, float(target_error_m))
+    tab.orientation_tol_rad = ori["orientation_tol_rad"]
+    log("  " + orientation_line(ori))
+    if ori["orientation_tol_rad"] < ORIENTATION_TOL_NARROW_RAD:
+        log(
+            "  note: the correction changes fast with the tool's orientation here: command the "
+            "table's orientation as numbers (not a taught pose)"
+        )
     approach = approach_sensitivity(corr, tab.q_nodes)
     if approach is not None:
         log(
@@ -876,6 +1095,7 @@ def build_table(
         "rms_interp_error_m": float(np.sqrt(np.mean(err**2))),
         "interp_error_points": int(len(err)),
         "interp_error_target_met": bool(err.max() <= target_error_m),
+        **ori,
         "max_correction_m": float(mags.max()),
         **std_meta,
         "correction_bound_m": float(max_correction_m),

@@ -7,7 +7,7 @@ emulated: the commanded pose goes through the nominal IK (branch of the seed), t
 approached from the table's declared approach direction (pre-pose q - sign * approach_rad) and the
 SMR is measured. Errors are distances to the target mapped to the tracker with the model's
 registered base. Reported per ISO 9283 style (one cycle per target): mean, RMS, max of the
-position error, plus the mean error vector (the accuracy bias).
+position error, plus the mean error vector (the accuracy bias, in base_ref axes).
 
 In simulation the measurement is the simulated truth (noise-free SMR position of the true robot);
 on a real cell it is the tracker (mean of several readings).
@@ -42,7 +42,8 @@ def random_targets(
 
 def accuracy_stats(err_vec: np.ndarray) -> dict:
     """Mean, RMS (with its 95 % interval over the targets), max and mean vector of the position
-    errors (N, 3), reached minus desired in the table's frame (the model's registered base)."""
+    errors (N, 3), reached minus desired, given in base_ref axes (the table's frame, the model's
+    registered base: `error_vectors_base`); `bias_base_m` is their mean in those axes."""
     e = np.linalg.norm(err_vec, axis=1)
     return {
         "mean_m": float(e.mean()),
@@ -51,6 +52,14 @@ def accuracy_stats(err_vec: np.ndarray) -> dict:
         "max_m": float(e.max()),
         "bias_base_m": err_vec.mean(0).tolist(),
     }
+
+
+def error_vectors_base(nominal: Nominal, reached_tracker, goal_tracker) -> np.ndarray:
+    """Reached minus desired SMR positions (N, 3), both measured in the tracker frame, as vectors
+    in base_ref axes (the table's frame): rotated by tracker_T_base's rotation, not translated.
+    Their lengths are those of the tracker-frame errors."""
+    ev = np.asarray(reached_tracker, float) - np.asarray(goal_tracker, float)
+    return ev @ np.asarray(nominal.base_ref, float)[:3, :3]
 
 
 def commanded_joints(
@@ -173,8 +182,8 @@ def run_validation(
         )
     out = {"targets": int(keep.sum()), "skipped": skipped, "via_upright_moves": n_via}
     for key in ("before", "after"):
-        ev = np.asarray(meas[key]) - p_goal[keep]
-        st = accuracy_stats(ev)
+        # measured in the tracker frame; the bias is stated in base_ref axes, the table's
+        st = accuracy_stats(error_vectors_base(nominal, meas[key], p_goal[keep]))
         out[key] = st
     # the table's own 1-sigma at the targets (model uncertainty only): in simulation, scored
     # against the truth, the corrected error should be of that size plus the interpolation error
@@ -382,6 +391,79 @@ def thermal_shift_rms_m(model, t_table_c, t_now_c, n: int = 64) -> float | None:
             q, joint_temperature_c=np.tile(np.asarray(t_table_c, float), (n, 1))
         )
     return float(np.sqrt(np.mean(np.sum((p_now - p_tab) ** 2, axis=1))))
+
+
+PAYLOAD_MATCH_KG = 1e-3  # payloads this close are the same setting
+
+
+def payload_mismatch(model, table, payload_kg, *, ui: bool = False) -> str | None:
+    """One line when a given table was built for another payload than the arm carries now (a
+    model with payload-dependent terms: joint compliance, link deflection), else None. A
+    payload whose compliance shift over the model's fitted joint range is within the table's
+    median 1-sigma is not a mismatch. The remedy is said for the command line, or with `ui` for
+    the terminal UI. (The approach the table was built for needs no comparison: the validation
+    approaches every target as the table declares.)"""
+    from workcell.export.build import COMPLIANCE_KINDS
+
+    fs = getattr(model, "features_spec", None)
+    accepted = getattr(model, "accepted", None) or []
+    if fs is None or payload_kg is None or not any(c.kind in COMPLIANCE_KINDS for c in accepted):
+        return None
+    meta = table.meta if isinstance(table.meta, dict) else {}
+    t_pay = (meta.get("conditions") or {}).get("payload_kg")
+    if t_pay is None:
+        t_pay, what = float(fs.payload_kg_default), "the recording's"
+    else:
+        t_pay, what = float(t_pay), "given at export"
+    now = float(payload_kg)
+    if abs(t_pay - now) <= PAYLOAD_MATCH_KG:
+        return None
+    shift = payload_shift_rms_m(model, t_pay, now)
+    std = meta.get("median_std_m")
+    if shift is not None and isinstance(std, int | float) and np.isfinite(std) and std > 0:
+        if shift <= std:
+            return None
+        cost = (
+            f": the model's compliance terms move the SMR by {shift * 1e6:.1f} um RMS between "
+            f"the two over its fitted joint range, more than the table's median 1-sigma "
+            f"{std * 1e6:.1f} um"
+        )
+    elif shift is not None:
+        cost = (
+            f": the model's compliance terms move the SMR by {shift * 1e6:.1f} um RMS between "
+            "the two over its fitted joint range"
+        )
+    else:
+        cost = ", and the model's compliance terms depend on it"
+    remedy = (
+        f"export it for {now:g} kg on the command line (`workcell export MODEL --payload "
+        f"{now:g}`) or let `workcell validate` build it"
+        if ui
+        else f"export the table again with --payload {now:g}, or leave --table out to build it "
+        "for this payload"
+    )
+    return (
+        f"the table is for a payload of {t_pay:g} kg ({what}); the arm carries {now:g} kg{cost}; "
+        f"{remedy}"
+    )
+
+
+def payload_shift_rms_m(model, kg_a: float, kg_b: float, n: int = 64) -> float | None:
+    """RMS over `n` seeded configurations in the model's fitted joint range of how far its
+    prediction moves between payloads `kg_a` and `kg_b` (m); None without a recorded joint
+    range or a finite prediction."""
+    jr = (getattr(model, "info", {}) or {}).get("joint_range_rad")
+    try:
+        jr = np.asarray(jr, float)
+    except (TypeError, ValueError):
+        return None
+    if jr.shape != (6, 2) or not np.all(np.isfinite(jr)):
+        return None
+    q = np.random.default_rng(0).uniform(jr[:, 0], jr[:, 1], size=(n, 6))
+    f = getattr(model, "predict_parametric", None) or model.predict
+    d = f(q, payload_kg=np.full(n, kg_b)) - f(q, payload_kg=np.full(n, kg_a))
+    r = float(np.sqrt(np.mean(np.sum(np.asarray(d, float) ** 2, axis=1))))
+    return r if np.isfinite(r) else None
 
 
 def real_cell(session: dict) -> str | None:
