@@ -192,6 +192,15 @@ def test_the_tui_closed_loop_check_validates_as_the_command_line(tmp_path, monke
     assert "warning: the table is for another thermal state" in lines
     assert len(seen) == 1 and seen[0][1] and seen[0][0].shape == (6,)
     assert np.all(np.isfinite([res["after"]["rms_m"], res["before"]["rms_m"]]))
+    # a table for another payload than the simulated arm carries: refused, as `validate` does
+    # (the TUI's check did not compare payloads)
+    monkeypatch.setattr(xv, "payload_mismatch", lambda *a, **k: "the table is for 5 kg")
+    dev = backend.open_devices(backend.DeviceConfig(effects="none", seed=3, smr_offset="0,0,0.062"))
+    try:
+        with pytest.raises(UserError, match=r"t.json: the table is for 5 kg$"):
+            backend.closed_loop("m.json", "t.json", dev, 2)
+    finally:
+        dev.close()
 
 
 def _saved_variant(tmp_path, table, name, change):

@@ -182,7 +182,7 @@ class TestExportScreen:
             "targets": 19,
             "truth": "tracker",
             "skipped": ["target 7: SMR at [0.1, -0.4, 0.46] m (base) outside the workspace box"],
-            "before": {"rms_m": 412.3e-6, "max_m": 590.1e-6},
+            "before": {"rms_m": 412.3e-6, "max_m": 590.1e-6, "rms_ci95_m": [380.2e-6, 450.9e-6]},
             "after": {
                 "rms_m": 11.8e-6,
                 "max_m": 19.6e-6,

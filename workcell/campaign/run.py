@@ -374,6 +374,21 @@ def stop_aftermath(res: CampaignResult, path: str | Path) -> str | None:
     return None
 
 
+def nothing_recorded(
+    res: CampaignResult, path: str | Path, again: str = "with a new --out"
+) -> tuple[str, str] | None:
+    """A campaign that went through its plan recording no pose at all (every pose skipped):
+    (why, what the recording keeps and what to do), the two halves of `campaign_stop`'s line
+    (`again`: how to run it again); None for any other result."""
+    if res.aborted or res.measured != 0 or res.skipped <= 0:
+        return None
+    return (
+        f"no pose recorded: all {res.skipped} poses were skipped (the events above say why)",
+        f"{path} is closed and keeps the events (`workcell info {path}`): fix the cause, "
+        f"then run the campaign again {again}",
+    )
+
+
 def campaign_stop(res: CampaignResult, path: str | Path) -> None:
     """A campaign that stopped itself (the margin watch, `margin_stop`; a protective stop
     nobody acknowledged; protective stops, a tracker without readings or refused poses again
@@ -382,13 +397,8 @@ def campaign_stop(res: CampaignResult, path: str | Path) -> None:
     (3; 2 for an unacknowledged protective stop), raised after its recording was closed with
     what it measured."""
     margin_stop(res, path)
-    if not res.aborted and res.measured == 0 and res.skipped > 0:
-        raise UserError(
-            f"no pose recorded: all {res.skipped} poses were skipped (the events above say why); "
-            f"{path} is closed and keeps the events (`workcell info {path}`): fix the cause, "
-            f"then run the campaign again with a new --out",
-            exit_code=3,
-        )
+    if (nothing := nothing_recorded(res, path)) is not None:
+        raise UserError("; ".join(nothing), exit_code=3)
     after = stop_aftermath(res, path)
     if after is not None:
         code = 2 if res.stopped_by == "unacknowledged" else 3

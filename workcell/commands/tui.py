@@ -1,12 +1,18 @@
 """`workcell tui [--robot sim|ur://HOST] [--tracker sim|serial://PORT] [--sim]`: the shop-floor
 terminal UI (Textual). `--sim` starts the protocol-level simulators (UR controller + GeoCOM
 tracker, `workcell sim`) and connects to them; `--robot sim --tracker sim` (the default) is the
-in-process simulation."""
+in-process simulation. SIGTERM, SIGHUP and SIGINT abort a running campaign cleanly, as on the
+command line (arm stopped, recording closed), then quit with exit code 128 + the signal."""
 
 from __future__ import annotations
 
 import argparse
 import math
+import os
+import signal
+import sys
+import threading
+import time
 from pathlib import Path
 
 from workcell.errors import UserError
@@ -43,10 +49,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from workcell.tui.app import make_app
     from workcell.tui.backend import PlanConfig
+    from workcell.tui.screens.devices import check_time_scale
 
     scale = args.time_scale if args.time_scale is not None else (10.0 if args.sim else 1.0)
     if not (math.isfinite(scale) and scale > 0):
         raise UserError(f"--time-scale must be a finite number > 0 (e.g. 10), got {scale}")
+    # the Devices screen's rule: the in-process simulation runs on virtual time
+    check_time_scale(scale, args.robot, args.sim, opt="--time-scale", robot_opt="--robot")
     if args.poses <= 0:
         raise UserError(f"--poses must be positive, got {args.poses}")
     check_args(args)
@@ -62,8 +71,85 @@ def run(args: argparse.Namespace) -> int:
         smr_offset=getattr(args, "smr_offset", ""),
         plan=PlanConfig(poses=args.poses, seed=args.seed, out=args.out),
     )
-    app.run()
-    return 0
+    console = os.path.basename(sys.argv[0]) == "workcell"  # not a test calling run()
+    old = install_abort_signals(app, hard_exit=console)
+    try:
+        app.run()
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+    code = int(app.return_code or 0)
+    if app.exit_signal and console:
+        # ended by a signal, the campaign aborted and its recording closed, the devices closed:
+        # end the process now, as the command line does after Ctrl-C (`cli.main`): JAX's exit
+        # clean-up would wait for an estimate still compiling in the EKF-ANN thread (tens of
+        # seconds), and whoever sent the signal would find the process still there
+        _hard_exit(code)
+    return code
+
+
+def install_abort_signals(app, *, hard_exit: bool = False) -> dict:
+    """SIGINT, SIGTERM and SIGHUP (`ABORT_SIGNALS`: `kill`, `timeout`, a closed terminal) abort
+    a running campaign cleanly, as on the command line: its `control.abort` is set at once (the
+    arm stopped after the current step, the `abort` event written, the recording closed, even if
+    the UI can no longer draw), and the app quits once the campaign has ended; with none running
+    it quits at once, devices closed (`WorkcellApp.abort_signal`, handed to the event loop).
+
+    `hard_exit` (the console command): a watchdog then ends the process if the UI has not ended
+    it `EXIT_GRACE_S` after the campaign's worker finished (a closed terminal leaves Textual
+    blocked restoring it). Returns the handlers it replaced, by signal."""
+    from workcell.campaign.executor import ABORT_SIGNALS
+
+    watching: list[threading.Thread] = []
+
+    def handler(signum, frame) -> None:
+        loop = getattr(app, "_loop", None)
+        if loop is None or loop.is_closed():  # the UI is not running (yet, or any more)
+            raise KeyboardInterrupt
+        control = app.control
+        if control is not None:
+            control.abort.set()
+        loop.call_soon_threadsafe(app.abort_signal, signum)
+        if hard_exit and not watching:
+            t = threading.Thread(
+                target=_exit_watchdog, args=(app, 128 + signum), name="exit-watchdog", daemon=True
+            )
+            watching.append(t)
+            t.start()
+
+    return {sig: signal.signal(sig, handler) for sig in ABORT_SIGNALS}
+
+
+EXIT_GRACE_S = 5.0
+
+
+def _exit_watchdog(app, code: int) -> None:
+    """After an abort signal: once the campaign's worker has ended (its recording closed), give
+    the UI `EXIT_GRACE_S` to quit by itself, then close what is still open and end the process
+    (the terminal may be gone: nothing left to show)."""
+    app.campaign_idle.wait()
+    time.sleep(EXIT_GRACE_S)
+    dev = app.devices
+    if dev is not None:
+        if app.validating:  # the closed-loop check has no pause: stop the arm where it is
+            try:
+                dev.robot.stop()
+            except Exception:  # noqa: BLE001 - best effort, the process is ending
+                pass
+        try:
+            dev.close()
+        except Exception:  # noqa: BLE001
+            pass
+    _hard_exit(code)
+
+
+def _hard_exit(code: int) -> None:
+    for f in (sys.stdout, sys.stderr):
+        try:
+            f.flush()
+        except (OSError, ValueError):
+            pass
+    os._exit(code)
 
 
 def _port_in_use(host: str) -> int | None:

@@ -9,16 +9,20 @@ threads); the app then sets attributes on the screens. Every failure becomes a n
 from __future__ import annotations
 
 import functools
+import signal
+import threading
 import time
 import traceback
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 from rich.markup import escape
 from textual.app import App
 from textual.binding import Binding
 
 from workcell.errors import UserError
+from workcell.estimation.models import interval_um
 from workcell.tui import backend
 from workcell.tui import messages as m
 from workcell.tui.backend import DeviceConfig, PlanConfig
@@ -30,6 +34,8 @@ from workcell.tui.screens import (
     FitScreen,
     PlanScreen,
 )
+from workcell.tui.screens.devices import config_changes
+from workcell.tui.screens.fit import headline as fit_headline
 from workcell.tui.widgets import ConfirmScreen
 
 # events the operator must see even when not looking at the Campaign screen
@@ -113,6 +119,10 @@ class WorkcellApp(App):
         self.notify_timeout_s = notify_timeout_s
         self.devices: backend.Devices | None = None
         self.control = None  # CampaignControl while a campaign runs
+        # clear while a campaign's worker thread runs (set by that thread when it ends, with the
+        # recording closed: `workcell tui`'s exit after a signal waits for it)
+        self.campaign_idle = threading.Event()
+        self.campaign_idle.set()
         self.campaign_running = False
         self.last_recording: str | None = None
         self.last_model: str | None = None
@@ -127,6 +137,8 @@ class WorkcellApp(App):
         self._t0 = None
         self._awaiting_recovery = False
         self._quit_after_campaign = False
+        self._quit_return_code = 0
+        self.exit_signal = 0  # the abort signal that made it quit (`abort_signal`), 0: none
         self.views = {
             "devices": DevicesScreen(devices),
             "plan": PlanScreen(plan),
@@ -175,6 +187,50 @@ class WorkcellApp(App):
     def notify_error(self, text: str, title: str = "") -> None:
         self.notify(text, title=title, severity="error", timeout=1.5 * self.notify_timeout_s)
 
+    # ------------------------------------------------------------------ what a start runs with
+    def devices_form_problem(self) -> str | None:
+        """Why the arm must not move now with the devices connected (None when it may): the
+        Devices form says other devices, an SMR offset or a time scale than those connected,
+        and a campaign would run with the connected ones, not what the operator sees."""
+        dev = self.devices
+        if dev is None:
+            return None
+        try:
+            changes = config_changes(dev.config, self.views["devices"].read_config())
+        except UserError as e:
+            changes = [f"a value the connection would refuse ({e})"]
+        if not changes:
+            return None
+        return (
+            "the Devices form differs from the devices connected: "
+            + "; ".join(changes)
+            + ". The arm would move with the connected ones: reconnect on F1 Devices (ctrl+r) "
+            "to use the form's, or set the form back; nothing moved"
+        )
+
+    def campaign_settings(self) -> tuple[PlanConfig, list[float]]:
+        """What `s` or `r` on the Campaign screen starts with, read when the key is pressed: the
+        Plan form as it stands (validated as the dry run validates it, its envelope file loaded
+        for the connected arm) and the connected SMR offset (m on the flange). The form's plan
+        becomes the app's. Refuses with UserError (nothing moves) a plan the dry run would
+        refuse, and a Devices form other than the devices connected (`devices_form_problem`)."""
+        try:
+            plan = self.views["plan"].read_plan()
+        except UserError as e:
+            raise UserError(f"F2 Plan: {e}; nothing moved") from None
+        self.plan = plan
+        self._push_context()
+        dev = self.devices
+        if dev is None:
+            raise UserError("connect the devices first (F1 Devices)")
+        if why := self.devices_form_problem():
+            raise UserError(why)
+        try:
+            backend.envelope_for(plan, dev)  # an unusable file: refused before the question
+        except (ValueError, OSError) as e:
+            raise UserError(f"envelope {plan.envelope}: {e}") from None
+        return plan, np.asarray(dev.cell.tool_m, float).tolist()
+
     def _push_context(self) -> None:
         """Attributes down: what each screen shows about the shared state."""
         self.views["campaign"].set_context(self.plan, self.devices is not None)
@@ -184,22 +240,50 @@ class WorkcellApp(App):
 
             def answer(ok: bool | None) -> None:
                 if ok:
-                    self._quit_after_campaign = True
-                    self.control.abort.set()
-                    self.notify("aborting the campaign before quitting ...", severity="warning")
+                    self._abort_and_quit("aborting the campaign before quitting ...")
 
             self.push_screen(
                 ConfirmScreen("A campaign is running. Abort it and quit?", yes="Abort + quit"),
                 answer,
             )
             return
+        self._quit_now()
+
+    def _abort_and_quit(self, note: str, return_code: int = 0) -> None:
+        """Abort the running campaign and quit once it has ended (robot stopped, recording
+        closed: `on_campaign_finished`); with none running (it ended meanwhile, e.g. while the
+        quit question was open), quit now."""
+        control = self.control
+        if control is None or not self.campaign_running:
+            self._quit_now(return_code)
+            return
+        self._quit_after_campaign = True
+        self._quit_return_code = return_code
+        control.abort.set()
+        control.pause.clear()
+        self.views["campaign"].set_state("aborting")
+        self.notify(note, severity="warning")
+
+    def _quit_now(self, return_code: int = 0) -> None:
         if self.validating and self.devices is not None:
             try:  # the closed-loop check has no pause: stop the arm where it is
                 self.devices.robot.stop()
             except Exception:  # noqa: BLE001 - stopping is best effort while quitting
                 pass
         self._close_devices()
-        self.exit()
+        self.exit(return_code=return_code)
+
+    def abort_signal(self, signum: int) -> None:
+        """SIGTERM, SIGHUP or SIGINT (`kill`, a closed terminal), run on the event loop
+        (`workcell tui` installs the handler): as the command line does, a running campaign is aborted cleanly
+        (the arm stopped, the `abort` event written, the recording closed) and the app quits
+        when it has ended; otherwise it quits at once, devices closed. Exit code 128 + signum."""
+        self.exit_signal = self.exit_signal or signum
+        try:
+            name = signal.Signals(signum).name
+        except ValueError:
+            name = f"signal {signum}"
+        self._abort_and_quit(f"{name}: aborting the campaign before quitting ...", 128 + signum)
 
     def on_unmount(self) -> None:
         if self.control is not None:
@@ -383,7 +467,7 @@ class WorkcellApp(App):
                 live = backend.LiveResidual(dev.cell)
                 est = None
                 note = "EKF-ANN off"
-                if self.online:
+                if self.online and not control.abort.is_set():  # aborted: no time for it
                     est = backend.LiveEstimator(
                         dev.cell,
                         on_result=lambda i, e: self.post_message(m.EstimateUpdated(i, e)),
@@ -462,7 +546,10 @@ class WorkcellApp(App):
                 self.post_message(m.CampaignFinished(None, None, rec, stop))
                 if stop is None:
                     raise
+            finally:  # the recording is closed (or was never opened): the worker is done
+                self.campaign_idle.set()
 
+        self.campaign_idle.clear()
         self._thread(work, "campaign")
 
     @guarded
@@ -605,7 +692,7 @@ class WorkcellApp(App):
         self._push_context()
         if self._quit_after_campaign:
             self._close_devices()
-            self.exit()
+            self.exit(return_code=self._quit_return_code)
 
     # ------------------------------------------------------------------ fit / diagnose / export
     @guarded
@@ -634,8 +721,7 @@ class WorkcellApp(App):
             self.last_model = msg.report["model"]
             self.views["export"].set_model(msg.report["model"])
         self.notify(
-            f"{msg.report.get('method')}: held-out RMS "
-            f"{(msg.report.get('heldout_rms_m') or float('nan')) * 1e6:.1f} um",
+            fit_headline(msg.report),  # "train RMS ..." when no pose was held out, as the CLI
             title="Fit done",
             timeout=self.notify_timeout_s,
         )
@@ -709,13 +795,15 @@ class WorkcellApp(App):
             if dev is None
             else "a campaign is running; the check moves the same arm"
             if self.campaign_running
-            else ""
+            else self.devices_form_problem() or ""
         )
         if why:
             view.show_validation(None, why)
             self.notify_error(why, title="Validate")
             return
         self.validating = True
+        # the Plan form's envelope as it stands now (not the last dry run's)
+        envelope = self.views["plan"].envelope_file()
 
         def log(text: str) -> None:
             self.post_message(m.JobProgress("export", str(text)))
@@ -727,7 +815,7 @@ class WorkcellApp(App):
                 dev,
                 msg.targets,
                 log=log,
-                envelope_file=getattr(self.plan, "envelope", "default"),
+                envelope_file=envelope,
             )
             self.post_message(m.ValidateFinished(res))
 
@@ -739,9 +827,10 @@ class WorkcellApp(App):
         self.last_validation = msg.result
         self.views["export"].show_validation(msg.result)
         r = msg.result
+        ci = interval_um((r.get("after") or {}).get("rms_ci95_m"))
         self.notify(
             f"RMS {r['before_rms_m'] * 1e6:.1f} -> {r['after_rms_m'] * 1e6:.1f} um on "
-            f"{r['targets']} targets",
+            f"{r['targets']} targets" + (f"; after: {ci}" if ci else ""),  # as `validate` logs
             title="Closed-loop check",
             timeout=self.notify_timeout_s,
         )

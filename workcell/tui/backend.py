@@ -40,9 +40,58 @@ class DeviceConfig:
     smr_offset: str = ""  # 'X,Y,Z' m on the flange; '' = the default (0, 0, 0.06)
 
 
+class Held:
+    """A device the app keeps open between runs. A run closes the devices it is given when it
+    ends (`run_campaign`, the closed-loop check), as the command line's process ends; the app
+    keeps them as the operator connected them on the Devices screen, so that its status poll
+    still reads the robot's mode and safety state (the protective stop a run ended in) and the
+    tracker's connection. So `close()` from a run only marks the device, and the next run's
+    `connect()` closes it first, as after the run it would have been (a connection a fault
+    broke is made afresh). Everything else goes to the driver; `release()` closes it
+    (`Devices.close`: disconnect, reconnect, quit)."""
+
+    __slots__ = ("_device", "_closed_by_run")
+
+    def __init__(self, device) -> None:
+        object.__setattr__(self, "_device", device)
+        object.__setattr__(self, "_closed_by_run", False)
+
+    def __getattr__(self, name: str):
+        return getattr(object.__getattribute__(self, "_device"), name)
+
+    def __setattr__(self, name: str, value) -> None:  # a run's abort flag etc.: the driver's
+        setattr(self._device, name, value)
+
+    def __repr__(self) -> str:
+        return f"Held({self._device!r})"
+
+    def connect(self) -> None:
+        if self._closed_by_run:
+            object.__setattr__(self, "_closed_by_run", False)
+            close_quietly(self._device)
+        self._device.connect()
+
+    def close(self) -> None:
+        object.__setattr__(self, "_closed_by_run", True)
+
+    def release(self) -> None:
+        self._device.close()
+
+
+def _release(*devices) -> None:
+    """Close each device for good (`Held.release`; a device wrapped around one forwards it),
+    best effort."""
+    for d in devices:
+        try:
+            getattr(d, "release", d.close)()
+        except Exception:  # noqa: BLE001 - closing is best effort
+            pass
+
+
 @dataclass
 class Devices:
-    """An open cell: what `workcell.campaign.devices.open_cell` returns, plus bookkeeping."""
+    """An open cell: what `workcell.campaign.devices.open_cell` returns, plus bookkeeping. The
+    robot and tracker are `Held`: a run leaves them open; `close()` closes them."""
 
     cell: object  # CellSetup
     robot: object
@@ -56,7 +105,7 @@ class Devices:
     notes: list[str] = field(default_factory=list)
 
     def close(self) -> None:
-        close_quietly(self.robot, self.tracker)
+        _release(self.robot, self.tracker)
         if self.sim_process is not None:
             try:
                 self.sim_process.stop()
@@ -124,7 +173,9 @@ def open_devices(cfg: DeviceConfig) -> Devices:
         if robot_url == "sim"
         else ("protocol simulators" if proc is not None else "hardware")
     )
-    return Devices(cell, robot, tracker, env, robot_url, tracker_url, kind, cfg, proc, notes)
+    return Devices(
+        cell, Held(robot), Held(tracker), env, robot_url, tracker_url, kind, cfg, proc, notes
+    )
 
 
 def probe(dev: Devices) -> dict:
@@ -465,6 +516,7 @@ def start_campaign(
             default=dev.envelope,
             say=lambda m: on_event({"level": "warning", "kind": "envelope", "message": m}),
         )
+        check_resume_envelope(plan, env, dev, old)
         recorded = np.asarray(recorded_tool(info["recording"].session))
         if not np.allclose(recorded, dev.cell.tool_m, rtol=0.0, atol=1e-9):
             raise UserError(
@@ -512,6 +564,22 @@ def start_campaign(
     )
 
 
+def check_resume_envelope(plan: PlanConfig, recorded, dev: Devices, old: Path) -> None:
+    """A resume keeps the envelope its campaign was recorded with: the command line refuses
+    `--resume` with `--envelope`. Here the Plan screen always has one: its default, or a file
+    giving the recorded envelope, goes; any other (a tighter one set since) is refused before
+    anything moves, as the command line refuses it."""
+    if plan.envelope in ("", "default"):
+        return
+    if envelope_for(plan, dev).to_dict() == recorded.to_dict():
+        return
+    raise UserError(
+        f"envelope {plan.envelope} (Plan screen): a resume keeps the envelope {old.name} was "
+        "recorded with (its poses were planned inside it); set the Plan screen's envelope back "
+        "to default, or start a new campaign in this envelope"
+    )
+
+
 def _cell_identity(dev: Devices) -> dict:
     """What a recording says of the cell it was made on (`resume.check_same_cell`): the device
     addresses, and for a simulation this program runs its truth (effects, seed)."""
@@ -534,10 +602,20 @@ def stop_report(res, path: str | Path, events=()) -> dict | None:
     {"kind": its
     `stopped_by`, "reason": the engine's one line on why, "recording": what the recording
     keeps and how to resume it}. For the margin watch the reason is its `margin` error event
-    (`events`: those the campaign sent), and a resume is refused. None otherwise."""
-    from workcell.campaign.run import margin_stop, resume_hint, stop_aftermath
+    (`events`: those the campaign sent), and a resume is refused. A campaign that went through
+    its plan recording no pose (every pose skipped) is a stop too, kind "nothing recorded", as
+    the command line's `campaign_stop` (exit 3) makes it. None otherwise."""
+    from workcell.campaign.run import margin_stop, nothing_recorded, resume_hint, stop_aftermath
 
-    if res is None or not res.aborted or res.stopped_by in ("", "operator"):
+    if res is None:
+        return None
+    if res.stopped_by != "margin" and (
+        nothing := nothing_recorded(
+            res, path, again="with a new recording path (the Plan screen has moved on to one)"
+        )
+    ):
+        return {"kind": "nothing recorded", "reason": nothing[0], "recording": nothing[1]}
+    if not res.aborted or res.stopped_by in ("", "operator"):
         return None
     if res.stopped_by == "margin":
         try:
@@ -719,7 +797,7 @@ def _replay(recording, progress, holdout: float, out: Path) -> dict:
     pred = model.predict(ev.q, **aux_from_dataset(ev))
     held = error_stats(pred, ev.p_tracker, interval=True)
     nom_pred = np.asarray(p_tracker(th, base, ev.q))
-    nominal = error_stats(nom_pred, ev.p_tracker)
+    nominal = error_stats(nom_pred, ev.p_tracker, interval=True)
     for k, v in ds.provenance().items():  # for the next fit to know it as its own
         model.info.setdefault(k, v)
     report = {
@@ -728,6 +806,7 @@ def _replay(recording, progress, holdout: float, out: Path) -> dict:
         "train_poses": int(len(train)),
         "heldout_poses": int(len(test)),
         "nominal_rms_m": nominal["rms_m"],
+        "nominal_rms_ci95_m": nominal["rms_ci95_m"],
         "nominal_max_m": nominal["max_m"],
         "heldout_rms_m": held["rms_m"],
         "heldout_rms_ci95_m": held["rms_ci95_m"],
@@ -751,7 +830,9 @@ def diagnose(
     recording: str | Path, *, quick: bool = False, progress: Callable[[str], None] | None = None
 ) -> dict:
     """The discovery report (`workcell.estimation.discovery.diagnose`) as a plain dict with the
-    held-out residuals before/after for the plot."""
+    held-out residuals before/after for the plot. As `workcell diagnose`, the non-parametric
+    residual check runs (its "What is not explained" sentence ends the summary); `quick` skips
+    it (`--no-np`), and then `np_check_note` says so, with what is left unexplained untested."""
     try:
         disc = importlib.import_module("workcell.estimation.discovery")
     except ModuleNotFoundError:
@@ -767,6 +848,8 @@ def diagnose(
     diag = fn(ds, cfg, progress=progress)
     rep = dict(diag.report)
     rep["recording_problems"], rep["read_warnings"] = list(ds.read_problems), warnings
+    if "np_test" not in (rep.get("unexplained") or {}):
+        rep["np_check_note"] = np_check_note(rep, quick)
     plots = getattr(diag, "plots", {}) or {}
     if "res_before" in plots and "res_after" in plots:
         rep["residuals"] = {
@@ -774,6 +857,29 @@ def diagnose(
             "after_m": np.linalg.norm(np.asarray(plots["res_after"]), axis=1).tolist(),
         }
     return rep
+
+
+def np_check_note(rep: dict, quick: bool) -> str:
+    """The line a diagnosis without the non-parametric residual check ends with in place of the
+    command line's "What is not explained" sentence: the size above the noise floor (computed
+    without the check), and that it was not tested for structure, and how to test it."""
+    from workcell.estimation.models import unexplained_text
+
+    u = rep.get("unexplained") or {}
+    size = ""
+    if u.get("excess_over_floor_m") is not None:
+        size = (
+            unexplained_text(
+                {"rms_m": u["excess_over_floor_m"], "upper_m": u.get("excess_over_floor_upper_m")}
+            )
+            + "; "
+        )
+    why = "quick was ticked" if quick else "it did not run"
+    return (
+        f"What is not explained: {size}not tested for structure: the non-parametric residual "
+        f"check was skipped ({why}). Untick quick and diagnose again, or run `workcell diagnose "
+        f"{rep.get('recording', 'REC')}` (the command line runs it unless --no-np)."
+    )
 
 
 # ----------------------------------------------------------------------------- export
@@ -807,6 +913,7 @@ def export(cfg: ExportConfig, log: Callable[[str], None] | None = None) -> dict:
         raise UserError(f"model file {cfg.model} does not exist")
     from workcell.errors import refuse_overwrite
     from workcell.export.files import check_export_outputs, output_files
+    from workcell.export.frame import frame_lines
 
     out = check_output_path(cfg.out, "output")
     outputs = output_files(cfg.format, out)
@@ -822,10 +929,14 @@ def export(cfg: ExportConfig, log: Callable[[str], None] | None = None) -> dict:
 
         rec, sha = build.model_recording(model)
         path, info = export_ros_yaml(model, out, meta={"model": cfg.model, "recording_sha256": sha})
+        info = info or {}
         summary["files"] = [str(path)]
-        summary["validation"] = {
-            k: v for k, v in (info or {}).items() if isinstance(v, int | float | str)
-        }
+        summary["validation"] = {k: v for k, v in info.items() if isinstance(v, int | float | str)}
+        # what `workcell export` prints for it (the frame its targets are in), and what the
+        # model leaves out, in neither the YAML's values nor their +- (its JSON summary)
+        summary["base_correction_line"] = info.get("base_correction_line")
+        summary["unexplained"] = info.get("model_unexplained")
+        summary["unexplained_without_outliers"] = info.get("model_unexplained_without_outliers")
         summary["seconds"] = time.perf_counter() - t0
         return summary
     volume = build.parse_vec(cfg.volume, 6, "volume") if cfg.volume.strip() else None
@@ -838,6 +949,9 @@ def export(cfg: ExportConfig, log: Callable[[str], None] | None = None) -> dict:
         log=log,
     )
     summary["grid"] = {"shape": list(table.shape), "spacing_m": table.spacing_m.tolist()}
+    # the base-correction line `workcell export` prints for a table: targets in another estimate
+    # of the robot base differ from base_ref by the fitted base correction
+    summary["base_correction_line"] = frame_lines(table.meta, "the table's nodes")[2]
     summary["validation"] = {
         k: table.meta.get(k)
         for k in (
@@ -929,15 +1043,27 @@ def closed_loop(
     env, env_what = validation_envelope(given, session, spec, str(rec), default=dev.envelope)
     if log:
         log(f"moves checked against {env_what}")
+    from workcell.export.validate import payload_mismatch
+
+    warnings: list[str] = []
+    if why := payload_mismatch(model, table, dev.cell.payload_kg, ui=True):
+        if dev.kind == "in-process simulation":  # its payload is known: a wrong table
+            raise UserError(f"{table_path}: {why}")
+        # a controller's payload is not read: the cell setup's is an assumption (as `validate`)
+        warnings.append(
+            f"{why} (the cell setup's payload: the controller's is not read; if the arm carries "
+            "the table's, disregard this)"
+        )
+        if log:
+            log(f"warning: {warnings[-1]}")
     if not np.allclose(nominal.tool_m, dev.cell.tool_m, rtol=0.0, atol=1e-6):
         raise UserError(
             f"the model was fitted with the SMR at {np.round(nominal.tool_m, 6).tolist()} m on "
             f"the flange, the Devices screen declares {np.round(dev.cell.tool_m, 6).tolist()} m: "
             "the table corrects the model's SMR; mount and declare that one, then reconnect"
         )
-    dev.robot.connect()  # as a campaign does: it closes them when it ends
-    dev.tracker.connect()
-    warnings: list[str] = []
+    dev.robot.connect()  # as a campaign does; it closes them when it ends (`Held`: the app's
+    dev.tracker.connect()  # stay open for its status poll)
     try:
         # the arm's joint temperatures now (None if the controller does not report them)
         if w := thermal_mismatch(model, table, dev.robot.state().temperature_c, ui=True):

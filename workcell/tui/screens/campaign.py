@@ -1,8 +1,10 @@
-"""Campaign: start after an explicit confirmation; progress with ETA; the current pose, joints,
-last tracker reading and its sigma; live residual plot (nominal model, EKF-ANN online estimate);
-the event log; pause, resume, abort (confirmed); resume of an interrupted recording. A campaign
-the engine stopped by itself (a fault it will not get past, the margin watch) is STOPPED, not
-aborted: the status says why, what the recording keeps and how to resume it."""
+"""Campaign: start after an explicit confirmation, with the Plan form as it stands when `s` is
+pressed (refused while the Devices form differs from the devices connected); progress with ETA;
+the current pose, joints, last tracker reading and its sigma; live residual plot (nominal model,
+EKF-ANN online estimate); the event log; pause, resume, abort (confirmed); resume of an
+interrupted recording. A campaign the engine stopped by itself (a fault it will not get past,
+the margin watch) is STOPPED, not aborted: the status says why, what the recording keeps and how
+to resume it."""
 
 from __future__ import annotations
 
@@ -14,6 +16,7 @@ from textual.binding import Binding
 from textual.containers import Horizontal, Vertical
 from textual.widgets import Label, ProgressBar, RichLog
 
+from workcell.errors import UserError
 from workcell.tui.messages import AbortRequested, CampaignStartRequested, PauseRequested
 from workcell.tui.screens.base import WorkcellScreen, um
 from workcell.tui.widgets import ConfirmScreen, KeyValue, PathPrompt, ResidualPlot
@@ -26,6 +29,15 @@ def fmt_duration(s: float | None) -> str:
     h, r = divmod(s, 3600)
     m, sec = divmod(r, 60)
     return f"{h}:{m:02d}:{sec:02d}" if h else f"{m:02d}:{sec:02d}"
+
+
+def envelope_name(envelope: str) -> str:
+    """The Plan screen's envelope as the start confirmation names it."""
+    return "the arm's default" if envelope in ("", "default") else envelope
+
+
+def smr_name(smr_m) -> str:
+    return ",".join(f"{float(x):g}" for x in smr_m)
 
 
 # a campaign is under way in these states ("protective stop": waiting for the operator)
@@ -88,6 +100,16 @@ class CampaignScreen(WorkcellScreen):
             yield RichLog(id="events", max_lines=500, wrap=True, markup=True)
 
     # ---------------------------------------------------------------- actions (requests up)
+    def _settings(self):
+        """The plan and SMR offset a campaign started now runs with (`campaign_settings`: the
+        Plan form as it stands, the devices connected, read when the key is pressed), or None
+        after a notice saying why nothing will move."""
+        try:
+            return self.app.campaign_settings()
+        except UserError as e:
+            self.app.notify(str(e), severity="error", title="Campaign", markup=False)
+            return None
+
     def action_start(self) -> None:
         if self.state in ACTIVE:
             self.notify("a campaign is already running", severity="warning")
@@ -95,10 +117,10 @@ class CampaignScreen(WorkcellScreen):
         if not self.connected:
             self.notify("connect the devices first (F1 Devices)", severity="error")
             return
-        if self.plan is None:
-            self.notify("set up a plan first (F2 Plan)", severity="error")
+        got = self._settings()
+        if got is None:
             return
-        p = self.plan
+        p, smr = got
         q = (
             f"Start the campaign? The robot will MOVE.\n\n{p.poses} {p.kind} poses, "
             f"{p.readings_per_pose} readings each, settle {p.settle_s:g} s\n"
@@ -108,7 +130,9 @@ class CampaignScreen(WorkcellScreen):
                 if p.reference_every
                 else ""
             )
-            + f"recording: {p.out}\n\nCheck the cell is clear."
+            + f"envelope: {escape(envelope_name(p.envelope))}\n"
+            + f"SMR offset: {smr_name(smr)} m on the flange\n"
+            + f"recording: {escape(p.out)}\n\nCheck the cell is clear."
         )
 
         def answer(ok: bool | None) -> None:
@@ -148,7 +172,10 @@ class CampaignScreen(WorkcellScreen):
         if not self.connected or self.plan is None:
             self.notify("connect the devices (F1) and set a plan (F2) first", severity="error")
             return
-        plan = self.plan
+        settings = self._settings()  # the Plan form's envelope: a resume refuses another one
+        if settings is None:
+            return
+        plan, _ = settings
 
         def got(path: str | None) -> None:
             if not path:
@@ -160,8 +187,9 @@ class CampaignScreen(WorkcellScreen):
 
             self.app.push_screen(
                 ConfirmScreen(
-                    f"Resume {path}? The remaining poses of its plan are measured into a new "
-                    "chained recording. The robot will MOVE.",
+                    f"Resume {escape(path)}? The remaining poses of its plan are measured into "
+                    "a new chained recording, inside the envelope and with the SMR offset it was "
+                    "recorded with. The robot will MOVE.",
                     yes="Resume",
                 ),
                 answer,

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import math
+
+import numpy as np
 from rich.markup import escape
 from textual.app import ComposeResult
 from textual.binding import Binding
@@ -14,6 +17,63 @@ from workcell.tui.backend import DeviceConfig
 from workcell.tui.messages import ConnectRequested, DisconnectRequested, StatusRequested
 from workcell.tui.screens.base import WorkcellScreen
 from workcell.tui.widgets import KeyValue
+
+
+def check_time_scale(
+    scale: float, robot: str, start_sim: bool, *, opt: str = "time scale", robot_opt: str = "Robot"
+) -> None:
+    """The command line's rules for a time scale (`workcell tui`, `workcell campaign
+    --time-scale`): a finite number > 0, and other than 1 only for a controller that runs it (the
+    simulators started here, or `workcell sim --time-scale X` at ur://HOST): the in-process
+    simulation runs on virtual time and would ignore it. `opt`, `robot_opt`: the names the
+    operator typed them under (the form's labels, or the command line's options)."""
+    if not (math.isfinite(scale) and scale > 0):
+        raise UserError(f"{opt} must be a finite number > 0 (e.g. 10), got {scale:g}")
+    if robot == "sim" and not start_sim and scale != 1:
+        raise UserError(
+            f"{opt} {scale:g} with {robot_opt} sim: the in-process simulation runs on virtual "
+            "time, so it has no effect; "
+            + (
+                "set it to 1 (it is for the simulators started here, or for a `workcell sim "
+                "--time-scale X` controller given as Robot ur://HOST)"
+                if opt == "time scale"
+                else "leave it out (it is for --sim, or for a `workcell sim --time-scale X` "
+                "controller, given with --robot ur://HOST)"
+            )
+        )
+
+
+def _smr_text(text: str) -> str:
+    v = parse_smr_offset(text, "SMR offset")
+    return ",".join(f"{x:g}" for x in v) + " m" + (" (the default)" if not text.strip() else "")
+
+
+def config_changes(connected: DeviceConfig, form: DeviceConfig) -> list[str]:
+    """What the Devices form says differently from the devices connected, one "what VALUE
+    (connected: VALUE)" each; [] when a campaign would run with what the form shows."""
+    out = []
+    for label, a, b in (
+        ("Robot", connected.robot, form.robot),
+        ("Tracker", connected.tracker, form.tracker),
+        ("Model", connected.model, form.model),
+    ):
+        if a.strip() != b.strip():
+            out.append(f"{label} {b} (connected: {a})")
+    if not math.isclose(connected.time_scale, form.time_scale, rel_tol=1e-6):
+        out.append(f"time scale {form.time_scale:g} (connected: {connected.time_scale:g})")
+    if bool(connected.start_sim) != bool(form.start_sim):
+        out.append(
+            f"start simulators {'on' if form.start_sim else 'off'} "
+            f"(connected: {'on' if connected.start_sim else 'off'})"
+        )
+    smr_a = parse_smr_offset(connected.smr_offset, "SMR offset")
+    smr_b = parse_smr_offset(form.smr_offset, "SMR offset")
+    if not np.allclose(smr_a, smr_b, rtol=0.0, atol=1e-9):
+        out.append(
+            f"SMR offset {_smr_text(form.smr_offset)} "
+            f"(connected: {_smr_text(connected.smr_offset)})"
+        )
+    return out
 
 
 class DevicesScreen(WorkcellScreen):
@@ -64,20 +124,25 @@ class DevicesScreen(WorkcellScreen):
         yield KeyValue(id="status")
 
     def read_config(self) -> DeviceConfig:
+        """The form's devices, refused (UserError) where the command line refuses them. Before
+        the screen is first shown, the form is what it was given."""
+        if not self.is_mounted:
+            return self.config
         scale = self.number("time-scale", float, "time scale")
-        if not scale > 0:
-            raise UserError(f"time scale must be > 0, got {scale}")
+        robot = self.text("robot") or "sim"
+        start_sim = self.query_one("#start-sim", Checkbox).value
+        check_time_scale(scale, robot, start_sim)
         c = self.config
         smr = self.text("smr-offset")
         parse_smr_offset(smr, "SMR offset")  # refused here, before connecting
         return DeviceConfig(
-            robot=self.text("robot") or "sim",
+            robot=robot,
             tracker=self.text("tracker") or "sim",
             model=self.text("model") or "ur5e",
             effects=c.effects,
             seed=c.seed,
             time_scale=scale,
-            start_sim=self.query_one("#start-sim", Checkbox).value,
+            start_sim=start_sim,
             sim_host=c.sim_host,
             sim_faults=c.sim_faults,
             sim_tracker_faults=c.sim_tracker_faults,

@@ -42,7 +42,9 @@ class DiagnoseScreen(WorkcellScreen):
         with Horizontal(id="form"):
             yield Label("Recording")
             yield Input(self.recording, id="recording", placeholder="campaign.mcap (>= 40 poses)")
-            yield Checkbox("quick", True, id="quick")
+            # off by default: the command line's diagnosis, its non-parametric residual check
+            # included (`workcell diagnose`; quick is its --no-np)
+            yield Checkbox("quick (no GP check)", False, id="quick")
             yield Button("Diagnose", id="run", variant="primary")
         yield Label(self.status, id="status")
         with VerticalScroll(id="summary-box"):
@@ -95,6 +97,7 @@ class DiagnoseScreen(WorkcellScreen):
         self.done(
             f"{len(r.get('effects', []))} effect(s): held-out RMS {um(r.get('rms_before_m'))} -> "
             f"{um(r.get('rms_after_m'))}"
+            + ("; non-parametric residual check skipped" if r.get("np_check_note") else "")
         )
 
     def render_view(self) -> None:
@@ -103,7 +106,10 @@ class DiagnoseScreen(WorkcellScreen):
         r = self.report
         if not r:
             return
-        self.query_one("#summary", Static).update(r.get("summary", ""))
+        text = r.get("summary", "")
+        if r.get("np_check_note"):  # quick: no "What is not explained" sentence; say why
+            text = f"{text}\n{r['np_check_note']}"
+        self.query_one("#summary", Static).update(text)
         t = self.query_one("#effects", DataTable)
         t.clear()
         t.add_row("geometry only (DH+base+SMR)", "", "", um(r.get("rms_before_m")), "")

@@ -213,13 +213,20 @@ class ExportScreen(WorkcellScreen):
             )
         if isinstance(s.get("joint_coverage"), dict):
             rows.append(("Coverage", escape(coverage_line(s["joint_coverage"]))))
+        if s.get("base_correction_line"):  # the frame of the targets, as `workcell export`
+            rows.append(("Frame", escape(s["base_correction_line"])))
         if s.get("unexplained"):
             rows.append(
                 (
                     "Not in it",
                     "the model leaves "
                     + escape(unexplained_text(s["unexplained"]))
-                    + " on its held-out poses",
+                    + " on its held-out poses"
+                    + (
+                        ", in neither the values nor their +-"
+                        if s.get("format") == "ros-yaml"
+                        else ""
+                    ),
                 )
             )
         w = s.get("unexplained_without_outliers")
@@ -237,15 +244,24 @@ class ExportScreen(WorkcellScreen):
         """The closed-loop result (None with `error` when the check failed)."""
         self.validating = False
         self.validation = r
+        # the check's rows go first, above the export's (the Frame and Coverage rows are long):
+        # the newest result in view without scrolling, also at 80x24
         rows = [row for row in self.result_rows if not row[0].startswith("Closed loop")]
+        loop: list[tuple[str, str]] = []
         if r is None:
             self.status = f"[b red]check failed[/b red] {escape(error)}"
         else:
             b, a = r["before"], r["after"]
             ci = interval_um(a.get("rms_ci95_m"), label=False)
-            rows += [
+            bci = interval_um(b.get("rms_ci95_m"), label=False)
+            loop += [
                 ("Closed loop", f"{r['targets']} targets, measured by the {r.get('truth', '?')}"),
-                ("Closed loop before", f"RMS {um(b['rms_m'])}, max {um(b['max_m'])}"),
+                (
+                    "Closed loop before",
+                    f"RMS {um(b['rms_m'])}"
+                    + (f" (95 % CI {bci})" if bci else "")
+                    + f", max {um(b['max_m'])}",
+                ),
                 (
                     "Closed loop after",
                     f"RMS {um(a['rms_m'])}"
@@ -254,14 +270,16 @@ class ExportScreen(WorkcellScreen):
                 ),
             ]
             if a.get("predicted_rms_std_m") is not None:
-                rows.append(
+                loop.append(
                     (
                         "Closed loop stated",
                         f"the table's 1-sigma at these targets: RMS {um(a['predicted_rms_std_m'])}",
                     )
                 )
             if r.get("skipped"):
-                rows.append(("Closed loop skipped", f"{len(r['skipped'])}: {r['skipped'][0]}"))
+                loop.append(("Closed loop skipped", f"{len(r['skipped'])}: {r['skipped'][0]}"))
             self.status = f"[green]closed-loop check done[/green] on {r['targets']} targets"
-        self.result_rows = rows
+        self.result_rows = loop + rows
         self.update_view()
+        if self.is_mounted:
+            self.query_one("#result-box", VerticalScroll).scroll_home(animate=False)

@@ -1,5 +1,6 @@
 """Fit: choose a recording and a method; the fit runs in a worker with progress; a before/after
-table with held-out numbers and a residual plot."""
+table with held-out numbers and a residual plot. With no pose held out (fraction 0) the numbers
+are on the training poses and every label says so, as `workcell fit` does."""
 
 from __future__ import annotations
 
@@ -24,6 +25,32 @@ METHODS = [
 ]
 
 
+# what `workcell fit` says of a fit with no pose held out (`fitting.fit_dataset`'s split)
+NO_HOLDOUT = "no hold-out: numbers are on the training poses"
+
+
+def held_out(r: dict) -> bool:
+    """Whether the report's `heldout_*` figures are on held-out poses (False: a fit with the
+    held-out fraction 0, whose figures are on the training poses)."""
+    return bool(r.get("heldout_poses", 1))
+
+
+def rms_label(r: dict) -> str:
+    """The name of the report's `heldout_rms_m`, as `workcell fit` prints it."""
+    return "held-out RMS" if held_out(r) else "train RMS"
+
+
+def headline(r: dict) -> str:
+    """One line of a fit: the method, its RMS (named for the poses it is on) and its 95 %
+    interval; the status line and the app's notice."""
+    ci = interval_um(r.get("heldout_rms_ci95_m"))
+    return (
+        f"{r.get('method', '?')}: {rms_label(r)} {um(r.get('heldout_rms_m'))}"
+        + (f" ({ci})" if ci else "")
+        + ("" if held_out(r) else f"; {NO_HOLDOUT}")
+    )
+
+
 class FitScreen(WorkcellScreen):
     TITLE_TEXT = "Fit"
     DEFAULT_CSS = """
@@ -33,7 +60,7 @@ class FitScreen(WorkcellScreen):
     FitScreen .row Input { width: 1fr; }
     FitScreen .row Select { width: 1fr; }
     FitScreen #hold { width: 10; }
-    FitScreen #status { height: 1; padding: 0 1; }
+    FitScreen #status { height: auto; width: 100%; padding: 0 1; }
     FitScreen #lower { height: 1fr; }
     FitScreen DataTable { width: 1fr; height: 1fr; min-height: 5; }
     FitScreen SeriesPlot { width: 1fr; }
@@ -109,9 +136,7 @@ class FitScreen(WorkcellScreen):
         self.report = r
         model = r.get("model")
         self.running = False
-        self.status = f"{r.get('method', '?')}: held-out RMS {um(r.get('heldout_rms_m'))}" + (
-            f"; model saved as {Path(model).name}" if model else ""
-        )
+        self.status = headline(r) + (f"; model saved as {Path(model).name}" if model else "")
         self.update_view()
 
     def render_view(self) -> None:
@@ -121,17 +146,22 @@ class FitScreen(WorkcellScreen):
         if not r:
             return
         t = self.query_one("#table", DataTable)
-        t.clear()
+        # the first column is named for the poses its figures are on (held out, or training)
+        t.clear(columns=True)
+        t.add_columns("", rms_label(r), "max")
         method = r.get("method", "?")
         if "nominal_rms_m" in r:
             t.add_row(
                 "nominal (base registered)", um(r["nominal_rms_m"]), um(r.get("nominal_max_m"))
             )
+            nci = interval_um(r.get("nominal_rms_ci95_m"), label=False)
+            if nci:
+                t.add_row("  95 % CI of its RMS", nci, "")
         t.add_row(f"{method} fitted", um(r.get("heldout_rms_m")), um(r.get("heldout_max_m")))
         ci = interval_um(r.get("heldout_rms_ci95_m"), label=False)
         if ci:
             t.add_row("  95 % CI of its RMS", ci, "")
-        if r.get("train_rms_m") is not None:
+        if r.get("train_rms_m") is not None and held_out(r):  # else: the row above
             t.add_row(f"{method} on training poses", um(r["train_rms_m"]), "")
         if r.get("stated_noise_floor_m") is not None:
             t.add_row("floor: repeatability", um(r["stated_noise_floor_m"]), "")
@@ -151,7 +181,10 @@ class FitScreen(WorkcellScreen):
                 f"without: {um(ho['heldout_rms_m'])}",
             )
         t.add_row(
-            "poses", f"{r.get('train_poses', '-')} train", f"{r.get('heldout_poses', '-')} held out"
+            "poses",
+            f"{r.get('train_poses', '-')} train",
+            f"{r.get('heldout_poses', '-')} held out"
+            + ("" if held_out(r) else ": the figures are on the training poses"),
         )
         unid = r.get("unidentifiable") or []
         if unid:
@@ -177,7 +210,11 @@ class FitScreen(WorkcellScreen):
         if res:
             before = [x * 1e6 for x in res.get("before_m", [])]
             after = [x * 1e6 for x in res.get("after_m", [])]
-            self.query_one("#plot", SeriesPlot).set_series(
+            plot = self.query_one("#plot", SeriesPlot)
+            on = "held-out" if held_out(r) else "training (no hold-out)"
+            plot.title = f"{on} error per pose (um)"
+            plot.xlabel = "held-out pose" if held_out(r) else "training pose"
+            plot.set_series(
                 [
                     ("nominal", list(range(1, len(before) + 1)), before, "scatter"),
                     (method, list(range(1, len(after) + 1)), after, "line"),

@@ -82,6 +82,12 @@ class PlanScreen(WorkcellScreen):
             yield Static(self.result_text, id="result")
 
     def read_plan(self) -> PlanConfig:
+        """The form's plan, validated as the command line validates its options (UserError, one
+        line); it becomes this screen's plan. Before the screen is first shown, the form is the
+        plan it was given. The dry run, the campaign's start and its resume all read it here."""
+        if not self.is_mounted:
+            self.plan.validate()
+            return self.plan
         kind = self.query_one("#kind", Select).value
         p = PlanConfig(
             kind=str(kind),
@@ -97,6 +103,13 @@ class PlanScreen(WorkcellScreen):
         p.validate()
         self.plan = p
         return p
+
+    def envelope_file(self) -> str:
+        """The form's envelope as it stands: "default" or a file (what the closed-loop check
+        moves inside, without validating the rest of the plan)."""
+        if not self.is_mounted:
+            return self.plan.envelope or "default"
+        return self.text("envelope") or "default"
 
     def action_dry_run(self) -> None:
         try:
