@@ -7,11 +7,11 @@ line's words (`workcell.campaign.run.campaign_stop`, `resume_hint`); an operator
 "aborted". In-process simulated cell (virtual time); devices wrapped after connecting to fault."""
 
 import asyncio
-import time
 
 import numpy as np
 import pytest
 from rich.text import Text
+from tuipilot import connect, until
 from wrapped import Wrapped
 
 from workcell.campaign.executor import (
@@ -30,18 +30,6 @@ from workcell.tui.backend import PlanConfig
 SIZE = (100, 30)
 
 
-async def until(pilot, cond, timeout_s: float, what: str) -> None:
-    t0 = time.monotonic()
-    while not cond():
-        await pilot.pause(0.05)
-        if time.monotonic() - t0 > timeout_s:
-            scr = pilot.app.views["campaign"]
-            raise AssertionError(
-                f"timed out waiting for {what}: campaign {scr.state} after {scr.done} poses, "
-                f"last notices {pilot.app.notices[-3:]}"
-            )
-
-
 def app_for(poses: int, **kw):
     return make_app(
         plan=PlanConfig(poses=poses, readings_per_pose=2, settle_s=0.2, out="run.mcap"),
@@ -52,11 +40,6 @@ def app_for(poses: int, **kw):
         cursor_blink=False,
         **kw,
     )
-
-
-async def connect(app, pilot) -> None:
-    await pilot.press("ctrl+r")
-    await until(pilot, lambda: app.devices is not None, 30, "connect")
 
 
 async def start(app, pilot) -> None:

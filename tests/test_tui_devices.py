@@ -5,19 +5,13 @@ a notification, the campaign reconnects and finishes with a valid recording."""
 import asyncio
 import time
 
+from tuipilot import until
+
 from workcell.recording.reader import read_recording
 from workcell.tui.app import make_app
 from workcell.tui.backend import PlanConfig
 
 TIME_SCALE = 20.0
-
-
-async def until(pilot, cond, timeout_s: float, what: str) -> None:
-    t0 = time.monotonic()
-    while not cond():
-        await pilot.pause(0.05)
-        if time.monotonic() - t0 > timeout_s:
-            raise AssertionError(f"timed out waiting for {what}")
 
 
 def sim_app(host: str, faults: dict, out: str):

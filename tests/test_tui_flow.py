@@ -5,11 +5,11 @@ leaving a valid recording, then resuming it."""
 import asyncio
 import re
 import threading
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+from tuipilot import connect, set_input, until
 
 from workcell.recording.reader import read_recording
 from workcell.tui import backend
@@ -17,20 +17,6 @@ from workcell.tui.app import make_app
 from workcell.tui.backend import PlanConfig
 
 SIZE = (100, 30)
-
-
-async def until(pilot, cond, timeout_s: float = 180.0, what: str = "") -> None:
-    t0 = time.monotonic()
-    while not cond():
-        await pilot.pause(0.05)
-        if time.monotonic() - t0 > timeout_s:
-            app = pilot.app
-            camp = getattr(app, "views", {}).get("campaign")
-            raise AssertionError(
-                f"timed out waiting for {what or cond}: screen {type(app.screen).__name__}, "
-                f"campaign {getattr(camp, 'state', None)} after {getattr(camp, 'done', None)} "
-                f"poses, last notices {getattr(app, 'notices', [])[-3:]}"
-            )
 
 
 async def until_confirm(app, pilot, what: str) -> None:
@@ -47,16 +33,6 @@ def app_for(poses: int):
         online=False,
         cursor_blink=False,
     )
-
-
-async def connect(app, pilot) -> None:
-    await pilot.press("ctrl+r")
-    await until(pilot, lambda: app.devices is not None, 60, "connect")
-
-
-async def set_input(pilot, screen, wid: str, value: str) -> None:
-    screen.query_one(f"#{wid}").value = value
-    await pilot.pause()
 
 
 async def run_campaign(app, pilot, n_finished: int) -> None:

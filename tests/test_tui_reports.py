@@ -10,12 +10,12 @@ protective-stop case runs on the protocol simulators."""
 
 import asyncio
 import shutil
-import time
 from pathlib import Path
 
 import pytest
 from rich.text import Text
 from textual.widgets import Checkbox, DataTable, Select, Static
+from tuipilot import until
 
 from workcell.estimation.models import interval_um
 from workcell.tui import backend
@@ -25,14 +25,6 @@ from workcell.tui.backend import PlanConfig
 
 SIZE = (120, 40)
 NO_HOLDOUT = "no hold-out: numbers are on the training poses"  # `workcell fit`'s words
-
-
-async def until(pilot, cond, timeout_s: float = 60.0, what: str = "") -> None:
-    t0 = time.monotonic()
-    while not cond():
-        await pilot.pause(0.05)
-        if time.monotonic() - t0 > timeout_s:
-            raise AssertionError(f"timed out waiting for {what}: notices {pilot.app.notices[-3:]}")
 
 
 def app_for(poses: int = 2, **kw):

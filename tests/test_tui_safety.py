@@ -9,10 +9,10 @@ import json
 import os
 import signal
 import threading
-import time
 
 import numpy as np
 import pytest
+from tuipilot import connect, screen_is, set_input, until
 
 from workcell.recording.reader import read_recording
 from workcell.tui import backend
@@ -20,22 +20,6 @@ from workcell.tui.app import make_app
 from workcell.tui.backend import DeviceConfig, PlanConfig
 
 SIZE = (100, 30)
-
-
-async def until(pilot, cond, timeout_s: float = 60.0, what: str = "") -> None:
-    t0 = time.monotonic()
-    while not cond():
-        await pilot.pause(0.05)
-        if time.monotonic() - t0 > timeout_s:
-            app = pilot.app
-            raise AssertionError(
-                f"timed out waiting for {what or cond}: screen {type(app.screen).__name__}, "
-                f"last notices {getattr(app, 'notices', [])[-3:]}"
-            )
-
-
-def screen_is(app, name: str) -> bool:
-    return type(app.screen).__name__ == name
 
 
 def app_for(poses: int, **kw):
@@ -48,16 +32,6 @@ def app_for(poses: int, **kw):
         cursor_blink=False,
         **kw,
     )
-
-
-async def connect(app, pilot) -> None:
-    await pilot.press("ctrl+r")
-    await until(pilot, lambda: app.devices is not None, 60, "connect")
-
-
-async def set_input(pilot, screen, wid: str, value: str) -> None:
-    screen.query_one(f"#{wid}").value = value
-    await pilot.pause()
 
 
 def tight_envelope(path) -> str:

@@ -6,9 +6,8 @@ diagnosis and export results are computed once per module by the same backend ca
 use, then shown on the screen. Update after an intended change with
 `pytest tests/test_tui_snapshots.py --snapshot-update` and review the SVGs."""
 
-import time
-
 import pytest
+from tuipilot import connect, until
 
 from workcell.tui import backend
 from workcell.tui.app import make_app
@@ -27,14 +26,6 @@ def new_app():
     )
 
 
-async def until(pilot, cond, timeout_s: float = 120.0) -> None:
-    t0 = time.monotonic()
-    while not cond():
-        await pilot.pause(0.05)
-        if time.monotonic() - t0 > timeout_s:
-            raise AssertionError(f"timed out: {cond}")
-
-
 async def settle(pilot) -> None:
     pilot.app.clear_notifications()
     await pilot.pause(0.1)
@@ -46,12 +37,6 @@ async def settle(pilot) -> None:
         if log.auto_scroll:
             log.scroll_end(animate=False, immediate=True)
     await pilot.pause(0.05)
-
-
-async def connect(pilot) -> None:
-    app = pilot.app
-    await pilot.press("ctrl+r")
-    await until(pilot, lambda: app.devices is not None)
 
 
 @pytest.fixture(scope="module")
@@ -98,7 +83,7 @@ class TestDevicesScreen:
     @pytest.mark.parametrize("size", SIZES)
     def test_connected(self, snap_compare, in_tmp, size):
         async def run_before(pilot):
-            await connect(pilot)
+            await connect(pilot.app, pilot)
             await settle(pilot)
 
         assert snap_compare(new_app(), terminal_size=size, run_before=run_before)
@@ -108,7 +93,7 @@ class TestPlanScreen:
     @pytest.mark.parametrize("size", SIZES)
     def test_dry_run_ok(self, snap_compare, in_tmp, size):
         async def run_before(pilot):
-            await connect(pilot)
+            await connect(pilot.app, pilot)
             await pilot.press("f2", "ctrl+r")
             await until(pilot, lambda: pilot.app.views["plan"].checked is not None)
             await settle(pilot)
@@ -120,7 +105,7 @@ class TestCampaignScreen:
     @pytest.mark.parametrize("size", SIZES)
     def test_confirmation(self, snap_compare, in_tmp, size):
         async def run_before(pilot):
-            await connect(pilot)
+            await connect(pilot.app, pilot)
             await pilot.press("f3", "s")
             await settle(pilot)
 
@@ -129,7 +114,7 @@ class TestCampaignScreen:
     @pytest.mark.parametrize("size", SIZES)
     def test_finished(self, snap_compare, in_tmp, size):
         async def run_before(pilot):
-            await connect(pilot)
+            await connect(pilot.app, pilot)
             await pilot.press("f3", "s", "y")
             await until(pilot, lambda: pilot.app.finished)
             await settle(pilot)

@@ -370,10 +370,9 @@ def thermal_mismatch(model, table, temps_c, *, ui: bool = False) -> str | None:
     )
 
 
-def thermal_shift_rms_m(model, t_table_c, t_now_c, n: int = 64) -> float | None:
-    """RMS over `n` seeded configurations in the model's fitted joint range of how far its
-    prediction moves between joint temperatures `t_table_c` (None: the recording's mean, the
-    model's reference) and `t_now_c` (m); None without a recorded joint range."""
+def fitted_range_configurations(model, n: int = 64) -> np.ndarray | None:
+    """(n, 6) seeded joint configurations drawn uniformly in the model's fitted joint range
+    (`info.joint_range_rad`); None when the model records none usable."""
     jr = (getattr(model, "info", {}) or {}).get("joint_range_rad")
     try:
         jr = np.asarray(jr, float)
@@ -381,7 +380,16 @@ def thermal_shift_rms_m(model, t_table_c, t_now_c, n: int = 64) -> float | None:
         return None
     if jr.shape != (6, 2) or not np.all(np.isfinite(jr)):
         return None
-    q = np.random.default_rng(0).uniform(jr[:, 0], jr[:, 1], size=(n, 6))
+    return np.random.default_rng(0).uniform(jr[:, 0], jr[:, 1], size=(n, 6))
+
+
+def thermal_shift_rms_m(model, t_table_c, t_now_c, n: int = 64) -> float | None:
+    """RMS over `n` seeded configurations in the model's fitted joint range of how far its
+    prediction moves between joint temperatures `t_table_c` (None: the recording's mean, the
+    model's reference) and `t_now_c` (m); None without a recorded joint range."""
+    q = fitted_range_configurations(model, n)
+    if q is None:
+        return None
     now = np.tile(np.asarray(t_now_c, float), (n, 1))
     p_now = model.predict_parametric(q, joint_temperature_c=now)
     if t_table_c is None:
@@ -452,14 +460,9 @@ def payload_shift_rms_m(model, kg_a: float, kg_b: float, n: int = 64) -> float |
     """RMS over `n` seeded configurations in the model's fitted joint range of how far its
     prediction moves between payloads `kg_a` and `kg_b` (m); None without a recorded joint
     range or a finite prediction."""
-    jr = (getattr(model, "info", {}) or {}).get("joint_range_rad")
-    try:
-        jr = np.asarray(jr, float)
-    except (TypeError, ValueError):
+    q = fitted_range_configurations(model, n)
+    if q is None:
         return None
-    if jr.shape != (6, 2) or not np.all(np.isfinite(jr)):
-        return None
-    q = np.random.default_rng(0).uniform(jr[:, 0], jr[:, 1], size=(n, 6))
     f = getattr(model, "predict_parametric", None) or model.predict
     d = f(q, payload_kg=np.full(n, kg_b)) - f(q, payload_kg=np.full(n, kg_a))
     r = float(np.sqrt(np.mean(np.sum(np.asarray(d, float) ** 2, axis=1))))
