@@ -470,20 +470,20 @@ class Executor:
         except ProtectiveStop as e:
             self.event("error", "protective_stop", f"protective stop: {e}")
             self._pstops_in_a_row += 1
+            msg = None
             if self._pstops_in_a_row >= MAX_PROTECTIVE_STOPS_IN_A_ROW:
                 msg = (
                     f"{self._pstops_in_a_row} protective stops in a row with no pose measured "
                     "between them; the arm is left stopped: find out why the cell stops it "
                     "(a collision, a payload or speed setting)"
                 )
-                self.event("error", "stopped", msg)
-                raise _CampaignStop("protective_stop", msg) from None
-            if self.control.stop_at_protective_stop:
+            elif self.control.stop_at_protective_stop:
                 msg = (
                     f"protective stop during a move ({e}); the arm is left stopped: nobody is at "
                     "a terminal to check the cell (--on-protective-stop stop, the default "
                     "without one), so release it on the teach pendant once the cell is checked"
                 )
+            if msg is not None:
                 self.event("error", "stopped", msg)
                 raise _CampaignStop("protective_stop", msg) from None
             self._wait_protective_stop()
