@@ -273,6 +273,36 @@ def test_ctrl_c_is_not_held_up_by_the_robot_reconnect_back_off(tmp_path, signals
     assert rec.closed_cleanly and rec.events[-1]["kind"] == "abort"
 
 
+class SlowReconnect(NeverBack):
+    """NeverBack whose reconnect attempts hang for `hang_s` (a controller that accepts the
+    connection and never answers: the RTDE precheck waits 10 s) before failing."""
+
+    hang_s = 20.0
+
+    def reconnect(self):
+        time.sleep(self.hang_s)
+        super().reconnect()
+
+
+def test_ctrl_c_cuts_a_hanging_reconnect_short(tmp_path, signals):
+    """Ctrl-C during a reconnect attempt waited for the attempt to time out (up to 10 s per
+    attempt against a controller that never answers). A reconnect records nothing and commands
+    no motion, so the signal now cuts it short: the campaign aborts within a second or two,
+    cleanly, as an abort."""
+    _, robot, tracker, cell = sim_cell("ur5e", "none", seed=1, beam_break_prob=0.0)
+    control = CampaignControl()
+    control.install_sigint()
+    cfg = CampaignConfig(readings_per_pose=2, settle_s=0.1, reconnect_backoff_s=0.0)
+    t0 = time.monotonic()
+    _signal_after(1.0)
+    path, res = run_campaign(SlowReconnect(robot), tracker, cell, tmp_path / "h.mcap", poses=4,
+                             seed=1, config=cfg, control=control)  # fmt: skip
+    assert time.monotonic() - t0 < 4.0
+    assert res.aborted and res.stopped_by == "operator"
+    rec = read_recording(path)
+    assert rec.closed_cleanly and rec.events[-1]["kind"] == "abort"
+
+
 def test_ctrl_c_is_not_held_up_by_a_garbled_tracker(tmp_path, signals):
     """Ctrl-C while the tracker answered garbage was seen only at the next pose (91 s in the
     audit): every reading tried again until its retries ran out. Now the signal cuts the

@@ -416,7 +416,8 @@ class Executor:
                     self.on_event({"level": "warning", "kind": "reconnect", "message": str(err)})
                 self._pause(wait)
                 try:
-                    reconnect()
+                    with self.control.interruptible():  # no record, no motion: Ctrl-C cuts it
+                        reconnect()
                     break
                 except DeviceError as e:
                     err = e
@@ -436,7 +437,8 @@ class Executor:
             )
             self._pause(wait)
             try:
-                reconnect()
+                with self.control.interruptible():  # no record, no motion: Ctrl-C cuts it
+                    reconnect()
                 return True
             except OtherInstrument as e:  # another tracker: its frame is not the recording's
                 msg = f"{e}"[:600]
