@@ -268,3 +268,30 @@ def test_ros_yaml_refuses_a_geometry_far_from_the_nominal(
     if name == "a2":  # the table refuses the same model (by its correction's size)
         with pytest.raises(CorrectionRefused, match="exceeds the bound"):
             build_table(Corrector(m, nominal_for(m)), LO, HI, [[0.0, np.pi, 0.0]], spacing_m=0.1)
+
+
+def test_targets_near_the_wrist_singularity_are_warned(tmp_path, capsys):
+    """Joint targets with joint 5 near 0: a correction under a millimetre swung joints 4 and 6
+    by a quarter radian with no word (an audit of the exports). Now a warning names the line,
+    the joint and the swing; a target away from the singularity gets none."""
+    path = save_model(_model(joint1=(-6.0, 6.0)), tmp_path / "m.json")
+    src = tmp_path / "q.csv"
+    src.write_text("q1,q2,q3,q4,q5,q6\n1.2,-1.6,2.0,-2.0,-1.57,0\n1.2,-1.6,2.0,-2.0,0.005,0\n")
+    out = tmp_path / "c.csv"
+    argv = ["export", path, "--format", "targets", "--in", src, "--out", out, "--json"]
+    rc, jl, err = _run(argv, capsys)
+    assert rc == 0, err
+    s = json.loads(jl[0])
+    (w,) = [x for x in s["warnings"] if "from the nominal solution" in x]
+    assert w.startswith("warning: 1 target(s) move a joint by more than 0.05 rad"), w
+    assert "line 3 swings joint " in w and "joint 5 at 0.005 rad" in w, w
+    rows = list(csv.DictReader(x for x in open(out) if not x.startswith("#")))
+    swing = [
+        max(abs(float(r[f"q{j}_cmd_rad"]) - q0) for j, q0 in ((4, -2.0), (6, 0.0))) for r in rows
+    ]
+    assert swing[0] < 0.05 < swing[1]
+    # one target away from the singularity: no such warning
+    src.write_text("q1,q2,q3,q4,q5,q6\n1.2,-1.6,2.0,-2.0,-1.57,0\n")
+    rc, jl, err = _run([*argv, "--force"], capsys)
+    assert rc == 0, err
+    assert not [x for x in json.loads(jl[0])["warnings"] if "from the nominal solution" in x]

@@ -352,6 +352,37 @@ def _check_commanded(src: Path, q: np.ndarray, model, nom, lines: list[int]) -> 
     return f"commanded joints inside the envelope the model's recording {rec} ran in"
 
 
+JOINT_SWING_WARN_RAD = 0.05  # a correction of a millimetre moves a joint by ~0.001-0.01 rad
+
+
+def joint_swing_line(
+    q_cmd: np.ndarray, q_nominal: np.ndarray, corr_m: np.ndarray, lines: list[int]
+) -> str | None:
+    """A warning when a correction moves some joint by more than `JOINT_SWING_WARN_RAD` from
+    the nominal solution for the same target: near a singularity (joint 5 near 0 or pi: the
+    wrist) a correction of a millimetre swings joints 4 and 6, and an error of the model there
+    moves the wrist as much. None when no target does."""
+    dq = np.abs(np.angle(np.exp(1j * (np.asarray(q_cmd, float) - np.asarray(q_nominal, float)))))
+    big = np.nanmax(dq, axis=1) > JOINT_SWING_WARN_RAD
+    if not big.any():
+        return None
+    i = int(np.argmax(np.where(big, np.nanmax(dq, axis=1), -1.0)))
+    j = int(np.nanargmax(dq[i]))
+    q5 = float(np.asarray(q_cmd, float)[i, 4])
+    wrist = (
+        f", joint 5 at {q5:.3f} rad (the wrist singularity is at 0 and pi)"
+        if abs(np.sin(q5)) < 0.1
+        else ""
+    )
+    return (
+        f"warning: {int(big.sum())} target(s) move a joint by more than {JOINT_SWING_WARN_RAD} rad "
+        f"from the nominal solution for a correction of {corr_m[i] * 1e3:.3f} mm: line "
+        f"{lines[i]} swings joint {j + 1} by {dq[i, j]:.3f} rad{wrist}; near a singularity a "
+        "small model error moves the arm a lot: move those targets away from it, or command them "
+        "with care"
+    )
+
+
 def _configuration_line(q: np.ndarray, nom) -> str:
     """The arm configurations (shoulder, elbow, wrist signs) the targets' corrections were solved
     on (`CONFIGURATION_BASIS`): the correction holds on that branch only."""
@@ -432,6 +463,9 @@ def _targets(args, model, cond, summary, log, logged: list[str]) -> int:
         )
     check_corrections(c - P, P, args.max_correction, where="target")  # finite: checked above
     log("  " + _check_commanded(src, q, model, nom, lines))
+    q_nom = seeds if tin.P is None else nom.ik(P, R, seeds, iters=60)[0]
+    if (line := joint_swing_line(q, q_nom, np.linalg.norm(c - P, axis=1), lines)) is not None:
+        log(f"  {line}")
     rv = matrix_to_rotvec(R)
     mags = np.linalg.norm(c - P, axis=1)
     # as a table's export says them: extrapolated targets, the 1-sigma, what the model leaves out
