@@ -362,3 +362,30 @@ def test_a_protective_stop_stays_visible_after_the_run_on_a_ur_controller(tmp_pa
     assert status["robot_ok"], status
     assert status["safety"] == "PROTECTIVE_STOP", status
     assert status["tracker_status"] == "connected", status
+
+
+def test_an_unreachable_robot_is_said_when_it_changes_not_at_every_poll(tmp_path, monkeypatch):
+    """The status poll (every 2 s) notified "robot unreachable" at every poll while the robot
+    stayed unreachable. Now once per change: unreachable (again only if the error changes),
+    then "reachable again"."""
+    monkeypatch.chdir(tmp_path)
+    app = app_for()
+    down = {"robot_ok": False, "robot_error": "connection refused", "robot_mode": "UNREACHABLE"}
+    up = {"robot_ok": True, "robot_mode": "RUNNING"}
+
+    async def flow():
+        async with app.run_test(size=SIZE) as pilot:
+            await pilot.press("ctrl+r")
+            await until(pilot, lambda: app.devices is not None, 30, "connect")
+            for st in (down, down, down, up, up, down):
+                app.post_message(m.DeviceStatus(dict(st)))
+                await pilot.pause(0.05)
+            await pilot.pause(0.2)
+
+    asyncio.run(flow())
+    said = [n[2] for n in app.notices if n[1] == "Devices" and "reach" in n[2]]
+    assert said == [
+        "robot unreachable: connection refused",
+        "robot reachable again",
+        "robot unreachable: connection refused",
+    ], said

@@ -139,6 +139,7 @@ class WorkcellApp(App):
         self._quit_after_campaign = False
         self._quit_return_code = 0
         self.exit_signal = 0  # the abort signal that made it quit (`abort_signal`), 0: none
+        self._robot_unreachable_said: str | None = None  # the last "unreachable" notice's error
         self.views = {
             "devices": DevicesScreen(devices),
             "plan": PlanScreen(plan),
@@ -394,12 +395,16 @@ class WorkcellApp(App):
     def on_device_status(self, msg: m.DeviceStatus) -> None:
         if self.devices is not None:
             self.views["devices"].show_status(msg.status)
+            # said when it changes, not at every poll (every 2 s): the Devices screen shows it
+            said = self._robot_unreachable_said
             if not msg.status.get("robot_ok", True):
-                self.notify(
-                    f"robot unreachable: {msg.status.get('robot_error', '')}",
-                    severity="warning",
-                    title="Devices",
-                )
+                err = str(msg.status.get("robot_error", ""))
+                if err != said:
+                    self.notify(f"robot unreachable: {err}", severity="warning", title="Devices")
+                self._robot_unreachable_said = err
+            elif said is not None:
+                self.notify("robot reachable again", title="Devices")
+                self._robot_unreachable_said = None
 
     # ------------------------------------------------------------------ plan
     @guarded
