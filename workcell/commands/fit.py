@@ -13,6 +13,7 @@ from workcell.commands import prose
 from workcell.commands.options import add_tracker_mpe, display_unit, parse_tracker_mpe
 from workcell.errors import UserError, check_output_path
 from workcell.estimation.fitting import FIT_METHODS, fit_recording
+from workcell.estimation.identifiability import GROUP_STAR_NOTE
 from workcell.estimation.models import (
     check_model_output,
     default_model_out,
@@ -268,14 +269,7 @@ def print_report(r: dict) -> None:
                 )
             )
         if any(v.get("stands_for") for _, v in shown):
-            print(
-                prose.fill(
-                    "*: value and std are those of the parameter's dependent group (listed "
-                    "above) taken together, not of the parameter alone: the poses cannot tell "
-                    "the group's members apart",
-                    width=100,
-                )
-            )
+            print(prose.fill(GROUP_STAR_NOTE, width=100))
         if r.get("parameter_std_basis"):
             print(prose.fill(f"std: {r['parameter_std_basis']}", width=100))
     smr = r.get("smr_change")

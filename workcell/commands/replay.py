@@ -16,6 +16,7 @@ import time
 
 from workcell.commands import prose
 from workcell.errors import UserError, check_output_path
+from workcell.estimation.identifiability import GROUP_STAR_NOTE
 from workcell.recording.chain import add_chain_option
 
 
@@ -105,11 +106,7 @@ def geometric_lines(est: dict) -> list[str]:
         out.extend(prose.wrap(f"({why})", width=100, initial_indent=" " * 30,
                                  subsequent_indent=" " * 31))  # fmt: skip
     if stands:
-        out += prose.wrap(
-            "*: value and std are those of the parameter's dependent group (listed above) taken "
-            "together, not of the parameter alone: the poses cannot tell the group's members apart",
-            width=100,
-        )
+        out += prose.wrap(GROUP_STAR_NOTE, width=100)
     out += base_lines(est)
     out += split_lines(est)
     out += prose.wrap(f"std: {est['geometric_std_basis']}", width=100)

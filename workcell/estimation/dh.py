@@ -26,7 +26,11 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
-from workcell.estimation.identifiability import Identifiability, fit_identifiability
+from workcell.estimation.identifiability import (
+    Identifiability,
+    fit_identifiability,
+    group_representatives,
+)
 from workcell.estimation.models import error_stats
 from workcell.kinematics.chain import (
     IDX,
@@ -110,12 +114,11 @@ class DHModel:
             }
             if self.free[i] and n in at_bound:  # held by its bound: no Gaussian std
                 out[n].update(std=None, at_bound=True)
-        for g in self.unidentifiable:
-            # the one parameter of a dependent group kept free carries the group's combined
-            # effect (the others are fixed at nominal): its value and std are the group's
-            kept = [n for n in g if n in out and out[n]["estimated"]]
-            if len(g) > 1 and len(kept) == 1:
-                out[kept[0]]["stands_for"] = list(g)
+        # the one parameter of a dependent group kept free carries the group's combined effect
+        # (the others are fixed at nominal): its value and std are the group's
+        estimated = [n for n, v in out.items() if v["estimated"]]
+        for n, g in group_representatives(self.unidentifiable, estimated).items():
+            out[n]["stands_for"] = g
         return out
 
     def to_dict(self) -> dict:

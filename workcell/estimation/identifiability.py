@@ -515,3 +515,22 @@ def expected_prediction_sigma(
         "train_share": float(train_share),
         "basis": EXPECTED_PREDICTION_BASIS,
     }
+
+
+def group_representatives(groups, estimated) -> dict[str, list[str]]:
+    """{parameter: its group} for each dependent group (`Identifiability.unidentifiable`) of
+    which exactly one member is estimated: that member carries the whole group's effect (its
+    value and std are the group's; `workcell fit` and `replay` mark it with *, `GROUP_STAR_NOTE`)."""
+    est = set(estimated)
+    out = {}
+    for g in groups:
+        kept = [n for n in g if n in est]
+        if len(g) > 1 and len(kept) == 1:
+            out[kept[0]] = list(g)
+    return out
+
+
+GROUP_STAR_NOTE = (
+    "*: value and std are those of the parameter's dependent group (listed above) taken "
+    "together, not of the parameter alone: the poses cannot tell the group's members apart"
+)

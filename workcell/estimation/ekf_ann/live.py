@@ -40,7 +40,12 @@ from workcell.estimation.dh import TRACKER_MPE_M
 from workcell.estimation.ekf_ann import ann as A
 from workcell.estimation.ekf_ann.filter import EkfAnnFilter, FilterConfig, prefit_weights
 from workcell.estimation.ekf_ann.model import EkfAnnModel
-from workcell.estimation.identifiability import Identifiability, analyse, candidates_for
+from workcell.estimation.identifiability import (
+    Identifiability,
+    analyse,
+    candidates_for,
+    group_representatives,
+)
 from workcell.estimation.models import note_joint_range
 from workcell.kinematics.chain import (
     N_PARAMS,
@@ -135,19 +140,6 @@ def identifiable_geometry(
 ) -> list[str]:
     """Geometric parameters separately identifiable from these samples (weighted Jacobian)."""
     return geometry_identification(dh, theta, base_ref, q, sigma).identifiable
-
-
-def group_representatives(groups: list[list[str]], estimated) -> dict[str, list[str]]:
-    """{state: its group} for each dependent group of which exactly one member is estimated:
-    that member carries the whole group's effect (the rule of `DhModel.parameters`, whose
-    `stands_for` `workcell fit` marks with *)."""
-    est = set(estimated)
-    out = {}
-    for g in groups:
-        kept = [n for n in g if n in est]
-        if len(g) > 1 and len(kept) == 1:
-            out[kept[0]] = list(g)
-    return out
 
 
 class LiveFilter:
