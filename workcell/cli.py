@@ -14,7 +14,7 @@ import os
 import signal
 import sys
 
-from workcell.errors import INTERRUPTED
+from workcell.errors import INTERRUPTED, console_command
 
 # Ctrl-C is noted in INTERRUPTED as well as raised (see there). While modules load it is only
 # noted (raised there, inside jaxlib's start-up, it can abort or crash the process) and acted on
@@ -34,7 +34,7 @@ def _unraisable(u) -> None:
         sys.__unraisablehook__(u)
 
 
-if os.path.basename(sys.argv[0]) == "workcell" or __name__ == "__main__":
+if console_command() or __name__ == "__main__":
     signal.signal(signal.SIGINT, _on_sigint)  # the console command only, not when imported
     sys.unraisablehook = _unraisable
 
@@ -42,7 +42,7 @@ import argparse  # noqa: E402
 import importlib  # noqa: E402
 
 from workcell.drivers.protocols import DeviceError  # noqa: E402
-from workcell.errors import OneLineParser, UserError  # noqa: E402
+from workcell.errors import OneLineParser, UserError, hard_exit  # noqa: E402
 
 # name -> (module, one-line help). Modules are imported lazily (JAX start-up is slow).
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -90,12 +90,7 @@ def main(argv: list[str] | None = None) -> int:
         name = next((a for a in (argv or sys.argv[1:]) if not a.startswith("-")), "")
         print(f"workcell {name}: interrupted".replace("  ", " "), file=sys.stderr)
         if argv is None:
-            for f in (sys.stdout, sys.stderr):
-                try:
-                    f.flush()
-                except (OSError, ValueError):
-                    pass
-            os._exit(130)
+            hard_exit(130)
         return 130
 
 

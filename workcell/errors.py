@@ -1,12 +1,31 @@
 """Errors meant for a person: one line, what is wrong and what to do."""
 
 import argparse
+import os
+import sys
 import threading
 
 # Set by the console command's SIGINT handler (`workcell.cli`) on every Ctrl-C. Python drops a
 # KeyboardInterrupt raised inside a garbage-collector callback (JAX has one), so code that is
 # about to start something long or physical checks this flag too.
 INTERRUPTED = threading.Event()
+
+
+def console_command() -> bool:
+    """Whether this process is the `workcell` console command (not a test or a program calling
+    `cli.main`): only then may a command end the process itself (`hard_exit`)."""
+    return os.path.basename(sys.argv[0]) == "workcell"
+
+
+def hard_exit(code: int) -> None:
+    """Flush stdout and stderr and end the process now (`os._exit`): after an abort, a JAX call
+    still running in another thread would hold up, or crash, the interpreter's shutdown."""
+    for f in (sys.stdout, sys.stderr):
+        try:
+            f.flush()
+        except (OSError, ValueError):
+            pass
+    os._exit(code)
 
 
 class UserError(Exception):

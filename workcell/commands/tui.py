@@ -8,14 +8,12 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import signal
-import sys
 import threading
 import time
 from pathlib import Path
 
-from workcell.errors import UserError
+from workcell.errors import UserError, console_command, hard_exit
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -71,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
         smr_offset=getattr(args, "smr_offset", ""),
         plan=PlanConfig(poses=args.poses, seed=args.seed, out=args.out),
     )
-    console = os.path.basename(sys.argv[0]) == "workcell"  # not a test calling run()
+    console = console_command()  # not a test calling run()
     old = install_abort_signals(app, hard_exit=console)
     try:
         app.run()
@@ -84,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
         # end the process now, as the command line does after Ctrl-C (`cli.main`): JAX's exit
         # clean-up would wait for an estimate still compiling in the EKF-ANN thread (tens of
         # seconds), and whoever sent the signal would find the process still there
-        _hard_exit(code)
+        hard_exit(code)
     return code
 
 
@@ -140,16 +138,7 @@ def _exit_watchdog(app, code: int) -> None:
             dev.close()
         except Exception:  # noqa: BLE001
             pass
-    _hard_exit(code)
-
-
-def _hard_exit(code: int) -> None:
-    for f in (sys.stdout, sys.stderr):
-        try:
-            f.flush()
-        except (OSError, ValueError):
-            pass
-    os._exit(code)
+    hard_exit(code)
 
 
 def _port_in_use(host: str) -> int | None:
