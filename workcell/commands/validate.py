@@ -154,7 +154,7 @@ def run(args: argparse.Namespace) -> int:
     from workcell.export.correction import Conditions
     from workcell.export.table import load_table
     from workcell.export.validate import (
-        payload_mismatch,
+        payload_check,
         real_cell,
         robot_mover,
         run_validation,
@@ -243,16 +243,14 @@ def run(args: argparse.Namespace) -> int:
     )
     log(f"moves checked against {env_what}")
     warnings: list[str] = []
-    if table is not None and (why := payload_mismatch(model, table, cell.payload_kg)):
-        if args.robot == "sim":  # the simulated arm's payload is known: a wrong table
-            raise UserError(f"{args.table}: {why}")
-        # a real controller's payload is not read: the cell setup's is an assumption
-        w = (
-            f"{why} (the cell setup's payload: the controller's is not read; if the arm "
-            "carries the table's, disregard this)"
-        )
-        log(f"warning: {w}")
-        warnings.append(w)
+    if table is not None:
+        try:
+            w = payload_check(model, table, cell.payload_kg, simulated=args.robot == "sim")
+        except UserError as e:
+            raise UserError(f"{args.table}: {e}") from None
+        if w is not None:
+            log(f"warning: {w}")
+            warnings.append(w)
     try:
         robot.connect()
     except DeviceError as e:

@@ -456,6 +456,23 @@ def payload_mismatch(model, table, payload_kg, *, ui: bool = False) -> str | Non
     )
 
 
+def payload_check(model, table, payload_kg, *, simulated: bool, ui: bool = False) -> str | None:
+    """`payload_mismatch` as `validate` acts on it: on a simulated arm (its payload known) a
+    UserError naming the table's problem; on a controller, whose payload workcell does not read,
+    the warning line to give (None when the payloads match)."""
+    from workcell.errors import UserError
+
+    why = payload_mismatch(model, table, payload_kg, ui=ui)
+    if why is None:
+        return None
+    if simulated:
+        raise UserError(why)
+    return (
+        f"{why} (the cell setup's payload: the controller's is not read; if the arm carries "
+        "the table's, disregard this)"
+    )
+
+
 def payload_shift_rms_m(model, kg_a: float, kg_b: float, n: int = 64) -> float | None:
     """RMS over `n` seeded configurations in the model's fitted joint range of how far its
     prediction moves between payloads `kg_a` and `kg_b` (m); None without a recorded joint

@@ -1043,19 +1043,18 @@ def closed_loop(
     env, env_what = validation_envelope(given, session, spec, str(rec), default=dev.envelope)
     if log:
         log(f"moves checked against {env_what}")
-    from workcell.export.validate import payload_mismatch
+    from workcell.export.validate import payload_check
 
     warnings: list[str] = []
-    if why := payload_mismatch(model, table, dev.cell.payload_kg, ui=True):
-        if dev.kind == "in-process simulation":  # its payload is known: a wrong table
-            raise UserError(f"{table_path}: {why}")
-        # a controller's payload is not read: the cell setup's is an assumption (as `validate`)
-        warnings.append(
-            f"{why} (the cell setup's payload: the controller's is not read; if the arm carries "
-            "the table's, disregard this)"
-        )
+    try:  # the in-process simulation's payload is known; a controller's is not read
+        w = payload_check(model, table, dev.cell.payload_kg, ui=True,
+                          simulated=dev.kind == "in-process simulation")  # fmt: skip
+    except UserError as e:
+        raise UserError(f"{table_path}: {e}") from None
+    if w is not None:
+        warnings.append(w)
         if log:
-            log(f"warning: {warnings[-1]}")
+            log(f"warning: {w}")
     if not np.allclose(nominal.tool_m, dev.cell.tool_m, rtol=0.0, atol=1e-6):
         raise UserError(
             f"the model was fitted with the SMR at {np.round(nominal.tool_m, 6).tolist()} m on "
