@@ -6,6 +6,10 @@ PYTHON  ?= python3
 export JAX_PLATFORMS ?= cpu
 export OPENBLAS_NUM_THREADS ?= 1
 export OMP_NUM_THREADS ?= 1
+# pytest-xdist workers for `make test` (one per core on CI's 2-core machine; each test file runs
+# whole in one worker, so its module fixtures are built once; TEST_WORKERS=0 runs in-process)
+TEST_WORKERS ?= 2
+PYTEST_PAR := -n $(TEST_WORKERS) --dist loadfile
 
 .PHONY: install demo test test-all fuzz bench lint format clean
 
@@ -21,10 +25,10 @@ demo: install
 	$(VENV)/bin/workcell demo
 
 test: install
-	$(PY) -m pytest -q -m "not slow"
+	$(PY) -m pytest -q -m "not slow" $(PYTEST_PAR)
 
 test-all: install
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q $(PYTEST_PAR)
 
 # property tests with fresh random examples, FUZZ_RUNS times (`make test` draws fixed ones)
 FUZZ_RUNS ?= 5
