@@ -148,7 +148,7 @@ def simulate_recording(
     gravity-torque polling (which dominates its run time in virtual time)."""
     from sim_devices.cell import declared_cell
     from sim_devices.world import SimWorld
-    from workcell.campaign.executor import CampaignConfig, _reject_outliers
+    from workcell.campaign.executor import CampaignConfig, reject_outliers
     from workcell.recording.writer import RecordingWriter
 
     cfg = CampaignConfig()
@@ -189,7 +189,7 @@ def simulate_recording(
                 continue
             P = np.array([g[0] for g in good])
             S = np.array([g[1] for g in good])
-            keep = _reject_outliers(P, S, cfg.outlier_k)
+            keep = reject_outliers(P, S, cfg.outlier_k)
             P, S = P[keep], S[keep]
             if len(P) > 1:
                 sig = np.maximum(P.std(0, ddof=1), S.mean(0) / 4) / np.sqrt(len(P))

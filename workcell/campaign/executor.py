@@ -75,6 +75,7 @@ MAX_TRACKER_SKIPS_IN_A_ROW = 3  # poses skipped for want of tracker readings, no
 # stands where the plan's paths leave the envelope (a static plan from a start posture it was not
 # planned from; ordered for paths, a static plan's poses are not refused one after another)
 MAX_REFUSED_IN_A_ROW = 5
+OUTLIER_K = 5.0  # a reading farther from its pose's median than this many robust sigmas is rejected
 
 # the signals a command line campaign handles as Ctrl-C (`CampaignControl.install_sigint`)
 ABORT_SIGNALS = tuple(
@@ -109,7 +110,7 @@ class CampaignConfig:
     beam_retry_wait_s: float = 1.0
     max_reconnects: int = 5
     reconnect_backoff_s: float = 0.5
-    outlier_k: float = 5.0
+    outlier_k: float = OUTLIER_K
     payload_kg: float = 0.0
     joint_state_every_s: float = 0.25
     warmup_s: float = 0.0  # exercise the arm this long before the first measurement
@@ -805,7 +806,7 @@ class Executor:
             return None
         P = np.array([g[0] for g in good])
         S = np.array([g[1] for g in good])
-        keep = _reject_outliers(P, S, self.cfg.outlier_k)
+        keep = reject_outliers(P, S, self.cfg.outlier_k)
         if (~keep).any():
             self.event("info", "outlier", f"pose {t.pose_id}: {(~keep).sum()} reading(s) rejected")
         P, S = P[keep], S[keep]
@@ -1004,7 +1005,7 @@ def _pop_faults(tracker) -> list[tuple[str, str]]:
     return list(pop()) if pop else []
 
 
-def _reject_outliers(P: np.ndarray, S: np.ndarray, k: float) -> np.ndarray:
+def reject_outliers(P: np.ndarray, S: np.ndarray, k: float) -> np.ndarray:
     """Readings farther from the median than k robust sigmas (floored by the stated sigma)."""
     if len(P) < 3:
         return np.ones(len(P), bool)

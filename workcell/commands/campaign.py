@@ -57,7 +57,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--effects",
         help="simulated truth: none, realistic (default), all, or a comma list of effect kinds "
-        "(pedestal_tilt: a form outside the estimation library)",
+        "(pedestal_tilt, tracker_drift: forms outside the estimation library)",
     )
     p.add_argument("--model", help="robot model when not given by the device (default ur5e)")
     p.add_argument(

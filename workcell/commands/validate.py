@@ -296,12 +296,13 @@ def run(args: argparse.Namespace) -> int:
             guard=Guard(env, spec, nominal.tool_m),  # the SMR the campaign declared
             q_start=lambda: np.asarray(robot.state().q_rad, float),
             log=log,
+            clock=lambda: float(robot.state().t_s),  # the controller's time
         )
     finally:
         close_quietly(robot, tracker)
     res["truth"] = "simulated robot" if args.robot == "sim" else "tracker"
     res["envelope"] = env_what
-    res["warnings"] = warnings
+    res["warnings"] = warnings + [w for c in [res.get("closure") or {}] if (w := c.get("warning"))]
     res["rms_interval_basis"] = RMS_INTERVAL_BASIS
     if args.json:
         print(json.dumps(res))

@@ -52,6 +52,7 @@ def correction_step(world, cell, model, method: str, out_dir, log) -> dict:
         guard=Guard(env, cell.spec, cell.tool_m),
         q_start=world.joint_state()[0],
         log=log,
+        clock=world.clock.now,
     )
     held = (getattr(model, "info", {}) or {}).get("heldout_rms_m")
     return {

@@ -11,6 +11,12 @@ position error, plus the mean error vector (the accuracy bias, in base_ref axes)
 
 In simulation the measurement is the simulated truth (noise-free SMR position of the true robot);
 on a real cell it is the tracker (mean of several readings).
+
+Closure: at the end the first target is visited again (corrected, from the same approach) and
+measured: how far it moved is what the cell itself moved during the validation (tracker stand,
+base, temperature), plus the arm's repeatability and the tracker's noise. Beyond the tracker's
+noise (chi-square, 99 %, as `diagnose` judges a reference pose) and larger than the corrected RMS,
+the after figure carries that drift, and a warning says so.
 """
 
 from __future__ import annotations
@@ -99,6 +105,7 @@ def run_validation(
     guard: Guard | None = None,
     q_start: np.ndarray | Callable[[], np.ndarray] | None = None,
     log: Callable[[str], None] | None = None,
+    clock: Callable[[], float] | None = None,
 ) -> dict:
     """Measure n targets uncorrected and corrected. `move(q)` moves the robot (blocking, along
     the joint-space straight line), `measure()` returns the SMR position in the tracker frame.
@@ -108,7 +115,10 @@ def run_validation(
     at first) to the pre-pose, direct or via the upright posture. A target any of whose four
     moves would leave the envelope is skipped, with the reason, before its first motion.
     `q_start` may be a callable: it is then read after the targets are solved, just before the
-    first move is checked (the arm may have been jogged while they were)."""
+    first move is checked (the arm may have been jogged while they were).
+
+    `clock()` (s; the controller's time) dates the closure measurement (module docstring);
+    `measure` may carry `sigma_m` (per-axis 1-sigma of its last result) and `exact` (truth)."""
     log = log or (lambda m: None)
     if guard is not None and q_start is None:
         raise ValueError("run_validation: a guard needs q_start, the arm's joints now")
@@ -148,6 +158,7 @@ def run_validation(
     meas = {"before": [], "after": []}
     q_at = None if q_start is None else np.asarray(q_start, float)
     n_via = 0
+    first = None  # the first corrected visit: (target, joints, position, sigma, time)
     for i in np.where(keep)[0]:
         legs = []  # (waypoints to the pre-pose, target) for the uncorrected and corrected visit
         why = None
@@ -176,6 +187,8 @@ def run_validation(
             move(q)
             meas[key].append(measure())
             q_at = q
+            if key == "after" and first is None:
+                first = (int(i), q, meas[key][-1], _sigma(measure), clock() if clock else None)
     if not keep.any():
         raise UserError(
             "no target could be reached along paths inside the envelope; check the volume"
@@ -185,6 +198,10 @@ def run_validation(
         # measured in the tracker frame; the bias is stated in base_ref axes, the table's
         st = accuracy_stats(error_vectors_base(nominal, meas[key], p_goal[keep]))
         out[key] = st
+    if first is not None and out["targets"] >= 2:
+        out["closure"] = _closure(
+            nominal, first, q_at, move, measure, guard, sign, approach_rad, clock
+        )
     # the table's own 1-sigma at the targets (model uncertainty only): in simulation, scored
     # against the truth, the corrected error should be of that size plus the interpolation error
     # and what the model leaves out; much larger means the stated uncertainty is optimistic
@@ -195,6 +212,11 @@ def run_validation(
     out["before_rms_m"] = out["before"]["rms_m"]
     out["after_rms_m"] = out["after"]["rms_m"]
     out["improvement"] = out["before_rms_m"] / max(out["after_rms_m"], 1e-15)
+    if (rej := getattr(measure, "rejected", None)) is not None:
+        out["rejected_readings"] = int(rej)
+        if rej:
+            log(f"  {rej} tracker reading(s) rejected (farther than 5 robust sigmas from their "
+                "target's median)")  # fmt: skip
     if skipped:
         log(f"  {len(skipped)} target(s) skipped before any motion; first: {skipped[0]}")
     log(
@@ -203,6 +225,11 @@ def run_validation(
         f"{out['before']['max_m'] * 1e6:.1f} -> {out['after']['max_m'] * 1e6:.1f} um"
         + (f"; after: {ci}" if (ci := interval_um(out["after"]["rms_ci95_m"])) else "")
     )
+    if (c := out.get("closure")) is not None:
+        log(f"  {closure_line(c)}")
+        if (w := closure_warning(c, out["after_rms_m"])) is not None:
+            c["warning"] = w
+            log(f"warning: {w}")
     if "predicted_rms_std_m" in out["after"]:
         log(
             f"  the table's own 1-sigma at these targets (model uncertainty): RMS "
@@ -212,25 +239,147 @@ def run_validation(
     return out
 
 
+def _sigma(measure) -> np.ndarray | None:
+    """The per-axis 1-sigma of `measure`'s last result: zeros for the simulated truth, what the
+    tracker stated (None: unknown) otherwise."""
+    if getattr(measure, "exact", False):
+        return np.zeros(3)
+    s = getattr(measure, "sigma_m", None)
+    return None if s is None else np.asarray(s, float)
+
+
+def _closure(nominal, first, q_at, move, measure, guard, sign, approach_rad, clock) -> dict:
+    """Visit the first corrected target again (along a checked path) and measure it: the
+    `closure` entry of `run_validation` (module docstring)."""
+    from workcell.recording.repeats import reading_sigma, repeat_beyond_noise
+
+    i, q, p0, s0, t0 = first
+    pre = q - sign * approach_rad
+    wps, why = ([pre], None) if guard is None else guard.route(q_at, pre)
+    if why is None and guard is not None and (v := guard.direct(pre, q)) is not None:
+        why = f"approach: {v}"
+    if why is not None:
+        return {"target": i, "skipped": why}
+    for w in wps:
+        move(w)
+    move(q)
+    p1, s1 = measure(), _sigma(measure)
+    t1 = clock() if clock else None
+    d = error_vectors_base(nominal, [p1], [p0])[0]
+    if s0 is not None and s1 is not None and not (s0.any() or s1.any()):
+        noise = 0.0  # the simulated truth: no measurement noise
+    else:  # what the tracker states, at least its MPE / 4 (as the fits weight readings)
+        nan3 = np.full(3, np.nan)
+        s0 = reading_sigma(nan3 if s0 is None else s0, p0)
+        s1 = reading_sigma(nan3 if s1 is None else s1, p1)
+        noise = float(np.sqrt(np.sum(s0**2 + s1**2)))
+    dist = float(np.linalg.norm(d))
+    beyond = (
+        dist > 0
+        if noise == 0
+        else repeat_beyond_noise({"measurements": 2, "rms_m": dist, "noise_m": noise})
+    )
+    return {
+        "target": i,
+        "displacement_m": dist,
+        "displacement_base_m": d.tolist(),
+        "elapsed_s": None if t0 is None or t1 is None else float(t1 - t0),
+        "noise_m": noise,
+        "beyond_noise": bool(beyond),
+    }
+
+
+def closure_line(c: dict) -> str:
+    """One line for `run_validation`'s `closure` entry."""
+    if "skipped" in c:
+        return f"closure: target {c['target']} not measured again ({c['skipped']})"
+    el = c.get("elapsed_s")
+    when = f", {el / 60:.1f} min later" if el is not None else ""
+    noise = (
+        "measured by the simulated truth: no noise"
+        if c["noise_m"] == 0
+        else f"the tracker alone gives ~{c['noise_m'] * 1e6:.1f} um, the arm's repeatability "
+        "comes on top"
+    )
+    return (
+        f"closure: target {c['target']} measured again at the end{when}: "
+        f"{c['displacement_m'] * 1e6:.1f} um from its first reading (base_ref "
+        f"{np.round(np.asarray(c['displacement_base_m']) * 1e6, 1).tolist()} um; {noise})"
+    )
+
+
+def closure_warning(c: dict, after_rms_m: float) -> str | None:
+    """A warning when the closure moved beyond the tracker's noise and by more than the
+    corrected RMS: the after figure then carries the cell's drift, not the table's error alone."""
+    if "skipped" in c or not c["beyond_noise"] or not c["displacement_m"] > after_rms_m:
+        return None
+    return (
+        f"the cell moved {c['displacement_m'] * 1e6:.1f} um during the validation (target "
+        f"{c['target']} measured again at the end), more than the corrected RMS "
+        f"{after_rms_m * 1e6:.1f} um: the after figure carries that drift (tracker stand, base, "
+        "temperature); let the cell settle, check the tracker's set-up, and validate again"
+    )
+
+
+class _TruthMeasure:
+    """Simulated truth: the true SMR position at the robot's current joints and approach."""
+
+    exact = True
+
+    def __init__(self, world) -> None:
+        self.world = world
+
+    def __call__(self) -> np.ndarray:
+        return np.asarray(self.world.true_smr_tracker(), float)
+
+
 def sim_measure(world) -> Callable[[], np.ndarray]:
     """Simulated truth: the true SMR position at the robot's current joints and approach."""
-    return lambda: np.asarray(world.true_smr_tracker(), float)
+    return _TruthMeasure(world)
+
+
+class _TrackerMeasure:
+    """The mean of `readings` good readings, less outliers as a campaign rejects them
+    (`reject_outliers`: farther from the median than 5 robust sigmas, the stated sigma at
+    least); two readings that disagree by more than that get a third, so that the median can
+    tell which one is off. `sigma_m`: the stated 1-sigma of the last mean; `rejected`: readings
+    rejected so far."""
+
+    def __init__(self, tracker, readings: int, max_failures: int) -> None:
+        self.tracker, self.readings, self.max_failures = tracker, readings, max_failures
+        self.sigma_m: np.ndarray | None = None
+        self.rejected = 0
+
+    def __call__(self) -> np.ndarray:
+        from workcell.campaign.executor import OUTLIER_K, reject_outliers
+
+        good, sig, fails = [], [], 0
+        need = self.readings
+        while len(good) < need:
+            r = self.tracker.measure()
+            if r.status == "ok" and np.all(np.isfinite(r.position_m)):
+                good.append(np.asarray(r.position_m, float))
+                sig.append(np.asarray(r.sigma_m, float))
+            else:
+                fails += 1
+                if fails > self.max_failures:
+                    raise UserError(f"tracker: {fails} failed readings at one target ({r.status})")
+            if len(good) == need == 2:  # two that disagree: a third to take the median of
+                gap = float(np.linalg.norm(good[1] - good[0]))
+                if gap > OUTLIER_K * float(np.linalg.norm(np.mean(sig, axis=0))):
+                    need = 3
+        P, S = np.array(good), np.array(sig)
+        keep = reject_outliers(P, S, OUTLIER_K)
+        self.rejected += int((~keep).sum())
+        P, S = P[keep], S[keep]
+        self.sigma_m = S.mean(axis=0) / np.sqrt(len(S))
+        return P.mean(axis=0)
 
 
 def tracker_measure(tracker, readings: int = 5, max_failures: int = 10) -> Callable[[], np.ndarray]:
-    def f() -> np.ndarray:
-        good, fails = [], 0
-        while len(good) < readings:
-            r = tracker.measure()
-            if r.status == "ok" and np.all(np.isfinite(r.position_m)):
-                good.append(np.asarray(r.position_m, float))
-            else:
-                fails += 1
-                if fails > max_failures:
-                    raise UserError(f"tracker: {fails} failed readings at one target ({r.status})")
-        return np.mean(good, axis=0)
-
-    return f
+    """The tracker's mean of `readings` good readings at a target (UserError after more than
+    `max_failures` failed ones)."""
+    return _TrackerMeasure(tracker, readings, max_failures)
 
 
 def robot_mover(robot, speed: float = 0.5, accel: float = 1.0, settle_s: float = 0.5):

@@ -1079,10 +1079,11 @@ def closed_loop(
             guard=Guard(env, spec, nominal.tool_m),  # the SMR the campaign declared
             q_start=lambda: np.asarray(dev.robot.state().q_rad, float),
             log=log,
+            clock=lambda: float(dev.robot.state().t_s),  # the controller's time
         )
     finally:
         close_quietly(dev.robot, dev.tracker)
-    res["warnings"] = warnings
+    res["warnings"] = warnings + [w for c in [res.get("closure") or {}] if (w := c.get("warning"))]
     res["envelope"] = env_what
     res["truth"] = "tracker"
     res["table"] = str(table_path)
