@@ -175,6 +175,14 @@ class TestExportScreen:
                 "predicted_rms_std_m": 6.1e-6,
             },
             "improvement": 34.9,
+            "closure": {
+                "target": 0,
+                "displacement_m": 6.1e-6,
+                "displacement_base_m": [-2.7e-6, -5.4e-6, -1.1e-6],
+                "elapsed_s": 9.0,
+                "noise_m": 17.1e-6,
+                "beyond_noise": False,
+            },
         }
 
         async def run_before(pilot):

@@ -15,7 +15,7 @@ from textual.widgets import Button, Input, Label, Select, Static
 from workcell.errors import UserError
 from workcell.estimation.models import interval_um, unexplained_text
 from workcell.export.table import coverage_line
-from workcell.export.validate import DEFAULT_TARGETS, MAX_TARGETS
+from workcell.export.validate import DEFAULT_TARGETS, MAX_TARGETS, closure_line
 from workcell.tui.backend import ExportConfig
 from workcell.tui.messages import ExportRequested, ValidateRequested
 from workcell.tui.screens.base import WorkcellScreen, um
@@ -276,6 +276,9 @@ class ExportScreen(WorkcellScreen):
                         f"the table's 1-sigma at these targets: RMS {um(a['predicted_rms_std_m'])}",
                     )
                 )
+            if r.get("closure"):  # the first target measured again at the end
+                c = closure_line(r["closure"]).removeprefix("closure: ")
+                loop.append(("Closed loop closure", c[0].upper() + c[1:]))
             if r.get("skipped"):
                 loop.append(("Closed loop skipped", f"{len(r['skipped'])}: {r['skipped'][0]}"))
             self.status = f"[green]closed-loop check done[/green] on {r['targets']} targets"
