@@ -70,7 +70,7 @@ def _problem(local: str, spread_signal: float, seed: int = 0):
       improvement carried by two poses is not an improvement "over poses".
     """
     rng = np.random.default_rng(seed)
-    folds = _fold_ids(N_POSE, 5, 0)
+    folds = _fold_ids(np.arange(N_POSE), 5, 0)
     firsts = [int(np.flatnonzero(folds == f)[0]) for f in range(5)]  # one pose per fold
     special = firsts if local == "one" else firsts[:2]
     ordinary = np.setdiff1d(np.arange(N_POSE), special)

@@ -49,7 +49,7 @@ def _problem(b_compliance: float, b_backlash: float, seed: int = 0) -> _Linear:
     C = rng.normal(size=(n, 3, 2))
     # r is model - measurement: a true coefficient b adds -b C
     r = rng.normal(size=(n, 3)) + G @ rng.normal(0.0, 3.0, 6) - C @ [b_compliance, b_backlash]
-    lin = _Linear(r, G, C, _fold_ids(n, 5, 0))
+    lin = _Linear(r, G, C, _fold_ids(np.arange(n), 5, 0))
     setattr(lin, _FREE_NAMES_ATTR, [f"g{i}" for i in range(6)])
     return lin
 

@@ -157,8 +157,13 @@ def _with_sigma(ds: Dataset, sig: np.ndarray) -> Dataset:
     return replace(ds, sigma_m=np.repeat(sig[:, None], 3, 1))
 
 
-def _fold_ids(n: int, k: int, seed: int) -> np.ndarray:
-    return np.random.default_rng(seed + 17).permutation(n) % k
+def _fold_ids(groups: np.ndarray, k: int, seed: int) -> np.ndarray:
+    """Cross-validation fold of each sample, drawn per pose: the samples of one pose measured
+    again (`Dataset.pose_groups`) share a fold, so no pose is validated on its own repeat.
+    Without repeats, the folds of each sample as before 2026-11-26 (drawn per sample)."""
+    _, first, inv = np.unique(np.asarray(groups), return_index=True, return_inverse=True)
+    order = np.argsort(np.argsort(first))  # groups numbered in order of first appearance
+    return (np.random.default_rng(seed + 17).permutation(len(first)) % k)[order[inv.ravel()]]
 
 
 class _Linear:
@@ -429,8 +434,10 @@ def locate(
                 findings.append(
                     {
                         "score": abs(r),
-                        "text": f"residual along joint {j + 1}'s motion grows with the gravity "
-                        f"torque on joint {j + 1} (r = {r:+.2f}, {slope * 1e6:+.2f} urad/(N m))",
+                        "text": f"residual along joint {j + 1}'s motion "
+                        + ("grows" if r > 0 else "falls")
+                        + f" with the gravity torque on joint {j + 1} (r = {r:+.2f}, "
+                        f"{slope * 1e6:+.2f} urad/(N m))",
                     }
                 )
         pos, neg = sgn[ok, j] > 0, sgn[ok, j] < 0
@@ -676,7 +683,7 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
     eff0 = np.zeros(N_EFF)
     p0 = p_aug(theta, eff0, base_ref, dfit.q, X)
     Jt, Je = jac_aug(theta, eff0, base_ref, dfit.q, X)
-    folds = _fold_ids(len(dfit), cfg.cv_folds, cfg.seed)
+    folds = _fold_ids(dfit.pose_groups(), cfg.cv_folds, cfg.seed)
     lin = _Linear(
         (p0 - dfit.p_tracker) * w[:, None],
         Jt[:, :, free] * w[:, None, None],

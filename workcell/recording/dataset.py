@@ -310,10 +310,22 @@ def read_warnings(ds: Dataset | Recording) -> list[str]:
     ] + [f"warning: {source}: {x}" for x in notes]
 
 
-def distinct_poses(q: np.ndarray, tol_rad: float = 1e-6) -> int:
-    """How many different joint configurations `q` (N, n) holds (equal within `tol_rad`): the
-    same pose measured again adds no geometry."""
-    q = np.asarray(q, float)
+DISTINCT_TOL_RAD = 1e-4  # 50x the encoders' noise (~2 urad): a pose measured again is one pose
+
+
+def distinct_poses(q: np.ndarray, tol_rad: float = DISTINCT_TOL_RAD) -> int:
+    """How many different joint configurations `q` (N, n) holds: configurations within
+    `tol_rad` of each other on every joint, directly or through a chain of such neighbours, are
+    one (the same pose measured again adds no geometry). Until 2026-11-26 this rounded at
+    1 urad, below the encoders' noise, so a pose measured again counted as another one."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    q = np.nan_to_num(np.asarray(q, float))
     if len(q) == 0:
         return 0
-    return int(len(np.unique(np.round(q / tol_rad), axis=0)))
+    pairs = cKDTree(q).query_pairs(tol_rad, p=np.inf, output_type="ndarray")
+    n = len(q)
+    g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    return int(connected_components(g, directed=False)[0])
