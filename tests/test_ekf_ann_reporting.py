@@ -186,3 +186,24 @@ def test_estimate_gives_the_geometry_alone_beside_the_whole_model(replayed):
     text = " ".join(geometric_lines(est))
     assert f"geometry alone (network off) fits the {N} samples at" in text
     assert "conditional on the network" in text
+
+
+def test_a_filter_that_never_started_reports_no_variance_test_in_strict_json():
+    """A cut-short recording (12 samples) replayed with --json said `"variance_factor": NaN,
+    "variance_test_ok": true`: invalid JSON and a test that never ran reported as passed."""
+    import json
+
+    from workcell import strict_json
+
+    lf = LiveFilter(robot_by_name("ur5e"), TOOL_M, hidden=4, tracker_mpe=None)
+    for s in _samples()[:12]:
+        lf.update(s)
+    assert lf.variance_test()[1] is None
+    est = lf.estimate()
+    assert est["initialised"] is False and est["variance_test_ok"] is None
+    text = strict_json.dumps(est)
+    d = json.loads(text, parse_constant=lambda c: pytest.fail(f"{c} in the JSON"))
+    assert d["variance_factor"] is None
+    assert strict_json.dumps({"r": float("inf"), "v": np.array([1.0, np.nan])}) == (
+        '{"r": null, "v": [1.0, null]}'
+    )

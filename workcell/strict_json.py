@@ -23,3 +23,28 @@ def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict:
 def loads(text: str) -> Any:
     """`json.loads`, raising `DuplicateKey` for a key given twice in any object."""
     return json.loads(text, object_pairs_hook=_no_duplicates)
+
+
+def finite(v: Any) -> Any:
+    """JSON-ready copy of `v`: numpy arrays and scalars as lists and numbers, paths as strings,
+    a non-finite float (NaN, inf) as None (JSON has neither)."""
+    import math
+    import os
+
+    if isinstance(v, os.PathLike):
+        return os.fspath(v)
+    if hasattr(v, "tolist"):  # numpy array or scalar
+        v = v.tolist()
+    if isinstance(v, float):
+        return v if math.isfinite(v) else None
+    if isinstance(v, list | tuple):
+        return [finite(x) for x in v]
+    if isinstance(v, dict):
+        return {k: finite(x) for k, x in v.items()}
+    return v
+
+
+def dumps(v: Any, **kw) -> str:
+    """Strict JSON of a command's result: `finite(v)`, written with allow_nan=False (Python's
+    default writes NaN and Infinity, which JSON readers refuse)."""
+    return json.dumps(finite(v), allow_nan=False, **kw)

@@ -7,10 +7,10 @@ only the recording.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 
+from workcell import strict_json
 from workcell.bench.scoring import noise_floor
 from workcell.errors import UserError, check_output_path
 from workcell.estimation.models import interval_um
@@ -185,7 +185,7 @@ def run(args: argparse.Namespace) -> int:
             summary["correction"] = correction_step(world, cell, models[best], best, out, log)
             summary["correction"]["model_heldout_rms_m"] = results[best]["heldout_rms_m"]
     if args.json:
-        print(json.dumps(summary))
+        print(strict_json.dumps(summary))
         return 0
     print()
     print(f"{'':24}{'held-out RMS':>14}{'max':>12}   95 % CI of the RMS")

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from workcell import strict_json
 from workcell.atomic import write_text
 from workcell.commands import prose
 from workcell.commands.options import add_tracker_mpe, parse_tracker_mpe
@@ -50,16 +51,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--no-np", action="store_true", help="skip the non-parametric residual check")
     add_chain_option(p)
-
-
-def _json_default(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(type(o))
 
 
 REPORT_FILES = (
@@ -124,9 +115,9 @@ def run(args: argparse.Namespace) -> int:
     if outdir:
         rep["plots"] = write_plots(diag, outdir)
         write_text(outdir / REPORT_FILES[0], rep["summary"] + "\n")
-        write_text(outdir / REPORT_FILES[1], json.dumps(rep, indent=1, default=_json_default))
+        write_text(outdir / REPORT_FILES[1], strict_json.dumps(rep, indent=1))
     if args.json:
-        print(json.dumps(rep, default=_json_default))
+        print(strict_json.dumps(rep))
     else:
         print_report(rep)
     return 0

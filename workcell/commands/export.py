@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import argparse
 import csv
-import json
 from pathlib import Path
 
 import numpy as np
 
+from workcell import strict_json
 from workcell.atomic import atomic_files
 from workcell.errors import UserError, check_output_path, refuse_overwrite
 
@@ -249,7 +249,7 @@ def _interp_warning(args, summary: dict) -> str | None:
 
 def _report(args, summary: dict) -> int:
     if args.json:
-        print(json.dumps(summary))
+        print(strict_json.dumps(summary))
     else:
         for f in summary["files"]:
             print(f"wrote {f}")

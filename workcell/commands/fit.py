@@ -3,12 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
-import numpy as np
-
+from workcell import strict_json
 from workcell.commands import prose
 from workcell.commands.options import add_tracker_mpe, display_unit, parse_tracker_mpe
 from workcell.errors import UserError, check_output_path
@@ -110,18 +108,10 @@ def run(args: argparse.Namespace) -> int:
         smr_offset_m=smr,
     )
     if args.json:
-        print(json.dumps(report, default=_json_default))
+        print(strict_json.dumps(report))
     else:
         print_report(report)
     return 0
-
-
-def _json_default(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, np.generic):
-        return o.item()
-    raise TypeError(type(o))
 
 
 def _vec_m(v) -> str:

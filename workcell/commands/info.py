@@ -8,6 +8,7 @@ import os
 
 import numpy as np
 
+from workcell import strict_json
 from workcell.recording import checks
 from workcell.recording.reader import Recording, read_recording
 from workcell.recording.repeats import repeats_of
@@ -101,7 +102,7 @@ def summary(path: str) -> dict:
 def run(args: argparse.Namespace) -> int:
     d = summary(args.recording)
     if args.json:
-        print(json.dumps(d))
+        print(strict_json.dumps(d))
         return 0
     print(f"recording   {d['path']} ({d['size_bytes']} bytes)")
     print(f"robot       {d['robot']}    tracker {d['tracker']}")

@@ -9,11 +9,11 @@ as possible. --json prints the final estimate as JSON (progress lines go to stde
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
 
+from workcell import strict_json
 from workcell.commands import prose
 from workcell.errors import UserError, check_output_path
 from workcell.estimation.identifiability import GROUP_STAR_NOTE
@@ -256,7 +256,7 @@ def run(args: argparse.Namespace) -> int:
         except ValueError as e:
             raise UserError(str(e)) from None
     if args.json:
-        print(json.dumps(est, indent=1))
+        print(strict_json.dumps(est, indent=1))
     else:
         print(
             f"replayed {len(rec.samples)} samples in {dt:.1f} s "

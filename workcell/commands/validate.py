@@ -4,10 +4,10 @@ of the exported correction table (before/after position accuracy on random targe
 from __future__ import annotations
 
 import argparse
-import json
 
 import numpy as np
 
+from workcell import strict_json
 from workcell.commands import prose
 from workcell.drivers.protocols import DeviceError
 from workcell.errors import UserError
@@ -305,7 +305,7 @@ def run(args: argparse.Namespace) -> int:
     res["warnings"] = warnings + [w for c in [res.get("closure") or {}] if (w := c.get("warning"))]
     res["rms_interval_basis"] = RMS_INTERVAL_BASIS
     if args.json:
-        print(json.dumps(res))
+        print(strict_json.dumps(res))
         return 0
     print_table(res, interval_um)
     if res.get("skipped"):

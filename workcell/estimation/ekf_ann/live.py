@@ -289,10 +289,11 @@ class LiveFilter:
         return w_fit if self.prefit_accepted else np.asarray(w_rand, float)
 
     # ------------------------------------------------------------------ reporting
-    def variance_test(self) -> tuple[float, bool]:
-        """(s0^2 over the window, passes the 95 % chi^2 test)."""
+    def variance_test(self) -> tuple[float, bool | None]:
+        """(s0^2 over the window, passes the 95 % chi^2 test); (nan, None) before any
+        innovation (the filter has not started: nothing was tested)."""
         if not self._nis:
-            return float("nan"), True
+            return float("nan"), None
         v = np.asarray(self._nis)
         dof = 3 * len(v)
         return float(v.sum() / dof), bool(v.sum() <= chi2.ppf(0.95, dof))
@@ -305,7 +306,7 @@ class LiveFilter:
             ng = f"  |ng| {np.linalg.norm(f.ann_tracker_m(q[None])[0]) * 1e3:6.3f} mm"
         return (
             f"ekf-ann {self.n:5d}  innov {self.last_innovation_m * 1e6:7.1f} um  "
-            f"s0^2 {s0:6.2f} {'ok' if ok else 'REJECT'}{ng}"
+            f"s0^2 {s0:6.2f} {'--' if ok is None else 'ok' if ok else 'REJECT'}{ng}"
             f"  ann-iter {0 if f is None else f'{f.ann_accepted}/{f.ann_iterations}'}"
         )
 
