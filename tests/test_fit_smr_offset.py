@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import re
+import shlex
 from pathlib import Path
 
 import pytest
@@ -29,13 +30,17 @@ def _fit(capsys, *argv) -> tuple[int, str, str]:
 
 @pytest.mark.skipif(not REAL_B.exists(), reason="the UR10 data is beside the repository")
 def test_the_smr_note_gives_a_command_that_declares_the_fitted_offset(capsys, tmp_path):
-    rc, out, _ = _fit(capsys, "--out", str(tmp_path / "b.json"))
+    rc, out, _ = _fit(capsys, "--holdout", "0.3", "--out", str(tmp_path / "b.json"))
     assert rc == 0
-    text = " ".join(out.split())
-    m = re.search(r"`workcell fit \S+ --smr-offset=(\S+)`", text)
-    assert m, text[-800:]
+    # the command is on a line of its own, with this fit's options, writing beside the model
+    line = next((x for x in out.splitlines() if x.startswith("  workcell fit ")), None)
+    assert line is not None, out[-800:]
+    m = re.search(r"--smr-offset=(\S+)", line)
+    assert "--holdout 0.3" in line and line.endswith(f"--out {tmp_path / 'b-smr.json'}"), line
     before = float(re.search(r"calibrated +held-out RMS +([\d.]+) um", out)[1])
-    rc, out2, _ = _fit(capsys, f"--smr-offset={m[1]}", "--out", str(tmp_path / "b2.json"), "--json")
+    capsys.readouterr()
+    rc = main([*shlex.split(line)[1:], "--json"])  # the printed command, as pasted
+    out2 = capsys.readouterr().out
     assert rc == 0
     r = json.loads(out2)
     assert r["smr_declared"]["by"] == "--smr-offset"
@@ -44,7 +49,7 @@ def test_the_smr_note_gives_a_command_that_declares_the_fitted_offset(capsys, tm
     assert r.get("smr_change") is None  # the fitted SMR is now the declared one (within 1 mm)
     # the geometry fits as well: the base registration took up part of the offset, not the fit
     assert r["heldout_rms_m"] * 1e6 == pytest.approx(before, abs=1.0)
-    model = json.loads((tmp_path / "b2.json").read_text())
+    model = json.loads((tmp_path / "b-smr.json").read_text())
     assert model["info"]["nominal_tool_m"] == pytest.approx(r["smr_declared"]["offset_m"])
 
 

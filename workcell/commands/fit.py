@@ -19,6 +19,7 @@ from workcell.estimation.models import (
     unexplained_text,
 )
 from workcell.recording.chain import add_chain_option
+from workcell.recording.tracker_spec import TRACKER_MPE_M
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -110,8 +111,32 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(strict_json.dumps(report))
     else:
-        print_report(report)
+        print_report(report, refit=lambda smr_m: refit_command(args, out, smr_m))
     return 0
+
+
+def refit_command(args: argparse.Namespace, out: Path, smr_m) -> str:
+    """The `workcell fit` that the SMR note suggests: this fit's options (method, hold-out,
+    base model, bounds, tracker MPE, chain), the fitted SMR offset declared, and the model
+    written beside this one (`-smr` added to its name) rather than over it."""
+    import shlex
+
+    parts = ["workcell", "fit", args.recording]
+    if args.method != "dh":
+        parts += ["--method", args.method]
+    if args.holdout != 0.25:
+        parts += ["--holdout", f"{args.holdout:g}"]
+    if args.on != "auto":
+        parts += ["--on", args.on]
+    if args.bounds:
+        parts += ["--bounds", args.bounds]
+    if args.tracker_mpe and parse_tracker_mpe(args.tracker_mpe) != tuple(TRACKER_MPE_M):
+        parts += ["--tracker-mpe", args.tracker_mpe]
+    if getattr(args, "chain_missing", None) not in (None, "refuse"):
+        parts += ["--chain-missing", args.chain_missing]
+    parts += ["--smr-offset=" + ",".join(f"{x:.4f}" for x in smr_m)]
+    parts += ["--out", str(out.with_name(out.stem + "-smr" + out.suffix))]
+    return shlex.join(parts)
 
 
 def _vec_m(v) -> str:
@@ -139,7 +164,7 @@ def identification_line(i: dict) -> str:
     return line
 
 
-def print_report(r: dict) -> None:
+def print_report(r: dict, refit=None) -> None:
     print(f"method          {r['method']}")
     print(f"recording       {r['recording']}")
     if r.get("chain"):  # a resumed recording: fitted with every file it continues
@@ -249,7 +274,11 @@ def print_report(r: dict) -> None:
                 std_s = f"{why:>10}"
             d_s = f"{d * scale:12.4f}" if "nominal" in v else " " * 12
             name = f"{k}*" if v.get("stands_for") else k
-            print(f"{name:>16} {v['value']:14.6f} {d_s} {std_s}  {unit}")
+            val = v["value"]  # a value below 1e-3 (a GP's noise std) keeps its digits
+            val_s = f"{val:14.4e}" if 0 < abs(val) < 1e-3 else f"{val:14.6f}"
+            # the unit is that of '- nominal' and of a std; a factor or a status has none
+            unit = unit if std is not None or "nominal" in v else ""
+            print(f"{name:>16} {val_s} {d_s} {std_s}  {unit}".rstrip())
         if any(v.get("std") is None and v.get("factor_95") for _, v in shown):
             print(
                 prose.fill(
@@ -264,19 +293,24 @@ def print_report(r: dict) -> None:
             print(prose.fill(f"std: {r['parameter_std_basis']}", width=100))
     smr = r.get("smr_change")
     if smr is not None:
+        cmd = (
+            refit(smr["fitted_m"])
+            if refit is not None
+            else f"workcell fit {r['recording']} --smr-offset="
+            + ",".join(f"{x:.4f}" for x in smr["fitted_m"])
+        )
         print(
             prose.fill(
                 f"note: the fitted SMR is {smr['change_m'] * 1e3:.1f} mm (std "
                 f"{smr['std_m'] * 1e3:.2f} mm) from the offset the recording declares "
                 f"{_vec_m(smr['declared_m'])}: a controller with the declared TCP needs "
-                "corrections of that order. Declare the fitted offset and fit again, `workcell "
-                f"fit {r['recording']} --smr-offset="
-                + ",".join(f"{x:.4f}" for x in smr["fitted_m"])
-                + "` (the base registered with the declared one absorbs part of the "
-                "difference), and set the controller's TCP to it",
+                "corrections of that order. Declare the fitted offset and fit again (the base "
+                "registered with the declared one absorbs part of the difference), and set the "
+                "controller's TCP to it:",
                 width=100,
             )
         )
+        print(f"  {cmd}")  # on its own line, unwrapped: a command to paste
     for k, v in (r.get("extra") or {}).items():
         if k.startswith("gp_") and isinstance(v, (int, float, list)):
             continue  # the GP's hyperparameters: in the table above, with their std
