@@ -366,6 +366,14 @@ def note_unexplained(model, meta: dict, log=None) -> None:
     `fit` named held-out outliers) and tell `log` (the lines `export` prints)."""
     u = model_unexplained(model)
     if u is None:
+        if log:  # said, as the table's files say it (before 2026-11-26 only the files did)
+            from workcell.export.table import unexplained_lines
+
+            for line in unexplained_lines(meta):
+                log(f"  {line}")
+            why = (getattr(model, "info", {}) or {}).get("heldout")
+            if isinstance(why, str):
+                log(f"  (held-out poses: {why}; fit with a hold-out to know what it leaves out)")
         return
     meta["model_unexplained"] = u
     if log:
