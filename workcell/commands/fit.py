@@ -15,6 +15,7 @@ from workcell.estimation.identifiability import GROUP_STAR_NOTE
 from workcell.estimation.models import (
     check_model_output,
     default_model_out,
+    evaluated_figure,
     interval_um,
     unexplained_text,
 )
@@ -183,9 +184,10 @@ def print_report(r: dict, refit=None) -> None:
         + (f"; {nci}" if nci else "")
         + ")"
     )
-    ci = interval_um(r.get("heldout_rms_ci95_m"))
+    ci = interval_um(evaluated_figure(r, "rms_ci95_m"))
     print(
-        f"calibrated      {on} {um(r['heldout_rms_m'])}   max {um(r['heldout_max_m'])}"
+        f"calibrated      {on} {um(evaluated_figure(r, 'rms_m'))}   max "
+        f"{um(evaluated_figure(r, 'max_m'))}"
         + (f"   ({ci}, from the spread over these poses)" if ci else "")
     )
     if r.get("stated_noise_floor_m"):

@@ -216,16 +216,23 @@ def fit_dataset(
         )
         if len(test)
         else "no hold-out: numbers are on the training poses",
-        # with --holdout 0 the heldout_* figures are on the training poses (no held-out ones)
+        # with --holdout 0 the figures are on the training poses: train_*, heldout_* null
+        # (until 2026-11-26 they were under the heldout_* keys, `evaluated_on` saying so)
         "evaluated_on": "held-out poses" if len(dte) else "training poses (no hold-out)",
         "nominal_rms_m": nominal["rms_m"],
         "nominal_rms_ci95_m": nominal["rms_ci95_m"],
         "nominal_max_m": nominal["max_m"],
-        "heldout_rms_m": held["rms_m"],
-        "heldout_rms_ci95_m": held["rms_ci95_m"],
+        **{
+            f"{'heldout' if len(dte) else 'train'}_{k}": held[k]
+            for k in ("rms_ci95_m", "max_m", "median_m")
+        },
+        **(
+            {}
+            if len(dte)
+            else {k: None for k in ("heldout_rms_ci95_m", "heldout_max_m", "heldout_median_m")}
+        ),
+        "heldout_rms_m": held["rms_m"] if len(dte) else None,
         "rms_interval_basis": RMS_INTERVAL_BASIS,
-        "heldout_max_m": held["max_m"],
-        "heldout_median_m": held["median_m"],
         "train_rms_m": train_stats["rms_m"],
         "stated_noise_floor_m": stated_noise_floor(ev),
         "tracker_noise_floor_m": (floor := tracker_noise_floor(ev, tracker_mpe)),

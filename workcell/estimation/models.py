@@ -617,3 +617,10 @@ def _check_nominal_units(model, source: str, method: str) -> None:
                     f"{r:.4g} m from the flange (more than {SMR_OFFSET_MAX_M:g} m): "
                     f"{_length_hint(r, SMR_OFFSET_MAX_M)}; {again}"
                 )
+
+
+def evaluated_figure(report: dict, name: str):
+    """A fit report's figure `name` ("rms_m", "rms_ci95_m", "max_m", "median_m") on the poses it
+    was evaluated on: the held-out ones, or the training ones for a fit without a hold-out."""
+    held_out = bool(report.get("heldout_poses", 1))
+    return report.get(f"{'heldout' if held_out else 'train'}_{name}")

@@ -12,7 +12,7 @@ from textual.containers import Horizontal, Vertical
 from textual.widgets import Button, DataTable, Input, Label, Select
 
 from workcell.errors import UserError
-from workcell.estimation.models import interval_um
+from workcell.estimation.models import evaluated_figure, interval_um
 from workcell.tui.messages import FitRequested
 from workcell.tui.screens.base import WorkcellScreen, um
 from workcell.tui.widgets import SeriesPlot
@@ -43,9 +43,9 @@ def rms_label(r: dict) -> str:
 def headline(r: dict) -> str:
     """One line of a fit: the method, its RMS (named for the poses it is on) and its 95 %
     interval; the status line and the app's notice."""
-    ci = interval_um(r.get("heldout_rms_ci95_m"))
+    ci = interval_um(evaluated_figure(r, "rms_ci95_m"))
     return (
-        f"{r.get('method', '?')}: {rms_label(r)} {um(r.get('heldout_rms_m'))}"
+        f"{r.get('method', '?')}: {rms_label(r)} {um(evaluated_figure(r, 'rms_m'))}"
         + (f" ({ci})" if ci else "")
         + ("" if held_out(r) else f"; {NO_HOLDOUT}")
     )
@@ -157,8 +157,9 @@ class FitScreen(WorkcellScreen):
             nci = interval_um(r.get("nominal_rms_ci95_m"), label=False)
             if nci:
                 t.add_row("  95 % CI of its RMS", nci, "")
-        t.add_row(f"{method} fitted", um(r.get("heldout_rms_m")), um(r.get("heldout_max_m")))
-        ci = interval_um(r.get("heldout_rms_ci95_m"), label=False)
+        fig = evaluated_figure
+        t.add_row(f"{method} fitted", um(fig(r, "rms_m")), um(fig(r, "max_m")))
+        ci = interval_um(fig(r, "rms_ci95_m"), label=False)
         if ci:
             t.add_row("  95 % CI of its RMS", ci, "")
         if r.get("train_rms_m") is not None and held_out(r):  # else: the row above
