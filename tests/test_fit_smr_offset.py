@@ -47,6 +47,12 @@ def test_the_smr_note_gives_a_command_that_declares_the_fitted_offset(capsys, tm
     assert r["smr_declared"]["recording_m"] == [0.0, 0.0, 0.109]
     assert r["smr_declared"]["offset_m"] == pytest.approx([float(x) for x in m[1].split(",")])
     assert r.get("smr_change") is None  # the fitted SMR is now the declared one (within 1 mm)
+    # and the fit is as well posed: declaring the 0.5 mm sideways components too freed the
+    # wrist's dependent pairs (rank 25 -> 27, condition 118 -> 2.6e4, a5 11.4 +- 20.7 mm)
+    rank, cond = re.search(r"identification +rank (\d+)/\d+, condition ([\d.e+]+)", out).groups()
+    assert r["identifiability"]["rank"] == int(rank)
+    assert r["identifiability"]["condition"] < 2 * float(cond)
+    assert "its sideways components, 0.5" in " ".join(out.split())
     # the geometry fits as well: the base registration took up part of the offset, not the fit
     assert r["heldout_rms_m"] * 1e6 == pytest.approx(before, abs=1.0)
     model = json.loads((tmp_path / "b-smr.json").read_text())

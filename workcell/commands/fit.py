@@ -295,12 +295,13 @@ def print_report(r: dict, refit=None) -> None:
             print(prose.fill(f"std: {r['parameter_std_basis']}", width=100))
     smr = r.get("smr_change")
     if smr is not None:
+        to = smr.get("suggested_m") or smr["fitted_m"]
         cmd = (
-            refit(smr["fitted_m"])
+            refit(to)
             if refit is not None
-            else f"workcell fit {r['recording']} --smr-offset="
-            + ",".join(f"{x:.4f}" for x in smr["fitted_m"])
+            else f"workcell fit {r['recording']} --smr-offset=" + ",".join(f"{x:.4f}" for x in to)
         )
+        side = smr.get("sideways_kept_m")
         print(
             prose.fill(
                 f"note: the fitted SMR is {smr['change_m'] * 1e3:.1f} mm (std "
@@ -308,7 +309,15 @@ def print_report(r: dict, refit=None) -> None:
                 f"{_vec_m(smr['declared_m'])}: a controller with the declared TCP needs "
                 "corrections of that order. Declare the fitted offset and fit again (the base "
                 "registered with the declared one absorbs part of the difference), and set the "
-                "controller's TCP to it:",
+                "controller's TCP to it"
+                + (
+                    ""
+                    if side is None
+                    else f" (its sideways components, {side * 1e3:.2f} mm from the declared, "
+                    "stay as declared: so small a sideways offset makes the wrist's parameters "
+                    "look separately identifiable while the poses barely tell them apart)"
+                )
+                + ":",
                 width=100,
             )
         )
