@@ -207,3 +207,23 @@ def test_a_filter_that_never_started_reports_no_variance_test_in_strict_json():
     assert strict_json.dumps({"r": float("inf"), "v": np.array([1.0, np.nan])}) == (
         '{"r": null, "v": [1.0, null]}'
     )
+
+
+def test_the_combined_base_says_when_its_std_is_a_prior():
+    """Series D: base_ty and tool_z held by their priors, yet the combined base was printed
+    +- (0.8, 0.2, 0.2) mm with nothing said (`fit`: 27 mm along that direction; audit)."""
+    from workcell.commands.replay import base_lines
+
+    est = {
+        "tracker_T_base": {
+            "translation_m": [2.9, -1.1, -1.2],
+            "quaternion_wxyz": [1.0, 0.0, 0.0, 0.0],
+            "translation_std_m": [8e-4, 2e-4, 2e-4],
+            "rotation_std_rad": [1e-4, 1e-4, 1e-4],
+        },
+        "held_by_prior": ["base_ty", "tool_z", "d4"],
+    }
+    text = " ".join(" ".join(base_lines(est)).split())
+    assert "not measured: base_ty, tool_z held by their priors" in text
+    est["held_by_prior"] = ["d4"]  # a chain state: not part of the combined base
+    assert "not measured" not in " ".join(base_lines(est))

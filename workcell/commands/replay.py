@@ -131,11 +131,24 @@ def base_lines(est: dict) -> list[str]:
     pm_t = f" +- ({', '.join(f'{x * 1e3:.3g}' for x in st)}) mm" if st else ""
     pm_r = f"  +- ({', '.join(f'{x * 1e3:.3g}' for x in sr)}) mrad about the tracker's x, y, z"
     n = est.get("n_init", "n_init")
+    # the states the combined base is made of that the data did not determine: along them its
+    # +- is the filter's prior, not a measurement (series D: +- 0.8 mm where `fit` has 27 mm)
+    prior = [x for x in est.get("held_by_prior") or [] if x.startswith(("base_", "tool_"))]
     return [
         "base (combined, tracker_T_base: the one to compare with other models):",
         f"  translation ({', '.join(f'{x * 1e3:.4f}' for x in t)}) mm{pm_t}",
         f"  rotation quaternion wxyz ({', '.join(f'{x:.8f}' for x in q)})",
         *([pm_r] if sr else []),
+        *(
+            prose.wrap(
+                f"not measured: {', '.join(prior)} held by their priors (above), so the +- "
+                "of the combined base is the filter's prior along them, not what the data "
+                "determine; compare a batch fit's std (`workcell fit`) before trusting it",
+                width=100,
+            )
+            if prior and (st or sr)
+            else []
+        ),
         *prose.wrap(
             f"base_t*, base_r* above are offsets from base_ref, this filter's own registration "
             f"(the nominal chain fitted rigidly to its first {n} samples), which differs from "
