@@ -741,7 +741,8 @@ class Executor:
         good, qs, temps = [], [], []
         failures = 0
         problem = ""  # the last reason a reading was not usable
-        while len(good) < n:
+        want = n  # two readings that disagree get a third, so the median can tell the bad one
+        while len(good) < want:
             if self.control.abort.is_set():  # a tracker that fails slowly must not hold it up
                 raise KeyboardInterrupt
             try:
@@ -784,6 +785,14 @@ class Executor:
             qs.append(st.q_rad)
             if st.temperature_c is not None:
                 temps.append(st.temperature_c)
+            if want == len(good) == 2 and (gap := readings_disagree(good, self.cfg.outlier_k)):
+                want = 3
+                self.event(
+                    "info",
+                    "outlier",
+                    f"pose {t.pose_id}: its two readings are {gap * 1e6:.1f} um apart; a third "
+                    "decides which one is off",
+                )
         need = max(2, (n + 1) // 2) if n > 1 else 1
         if len(good) < need:
             self.event(
@@ -1003,6 +1012,16 @@ def refused_advice(suggest: np.ndarray | None, what: str) -> str:
 def _pop_faults(tracker) -> list[tuple[str, str]]:
     pop = getattr(tracker, "pop_faults", None)
     return list(pop()) if pop else []
+
+
+def readings_disagree(good: list, k: float) -> float | None:
+    """The distance between two readings [(position, sigma), ...] when it exceeds k stated
+    sigmas (3-D, as `reject_outliers` judges one reading against the median), else None: two
+    readings cannot say which one is off; a third, and the median, can."""
+    (p0, s0), (p1, s1) = good[:2]
+    gap = float(np.linalg.norm(p1 - p0))
+    scale = float(np.linalg.norm(0.5 * (s0 + s1)))
+    return gap if np.isfinite(scale) and gap > k * scale else None
 
 
 def reject_outliers(P: np.ndarray, S: np.ndarray, k: float) -> np.ndarray:

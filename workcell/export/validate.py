@@ -351,7 +351,7 @@ class _TrackerMeasure:
         self.rejected = 0
 
     def __call__(self) -> np.ndarray:
-        from workcell.campaign.executor import OUTLIER_K, reject_outliers
+        from workcell.campaign.executor import OUTLIER_K, readings_disagree, reject_outliers
 
         good, sig, fails = [], [], 0
         need = self.readings
@@ -364,10 +364,10 @@ class _TrackerMeasure:
                 fails += 1
                 if fails > self.max_failures:
                     raise UserError(f"tracker: {fails} failed readings at one target ({r.status})")
-            if len(good) == need == 2:  # two that disagree: a third to take the median of
-                gap = float(np.linalg.norm(good[1] - good[0]))
-                if gap > OUTLIER_K * float(np.linalg.norm(np.mean(sig, axis=0))):
-                    need = 3
+            if len(good) == need == 2 and readings_disagree(
+                list(zip(good, sig, strict=True)), OUTLIER_K
+            ):
+                need = 3  # two that disagree: a third to take the median of
         P, S = np.array(good), np.array(sig)
         keep = reject_outliers(P, S, OUTLIER_K)
         self.rejected += int((~keep).sum())
