@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 from rich.text import Text
 from textual.widgets import Checkbox, DataTable, Select, Static
-from tuipilot import until
+from tuipilot import device_status, until
 
 from workcell.estimation.models import interval_um
 from workcell.tui import backend
@@ -275,11 +275,7 @@ def test_the_devices_stay_connected_after_a_campaign(tmp_path, monkeypatch):
             await until(pilot, lambda: type(app.screen).__name__ == "ConfirmScreen", 10, "ask")
             await pilot.press("y")
             await until(pilot, lambda: app.finished, 60, "campaign end")
-            view = app.views["devices"]
-            view.status = None
-            app.post_message(m.StatusRequested())
-            await until(pilot, lambda: view.status is not None, 10, "status")
-            return view.status
+            return await device_status(app, pilot, 10)
 
     status = asyncio.run(flow())
     assert app.finished[-1].result.measured == 2, app.notices
@@ -349,11 +345,7 @@ def test_a_protective_stop_stays_visible_after_the_run_on_a_ur_controller(tmp_pa
                             120, "protective stop")  # fmt: skip
                 app.post_message(m.AbortRequested())
                 await until(pilot, lambda: app.finished, 60, "campaign end")
-                view = app.views["devices"]
-                view.status = None
-                app.post_message(m.StatusRequested())
-                await until(pilot, lambda: view.status is not None, 20, "status")
-                return view.status
+                return await device_status(app, pilot, 20)
             finally:
                 if app.devices is not None:
                     app.devices.close()

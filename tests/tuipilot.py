@@ -34,3 +34,14 @@ async def connect(app, pilot, timeout_s: float = 60.0) -> None:
 async def set_input(pilot, screen, wid: str, value: str) -> None:
     screen.query_one(f"#{wid}").value = value
     await pilot.pause()
+
+
+async def device_status(app, pilot, timeout_s: float = 10.0):
+    """Ask the Devices screen for a fresh status poll and return what it shows."""
+    from workcell.tui import messages as m
+
+    view = app.views["devices"]
+    view.status = None
+    app.post_message(m.StatusRequested())
+    await until(pilot, lambda: view.status is not None, timeout_s, "status")
+    return view.status

@@ -491,8 +491,8 @@ def thermal_mismatch(model, table, temps_c, *, ui: bool = False) -> str | None:
     # range it was fitted on, against the table's own median 1-sigma (a drift larger than what
     # the table says it knows is worth a warning at any K); without either, the 2 K rule
     shift = thermal_shift_rms_m(model, t_table, now[0])
-    std = (table.meta or {}).get("median_std_m")
-    if shift is not None and isinstance(std, int | float) and np.isfinite(std) and std > 0:
+    std = table_median_std(table.meta)
+    if shift is not None and std is not None:
         if shift <= std:
             return None
         cost = (
@@ -517,6 +517,14 @@ def thermal_mismatch(model, table, temps_c, *, ui: bool = False) -> str | None:
         f"the arm is now at {np.round(link_now, 1).tolist()} degC ({d:.1f} K apart){cost}: "
         f"{remedy}"
     )
+
+
+def table_median_std(meta: dict | None) -> float | None:
+    """A table's own median 1-sigma (`meta.median_std_m`) when it states a usable one (finite,
+    positive), else None: what the thermal and payload checks weigh a model's shift against."""
+    std = (meta or {}).get("median_std_m")
+    ok = isinstance(std, int | float) and np.isfinite(std) and std > 0
+    return float(std) if ok else None
 
 
 def fitted_range_configurations(model, n: int = 64) -> np.ndarray | None:
@@ -576,8 +584,8 @@ def payload_mismatch(model, table, payload_kg, *, ui: bool = False) -> str | Non
     if abs(t_pay - now) <= PAYLOAD_MATCH_KG:
         return None
     shift = payload_shift_rms_m(model, t_pay, now)
-    std = meta.get("median_std_m")
-    if shift is not None and isinstance(std, int | float) and np.isfinite(std) and std > 0:
+    std = table_median_std(meta)
+    if shift is not None and std is not None:
         if shift <= std:
             return None
         cost = (
