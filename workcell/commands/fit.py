@@ -22,6 +22,8 @@ from workcell.estimation.models import (
 from workcell.recording.chain import add_chain_option
 from workcell.recording.tracker_spec import TRACKER_MPE_M
 
+DEFAULT_HOLDOUT = 0.25  # `--holdout`; the SMR note's command gives it only when it differs
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
@@ -31,7 +33,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--holdout",
         type=float,
-        default=0.25,
+        default=DEFAULT_HOLDOUT,
         help="fraction of poses held out for evaluation (deterministic split)",
     )
     p.add_argument(
@@ -125,7 +127,7 @@ def refit_command(args: argparse.Namespace, out: Path, smr_m) -> str:
     parts = ["workcell", "fit", args.recording]
     if args.method != "dh":
         parts += ["--method", args.method]
-    if args.holdout != 0.25:
+    if args.holdout != DEFAULT_HOLDOUT:
         parts += ["--holdout", f"{args.holdout:g}"]
     if args.on != "auto":
         parts += ["--on", args.on]
