@@ -316,7 +316,7 @@ def test_ctrl_c_is_not_held_up_by_a_garbled_tracker(tmp_path, signals):
     _signal_after(1.0)
     path, res = run_campaign(robot, slow, cell, tmp_path / "g.mcap", poses=4, seed=1,
                              config=cfg, control=control)  # fmt: skip
-    assert time.monotonic() - t0 < 2.5
+    assert time.monotonic() - t0 < 4.0  # the signal at 1 s; before the fix, 91 s
     assert res.aborted and res.stopped_by == "operator" and slow.calls <= 2
     rec = read_recording(path)
     assert rec.closed_cleanly and rec.events[-1]["kind"] == "abort"

@@ -139,7 +139,7 @@ def test_urrobot_moves_and_reports_state(sim, robot_factory):
     t_w = time.monotonic()
     t_r = r.state().t_s
     r.sleep(1.0)
-    assert time.monotonic() - t_w < 0.5  # 1 s of robot time at TS = 10
+    assert time.monotonic() - t_w < 0.8  # 1 s of robot time at TS = 10 is 0.1 s (unscaled: 1 s)
     # robot time went on by about 1 s (each reading may be a packet old; loaded CI machines)
     assert r.state().t_s - t_r > 0.5
 
