@@ -13,6 +13,7 @@ Addresses 127.0.0.82-87 are this module's (one simulator or fake server per addr
 from __future__ import annotations
 
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -149,7 +150,10 @@ def test_a_time_scale_faster_than_the_controller_is_refused_before_anything_move
             r.connect()
         msg = str(ei.value)
         assert "\n" not in msg and "20x real time" in msg and "--time-scale 400" in msg, msg
-        assert "50 ms" in msg and "give --time-scale 20 " in msg, msg
+        # the settle figure is from the measured clock rate (51 ms at 19.6x on a loaded machine)
+        settle = re.search(r"a 1 s settle to ([0-9.]+) ms", msg)
+        assert settle and 45.0 <= float(settle.group(1)) <= 56.0, msg
+        assert "give --time-scale 20 " in msg, msg
         assert r._rc is None  # no control program: nothing could move
         q0 = r._rr.getActualQ()
         r.close()
