@@ -628,6 +628,81 @@ def test_a_move_cut_short_is_planned_again_from_where_the_arm_was_jogged(fault):
     assert res.measured + res.skipped == 6 and len(samples) == res.measured
 
 
+class JoggedDuringAStateRead(JoggedDuringAFault):
+    """As `JoggedDuringAFault`, but the fault is a lost connection on a state read: the first
+    read after the `at`-th move command fails (the executor reconnects and reads again), and
+    while the connection is down the arm is jogged to a posture inside the envelope from which
+    the straight path to where it had been sent leaves the envelope. The read may be the
+    state recorded at a pre-pose before the approach, or an event's clock read before a via
+    route: moves planned before the reconnect."""
+
+    def __init__(self, *a, **kw):
+        super().__init__(*a, **kw)
+        self.fail_next = False
+
+    def move_joints(self, q, speed, accel):
+        q = np.asarray(q, float)
+        self.commands.append((np.asarray(self.world.joint_state()[0], float), q))
+        out = self.inner.move_joints(q, speed, accel)
+        if len(self.commands) == self.at and self.jogged_to is None:
+            self.fail_next = True
+        return out
+
+    def state(self):
+        from workcell.drivers.protocols import DeviceError
+
+        if self.fail_next:
+            self.fail_next = False
+            last = self.commands[-1][1]
+            # a jog from which even a short step from `last` (the approach) leaves the envelope
+            for _ in range(20):
+                jog = self._jog_for(last)
+                if jog is None:
+                    break
+                if self.env.path_violation(UR5E, jog, last + 0.02, self.tool) is not None:
+                    break
+            if jog is not None:
+                from sim_devices.world import Trajectory
+
+                self.jogged_to = jog
+                t = self.world.clock.now()
+                self.world._traj = Trajectory(t, jog, jog, 1.0, 1.0, np.ones(6))
+            raise DeviceError("RTDE lost (simulated)")
+        return self.inner.state()
+
+
+@pytest.mark.parametrize("at", [1, 2, 3, 4, 5])
+def test_a_move_planned_before_a_reconnect_on_a_state_read_is_planned_again(at):
+    """The audit of 2026-11-26 (night): a lost connection on a state read (the state recorded at
+    the pre-pose, an event's clock) was reconnected and the read repeated; the approach (or the
+    via route) planned before it was then sent from wherever the operator had jogged the arm
+    meanwhile: 106 mm below the box. Now every move carries the reconnect count it was planned
+    at, and one planned before a reconnect is not sent: the pose starts over from where the arm
+    is. Every motion command, from the position the arm had when it was sent, stays inside the
+    envelope."""
+    from workcell.campaign.executor import CampaignControl
+
+    world, robot, tracker, cell = sim_cell("ur5e", "none", 4, beam_break_prob=0.0)
+    env = default_envelope(cell.spec)
+    jog = JoggedDuringAStateRead(robot, world, env, cell.tool_m, at=at, fault=None, seed=at)
+
+    class Sink(NullSink):
+        def sample(self, *a):
+            pass
+
+    sink = Sink()
+    cfg = CampaignConfig(readings_per_pose=1, settle_s=0.1, reconnect_backoff_s=0.0)
+    gen, _ = make_plan("random", cell.spec, env, 4, seed=4, tool_m=cell.tool_m)
+    jog.connect(), tracker.connect()
+    ex = Executor(jog, tracker, cell.spec, env, sink, tool_m=cell.tool_m, config=cfg,
+                  control=CampaignControl())  # fmt: skip
+    res = ex.run(gen)
+    assert jog.jogged_to is not None
+    for q_from, q_to in jog.commands:
+        assert env.path_violation(cell.spec, q_from, q_to, cell.tool_m) is None, (q_from, q_to)
+    assert res.measured + res.skipped == 4
+
+
 def _tight_joint3():
     """The default UR5e envelope with joint 3 limited to [-2.8, -0.3] rad: the upright posture
     (joint 3 at 0) is outside it."""

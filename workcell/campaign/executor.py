@@ -20,7 +20,10 @@ MCAP. Faults become `/campaign/event` records and are handled by a small policy:
   (`stopped_by == "refused"`), saying which limit the paths cross and where to jog the arm;
 - a move cut short by either is never sent again as it was: the arm may have been jogged or
   freedriven meanwhile, so the pose starts over from where the arm is, every path checked again
-  (`_MoveInterrupted`; after `max_reconnects` such restarts the pose is skipped);
+  (`_MoveInterrupted`; after `max_reconnects` such restarts the pose is skipped); so does a
+  reconnect during any other robot call (a state read, an event's clock read) made after a move
+  was planned from where the arm was and before it is sent: each move carries the reconnect
+  count it was planned at (`_move(q, planned_at)`);
 - Ctrl-C / SIGTERM / SIGHUP / abort: stop the robot, record an `abort` event; the caller closes
   the recording. A driver with an `abort_requested` attribute (UrRobot) is given the abort flag
   and stops a move in progress at once. Back-off waits and the tracker's retries look at the
@@ -304,6 +307,9 @@ class Executor:
         self._last_mono = time.monotonic()
         self._last_ns = 0
         self._last_cmd: np.ndarray | None = None  # the last target the arm arrived at
+        # robot reconnects so far: a move planned before one is not sent (the arm may have
+        # been jogged while the connection was down)
+        self._reconnects = 0
         self._elapsed0 = elapsed0_s
         self._last_js = -1e9
         self.watch = watch  # a watch.MarginWatch, or None
@@ -419,6 +425,7 @@ class Executor:
                 try:
                     with self.control.interruptible():  # no record, no motion: Ctrl-C cuts it
                         reconnect()
+                    self._reconnects += 1
                     break
                 except DeviceError as e:
                     err = e
@@ -463,10 +470,18 @@ class Executor:
                 return
             time.sleep(min(left, 0.05))
 
-    def _move(self, q: np.ndarray) -> None:
-        """One joint move whose path the caller has checked from where the arm is. Cut short
-        (protective stop, lost connection) -> `_MoveInterrupted` once recovered: never sent
-        again from wherever the arm is now."""
+    def _move(self, q: np.ndarray, planned_at: int) -> None:
+        """One joint move whose path the caller has checked from where the arm was when the
+        robot had been reconnected `planned_at` times (`self._reconnects` then). A reconnect
+        since (during a state or clock read in between) -> `_MoveInterrupted`, nothing sent: the
+        arm may have been jogged while the connection was down. Cut short (protective stop, lost
+        connection) -> `_MoveInterrupted` once recovered: never sent again from wherever the arm
+        is now."""
+        if self._reconnects != planned_at:
+            raise _MoveInterrupted(
+                "the robot was reconnected after this move was planned from where the arm was "
+                "(nothing sent)"
+            )
         speed, accel = self.env.cap(self.cfg.speed_rad_s, self.cfg.accel_rad_s2)
         try:
             self._robot_call(lambda: self.robot.move_joints(q, speed, accel), repeat=False)
@@ -604,6 +619,7 @@ class Executor:
         moved at all: an `error` event, then `ArmOutsideEnvelope` ends the campaign with the
         recording closed, to be resumed once the arm is back inside."""
         q_now, outside = self._where()
+        planned_at = self._reconnects  # the posture q_now is read after any reconnect so far
         find_route = route
         if outside is not None:
             # beyond the envelope's joint ranges only (its SMR above the table, in the box):
@@ -632,7 +648,7 @@ class Executor:
         if len(waypoints) > 1:
             self.event("info", "via", f"{what}: direct path leaves the envelope; via upright")
         for q in waypoints:
-            self._move(q)
+            self._move(q, planned_at)
         return True
 
     def _note_refused(self, t: PoseTarget, q_from: np.ndarray | None) -> None:
@@ -714,9 +730,10 @@ class Executor:
             self._skip(t)
             self._note_refused(t, self._refused_from)
             return None
+        at_pre = self._reconnects  # the arm arrived at the pre-pose (a reconnect would raise)
         self._refused.clear()  # the arm moved on: refusals before say nothing about here
         self._record_state(force=True)
-        self._move(t.q_rad)
+        self._move(t.q_rad, at_pre)  # checked from the pre-pose: not after a reconnect since
         approach = np.sign(t.q_rad - pre)
         self._settle()
         return self._measure(t, approach)
