@@ -362,3 +362,40 @@ def test_envelope_check_refuses_an_envelope_no_pose_fits(tmp_path, tight, capsys
     assert main(["envelope", "--check", str(far)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no pose fits" in err[0]
+
+
+def test_the_floor_holds_for_the_smr_when_the_box_reaches_below_it():
+    """The floor was checked for the link frames only and the box for the SMR: an envelope whose
+    box reaches below the floor (accepted by `envelope --check`) let a long tool go under the
+    table, flange above it (audit, 2026-11-26 night: SMR at z = -0.18 m over a floor at 0).
+    Now the floor holds for the SMR too, and says which point crossed it."""
+    import dataclasses
+
+    from workcell.campaign.envelope import default_envelope
+    from workcell.campaign.plans import random_configurations
+    from workcell.kinematics.chain import base_T_frames, pack
+    from workcell.kinematics.robots import UR5E
+
+    env = dataclasses.replace(
+        default_envelope(UR5E),
+        box_min_m=np.array([-1.1, -1.1, -0.6]),
+        floor_z_m=0.0,
+        kinematic_margin_m=0.0,
+    )
+    tool = np.array([0.0, 0.0, 0.2])
+    q = random_configurations(UR5E, env, 300, np.random.default_rng(0), tool)
+    T = np.asarray(base_T_frames(pack(UR5E.dh), q))
+    smr_z = (np.einsum("nab,b->na", T[:, -1, :3, :3], tool) + T[:, -1, :3, 3])[:, 2]
+    assert len(q) == 300 and smr_z.min() >= 0.0, smr_z.min()
+    # a posture with the flange just above the floor and the SMR pointing down below it
+    rng = np.random.default_rng(1)
+    lo, hi = env.joint_limits_rad[:, 0], env.joint_limits_rad[:, 1]
+    cand = rng.uniform(lo, hi, (20000, 6))
+    T = np.asarray(base_T_frames(pack(UR5E.dh), cand))
+    links_z = T[:, 2:, 2, 3].min(axis=1)
+    smr_z = (np.einsum("nab,b->na", T[:, -1, :3, :3], tool) + T[:, -1, :3, 3])[:, 2]
+    under = np.flatnonzero((links_z > 0.01) & (smr_z < -0.05))
+    assert len(under), "no posture with the SMR alone below the floor among the draws"
+    msg = env.violations(UR5E, cand[under[:1]], tool)[0]
+    assert msg is not None and msg.startswith("the SMR would go down to z = "), msg
+    assert env.violations(UR5E, cand[under[:1]], np.zeros(3))[0] is None  # flange: above

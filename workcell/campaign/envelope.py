@@ -68,7 +68,7 @@ class Envelope:
     joint_limits_rad: np.ndarray  # (n, 2)
     box_min_m: np.ndarray = field(default_factory=lambda: np.array([-1.0, -1.0, 0.05]))
     box_max_m: np.ndarray = field(default_factory=lambda: np.array([1.0, 1.0, 1.2]))
-    floor_z_m: float = 0.02  # every DH frame origin (2..n) must stay above this (base frame)
+    floor_z_m: float = 0.02  # DH frame origins 2..n and the SMR stay above this (base frame)
     max_speed_rad_s: float = 1.0
     max_accel_rad_s2: float = 2.0
     # the box and the floor are kept this far from every checked point (the nominal kinematics'
@@ -203,7 +203,7 @@ class Envelope:
 
     def clearance(self, spec: RobotSpec, q: np.ndarray, tool_m: np.ndarray) -> np.ndarray:
         """For each row of q (N, n): how far (m) the SMR is from the workspace box's nearest face
-        and the link frames 2..n from the floor, the smaller of the two, less the kinematic
+        and the link frames 2..n and the SMR from the floor, the smaller, less the kinematic
         margin; negative outside.
         (Joint limits are left out: they are convex in joint space, a straight joint path
         between two postures inside them stays inside.)"""
@@ -222,11 +222,15 @@ class Envelope:
         lim = self.joint_limits_rad
         T = np.asarray(base_T_frames(pack(spec.dh), np.where(finite[:, None], q, 0.0)))
         smr = np.einsum("nab,b->na", T[:, -1, :3, :3], np.asarray(tool_m, float)) + T[:, -1, :3, 3]
+        # the floor holds for the link frames 2..n and for the SMR (a box reaching below the
+        # floor does not let the tool under the table)
+        zlinks = T[:, 2:, 2, 3].min(axis=1)
+        low = np.minimum(zlinks, smr[:, 2])
         margin = self.kinematic_margin_m
         clear = (
             np.minimum(
                 np.minimum(smr - self.box_min_m, self.box_max_m - smr).min(axis=1),
-                (T[:, 2:, 2, 3] - self.floor_z_m).min(axis=1),
+                (low - self.floor_z_m),
             )
             - margin
         )
@@ -238,8 +242,7 @@ class Envelope:
         box_bad = np.any(smr < self.box_min_m + margin, axis=1) | np.any(
             smr > self.box_max_m - margin, axis=1
         )
-        zmins = T[:, 2:, 2, 3].min(axis=1)
-        floor_bad = zmins < self.floor_z_m + margin
+        floor_bad = low < self.floor_z_m + margin
         refused = ~finite | joint_bad.any(axis=1) | box_bad | floor_bad
         for i in np.flatnonzero(refused):
             if not finite[i]:
@@ -257,8 +260,9 @@ class Envelope:
                     + within
                 )
             else:
+                what = "the SMR" if smr[i, 2] < zlinks[i] else "a link frame"
                 out[i] = (
-                    f"a link frame would go down to z = {zmins[i]:.3f} m, below the floor "
+                    f"{what} would go down to z = {low[i]:.3f} m, below the floor "
                     f"{self.floor_z_m} m{within}"
                 )
         return out, clear
