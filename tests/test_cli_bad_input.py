@@ -96,7 +96,7 @@ def test_a_huge_integer_in_a_recording_is_a_bad_value_not_a_traceback(cell, caps
     samples[5]["q_measured_rad"] = [10**400, *samples[5]["q_measured_rad"][1:]]
     with RecordingWriter(bad, r.session) as w:
         for i, s in enumerate(samples):  # past the writer's own check, as another tool would
-            w._write(SAMPLE, s, 10**9 * (i + 1))
+            w._write(SAMPLE, s, r.samples[0]["_log_time_ns"] + 10**9 * i)
     one_line_refusal(capsys, ["fit", str(bad)], "q_measured_rad must be 6 finite numbers")
 
 
@@ -289,7 +289,7 @@ def test_the_same_pose_measured_again_is_not_a_fit(cell, capsys, tmp_path):
     with RecordingWriter(same, r.session) as w:
         for i in range(40):
             s = {**r.samples[0], "pose_id": i}
-            w._write(SAMPLE, s, 10**9 * (i + 1))
+            w._write(SAMPLE, s, r.samples[0]["_log_time_ns"] + 10**9 * i)
     one_line_refusal(
         capsys, ["fit", str(same), "--out", str(tmp_path / "m.json")], "only 1 distinct"
     )
@@ -389,7 +389,9 @@ def test_a_dh_chain_in_millimetres_is_refused(cell, capsys, tmp_path):
     with RecordingWriter(bad, s) as w:
         for i, smp in enumerate(r.samples):
             w._write(
-                SAMPLE, {k: v for k, v in smp.items() if not k.startswith("_")}, 10**9 * (i + 1)
+                SAMPLE,
+                {k: v for k, v in smp.items() if not k.startswith("_")},
+                r.samples[0]["_log_time_ns"] + 10**9 * i,
             )
     one_line_refusal(capsys, ["fit", str(bad)], "session robot.dh.a[1] is 425 m")
 

@@ -60,7 +60,7 @@ def write_raw(path, session, samples, times):
         w.start(profile="", library="test")
         ids = {}
         for topic in (S.SESSION, S.SAMPLE):
-            sid = w.register_schema(name=topic, encoding="jsonschema", data=b"{}")
+            sid = w.register_schema(name=S.SCHEMAS[topic][0], encoding="jsonschema", data=b"{}")
             ids[topic] = w.register_channel(topic=topic, message_encoding="json", schema_id=sid)
         w.add_message(
             ids[S.SESSION],
@@ -287,3 +287,66 @@ def test_required_fields_missing_are_read_with_a_warning_that_says_what_was_assu
     assert f"{med * 1e6:.1f} um" in read_warnings(ds)[0]
     # a complete recording has none
     assert read_warnings(Dataset.from_recording(base[3])) == []
+
+
+def _write_custom(path, session, samples, times, *, schema_name=None, encoding="jsonschema",
+                  sample_first=False, sample_data=None):  # fmt: skip
+    with open(path, "wb") as f:
+        w = Writer(f, compression=CompressionType.ZSTD)
+        w.start(profile="", library="test")
+        ids = {}
+        for topic in (S.SESSION, S.SAMPLE):
+            name = S.SCHEMAS[topic][0] if schema_name is None or topic != S.SAMPLE else schema_name
+            sid = w.register_schema(name=name, encoding=encoding, data=b"{}")
+            ids[topic] = w.register_channel(topic=topic, message_encoding="json", schema_id=sid)
+        data = sample_data or [json.dumps(s).encode() for s in samples]
+        msgs = [(ids[S.SAMPLE], t, d) for d, t in zip(data, times, strict=True)]
+        head = (ids[S.SESSION], times[0], json.dumps(session).encode())
+        msgs = msgs[:1] + [head] + msgs[1:] if sample_first else [head] + msgs
+        for cid, t, d in msgs:
+            w.add_message(cid, log_time=t, publish_time=t, data=d)
+        w.finish()
+    return path
+
+
+def test_format_deviations_are_said_once_each(base, tmp_path):
+    """The reader accepted silently (audit of the recording format, 2026-11-26 night): another
+    schema name or encoding than the format's, a sample before the session, log times that are
+    not Unix-epoch nanoseconds, samples whose index runs against their log times, required
+    fields left out; a file of bad JSON gave one line per message, and a record cut short named
+    Python's struct.error. Each is now one line, said once; the clean file says nothing."""
+    session, samples, times, clean = base
+    assert read_recording(clean).problems == []
+
+    def problems(name, **kw):
+        smp = kw.pop("samples", samples)
+        tms = kw.pop("times", times)
+        return read_recording(_write_custom(tmp_path / name, session, smp, tms, **kw)).problems
+
+    p = problems("schema.mcap", schema_name="foo.Unknown")
+    assert len(p) == 1 and "declares schema 'foo.Unknown'" in p[0] and "PoseSample" in p[0]
+    p = problems("protobuf.mcap", encoding="protobuf")
+    assert len(p) == 2 and all("protobuf encoding" in x for x in p)  # session and sample
+    p = problems("first.mcap", sample_first=True)
+    assert any("comes before the session" in x for x in p), p
+    p = problems("ms.mcap", times=[t // 10**6 for t in times])
+    assert len(p) == 1 and "before 2001" in p[0]
+    p = problems("reversed.mcap", samples=samples[::-1])
+    assert len(p) == 1 and "index does not rise" in p[0]
+    bare = [{k: v for k, v in s.items() if k not in ("n_readings", "q_commanded_rad")}
+            for s in samples]  # fmt: skip
+    p = problems("bare.mcap", samples=bare)
+    assert len(p) == 2 and all(f"{len(samples)} of {len(samples)} samples lack" in x for x in p)
+    p = problems("garbage.mcap", sample_data=[b"\x00garbage"] * len(samples))
+    assert p == [f"{S.SAMPLE}: {len(samples)} messages are not valid JSON objects; skipped"]
+    # a record cut short: one line naming it, the messages before it read
+    data = clean.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    for frac in (0.5, 0.8, 0.95):
+        cut.write_bytes(data[: int(len(data) * frac)])
+        try:
+            rec = read_recording(cut)
+        except RecordingError as e:
+            assert "struct" not in str(e) and "\n" not in str(e)
+            continue
+        assert not any("struct" in x or "unpack" in x for x in rec.problems), rec.problems

@@ -192,6 +192,10 @@ def sample_problems(smp: dict, k: int, robot: RobotSpec) -> list[str]:
     pid = smp.get("pose_id")
     if not (_number(pid) and float(pid) == int(pid) and abs(pid) < 2**53):
         out.append(f"{where}: pose_id must be an integer (below 2^53)")
+    for key, least in (("index", 0), ("n_readings", 1)):
+        v = smp.get(key)
+        if v is not None and not (_number(v) and float(v) == int(v) and least <= v < 2**53):
+            out.append(f"{where}: {key} must be an integer >= {least}, got {v!r}")
     for key, width, required in (
         ("q_measured_rad", n, True),
         ("tracker_position_m", 3, True),

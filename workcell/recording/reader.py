@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -42,6 +43,9 @@ class Recording:
     # why the session or samples cannot be read (their channel is not JSON); read_recording
     # refuses the file with it
     encoding_refusal: str = ""
+    # reading state: problems said once per topic (schema, order, bad JSON counts)
+    _said: set = field(default_factory=set, repr=False)
+    _bad_json: dict = field(default_factory=dict, repr=False)
 
     @property
     def duration_s(self) -> float:
@@ -110,17 +114,22 @@ def read_recording(path: str | os.PathLike, *, streams: bool = True) -> Recordin
                     "were ignored: something was appended to the file after it was closed; "
                     "the recording itself is intact"
                 )
-        except (McapError, EOFError, ValueError, OSError, MemoryError, KeyError) as e:
+        except (McapError, EOFError, ValueError, OSError, MemoryError, KeyError, struct.error) as e:
             rec.closed_cleanly = False
+            why = "a record cut short" if isinstance(e, struct.error) else type(e).__name__
             rec.problems.append(
                 f"file ends or is damaged after byte {good} of {rec.size_bytes} "
-                f"({type(e).__name__}); read everything before it"
+                f"({why}); read everything before it"
             )
         except Exception as e:  # noqa: BLE001 - a reader must never crash on a bad file
             rec.closed_cleanly = False
             rec.problems.append(f"unreadable data after byte {f.tell()} ({type(e).__name__}: {e})")
     if not rec.closed_cleanly and not any("ends" in x for x in rec.problems):
         rec.problems.append("no summary/footer: the writer did not finish (crash or still open)")
+    for topic, n in rec._bad_json.items():
+        rec.problems.append(
+            f"{topic}: {n} message{'s are' if n > 1 else ' is'} not valid JSON objects; skipped"
+        )
     if rec.encoding_refusal:
         raise RecordingError(f"{p}: {rec.encoding_refusal}; write it with JSON messages")
     if not rec.session:
@@ -134,12 +143,71 @@ def read_recording(path: str | os.PathLike, *, streams: bool = True) -> Recordin
             f"{p}: no {S.SESSION} message; a recording must start with its session"
         )
     _check_session(p, rec.session)
+    rec.problems += _conformance_notes(rec)
     # MCAP does not require a file's messages to be in time order (a merged or rewritten file
     # may not be): everything downstream (hold-out split, replay, drift tests) follows the order
     # of measurement, so put each stream in log-time order. Stable: equal times keep file order.
+    in_file_order = [id(m) for m in rec.samples]
     for stream in (rec.samples, rec.events, rec.joint_states, rec.tracker_measurements):
         stream.sort(key=lambda m: m["_log_time_ns"])
+    idx = [m.get("index") for m in rec.samples]
+    if all(isinstance(i, int) for i in idx) and any(
+        b < a for a, b in zip(idx, idx[1:], strict=False)
+    ):
+        rec.problems.append(
+            f"{S.SAMPLE}: the samples' index does not rise with their log times (format v1: "
+            "both follow the order of measurement); read in log-time order"
+        )
+    if [id(m) for m in rec.samples] != in_file_order:
+        rec.problems.append(
+            f"{S.SAMPLE}: the samples are not in log-time order in the file; read in log-time "
+            "order (the order of measurement the format defines), not in file order"
+        )
     return rec
+
+
+# required sample fields whose absence nothing else reports (pose_id, q_measured_rad and
+# tracker_position_m are refused as values; a data set says what it assumes for the others)
+_UNSAID_FIELDS = {
+    "index": "the order of measurement is taken from the log times",
+    "n_readings": "the readings behind each mean are not known",
+    "q_commanded_rad": "commanded and measured joints cannot be compared",
+    "joint_temperature_c": "thermal effects cannot be tested on those samples",
+}
+EPOCH_2001_NS = 10**18  # log times below this are before 2001-09-09: not Unix-epoch nanoseconds
+
+
+def _conformance_notes(rec: Recording) -> list[str]:
+    """What a readable file does not do as format v1 says, each said once: required fields
+    left out (counted), log times that are not Unix-epoch nanoseconds."""
+    out: list[str] = []
+    missing = [k for k in S.SCHEMAS[S.SESSION][1]["required"] if k not in rec.session]
+    if missing:
+        out.append(
+            f"{S.SESSION}: the session lacks required field(s) {', '.join(missing)} (format v1); "
+            "read without them"
+        )
+    n = len(rec.samples)
+    for key, means in _UNSAID_FIELDS.items():
+        lacking = sum(1 for m in rec.samples if key not in m)
+        if lacking:
+            out.append(
+                f"{S.SAMPLE}: {lacking} of {n} samples lack the required field {key} "
+                f"(format v1; null where unknown): {means}"
+            )
+    if rec.first_ns is not None and rec.first_ns < EPOCH_2001_NS:
+        out.append(
+            f"log times start at {rec.first_ns} ns, before 2001: not nanoseconds since the Unix "
+            "epoch as format v1 requires (milliseconds or seconds since start?); the order of "
+            "the messages is kept, dates and rates from them are wrong"
+        )
+    return out
+
+
+def _say_once(rec: Recording, key: str, text: str) -> None:
+    if key not in rec._said:
+        rec._said.add(key)
+        rec.problems.append(text)
 
 
 def _message(rec: Recording, channels, schemas, m: Message, streams: bool) -> None:
@@ -156,6 +224,25 @@ def _message(rec: Recording, channels, schemas, m: Message, streams: bool) -> No
         return
     if topic not in S.SCHEMAS:
         return  # extension channels are allowed
+    name = S.SCHEMAS[topic][0]
+    sch = schemas.get(ch.schema_id)
+    if sch is None or sch.name != name or sch.encoding != "jsonschema":
+        got = (
+            "no schema" if sch is None else f"schema {sch.name!r} ({sch.encoding or 'no'} encoding)"
+        )
+        _say_once(
+            rec,
+            "schema " + topic,
+            f"channel {topic} declares {got}, not {name!r} (jsonschema) as format v1 requires; "
+            "its messages were read as the format's",
+        )
+    if topic != S.SESSION and not rec.session:
+        _say_once(
+            rec,
+            "order",
+            f"a {topic} message comes before the session, which format v1 requires to be the "
+            "first message",
+        )
     if ch.message_encoding != "json":
         # the format's messages are JSON; a stream in another encoding cannot be read. Without
         # the session or the samples nothing is usable (refused after the pass, naming the
@@ -169,10 +256,9 @@ def _message(rec: Recording, channels, schemas, m: Message, streams: bool) -> No
     try:
         msg = json.loads(m.data)
     except (ValueError, UnicodeDecodeError):
-        rec.problems.append(f"{topic}: a message is not valid JSON (log time {t}); skipped")
-        return
+        msg = None
     if not isinstance(msg, dict):
-        rec.problems.append(f"{topic}: a message is not a JSON object; skipped")
+        rec._bad_json[topic] = rec._bad_json.get(topic, 0) + 1
         return
     msg["_log_time_ns"] = t
     if topic == S.SESSION:
