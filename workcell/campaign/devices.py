@@ -42,6 +42,40 @@ def parse_smr_offset(text, what: str = "--smr-offset") -> np.ndarray:
     return v
 
 
+PAYLOAD_COM_MAX_M = 0.5  # a centre of mass further from the flange is millimetres typed
+
+
+def parse_payload(text, spec, what: str = "--payload") -> tuple[float, tuple]:
+    """'KG' or 'KG,CX,CY,CZ' (mass in kilograms, centre of mass in metres on the flange, as set
+    on the teach pendant) -> (mass_kg, com_m). Refuses a negative or non-finite mass, one above
+    the arm's rated payload (grams typed as kilograms), a centre of mass beyond
+    `PAYLOAD_COM_MAX_M` (millimetres) and anything else."""
+    try:
+        v = [float(x) for x in str(text).split(",")]
+    except ValueError:
+        v = []
+    if len(v) not in (1, 4) or not all(np.isfinite(v)):
+        raise UserError(
+            f"{what} must be KG or KG,CX,CY,CZ (kilograms; centre of mass in metres on the "
+            f"flange), got {text!r}"
+        )
+    mass, com = v[0], tuple(v[1:]) if len(v) == 4 else (0.0, 0.0, 0.0)
+    if mass < 0:
+        raise UserError(f"{what}: the mass is negative ({mass:g} kg)")
+    if mass > spec.max_payload_kg:
+        hint = "; it looks like grams, give kilograms" if mass > 100 * spec.max_payload_kg else ""
+        raise UserError(
+            f"{what}: {mass:g} kg is above the {spec.model}'s rated payload "
+            f"{spec.max_payload_kg:g} kg{hint}"
+        )
+    if np.linalg.norm(com) > PAYLOAD_COM_MAX_M:
+        raise UserError(
+            f"{what}: the centre of mass is {np.linalg.norm(com):g} m from the flange: give it in "
+            "metres (30 mm is 0.03)"
+        )
+    return float(mass), tuple(float(c) for c in com)
+
+
 def check_device_pair(robot: str, tracker: str) -> None:
     """A simulated robot goes with a simulated tracker (one simulated world): refuse a mix."""
     if (robot == "sim") != (tracker == "sim"):
@@ -66,6 +100,7 @@ def open_cell(args):
         )  # fmt: skip
         if declared:  # else the simulated cell's own nominal SMR
             cell.tool_m = tool_m
+        _declare_payload(cell, args)  # else the simulated arm's own
         return cell, robot, tracker, envelope_from_args(args, cell.spec)
     check_device_pair(args.robot, args.tracker)
     if not args.robot.startswith("ur://"):
@@ -99,5 +134,28 @@ def open_cell(args):
         tool_m=tool_m,
         base_in_tracker={"translation_m": [0.0, 0.0, 0.0], "quaternion_wxyz": [1.0, 0.0, 0.0, 0.0]},
         tracker_model="GeoCOM tracker",
+        payload_declared=False,  # workcell does not read the controller's payload setting
     )
+    _declare_payload(cell, args)
     return cell, robot, tracker, env
+
+
+def _declare_payload(cell: CellSetup, args) -> None:
+    """`--payload` as the operator declares it (the session and every sample record it)."""
+    text = getattr(args, "payload", None)
+    if text is None or str(text).strip() == "":
+        return
+    cell.payload_kg, cell.payload_com_m = parse_payload(text, cell.spec)
+    cell.payload_declared = True
+
+
+def payload_warning(cell: CellSetup) -> str | None:
+    """The line to print when a controller's payload was not declared, else None."""
+    if cell.payload_declared:
+        return None
+    return (
+        f"no --payload given: the recording states {cell.payload_kg:g} kg at the flange "
+        "(workcell does not read the controller's payload setting); the gravity-dependent terms "
+        "(joint compliance, link deflection) are fitted against it: give --payload KG[,CX,CY,CZ] "
+        "as set on the teach pendant"
+    )

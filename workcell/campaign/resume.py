@@ -454,6 +454,20 @@ def resume_campaign(args: argparse.Namespace, control: CampaignControl) -> int:
     """Continue `args.resume` in a new chained file. `--robot`/`--tracker` are needed only for
     recordings that do not name their devices; given otherwise, they must name the same ones."""
     old = Path(args.resume)
+    if getattr(args, "smr_offset", None):
+        raise UserError(
+            "--resume keeps the SMR offset the campaign was recorded with; leave --smr-offset out"
+        )
+    if getattr(args, "envelope", None) not in (None, "", "default"):
+        raise UserError(
+            "--resume keeps the envelope the campaign was recorded with (its poses were planned "
+            "inside it); leave --envelope out"
+        )
+    if getattr(args, "payload", None):
+        raise UserError(
+            "--resume keeps the payload the campaign was recorded with (one campaign, one "
+            "payload); leave --payload out"
+        )
     info = resume_plan(str(old), remeasure_missing=bool(getattr(args, "remeasure_missing", False)))
     camp = info["campaign"]
     remaining = int(camp["poses"]) - len(info["done"])
@@ -474,15 +488,6 @@ def resume_campaign(args: argparse.Namespace, control: CampaignControl) -> int:
             progress(f"warning: {note['message']}")
         print(f"{old}: all {camp['poses']} poses already measured; nothing to resume")
         return 0
-    if getattr(args, "smr_offset", None):
-        raise UserError(
-            "--resume keeps the SMR offset the campaign was recorded with; leave --smr-offset out"
-        )
-    if getattr(args, "envelope", None) not in (None, "", "default"):
-        raise UserError(
-            "--resume keeps the envelope the campaign was recorded with (its poses were planned "
-            "inside it); leave --envelope out"
-        )
     ns = copy.copy(args)
     for opt in ("robot", "tracker"):
         given, recorded = getattr(args, opt), camp.get(f"{opt}_url")
@@ -509,6 +514,11 @@ def resume_campaign(args: argparse.Namespace, control: CampaignControl) -> int:
     ns.sim_noise_stream = len(info["chain"])  # a simulated cell: new noise, same truth
     cell, robot, tracker, env = open_cell(ns)
     cell.tool_m = np.asarray(recorded_tool(info["recording"].session))
+    pay = info["recording"].session.get("payload") or {}
+    if pay.get("mass_kg") is not None:  # the recorded payload, declared or the default
+        cell.payload_kg = float(pay["mass_kg"])
+        cell.payload_com_m = tuple(float(c) for c in (pay.get("com_m") or (0.0, 0.0, 0.0)))
+        cell.payload_declared = True
     env = recorded_envelope(camp, cell.spec, str(old), default=env)
     check_same_plan(info, cell.spec, env, cell.tool_m, str(old))
     cfg = recorded_config(

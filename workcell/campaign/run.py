@@ -44,6 +44,8 @@ class CellSetup:
     tracker_model: str = "unknown"
     payload_kg: float = 0.0
     payload_com_m: tuple = (0.0, 0.0, 0.0)
+    # False: nobody stated the payload (a controller's is not read), the 0 kg above is a default
+    payload_declared: bool = True
 
     def session(self, campaign: dict) -> dict:
         return {

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from workcell.campaign.devices import open_cell
+from workcell.campaign.devices import open_cell, payload_warning
 from workcell.campaign.executor import CampaignConfig, CampaignControl
 from workcell.campaign.plans import MAX_POSES, reference_line, reference_repeats
 from workcell.campaign.run import (
@@ -65,6 +65,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="X,Y,Z",
         help="the SMR's position on the flange in metres (default 0,0,0.06); the envelope and "
         "the margin watch use it",
+    )
+    p.add_argument(
+        "--payload",
+        metavar="KG[,CX,CY,CZ]",
+        help="the payload at the flange as set on the teach pendant: mass in kg, centre of mass "
+        "in m on the flange (recorded; the gravity-dependent terms use it). Default: the "
+        "simulated arm's; 0 kg with a warning for a controller, whose setting is not read",
     )
     p.add_argument("--readings", type=int, help="tracker readings per pose (default 5)")
     p.add_argument("--settle", type=float, help="settle time in seconds (default 1)")
@@ -232,6 +239,8 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--seed must be >= 0, got {args.seed}")
     _check_time_scale(args)
     cell, robot, tracker, env = open_cell(args)
+    if (w := payload_warning(cell)) is not None:
+        print(f"warning: {w}", file=sys.stderr)
     cfg = CampaignConfig(
         readings_per_pose=args.readings,
         settle_s=args.settle,

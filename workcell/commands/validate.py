@@ -41,6 +41,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--readings", type=int, help="tracker readings per target (real tracker; default 5)"
     )
+    p.add_argument(
+        "--payload",
+        metavar="KG[,CX,CY,CZ]",
+        help="real cell: the payload at the flange as set on the teach pendant (kg; centre of "
+        "mass in m), which a --table is checked against (default 0 kg: not read)",
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object")
 
 
@@ -65,10 +71,13 @@ def check_options(args: argparse.Namespace) -> None:
             "for the table validate builds from the model); leave one of them out"
         )
     sim = args.robot == "sim" and args.tracker == "sim"
-    if sim and (args.readings is not None or args.robot_model):
-        given = [
-            o for o, v in (("--readings", args.readings), ("--model-name", args.robot_model)) if v
-        ]
+    real_only = (
+        ("--readings", args.readings),
+        ("--model-name", args.robot_model),
+        ("--payload", getattr(args, "payload", None)),
+    )
+    if sim and any(v is not None and v != "" for _, v in real_only):
+        given = [o for o, v in real_only if v is not None and v != ""]
         raise UserError(
             f"{' and '.join(given)} {'is' if len(given) == 1 else 'are'} for a real cell; the "
             "simulation rebuilds the model's robot and scores against its true positions "
@@ -234,6 +243,7 @@ def run(args: argparse.Namespace) -> int:
             model=args.robot_model or nominal.robot,
             effects=None,
             seed=0,
+            payload=getattr(args, "payload", None),
         )
         cell, robot, tracker, _ = open_cell(ns)
         measure = tracker_measure(tracker, args.readings or DEFAULT_READINGS)

@@ -130,7 +130,7 @@ def open_devices(cfg: DeviceConfig) -> Devices:
     """Open (and connect) the devices. With `start_sim`, start the protocol simulators first
     (`sim_devices.ur_process.SimProcess`); without that module, fall back on the in-process
     simulation and say so in `notes`."""
-    from workcell.campaign.devices import open_cell
+    from workcell.campaign.devices import open_cell, payload_warning
 
     notes: list[str] = []
     robot_url, tracker_url = cfg.robot, cfg.tracker
@@ -173,6 +173,12 @@ def open_devices(cfg: DeviceConfig) -> Devices:
         if robot_url == "sim"
         else ("protocol simulators" if proc is not None else "hardware")
     )
+    if kind == "hardware" and payload_warning(cell) is not None:
+        notes.append(
+            f"campaigns from here record a payload of {cell.payload_kg:g} kg at the flange (the "
+            "controller's setting is not read, and this screen has no payload field): for an "
+            "arm with a payload, run `workcell campaign --payload KG[,CX,CY,CZ]`"
+        )
     return Devices(
         cell, Held(robot), Held(tracker), env, robot_url, tracker_url, kind, cfg, proc, notes
     )
