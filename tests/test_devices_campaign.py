@@ -87,6 +87,9 @@ def test_kill9_over_real_protocols_then_resume(tmp_path):
         first = read_recording(out)
         done = [s["pose_id"] for s in first.samples]
         assert len(done) >= 5 and not first.closed_cleanly
+        # no --payload on a controller: 0 kg recorded, and a warning event says so
+        assert first.session["payload"]["mass_kg"] == 0.0
+        assert [e["kind"] for e in first.events].count("payload") == 1
         # the joint-state stream shows the moves themselves (until 2026-11-26: only the
         # postures between moves, 0 moving states of 134)
         moving = [js for js in first.joint_states if max(map(abs, js["qd_rad_s"])) > 0.05]
@@ -113,6 +116,7 @@ def test_kill9_over_real_protocols_then_resume(tmp_path):
     skipped = [e for e in first.events + second.events if e["kind"] in ("skip", "refused")]
     assert len(set(done) | set(more)) + len(skipped) >= 20
     assert second.session["chained_from"]["sha256"]
+    assert "payload" not in [e["kind"] for e in second.events]  # the recorded payload kept
 
 
 def _campaign_with_a_protective_stop(host, out, policy, stdin=None):

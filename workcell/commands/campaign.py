@@ -239,8 +239,6 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--seed must be >= 0, got {args.seed}")
     _check_time_scale(args)
     cell, robot, tracker, env = open_cell(args)
-    if (w := payload_warning(cell)) is not None:
-        print(f"warning: {w}", file=sys.stderr)
     cfg = CampaignConfig(
         readings_per_pose=args.readings,
         settle_s=args.settle,
@@ -313,6 +311,10 @@ def run(args: argparse.Namespace) -> int:
                 "sim_seed": args.seed if args.robot == "sim" else None,
             },
             reference_every=args.reference_every or 0,
+            # recorded once the devices answer (an unreachable one stays a one-line error)
+            notes=[{"level": "warning", "kind": "payload", "message": w}]
+            if (w := payload_warning(cell)) is not None
+            else None,
         )
     if online is not None:  # the filter's final estimate, or why there is none
         _online_report(online, path, control)
