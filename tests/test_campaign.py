@@ -636,9 +636,10 @@ class JoggedDuringAStateRead(JoggedDuringAFault):
     state recorded at a pre-pose before the approach, or an event's clock read before a via
     route: moves planned before the reconnect."""
 
-    def __init__(self, *a, **kw):
+    def __init__(self, *a, silent: bool = False, **kw):
         super().__init__(*a, **kw)
         self.fail_next = False
+        self.silent = silent  # jog without a lost connection (freedrive, another client)
 
     def move_joints(self, q, speed, accel):
         q = np.asarray(q, float)
@@ -667,24 +668,29 @@ class JoggedDuringAStateRead(JoggedDuringAFault):
                 self.jogged_to = jog
                 t = self.world.clock.now()
                 self.world._traj = Trajectory(t, jog, jog, 1.0, 1.0, np.ones(6))
-            raise DeviceError("RTDE lost (simulated)")
+            if not self.silent:
+                raise DeviceError("RTDE lost (simulated)")
         return self.inner.state()
 
 
+@pytest.mark.parametrize("silent", [False, True], ids=["reconnect", "silent"])
 @pytest.mark.parametrize("at", [1, 2, 3, 4, 5])
-def test_a_move_planned_before_a_reconnect_on_a_state_read_is_planned_again(at):
+def test_a_move_planned_before_a_reconnect_on_a_state_read_is_planned_again(at, silent):
     """The audit of 2026-11-26 (night): a lost connection on a state read (the state recorded at
     the pre-pose, an event's clock) was reconnected and the read repeated; the approach (or the
     via route) planned before it was then sent from wherever the operator had jogged the arm
     meanwhile: 106 mm below the box. Now every move carries the reconnect count it was planned
     at, and one planned before a reconnect is not sent: the pose starts over from where the arm
     is. Every motion command, from the position the arm had when it was sent, stays inside the
-    envelope."""
+    envelope. `silent`: the arm moved with no lost connection (freedrive, another client):
+    each move's path is checked once more from the posture read just before it is sent."""
     from workcell.campaign.executor import CampaignControl
 
     world, robot, tracker, cell = sim_cell("ur5e", "none", 4, beam_break_prob=0.0)
     env = default_envelope(cell.spec)
-    jog = JoggedDuringAStateRead(robot, world, env, cell.tool_m, at=at, fault=None, seed=at)
+    jog = JoggedDuringAStateRead(
+        robot, world, env, cell.tool_m, at=at, fault=None, seed=at, silent=silent
+    )
 
     class Sink(NullSink):
         def sample(self, *a):
@@ -733,7 +739,9 @@ def test_an_arm_beyond_the_joint_ranges_comes_back_without_leaving_them_further(
     from workcell.drivers.protocols import RobotState
 
     robot = RecordingRobot()
-    robot.state = lambda: RobotState(t_s=0.0, q_rad=q_from, qd_rad_s=np.zeros(6))
+    robot.state = lambda: RobotState(  # where the arm was sent last
+        t_s=0.0, q_rad=robot.moves[-1] if robot.moves else q_from, qd_rad_s=np.zeros(6)
+    )
     ex = Executor(robot, None, UR5E, env, NullSink(), tool_m=tool)
     assert ex._move_along(q_to, "pose 0") is True
     assert len(robot.moves) == 2 and np.allclose(robot.moves[0], wps[0])

@@ -470,18 +470,31 @@ class Executor:
                 return
             time.sleep(min(left, 0.05))
 
-    def _move(self, q: np.ndarray, planned_at: int) -> None:
+    def _move(self, q: np.ndarray, planned_at: int, env: Envelope | None = None) -> None:
         """One joint move whose path the caller has checked from where the arm was when the
         robot had been reconnected `planned_at` times (`self._reconnects` then). A reconnect
         since (during a state or clock read in between) -> `_MoveInterrupted`, nothing sent: the
-        arm may have been jogged while the connection was down. Cut short (protective stop, lost
+        arm may have been jogged while the connection was down. The last line of defence: the
+        arm's posture is read once more and the path from it checked against `env` (default the
+        envelope; the caller's when it brings the arm back into the joint ranges); outside ->
+        a `refused` event and `_MoveInterrupted`, nothing sent. Cut short (protective stop, lost
         connection) -> `_MoveInterrupted` once recovered: never sent again from wherever the arm
         is now."""
+        q_now, _ = self._where()
         if self._reconnects != planned_at:
             raise _MoveInterrupted(
                 "the robot was reconnected after this move was planned from where the arm was "
                 "(nothing sent)"
             )
+        why = (env or self.env).path_violation(self.spec, q_now, q, self.tool_m)
+        if why is not None:
+            self.event(
+                "error",
+                "refused",
+                f"a move was not sent: from where the arm is (q = {fmt_q(q_now)} rad) its path "
+                f"{why}",
+            )
+            raise _MoveInterrupted("the path from where the arm is leaves the envelope (not sent)")
         speed, accel = self.env.cap(self.cfg.speed_rad_s, self.cfg.accel_rad_s2)
         try:
             self._robot_call(lambda: self.robot.move_joints(q, speed, accel), repeat=False)
@@ -621,12 +634,14 @@ class Executor:
         q_now, outside = self._where()
         planned_at = self._reconnects  # the posture q_now is read after any reconnect so far
         find_route = route
+        check_env = self.env  # what each move's path is checked against once more
         if outside is not None:
             # beyond the envelope's joint ranges only (its SMR above the table, in the box):
             # the way back in may go, checked against the box and floor all along, via the
             # upright posture only if that is inside the envelope itself
             find_route = route_back_in
             loose = self.env.with_arm_joint_ranges(self.spec)
+            check_env = loose  # the box and the floor, with the arm's own joint ranges
             if loose.violations(self.spec, q_now[None], self.tool_m)[0] is not None:
                 msg = (
                     f"the arm is outside the envelope ({outside}); no move to {what} from there: "
@@ -648,7 +663,7 @@ class Executor:
         if len(waypoints) > 1:
             self.event("info", "via", f"{what}: direct path leaves the envelope; via upright")
         for q in waypoints:
-            self._move(q, planned_at)
+            self._move(q, planned_at, check_env)
         return True
 
     def _note_refused(self, t: PoseTarget, q_from: np.ndarray | None) -> None:
