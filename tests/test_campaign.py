@@ -874,3 +874,29 @@ def test_log_times_come_from_one_clock_across_a_reconnect_and_a_controller_resta
     for t, _, e in records:
         if e is not None:
             assert abs(t - t0 - e * 1e9) < 1e3, (t - t0, e)
+
+
+def test_the_same_controller_sample_is_written_once_to_the_joint_state_stream():
+    """At a pre-pose the arrival state read during the move and the state recorded before the
+    approach were the same controller sample, written twice with one log time (audit of the
+    recording format, 2026-11-26 night); now once. A new sample is written."""
+    from workcell.drivers.protocols import RobotState
+
+    class Sink(NullSink):
+        def __init__(self):
+            super().__init__()
+            self.states = []
+
+        def joint_state(self, *a):
+            self.states.append(a)
+
+    robot, sink = RecordingRobot(), Sink()
+    t = [1.0]
+    robot.state = lambda: RobotState(t_s=t[0], q_rad=np.zeros(6), qd_rad_s=np.zeros(6))
+    ex = Executor(robot, None, UR5E, default_envelope(UR5E), sink, tool_m=np.zeros(3))
+    ex._state_during_move(robot.state())
+    ex._record_state(force=True)
+    assert len(sink.states) == 1
+    t[0] = 1.008
+    ex._record_state(force=True)
+    assert len(sink.states) == 2

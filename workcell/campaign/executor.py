@@ -312,6 +312,7 @@ class Executor:
         self._reconnects = 0
         self._elapsed0 = elapsed0_s
         self._last_js = -1e9
+        self._last_js_t: float | None = None  # the controller time of the last state written
         self.watch = watch  # a watch.MarginWatch, or None
         # faults since the last recorded pose (`MAX_..._IN_A_ROW`)
         self._pstops_in_a_row = 0
@@ -381,7 +382,10 @@ class Executor:
         return st
 
     def _write_state(self, st, e: float) -> None:
-        self._last_js = e
+        t_s = getattr(st, "t_s", None)
+        if t_s is not None and t_s == self._last_js_t:
+            return  # the controller's same sample (the arrival, read again): written already
+        self._last_js, self._last_js_t = e, t_s
         self.sink.joint_state(self._t_ns(e), st.q_rad, st.qd_rad_s, st.torque_nm, st.temperature_c)
 
     def _state_during_move(self, st) -> None:
