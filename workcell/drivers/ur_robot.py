@@ -313,8 +313,7 @@ def _control_worker_main(host: str, frequency: float) -> int:
         "isProgramRunning",
         "disconnect",
         "triggerProtectiveStop",
-        "moveL",
-    }
+    }  # no moveL: a Cartesian path is not the joint-space path the envelope checks
 
     def answer(status: str, value) -> None:
         proto.write(json.dumps([status, value]) + "\n")
