@@ -40,6 +40,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default="",
         help="the SMR's position on the flange in metres (default 0,0,0.06)",
     )
+    p.add_argument(
+        "--payload",
+        metavar="KG[,CX,CY,CZ]",
+        default="",
+        help="the payload at the flange as set on the teach pendant (kg; centre of mass in m); "
+        "default: the simulated arm's, or none declared (0 kg recorded) on a controller",
+    )
     p.add_argument("--poses", type=int, default=50, help="default number of poses in the plan")
     p.add_argument("--out", default="campaign.mcap", help="default recording path")
 
@@ -67,6 +74,7 @@ def run(args: argparse.Namespace) -> int:
         time_scale=scale,
         sim_host=args.sim_host,
         smr_offset=getattr(args, "smr_offset", ""),
+        payload=getattr(args, "payload", "") or "",
         plan=PlanConfig(poses=args.poses, seed=args.seed, out=args.out),
     )
     console = console_command()  # not a test calling run()
@@ -175,9 +183,13 @@ def check_args(args: argparse.Namespace) -> None:
     if args.tracker != "sim" and not args.tracker.startswith("serial://"):
         raise UserError(f"--tracker {args.tracker!r}: expected sim or serial:///dev/ttyX")
     try:
-        robot_by_name(args.model)
+        spec = robot_by_name(args.model)
     except ValueError as e:
         raise UserError(f"--model: {e}") from None
+    if getattr(args, "payload", ""):
+        from workcell.campaign.devices import parse_payload
+
+        parse_payload(args.payload, spec)
     if args.sim and (args.robot != "sim" or args.tracker != "sim"):
         raise UserError(
             "--sim starts its own simulated devices: --robot and --tracker are not used with it "

@@ -858,6 +858,7 @@ def make_app(
     sim_faults: dict | None = None,
     sim_tracker_faults: dict | None = None,
     smr_offset: str = "",
+    payload: str = "",
     plan: PlanConfig | None = None,
     clock: Callable[[], float] = time.monotonic,
     status_poll_s: float = 2.0,
@@ -884,6 +885,7 @@ def make_app(
         sim_faults=sim_faults,
         sim_tracker_faults=sim_tracker_faults,
         smr_offset=smr_offset,
+        payload=payload,
     )
     return WorkcellApp(
         cfg,

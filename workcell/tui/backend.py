@@ -38,6 +38,7 @@ class DeviceConfig:
     sim_faults: dict | None = None  # robot faults for the simulated controller
     sim_tracker_faults: dict | None = None
     smr_offset: str = ""  # 'X,Y,Z' m on the flange; '' = the default (0, 0, 0.06)
+    payload: str = ""  # 'KG[,CX,CY,CZ]'; '' = not declared (the simulated arm's own in simulation)
 
 
 class Held:
@@ -123,6 +124,7 @@ def _namespace(cfg: DeviceConfig, robot: str, tracker: str) -> argparse.Namespac
         seed=cfg.seed,
         time_scale=cfg.time_scale,
         smr_offset=cfg.smr_offset,
+        payload=cfg.payload,
     )
 
 
@@ -175,9 +177,9 @@ def open_devices(cfg: DeviceConfig) -> Devices:
     )
     if kind == "hardware" and payload_warning(cell) is not None:
         notes.append(
-            f"campaigns from here record a payload of {cell.payload_kg:g} kg at the flange (the "
-            "controller's setting is not read, and this screen has no payload field): for an "
-            "arm with a payload, run `workcell campaign --payload KG[,CX,CY,CZ]`"
+            f"no payload declared: campaigns from here record {cell.payload_kg:g} kg at the "
+            "flange (the controller's setting is not read); for an arm with a payload, enter it "
+            "as Payload (as on the teach pendant) and connect again"
         )
     return Devices(
         cell, Held(robot), Held(tracker), env, robot_url, tracker_url, kind, cfg, proc, notes
@@ -530,6 +532,13 @@ def start_campaign(
                 f"declares {np.asarray(dev.cell.tool_m).tolist()} m: a resume keeps the recorded "
                 "one; set it on the Devices screen and reconnect, or start a new campaign"
             )
+        pay = (info["recording"].session.get("payload") or {}).get("mass_kg")
+        if pay is not None and abs(float(pay) - float(dev.cell.payload_kg)) > 1e-9:
+            raise UserError(
+                f"{old} was recorded with a payload of {float(pay):g} kg, the Devices screen "
+                f"declares {float(dev.cell.payload_kg):g} kg: a resume keeps the recorded one; "
+                "set it on the Devices screen and reconnect, or start a new campaign"
+            )
         check_same_cell(camp, str(old), **_cell_identity(dev))
         check_same_plan(info, dev.cell.spec, env, dev.cell.tool_m, str(old))
         cfg = recorded_config(camp, dev.cell.payload_kg, campaign_config(plan, dev))
@@ -548,6 +557,10 @@ def start_campaign(
     else:
         cfg = campaign_config(plan, dev)
         kw = {"reference_every": plan.reference_every}
+        from workcell.campaign.devices import payload_warning
+
+        if (w := payload_warning(dev.cell)) is not None:  # recorded, as the command line does
+            kw["notes"] = [{"level": "warning", "kind": "payload", "message": w}]
     if out.exists():
         raise UserError(f"{out} already exists; choose a new recording path or resume it")
     check_output_path(out, "recording", inputs=[resume_from] if resume_from else [])

@@ -11,7 +11,7 @@ from textual.binding import Binding
 from textual.containers import Horizontal, Vertical
 from textual.widgets import Button, Checkbox, Input, Label
 
-from workcell.campaign.devices import parse_smr_offset
+from workcell.campaign.devices import parse_payload, parse_smr_offset
 from workcell.errors import UserError
 from workcell.tui.backend import DeviceConfig
 from workcell.tui.messages import ConnectRequested, DisconnectRequested, StatusRequested
@@ -43,6 +43,15 @@ def check_time_scale(
         )
 
 
+def _robot_spec(model: str):
+    from workcell.kinematics.robots import robot_by_name
+
+    try:
+        return robot_by_name(model)
+    except ValueError as e:
+        raise UserError(f"Model: {e}") from None
+
+
 def _smr_text(text: str) -> str:
     v = parse_smr_offset(text, "SMR offset")
     return ",".join(f"{x:g}" for x in v) + " m" + (" (the default)" if not text.strip() else "")
@@ -65,6 +74,11 @@ def config_changes(connected: DeviceConfig, form: DeviceConfig) -> list[str]:
         out.append(
             f"start simulators {'on' if form.start_sim else 'off'} "
             f"(connected: {'on' if connected.start_sim else 'off'})"
+        )
+    if connected.payload.strip() != form.payload.strip():
+        out.append(
+            f"payload {form.payload.strip() or 'not declared'} "
+            f"(connected: {connected.payload.strip() or 'not declared'})"
         )
     smr_a = parse_smr_offset(connected.smr_offset, "SMR offset")
     smr_b = parse_smr_offset(form.smr_offset, "SMR offset")
@@ -113,10 +127,11 @@ class DevicesScreen(WorkcellScreen):
                 yield Input(c.model, id="model", placeholder="ur5e")
                 yield Input(f"{c.time_scale:g}", id="time-scale", placeholder="time scale")
             with Horizontal(classes="row"):
-                yield Label("SMR offset (m)")
+                yield Label("SMR m / payload")
                 yield Input(
-                    c.smr_offset, id="smr-offset", placeholder="X,Y,Z on the flange; 0,0,0.06"
+                    c.smr_offset, id="smr-offset", placeholder="X,Y,Z m; 0,0,0.06"
                 )
+                yield Input(c.payload, id="payload", placeholder="kg[,CX,CY,CZ] or empty")
         with Horizontal(id="buttons"):
             yield Button("Connect", id="connect", variant="primary")
             yield Button("Disconnect", id="disconnect")
@@ -135,6 +150,10 @@ class DevicesScreen(WorkcellScreen):
         c = self.config
         smr = self.text("smr-offset")
         parse_smr_offset(smr, "SMR offset")  # refused here, before connecting
+        payload = self.text("payload")
+        model = self.text("model") or "ur5e"
+        if payload:
+            parse_payload(payload, _robot_spec(model), "Payload")
         return DeviceConfig(
             robot=robot,
             tracker=self.text("tracker") or "sim",
@@ -147,6 +166,7 @@ class DevicesScreen(WorkcellScreen):
             sim_faults=c.sim_faults,
             sim_tracker_faults=c.sim_tracker_faults,
             smr_offset=smr,
+            payload=payload,
         )
 
     def action_connect(self) -> None:
