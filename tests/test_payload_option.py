@@ -64,3 +64,10 @@ def test_campaign_records_the_declared_payload_and_resume_keeps_it(tmp_path, cap
     err = capsys.readouterr().err.strip().splitlines()
     assert rc != 0 and len(err) == 1 and "looks like grams" in err[0], err
     assert not (tmp_path / "g.mcap").exists()
+
+
+def test_parse_payload_edges():
+    assert str(parse_payload("-0", UR5E)[0]) == "0.0"  # not a -0.0 kg in the recording
+    with pytest.raises(UserError, match="5.0000001 kg is above"):
+        parse_payload("5.0000001", UR5E)
+    assert parse_payload("5", UR5E)[0] == 5.0  # the rated payload itself is allowed

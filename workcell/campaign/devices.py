@@ -59,13 +59,13 @@ def parse_payload(text, spec, what: str = "--payload") -> tuple[float, tuple]:
             f"{what} must be KG or KG,CX,CY,CZ (kilograms; centre of mass in metres on the "
             f"flange), got {text!r}"
         )
-    mass, com = v[0], tuple(v[1:]) if len(v) == 4 else (0.0, 0.0, 0.0)
+    mass, com = v[0] + 0.0, tuple(v[1:]) if len(v) == 4 else (0.0, 0.0, 0.0)  # -0 is 0
     if mass < 0:
         raise UserError(f"{what}: the mass is negative ({mass:g} kg)")
     if mass > spec.max_payload_kg:
         hint = "; it looks like grams, give kilograms" if mass > 100 * spec.max_payload_kg else ""
         raise UserError(
-            f"{what}: {mass:g} kg is above the {spec.model}'s rated payload "
+            f"{what}: {mass:.10g} kg is above the {spec.model}'s rated payload "
             f"{spec.max_payload_kg:g} kg{hint}"
         )
     if np.linalg.norm(com) > PAYLOAD_COM_MAX_M:

@@ -128,9 +128,7 @@ class DevicesScreen(WorkcellScreen):
                 yield Input(f"{c.time_scale:g}", id="time-scale", placeholder="time scale")
             with Horizontal(classes="row"):
                 yield Label("SMR m / payload")
-                yield Input(
-                    c.smr_offset, id="smr-offset", placeholder="X,Y,Z m; 0,0,0.06"
-                )
+                yield Input(c.smr_offset, id="smr-offset", placeholder="X,Y,Z m; 0,0,0.06")
                 yield Input(c.payload, id="payload", placeholder="kg[,CX,CY,CZ] or empty")
         with Horizontal(id="buttons"):
             yield Button("Connect", id="connect", variant="primary")
