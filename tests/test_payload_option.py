@@ -7,6 +7,8 @@ from __future__ import annotations
 import argparse
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from workcell.campaign.devices import open_cell, parse_payload, payload_warning
 from workcell.cli import main
@@ -71,3 +73,22 @@ def test_parse_payload_edges():
     with pytest.raises(UserError, match="5.0000001 kg is above"):
         parse_payload("5.0000001", UR5E)
     assert parse_payload("5", UR5E)[0] == 5.0  # the rated payload itself is allowed
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.one_of(st.text(max_size=40), st.lists(st.floats(), min_size=0, max_size=5).map(
+    lambda v: ",".join(repr(x) for x in v))))  # fmt: skip
+def test_parse_payload_any_text_is_a_payload_or_one_line(text):
+    import warnings
+
+    import numpy as np
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # no overflow warning on the way to the answer
+            mass, com = parse_payload(text, UR5E)
+    except UserError as e:
+        assert "\n" not in str(e) and str(e).startswith("--payload")
+        return
+    assert 0.0 <= mass <= UR5E.max_payload_kg and len(com) == 3
+    assert np.all(np.isfinite(com)) and float(np.max(np.abs(com))) <= 0.5

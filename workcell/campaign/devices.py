@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from workcell.campaign.envelope import default_envelope, load_envelope
@@ -68,9 +70,9 @@ def parse_payload(text, spec, what: str = "--payload") -> tuple[float, tuple]:
             f"{what}: {mass:.10g} kg is above the {spec.model}'s rated payload "
             f"{spec.max_payload_kg:g} kg{hint}"
         )
-    if np.linalg.norm(com) > PAYLOAD_COM_MAX_M:
+    if math.hypot(*com) > PAYLOAD_COM_MAX_M:  # hypot: no overflow warning on 1e300
         raise UserError(
-            f"{what}: the centre of mass is {np.linalg.norm(com):g} m from the flange: give it in "
+            f"{what}: the centre of mass is {math.hypot(*com):g} m from the flange: give it in "
             "metres (30 mm is 0.03)"
         )
     return float(mass), tuple(float(c) for c in com)
