@@ -92,3 +92,21 @@ def test_parse_payload_any_text_is_a_payload_or_one_line(text):
         return
     assert 0.0 <= mass <= UR5E.max_payload_kg and len(com) == 3
     assert np.all(np.isfinite(com)) and float(np.max(np.abs(com))) <= 0.5
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.floats(), min_size=0, max_size=4).map(lambda v: ",".join(repr(x) for x in v)))
+def test_parse_smr_offset_any_numbers_is_an_offset_or_one_line(text):
+    """The same for --smr-offset (1e300,1e300,0 printed numpy's overflow warning first)."""
+    import warnings
+
+    from workcell.campaign.devices import parse_smr_offset
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            v = parse_smr_offset(text)
+    except UserError as e:
+        assert "\n" not in str(e)
+        return
+    assert v.shape == (3,)

@@ -36,9 +36,9 @@ def parse_smr_offset(text, what: str = "--smr-offset") -> np.ndarray:
         v = np.array([])
     if v.shape != (3,) or not np.all(np.isfinite(v)):
         raise UserError(f"{what} must be three numbers X,Y,Z in metres on the flange, got {text!r}")
-    if np.linalg.norm(v) > SMR_OFFSET_MAX_M:
+    if math.hypot(*v) > SMR_OFFSET_MAX_M:  # hypot: no overflow warning on 1e300
         raise UserError(
-            f"{what} {text!r} is {np.linalg.norm(v):g} m from the flange: the offset is in "
+            f"{what} {text!r} is {math.hypot(*v):g} m from the flange: the offset is in "
             "metres (109 mm is 0,0,0.109)"
         )
     return v
