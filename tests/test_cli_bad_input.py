@@ -889,3 +889,39 @@ def test_tui_sim_on_a_host_whose_ports_are_taken_is_refused(capsys):
         one_line_refusal(
             capsys, ["tui", "--sim", "--sim-host", "127.0.0.47"], "port 29999 is already in use"
         )
+
+
+def test_extreme_numbers_are_refused_in_one_line_without_a_warning(cell, capsys):
+    """An audit of every numeric option (2026-11-27): a 10**30 draw count gave bench discovery a
+    traceback; a 1e300 orientation and a 1e-320 spacing printed numpy's overflow warning before
+    the refusal. Warnings are errors here, so one would fail the refusal."""
+    import warnings
+
+    _, _, model = cell
+    vol = "--volume=-0.2,-0.5,0.2,0.2,-0.2,0.5"
+    out = str(model.parent / "tab.json")
+    cases = [
+        (["bench", "discovery", "--draws", str(10**30)], "--draws must be 1..100"),
+        (["bench", "discovery", "--seed", "-1"], "--seed must be"),
+        (
+            [
+                "export",
+                str(model),
+                "--format",
+                "table",
+                vol,
+                "--orientation=1e300,3.14159,0",
+                "--out",
+                out,
+            ],
+            "more than 2 pi",
+        ),  # fmt: skip
+        (
+            ["export", str(model), "--format", "table", vol, "--spacing", "1e-320", "--out", out],
+            "nodes per orientation",
+        ),  # fmt: skip
+    ]
+    for argv, match in cases:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            one_line_refusal(capsys, argv, match)

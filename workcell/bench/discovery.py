@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from workcell.bench import environment
-from workcell.errors import OneLineParser, check_output_path
+from workcell.errors import OneLineParser, UserError, check_output_path
 from workcell.kinematics.chain import jac_params, pack
 
 SINGLE_CASES: list[tuple[str, int | None]] = (
@@ -385,6 +385,16 @@ def main(argv: list[str]) -> int:
         "it does not change which effects are named)",
     )
     a = ap.parse_args(argv)
+    for opt, v, lo, hi in (
+        ("--draws", a.draws, 1, 100),
+        ("--pairs", a.pairs, 0, 1000),
+        ("--clean", a.clean, 0, 1000),
+        ("--poses", a.poses, 20, 5000),
+    ):
+        if not lo <= v <= hi:
+            raise UserError(f"{opt} must be {lo}..{hi}, got {v}")
+    if a.seed is not None and not 0 <= a.seed < 2**63:
+        raise UserError(f"--seed must be 0..2^63-1, got {a.seed}")
     if a.out:  # before minutes of work: never over a recording, a device or an input
         check_output_path(a.out, "bench result")
     master = int(np.random.SeedSequence().entropy % (2**31)) if a.seed is None else a.seed

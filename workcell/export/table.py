@@ -1001,7 +1001,8 @@ def build_table(
                 f"spacing {spacing_m:g} m is wider than the volume ({(hi_m - lo_m).max():.3g} m "
                 "at its widest): one cell, no table; give metres"
             )
-        n = float(np.prod(np.floor((hi_m - lo_m) / spacing_m) + 2))
+        with np.errstate(over="ignore", divide="ignore"):  # a tiny spacing: inf, refused below
+            n = float(np.prod(np.floor((hi_m - lo_m) / spacing_m) + 2))
         if n > MAX_FIXED_NODES:
             h_min = float((np.prod(hi_m - lo_m) / MAX_FIXED_NODES) ** (1 / 3))
             raise UserError(
