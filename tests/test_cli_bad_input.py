@@ -227,7 +227,9 @@ def test_an_unmet_interpolation_target_is_said(cell, capsys):
         (["--out", "{file}/c.mcap"], "is a file, not a folder"),
         (["--sim", "--sim-host", "10.0.0.1"], "only listens on loopback"),
         (["--sim", "--robot", "ur://127.0.0.9"], "--robot and --tracker are not used with it"),
-        (["--time-scale", "inf"], "must be a finite number > 0"),
+        (["--time-scale", "inf"], "must be a number from 0.01 to 1000"),
+        (["--time-scale", "1e300"], "must be a number from 0.01 to 1000"),
+        (["--poses", str(10**30)], "--poses must be 1..100000"),
         (["--robot", "ur://127.0.0.9"], "use --robot sim together with --tracker sim"),
     ],
 )
@@ -241,7 +243,11 @@ def test_tui_options_refused_before_it_starts(tmp_path, capsys, argv, match):
 def test_sim_time_scale_must_be_finite(capsys):
     """`sim --time-scale inf` failed inside the tracker simulator, quoting 0.0 and "inf: no
     delays" as if inf were meant."""
-    one_line_refusal(capsys, ["sim", "--time-scale", "inf"], "must be a finite number > 0")
+    one_line_refusal(capsys, ["sim", "--time-scale", "inf"], "must be a number from 0.01 to 1000")
+    # 1e300 overflowed the recording's timestamps, 1e-320 stopped the controller's clock
+    one_line_refusal(capsys, ["sim", "--time-scale", "1e300"], "must be a number from 0.01")
+    one_line_refusal(capsys, ["sim", "--time-scale", "1e-320"], "must be a number from 0.01")
+    one_line_refusal(capsys, ["sim", "--seed", "-1"], "--seed must be 0..2^63-1")
 
 
 def test_bench_ekf_ann_counts(capsys):
@@ -914,12 +920,44 @@ def test_extreme_numbers_are_refused_in_one_line_without_a_warning(cell, capsys)
                 "--out",
                 out,
             ],
-            "more than 2 pi",
+            "more than a full turn",
         ),  # fmt: skip
         (
             ["export", str(model), "--format", "table", vol, "--spacing", "1e-320", "--out", out],
             "nodes per orientation",
         ),  # fmt: skip
+        # an empty field was dropped: 7 fields read as 6
+        (
+            [
+                "export",
+                str(model),
+                "--format",
+                "table",
+                vol,
+                "--approach=1,,1,1,1,1,1",
+                "--out",
+                out,
+            ],
+            "--approach: expected 6 comma-separated numbers",
+        ),  # fmt: skip
+        (
+            [
+                "export",
+                str(model),
+                "--format",
+                "table",
+                "--volume=-0.2,-0.5,0.2,0.2,-0.2,0.5,",
+                "--out",
+                out,
+            ],
+            "--volume: expected 6",
+        ),  # fmt: skip
+        (
+            ["export", str(model), "--format", "table", vol, "--interp-error=1e-320", "--out", out],
+            "below a picometre",
+        ),  # fmt: skip
+        (["bench", "lddmm-pendulum", "--sigma", "1e300"], "--sigma must be a number from"),
+        (["bench", "lddmm-pendulum", "--n-steps", str(10**30)], "--n-steps must be 1..1000"),
     ]
     for argv, match in cases:
         with warnings.catch_warnings():

@@ -310,8 +310,8 @@ def test_abort_and_quit_after_the_campaign_ended_meanwhile(tmp_path, monkeypatch
 @pytest.mark.parametrize(
     ("scale", "start_sim", "said"),
     [
-        ("inf", True, "time scale must be a finite number > 0 (e.g. 10), got inf"),
-        ("nan", False, "time scale must be a finite number > 0"),
+        ("inf", True, "time scale must be a number from 0.01 to 1000 (e.g. 10), got inf"),
+        ("nan", False, "time scale must be a number from 0.01 to 1000"),
         ("5", False, "time scale 5 with Robot sim: the in-process simulation runs on virtual"),
     ],
 )

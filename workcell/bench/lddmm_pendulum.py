@@ -43,7 +43,7 @@ import numpy as np
 
 from workcell._jax import jnp
 from workcell.bench import environment
-from workcell.errors import OneLineParser, check_output_path
+from workcell.errors import OneLineParser, UserError, check_output_path
 
 L1, L2 = 1.0, 0.5
 G = 9.81
@@ -205,6 +205,11 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--n-steps", type=int, default=10, help="RK4 steps")
     ap.add_argument("--max-iter", type=int, default=100, help="L-BFGS iterations")
     args = ap.parse_args(argv)
+    if not (math.isfinite(args.sigma) and 1e-4 <= args.sigma <= 1e4):
+        raise UserError(f"--sigma must be a number from 1e-4 to 1e4, got {args.sigma:g}")
+    for opt, v, hi in (("--n-steps", args.n_steps, 1000), ("--max-iter", args.max_iter, 100000)):
+        if not 1 <= v <= hi:
+            raise UserError(f"{opt} must be 1..{hi}, got {v}")
     check_output_path(args.out, "bench output folder", folder=True)
     for name in ("heatmaps.png", "results.json"):  # never over a recording or a device
         check_output_path(os.path.join(args.out, name), "bench output")

@@ -44,6 +44,17 @@ def parse_smr_offset(text, what: str = "--smr-offset") -> np.ndarray:
     return v
 
 
+TIME_SCALE_RANGE = (0.01, 1000.0)  # a simulation 100x slower .. 1000x faster than real time
+
+
+def check_time_scale_range(scale: float, opt: str = "--time-scale") -> None:
+    """A time scale that is a finite number inside `TIME_SCALE_RANGE` (1e300 overflowed the
+    recording's timestamps; 1e-320 stopped the simulated controller's clock)."""
+    lo, hi = TIME_SCALE_RANGE
+    if not (math.isfinite(scale) and lo <= scale <= hi):
+        raise UserError(f"{opt} must be a number from {lo:g} to {hi:g} (e.g. 10), got {scale:g}")
+
+
 PAYLOAD_COM_MAX_M = 0.5  # a centre of mass further from the flange is millimetres typed
 
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import sys
 from pathlib import Path
@@ -177,8 +176,9 @@ def _check_time_scale(args: argparse.Namespace) -> None:
     if args.time_scale is None:
         args.time_scale = 1.0
         return
-    if not (math.isfinite(args.time_scale) and args.time_scale > 0):
-        raise UserError(f"--time-scale must be a positive number, got {args.time_scale}")
+    from workcell.campaign.devices import check_time_scale_range
+
+    check_time_scale_range(args.time_scale)
     if args.robot == "sim":  # None on a resume: the recorded robot (the driver checks it)
         raise UserError(
             f"--time-scale {args.time_scale:g} with --robot sim: the in-process simulation runs "

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import math
 from pathlib import Path
 
 import numpy as np
@@ -179,12 +178,6 @@ def run(args: argparse.Namespace) -> int:
     oris = (
         [parse_vec(o, 3, "--orientation") for o in args.orientation] if args.orientation else None
     )
-    for o in oris or ():
-        if math.hypot(*o) > 2 * math.pi:  # hypot: no overflow warning on 1e300
-            raise UserError(
-                f"--orientation {','.join(f'{x:g}' for x in o)}: a rotation vector of "
-                f"{math.hypot(*o):.4g} rad, more than 2 pi: give the UR rotation vector in radians"
-            )
     table, _ = make_table(
         model,
         model_path=args.model,

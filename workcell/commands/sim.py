@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 
 from workcell.errors import UserError
@@ -83,10 +82,11 @@ def parse_faults(text: str) -> tuple[dict, dict]:
 
 
 def run(args: argparse.Namespace) -> int:
-    if not (math.isfinite(args.time_scale) and args.time_scale > 0):
-        raise UserError(
-            f"--time-scale must be a finite number > 0 (e.g. 50), got {args.time_scale}"
-        )
+    from workcell.campaign.devices import check_time_scale_range
+
+    check_time_scale_range(args.time_scale)
+    if args.seed is not None and not 0 <= args.seed < 2**63:
+        raise UserError(f"--seed must be 0..2^63-1, got {args.seed}")
     if not args.host.startswith("127."):
         raise UserError(f"--host {args.host}: the simulator only listens on loopback (127.x.y.z)")
     robot_faults, tracker_faults = parse_faults(args.faults)

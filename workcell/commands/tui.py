@@ -7,7 +7,6 @@ command line (arm stopped, recording closed), then quit with exit code 128 + the
 from __future__ import annotations
 
 import argparse
-import math
 import signal
 import threading
 import time
@@ -57,12 +56,14 @@ def run(args: argparse.Namespace) -> int:
     from workcell.tui.screens.devices import check_time_scale
 
     scale = args.time_scale if args.time_scale is not None else (10.0 if args.sim else 1.0)
-    if not (math.isfinite(scale) and scale > 0):
-        raise UserError(f"--time-scale must be a finite number > 0 (e.g. 10), got {scale}")
+    from workcell.campaign.devices import check_time_scale_range
+    from workcell.campaign.plans import MAX_POSES
+
+    check_time_scale_range(scale)
     # the Devices screen's rule: the in-process simulation runs on virtual time
     check_time_scale(scale, args.robot, args.sim, opt="--time-scale", robot_opt="--robot")
-    if args.poses <= 0:
-        raise UserError(f"--poses must be positive, got {args.poses}")
+    if not 0 < args.poses <= MAX_POSES:
+        raise UserError(f"--poses must be 1..{MAX_POSES}, got {args.poses}")
     check_args(args)
     app = make_app(
         args.robot,

@@ -69,8 +69,11 @@ def nominal_for_model(model, recording: str | None = None) -> Nominal:
 
 
 def parse_vec(text: str, n: int, what: str) -> np.ndarray:
+    fields = text.replace(" ", "").split(",")
+    if any(not x for x in fields):  # an empty field is a typo, not a number left out
+        raise UserError(f"{what}: expected {n} comma-separated numbers, got {text!r}")
     try:
-        v = np.array([float(x) for x in text.replace(" ", "").split(",") if x], float)
+        v = np.array([float(x) for x in fields], float)
     except ValueError:
         raise UserError(f"{what}: expected {n} comma-separated numbers, got {text!r}") from None
     if v.shape != (n,) or not np.all(np.isfinite(v)):

@@ -45,7 +45,8 @@ OUTSIDE_TOL_M = 1e-6  # targets this far outside the box are still accepted (cla
 def beyond_full_turn(rotvec: np.ndarray) -> tuple[int, float] | None:
     """(index, angle in rad) of the longest of the rotation vectors (N, 3) when it is longer
     than a full turn (one in degrees), else None."""
-    turn = np.linalg.norm(np.asarray(rotvec, float).reshape(-1, 3), axis=1)
+    with np.errstate(over="ignore"):  # 1e300: an inf angle, refused, without a warning
+        turn = np.linalg.norm(np.asarray(rotvec, float).reshape(-1, 3), axis=1)
     if not np.any(turn > 2 * np.pi + 1e-9):
         return None
     i = int(np.argmax(turn))
@@ -978,6 +979,11 @@ def build_table(
     ):
         if not (np.isfinite(v) and v > 0):
             raise UserError(f"{name} must be a positive number of metres, got {v}")
+    if target_error_m < 1e-12:
+        raise UserError(
+            f"interpolation error target {target_error_m:g} m is below a picometre; give metres "
+            "(5e-6 for 5 um)"
+        )
     if target_error_m > 1e-3:
         raise UserError(
             f"interpolation error target {target_error_m:g} m is beyond any calibration (they "

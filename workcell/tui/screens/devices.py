@@ -27,8 +27,9 @@ def check_time_scale(
     simulators started here, or `workcell sim --time-scale X` at ur://HOST): the in-process
     simulation runs on virtual time and would ignore it. `opt`, `robot_opt`: the names the
     operator typed them under (the form's labels, or the command line's options)."""
-    if not (math.isfinite(scale) and scale > 0):
-        raise UserError(f"{opt} must be a finite number > 0 (e.g. 10), got {scale:g}")
+    from workcell.campaign.devices import check_time_scale_range
+
+    check_time_scale_range(scale, opt)
     if robot == "sim" and not start_sim and scale != 1:
         raise UserError(
             f"{opt} {scale:g} with {robot_opt} sim: the in-process simulation runs on virtual "
