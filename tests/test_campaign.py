@@ -224,7 +224,7 @@ def test_campaign_cli_dry_run_and_required_out(tmp_path):
         (["--settle", "-1"], "--settle (settle_s) must be a finite number >= 0"),
         (["--settle", "nan"], "--settle (settle_s) must be a finite number >= 0"),
         (["--warmup", "-5"], "--warmup (warmup_s) must be a finite number >= 0"),
-        (["--time-scale", "0"], "--time-scale must be a positive number"),
+        (["--time-scale", "0"], "--time-scale must be a number from 0.01 to 1000"),
         (["--seed", "-1"], "--seed must be >= 0"),
         (["--poses", "100000000"], "limit 100000"),
     ],
