@@ -382,10 +382,9 @@ class Executor:
         return st
 
     def _write_state(self, st, e: float) -> None:
-        t_s = getattr(st, "t_s", None)
-        if t_s is not None and t_s == self._last_js_t:
+        if st.t_s == self._last_js_t:
             return  # the controller's same sample (the arrival, read again): written already
-        self._last_js, self._last_js_t = e, t_s
+        self._last_js, self._last_js_t = e, st.t_s
         self.sink.joint_state(self._t_ns(e), st.q_rad, st.qd_rad_s, st.torque_nm, st.temperature_c)
 
     def _state_during_move(self, st) -> None:

@@ -156,6 +156,9 @@ def heldout_outliers(p_pred: np.ndarray, ev: Dataset, tracker_mpe=TRACKER_MPE_M)
     }
 
 
+HELD_FIGURES = ("rms_m", "rms_ci95_m", "max_m", "median_m")  # heldout_* (train_* without)
+
+
 def fit_dataset(
     ds: Dataset,
     *,
@@ -222,16 +225,8 @@ def fit_dataset(
         "nominal_rms_m": nominal["rms_m"],
         "nominal_rms_ci95_m": nominal["rms_ci95_m"],
         "nominal_max_m": nominal["max_m"],
-        **{
-            f"{'heldout' if len(dte) else 'train'}_{k}": held[k]
-            for k in ("rms_ci95_m", "max_m", "median_m")
-        },
-        **(
-            {}
-            if len(dte)
-            else {k: None for k in ("heldout_rms_ci95_m", "heldout_max_m", "heldout_median_m")}
-        ),
-        "heldout_rms_m": held["rms_m"] if len(dte) else None,
+        **{f"heldout_{k}": held[k] if len(dte) else None for k in HELD_FIGURES},
+        **({} if len(dte) else {f"train_{k}": held[k] for k in HELD_FIGURES if k != "rms_m"}),
         "rms_interval_basis": RMS_INTERVAL_BASIS,
         "train_rms_m": train_stats["rms_m"],
         "stated_noise_floor_m": stated_noise_floor(ev),

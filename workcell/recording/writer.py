@@ -16,23 +16,11 @@ from pathlib import Path
 from mcap.writer import CompressionType, Writer
 
 from workcell.recording import schema as S
+from workcell.strict_json import finite
 
 
 def _now_ns() -> int:
     return time.time_ns()
-
-
-def _clean(v):
-    """JSON-ready: numpy to lists, NaN to None."""
-    if hasattr(v, "tolist"):
-        v = v.tolist()
-    if isinstance(v, float):
-        return v if math.isfinite(v) else None
-    if isinstance(v, (list, tuple)):
-        return [_clean(x) for x in v]
-    if isinstance(v, dict):
-        return {k: _clean(x) for k, x in v.items()}
-    return v
 
 
 class RecordingWriter:
@@ -97,7 +85,7 @@ class RecordingWriter:
     def _write(self, topic: str, msg: dict, t_ns: int) -> None:
         if self.closed:
             raise ValueError(f"recording {self.path} is closed")
-        data = json.dumps(_clean(msg), allow_nan=False).encode()
+        data = json.dumps(finite(msg), allow_nan=False).encode()
         self._w.add_message(
             channel_id=self._ch[topic],
             log_time=int(t_ns),
@@ -137,7 +125,7 @@ class RecordingWriter:
         """Record one pose sample. `flush=False` (bulk import of a trajectory) skips the
         per-sample chunk close and fsync; the caller flushes or closes."""
         for k in ("q_measured_rad", "tracker_position_m"):
-            if any(x is None or not math.isfinite(x) for x in _clean(sample[k]) or [None]):
+            if any(x is None or not math.isfinite(x) for x in finite(sample[k]) or [None]):
                 raise ValueError(f"sample {sample.get('pose_id')}: non-finite {k}")
         self._write(S.SAMPLE, sample, t_ns)
         self.n_samples += 1

@@ -132,7 +132,7 @@ def open_devices(cfg: DeviceConfig) -> Devices:
     """Open (and connect) the devices. With `start_sim`, start the protocol simulators first
     (`sim_devices.ur_process.SimProcess`); without that module, fall back on the in-process
     simulation and say so in `notes`."""
-    from workcell.campaign.devices import open_cell, payload_warning
+    from workcell.campaign.devices import open_cell
 
     notes: list[str] = []
     robot_url, tracker_url = cfg.robot, cfg.tracker
@@ -175,7 +175,7 @@ def open_devices(cfg: DeviceConfig) -> Devices:
         if robot_url == "sim"
         else ("protocol simulators" if proc is not None else "hardware")
     )
-    if kind == "hardware" and payload_warning(cell) is not None:
+    if kind == "hardware" and not cell.payload_declared:
         notes.append(
             f"no payload declared: campaigns from here record {cell.payload_kg:g} kg at the "
             "flange (the controller's setting is not read); for an arm with a payload, enter it "
