@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from sim_devices.world import SimWorld
-from workcell.drivers.protocols import DeviceError, RobotState, TrackerReading
+from workcell.drivers.protocols import DeviceError, PayloadSetting, RobotState, TrackerReading
 
 
 class SimRobot:
@@ -54,6 +54,15 @@ class SimRobot:
 
     def sleep(self, seconds: float) -> None:
         self.world.clock.advance(seconds)
+
+    def payload_setting(self) -> PayloadSetting:
+        """The payload the simulated controller is set to (what the operator declared on its
+        pendant, not the true one), as a UR controller reports it over RTDE."""
+        t = self.world.truth
+        com = np.asarray(t.declared_payload_com_m, float)
+        return PayloadSetting(
+            float(t.declared_payload_kg), (float(com[0]), float(com[1]), float(com[2]))
+        )
 
 
 class SimTracker:

@@ -12,6 +12,8 @@ import pytest
 from sim_devices.ur_process import SimProcess
 from workcell.recording.reader import read_recording
 
+rtde_receive = pytest.importorskip("rtde_receive")
+
 TIME_SCALE = 10.0
 
 
@@ -87,9 +89,18 @@ def test_kill9_over_real_protocols_then_resume(tmp_path):
         first = read_recording(out)
         done = [s["pose_id"] for s in first.samples]
         assert len(done) >= 5 and not first.closed_cleanly
-        # no --payload on a controller: 0 kg recorded, and a warning event says so
-        assert first.session["payload"]["mass_kg"] == 0.0
-        assert [e["kind"] for e in first.events].count("payload") == 1
+        # no --payload on a controller: its payload setting is read and recorded (until
+        # 2026-11-27: 0 kg, with a warning), the same as the unmodified ur_rtde client reads
+        rr = rtde_receive.RTDEReceiveInterface(sim.info["ur_host"], -1.0, ["payload"])
+        try:
+            controller_kg = rr.getPayload()
+        finally:
+            rr.disconnect()
+        pay = first.session["payload"]
+        assert pay["source"] == "controller" and pay["mass_kg"] == controller_kg > 0
+        assert {s["payload_kg"] for s in first.samples} == {controller_kg}
+        said = [e for e in first.events if e["kind"] == "payload"]
+        assert [e["level"] for e in said] == ["info"], said
         # the joint-state stream shows the moves themselves (until 2026-11-26: only the
         # postures between moves, 0 moving states of 134)
         moving = [js for js in first.joint_states if max(map(abs, js["qd_rad_s"])) > 0.05]
@@ -116,7 +127,10 @@ def test_kill9_over_real_protocols_then_resume(tmp_path):
     skipped = [e for e in first.events + second.events if e["kind"] in ("skip", "refused")]
     assert len(set(done) | set(more)) + len(skipped) >= 20
     assert second.session["chained_from"]["sha256"]
-    assert "payload" not in [e["kind"] for e in second.events]  # the recorded payload kept
+    # the recorded payload kept, and the controller still set to it: nothing to say
+    assert "payload" not in [e["kind"] for e in second.events]
+    assert second.session["payload"]["source"] == "recording"
+    assert second.session["payload"]["mass_kg"] == controller_kg
 
 
 def _campaign_with_a_protective_stop(host, out, policy, stdin=None):

@@ -1,6 +1,7 @@
 """`--payload`: the payload at the flange as the operator declares it. A campaign on a controller
-recorded 0 kg whatever the arm carried (workcell does not read the controller's setting), and
-nothing said so (audit of the recording format, 2026-11-26 night)."""
+recorded 0 kg whatever the arm carried, and nothing said so (audit of the recording format,
+2026-11-26 night); since 2026-11-27 the controller's own payload setting is read at connect and
+reconciled with the declared one (`campaign.payload.settle_payload`)."""
 
 from __future__ import annotations
 
@@ -10,8 +11,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from workcell.campaign.devices import open_cell, parse_payload, payload_warning
+from workcell.campaign.devices import open_cell, parse_payload
+from workcell.campaign.payload import settle_payload
 from workcell.cli import main
+from workcell.drivers.protocols import PayloadSetting, PayloadUnavailable
 from workcell.errors import UserError
 from workcell.kinematics.robots import UR5E
 from workcell.recording.reader import read_recording
@@ -40,13 +43,64 @@ def _ns(**kw):
     return argparse.Namespace(**{**base, **kw})
 
 
-def test_a_controller_without_payload_is_said_and_a_declared_one_recorded():
+class _Arm:
+    """A robot whose controller reports `setting` (a PayloadSetting, or the exception to raise)."""
+
+    def __init__(self, setting):
+        self.setting = setting
+
+    def payload_setting(self):
+        if isinstance(self.setting, Exception):
+            raise self.setting
+        return self.setting
+
+
+def test_the_controllers_payload_is_recorded_when_nobody_declares_one():
     cell, *_ = open_cell(_ns())  # constructs the drivers; nothing connects
-    w = payload_warning(cell)
-    assert cell.payload_kg == 0.0 and w is not None and "--payload KG" in w and "\n" not in w
+    assert cell.payload_source == "default" and not cell.payload_declared
+    notes = settle_payload(cell, _Arm(PayloadSetting(1.8, (0.0, 0.01, 0.06))))
+    assert [n["level"] for n in notes] == ["info"] and "1.8 kg" in notes[0]["message"]
+    assert "(0.0, 10.0, 60.0) mm" in notes[0]["message"] and "\n" not in notes[0]["message"]
+    assert cell.session({})["payload"] == {
+        "mass_kg": 1.8,
+        "com_m": [0.0, 0.01, 0.06],
+        "source": "controller",
+        "controller": {"mass_kg": 1.8, "com_m": [0.0, 0.01, 0.06]},
+    }
+
+
+def test_a_controller_that_does_not_say_leaves_0_kg_and_a_warning():
+    for arm, why in (
+        (object(), "does not read a payload setting"),
+        (_Arm(PayloadUnavailable("UR h: the controller does not report it")), "does not report"),
+    ):
+        cell, *_ = open_cell(_ns())
+        notes = settle_payload(cell, arm)
+        assert [n["level"] for n in notes] == ["warning"], notes
+        w = notes[0]["message"]
+        assert why in w and "--payload KG" in w and "0 kg" in w and "\n" not in w
+        assert cell.payload_kg == 0.0 and cell.session({})["payload"]["source"] == "default"
+
+
+def test_a_declared_payload_is_kept_and_a_controller_set_otherwise_is_said():
     cell, *_ = open_cell(_ns(payload="3.2,0,0,0.04"))
-    assert payload_warning(cell) is None
-    assert cell.session({})["payload"] == {"mass_kg": 3.2, "com_m": [0.0, 0.0, 0.04]}
+    assert cell.payload_declared and cell.payload_source == "declared"
+    # the same within the pendant's display resolution: nothing to say
+    assert settle_payload(cell, _Arm(PayloadSetting(3.205, (0.0, 0.0, 0.0405)))) == []
+    for other, words in (
+        (PayloadSetting(2.0, (0.0, 0.0, 0.04)), "2 kg"),  # another mass
+        (PayloadSetting(3.2, (0.0, 0.0, 0.1)), "(0.0, 0.0, 100.0) mm"),  # another centre of mass
+    ):
+        notes = settle_payload(cell, _Arm(other))
+        assert [n["level"] for n in notes] == ["warning"], notes
+        w = notes[0]["message"]
+        assert words in w and "3.2 kg" in w and "declared payload" in w and "\n" not in w
+        pay = cell.session({})["payload"]
+        assert (pay["mass_kg"], pay["source"]) == (3.2, "declared")
+        assert pay["controller"]["mass_kg"] == other.mass_kg
+    # a declared payload and a controller that does not say: nothing to warn about
+    assert settle_payload(cell, _Arm(PayloadUnavailable("older software"))) == []
+    assert cell.session({})["payload"]["controller"] == {"unavailable": "older software"}
 
 
 def test_campaign_records_the_declared_payload_and_resume_keeps_it(tmp_path, capsys):
@@ -55,7 +109,12 @@ def test_campaign_records_the_declared_payload_and_resume_keeps_it(tmp_path, cap
                "--payload", "1.25,0,0,0.03", "--out", str(out)])  # fmt: skip
     assert rc == 0
     rec = read_recording(out)
-    assert rec.session["payload"] == {"mass_kg": 1.25, "com_m": [0.0, 0.0, 0.03]}
+    pay = rec.session["payload"]
+    assert (pay["mass_kg"], pay["com_m"], pay["source"]) == (1.25, [0.0, 0.0, 0.03], "declared")
+    # the simulated controller is set to its cell's own payload: said, both recorded
+    assert pay["controller"]["mass_kg"] != 1.25
+    said = [e["message"] for e in rec.events if e["kind"] == "payload"]
+    assert len(said) == 1 and "1.25 kg" in said[0] and "controller is set to" in said[0]
     assert {s["payload_kg"] for s in rec.samples} == {1.25}
     capsys.readouterr()
     rc = main(["campaign", "--resume", str(out), "--payload", "2", "--out",
@@ -110,3 +169,18 @@ def test_parse_smr_offset_any_numbers_is_an_offset_or_one_line(text):
         assert "\n" not in str(e)
         return
     assert v.shape == (3,)
+
+
+def test_validate_says_where_the_payload_it_compared_came_from(monkeypatch):
+    import workcell.export.validate as xv
+
+    monkeypatch.setattr(xv, "payload_mismatch", lambda *a, **k: "the table is for 5 kg")
+    for source, words in (
+        ("controller", "as the controller is set"),
+        ("default", "controller's setting unread, so 0 kg"),
+        ("declared", "as declared"),
+    ):
+        w = xv.payload_check(None, None, 0.0, simulated=False, source=source)
+        assert w.startswith("the table is for 5 kg (") and words in w and "\n" not in w
+    with pytest.raises(UserError, match="the table is for 5 kg"):  # a simulated arm: refused
+        xv.payload_check(None, None, 0.0, simulated=True, source="controller")

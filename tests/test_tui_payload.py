@@ -29,14 +29,18 @@ def _campaign(dev, out, poses=4, stop_after=None):
 def test_the_declared_payload_is_recorded_and_a_resume_keeps_the_recorded_one(tmp_path):
     dev = backend.open_devices(DeviceConfig(effects="none", payload="1.5,0,0,0.02"))
     try:
-        assert dev.cell.payload_kg == 1.5 and not dev.notes
+        # the simulated controller is set to its cell's own payload, not 1.5 kg: said at connect
+        assert dev.cell.payload_kg == 1.5 and len(dev.notes) == 1, dev.notes
+        assert "controller is set to" in dev.notes[0] and "1.5 kg" in dev.notes[0]
         path, res = _campaign(dev, tmp_path / "p.mcap", poses=5, stop_after=2)
     finally:
         dev.close()
     rec = read_recording(path)
-    assert rec.session["payload"] == {"mass_kg": 1.5, "com_m": [0.0, 0.0, 0.02]}
+    pay = rec.session["payload"]
+    assert (pay["mass_kg"], pay["com_m"], pay["source"]) == (1.5, [0.0, 0.0, 0.02], "declared")
     assert {s["payload_kg"] for s in rec.samples} == {1.5}
-    assert "payload" not in [e["kind"] for e in rec.events]  # declared: nothing to warn about
+    said = [e for e in rec.events if e["kind"] == "payload"]  # and recorded by the campaign
+    assert [e["level"] for e in said] == ["warning"] and "1.5 kg" in said[0]["message"]
     # resumed with another payload on the Devices screen: refused before anything moves
     dev = backend.open_devices(DeviceConfig(effects="none", payload="2"))
     try:
@@ -55,3 +59,20 @@ def test_the_form_says_a_payload_typed_without_reconnecting():
         "payload 2 (connected: not declared)"
     ]
     assert config_changes(DeviceConfig(payload="2"), DeviceConfig(payload="2")) == []
+
+
+def test_without_a_declared_payload_the_controllers_setting_is_used(tmp_path):
+    """The protocol simulators (a controller reached over RTDE): nothing typed in Payload, so
+    the controller's payload setting is read at connect, shown, and recorded."""
+    cfg = DeviceConfig(effects="none", start_sim=True, sim_host="127.0.0.94", time_scale=10.0)
+    dev = backend.open_devices(cfg)
+    try:
+        assert dev.kind == "protocol simulators"
+        assert dev.cell.payload_source == "controller" and dev.cell.payload_kg > 0
+        assert len(dev.notes) == 1 and "payload from the controller's setting" in dev.notes[0]
+        assert "--payload" not in dev.notes[0]  # the form's word for it
+        path, res = _campaign(dev, tmp_path / "c.mcap", poses=2)
+    finally:
+        dev.close()
+    pay = read_recording(path).session["payload"]
+    assert pay["source"] == "controller" and pay["mass_kg"] == dev.cell.payload_kg

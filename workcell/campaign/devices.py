@@ -147,7 +147,7 @@ def open_cell(args):
         tool_m=tool_m,
         base_in_tracker={"translation_m": [0.0, 0.0, 0.0], "quaternion_wxyz": [1.0, 0.0, 0.0, 0.0]},
         tracker_model="GeoCOM tracker",
-        payload_declared=False,  # workcell does not read the controller's payload setting
+        payload_source="default",  # until --payload or the controller's setting (at connect)
     )
     _declare_payload(cell, args)
     return cell, robot, tracker, env
@@ -159,16 +159,4 @@ def _declare_payload(cell: CellSetup, args) -> None:
     if text is None or str(text).strip() == "":
         return
     cell.payload_kg, cell.payload_com_m = parse_payload(text, cell.spec)
-    cell.payload_declared = True
-
-
-def payload_warning(cell: CellSetup) -> str | None:
-    """The line to print when a controller's payload was not declared, else None."""
-    if cell.payload_declared:
-        return None
-    return (
-        f"no --payload given: the recording states {cell.payload_kg:g} kg at the flange "
-        "(workcell does not read the controller's payload setting); the gravity-dependent terms "
-        "(joint compliance, link deflection) are fitted against it: give --payload KG[,CX,CY,CZ] "
-        "as set on the teach pendant"
-    )
+    cell.payload_source = "declared"

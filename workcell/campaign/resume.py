@@ -518,7 +518,7 @@ def resume_campaign(args: argparse.Namespace, control: CampaignControl) -> int:
     if pay.get("mass_kg") is not None:  # the recorded payload, declared or the default
         cell.payload_kg = float(pay["mass_kg"])
         cell.payload_com_m = tuple(float(c) for c in (pay.get("com_m") or (0.0, 0.0, 0.0)))
-        cell.payload_declared = True
+        cell.payload_source = "recording"
     env = recorded_envelope(camp, cell.spec, str(old), default=env)
     check_same_plan(info, cell.spec, env, cell.tool_m, str(old))
     cfg = recorded_config(

@@ -7,7 +7,7 @@ import sys
 import time
 from collections.abc import Callable
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +20,7 @@ from workcell.campaign.executor import (
     CampaignResult,
     Executor,
 )
+from workcell.campaign.payload import CLI_HOW, settle_payload
 from workcell.campaign.plans import (
     ADAPTIVE_KINDS,
     ArmPosture,
@@ -44,10 +45,28 @@ class CellSetup:
     tracker_model: str = "unknown"
     payload_kg: float = 0.0
     payload_com_m: tuple = (0.0, 0.0, 0.0)
-    # False: nobody stated the payload (a controller's is not read), the 0 kg above is a default
-    payload_declared: bool = True
+    # where payload_kg/payload_com_m come from: "declared" (--payload, the TUI's field, a
+    # simulated cell's setup), "recording" (a resume keeps the recorded one), "controller" (its
+    # payload setting, read at connect: `payload.settle_payload`) or "default" (nobody stated
+    # it and the controller did not say: the 0 kg above)
+    payload_source: str = "declared"
+    # what the controller reported at connect: {"mass_kg", "com_m"}, {"unavailable": reason},
+    # or None (not asked: a robot that reports no payload setting)
+    payload_controller: dict | None = None
+
+    @property
+    def payload_declared(self) -> bool:
+        """Someone stated the payload (declared, recorded, or the controller's setting)."""
+        return self.payload_source != "default"
 
     def session(self, campaign: dict) -> dict:
+        payload = {
+            "mass_kg": float(self.payload_kg),
+            "com_m": list(self.payload_com_m),
+            "source": self.payload_source,
+        }
+        if self.payload_controller is not None:
+            payload["controller"] = dict(self.payload_controller)
         return {
             "robot": {
                 "model": self.spec.model,
@@ -56,7 +75,7 @@ class CellSetup:
             },
             "tool": {"smr_offset_m": np.asarray(self.tool_m, float).tolist()},
             "tracker": {"model": self.tracker_model, "base_in_tracker": self.base_in_tracker},
-            "payload": {"mass_kg": float(self.payload_kg), "com_m": list(self.payload_com_m)},
+            "payload": payload,
             "campaign": campaign,
         }
 
@@ -202,6 +221,7 @@ def run_campaign(
     reference_every: int = 0,
     same_tracker: dict | None = None,
     notes: list[dict] | None = None,
+    payload_how: str = CLI_HOW,
 ) -> tuple[Path, CampaignResult]:
     """Plan, connect, record. With a non-zero kinematic margin, every sample
     also checks that the real SMR stays within the margin of the nominal one (`watch.MarginWatch`;
@@ -210,7 +230,9 @@ def run_campaign(
     poses and at the end (`plans.with_reference`), a drift record. The connected tracker's
     identity (`tracker_identity`) goes into the session; a resume (`same_tracker`, from
     `resume.continuation`) checks it is the recorded instrument before anything moves
-    (`check_same_tracker`). `notes`: events ({level, kind, message}) recorded at the start."""
+    (`check_same_tracker`). `notes`: events ({level, kind, message}) recorded at the start, after what
+    `payload.settle_payload` says about the controller's payload setting (`payload_how`: how
+    the operator states a payload, in its notes)."""
     env = envelope or default_envelope(cell.spec)
     cfg = config or CampaignConfig(payload_kg=cell.payload_kg)
     # where the arm is, read by the executor before each choice of an adaptive plan
@@ -274,10 +296,13 @@ def run_campaign(
             if same_tracker is not None
             else None
         )
+        # the controller's payload setting, where it reports one, against the stated payload
+        notes = settle_payload(cell, robot, payload_how) + list(notes or [])
+        session["payload"] = cell.session(campaign)["payload"]
     except BaseException:
         close_quietly(robot, tracker)
         raise
-    notes = list(notes or [])
+    cfg = replace(cfg, payload_kg=cell.payload_kg)
     if port_note:
         notes.append({"level": "info", "kind": "tracker_port", "message": port_note})
     t_wall0_ns, elapsed0_s = _start_clock(clock, elapsed0_s)

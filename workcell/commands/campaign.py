@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from workcell.campaign.devices import open_cell, payload_warning
+from workcell.campaign.devices import open_cell
 from workcell.campaign.executor import CampaignConfig, CampaignControl
 from workcell.campaign.plans import MAX_POSES, reference_line, reference_repeats
 from workcell.campaign.run import (
@@ -70,7 +70,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="KG[,CX,CY,CZ]",
         help="the payload at the flange as set on the teach pendant: mass in kg, centre of mass "
         "in m on the flange (recorded; the gravity-dependent terms use it). Default: the "
-        "simulated arm's; 0 kg with a warning for a controller, whose setting is not read",
+        "controller's payload setting (read over RTDE at connect; a warning when it differs "
+        "from a given --payload); 0 kg with a warning when the controller does not report one",
     )
     p.add_argument("--readings", type=int, help="tracker readings per pose (default 5)")
     p.add_argument("--settle", type=float, help="settle time in seconds (default 1)")
@@ -311,10 +312,6 @@ def run(args: argparse.Namespace) -> int:
                 "sim_seed": args.seed if args.robot == "sim" else None,
             },
             reference_every=args.reference_every or 0,
-            # recorded once the devices answer (an unreachable one stays a one-line error)
-            notes=[{"level": "warning", "kind": "payload", "message": w}]
-            if (w := payload_warning(cell)) is not None
-            else None,
         )
     if online is not None:  # the filter's final estimate, or why there is none
         _online_report(online, path, control)

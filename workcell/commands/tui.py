@@ -44,7 +44,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="KG[,CX,CY,CZ]",
         default="",
         help="the payload at the flange as set on the teach pendant (kg; centre of mass in m); "
-        "default: the simulated arm's, or none declared (0 kg recorded) on a controller",
+        "default: the simulated arm's, or the controller's payload setting (0 kg with a warning "
+        "when it does not report one)",
     )
     p.add_argument("--poses", type=int, default=50, help="default number of poses in the plan")
     p.add_argument("--out", default="campaign.mcap", help="default recording path")

@@ -45,7 +45,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--payload",
         metavar="KG[,CX,CY,CZ]",
         help="real cell: the payload at the flange as set on the teach pendant (kg; centre of "
-        "mass in m), which a --table is checked against (default 0 kg: not read)",
+        "mass in m), which a --table is checked against (default: the controller's payload "
+        "setting; 0 kg if it does not report one)",
     )
     p.add_argument("--json", action="store_true", help="print one JSON object")
 
@@ -150,6 +151,7 @@ def recorded_end_s(rec: str | None) -> float | None:
 def run(args: argparse.Namespace) -> int:
     from workcell.campaign.devices import envelope_from_args
     from workcell.campaign.envelope import Guard
+    from workcell.campaign.payload import settle_payload
     from workcell.campaign.resume import recorded_sim_seed
     from workcell.drivers.protocols import close_quietly
     from workcell.estimation.models import RMS_INTERVAL_BASIS, interval_um, load_model
@@ -253,20 +255,34 @@ def run(args: argparse.Namespace) -> int:
     )
     log(f"moves checked against {env_what}")
     warnings: list[str] = []
-    if table is not None:
+    simulated = args.robot == "sim"
+
+    def check_payload() -> None:
         try:
-            w = payload_check(model, table, cell.payload_kg, simulated=args.robot == "sim")
+            w = payload_check(
+                model, table, cell.payload_kg, simulated=simulated, source=cell.payload_source
+            )
         except UserError as e:
             raise UserError(f"{args.table}: {e}") from None
         if w is not None:
             log(f"warning: {w}")
             warnings.append(w)
+
+    if table is not None and simulated:  # refused before anything connects
+        check_payload()
     try:
         robot.connect()
     except DeviceError as e:
         raise wrong_arm(e, args, nominal.robot) from None
-    tracker.connect()
     try:
+        tracker.connect()
+        if not simulated:  # the controller's payload setting against --payload
+            for note in settle_payload(cell, robot):
+                log(f"{note['level']}: {note['message']}")
+                if note["level"] == "warning":
+                    warnings.append(note["message"])
+            if table is not None:
+                check_payload()
         # the arm's joint temperatures now (the controller reports them; None if it does not)
         temps = robot.state().temperature_c
         if table is not None:

@@ -72,6 +72,27 @@ class Robot(Protocol):
         ...
 
 
+@dataclass(frozen=True)
+class PayloadSetting:
+    """The payload a robot controller is set to carry (what its own gravity model uses)."""
+
+    mass_kg: float
+    com_m: tuple[float, float, float]  # centre of mass in the flange (tool-flange) frame
+
+
+class PayloadUnavailable(DeviceError):
+    """The controller does not report its payload setting (older software), or the read failed."""
+
+
+@runtime_checkable
+class PayloadReadable(Protocol):
+    """A robot whose controller reports its payload setting (optional beside `Robot`)."""
+
+    def payload_setting(self) -> PayloadSetting:
+        """The controller's payload setting; raises PayloadUnavailable with the reason."""
+        ...
+
+
 @runtime_checkable
 class Tracker(Protocol):
     def connect(self) -> None: ...

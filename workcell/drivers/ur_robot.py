@@ -34,6 +34,10 @@ Errors (all `DeviceError`, the campaign fault policy decides):
   constructor waits for that answer forever, holding the GIL, so neither a timeout nor Ctrl-C
   could end it).
 
+Payload: `payload_setting()` reads the controller's payload setting (RTDE outputs `payload`,
+`payload_cog`) on a short RTDE session of its own; `PayloadUnavailable` when the controller's
+software lacks those outputs or does not answer (`campaign.payload.settle_payload` decides).
+
 Time: `time_scale` is the simulated-controller speed-up (1.0 for a real robot). `sleep(s)` waits
 s / time_scale wall seconds and move timeouts are scaled the same way. At the first connect the
 driver measures the controller's clock (its RTDE `timestamp` over `time_scale_check_s` wall
@@ -71,7 +75,14 @@ from collections.abc import Callable
 
 import numpy as np
 
-from workcell.drivers.protocols import DeviceError, DeviceUnreachable, ProtectiveStop, RobotState
+from workcell.drivers.protocols import (
+    DeviceError,
+    DeviceUnreachable,
+    PayloadSetting,
+    PayloadUnavailable,
+    ProtectiveStop,
+    RobotState,
+)
 
 RTDE_PORT = 30004
 DASHBOARD_PORT = 29999
@@ -654,6 +665,92 @@ class UrRobot:
                 f"{e.strerror or type(e).__name__} (check the address, the network and that "
                 "the controller is on)"
             ) from None
+
+    def payload_setting(self) -> PayloadSetting:
+        """The controller's active payload: its RTDE outputs `payload` (kg) and `payload_cog` (m,
+        flange frame), read once on a short RTDE session of our own (version, output setup,
+        start, one data packet, pause), every read with a timeout. The receive interface is not
+        subscribed to them: a controller whose software lacks these outputs would refuse the
+        whole recipe. Raises PayloadUnavailable (with the reason) when the controller does not
+        offer them or does not answer; nothing here moves or changes a setting."""
+        where = f"UR {self.host}"
+        t_end = time.monotonic() + self.rtde_answer_timeout_s
+
+        def send(ptype: int, body: bytes = b"") -> None:
+            s.sendall(struct.pack(">HB", 3 + len(body), ptype) + body)
+
+        def packet() -> tuple[int, bytes]:
+            buf = b""
+            while len(buf) < 3 or len(buf) < struct.unpack(">H", buf[:2])[0]:
+                left = t_end - time.monotonic()
+                if left <= 0:
+                    raise TimeoutError
+                s.settimeout(left)
+                want = 3 - len(buf) if len(buf) < 3 else struct.unpack(">H", buf[:2])[0] - len(buf)
+                chunk = s.recv(max(want, 1))
+                if not chunk:
+                    raise PayloadUnavailable(f"{where}: RTDE closed the connection")
+                buf += chunk
+                if len(buf) >= 3 and not 3 <= struct.unpack(">H", buf[:2])[0] <= 4096:
+                    raise PayloadUnavailable(
+                        f"{where}: answers the payload read, but not in RTDE (it sent {buf!r})"
+                    )
+            return buf[2], buf[3:]
+
+        def expect(ptype: int) -> bytes:
+            while True:  # skip text messages and anything else the controller sends first
+                t, body = packet()
+                if t == ptype:
+                    return body
+
+        try:
+            with socket.create_connection((self.host, RTDE_PORT), self.connect_timeout_s) as s:
+                send(RTDE_REQUEST_PROTOCOL_VERSION, struct.pack(">H", RTDE_PROTOCOL_VERSION))
+                t, body = packet()  # the first answer is the version's
+                if t != RTDE_REQUEST_PROTOCOL_VERSION or len(body) != 1:
+                    raise PayloadUnavailable(
+                        f"{where}: answers the payload read, but not in RTDE (it sent "
+                        f"{(bytes([t]) + body)[:12]!r} to a protocol-version request)"
+                    )
+                if body != b"\x01":
+                    raise PayloadUnavailable(f"{where}: RTDE protocol version 2 refused")
+                send(ord("O"), struct.pack(">d", 10.0) + b"payload,payload_cog")
+                setup = expect(ord("O"))
+                types = setup[1:].decode("ascii", "replace").split(",")
+                if types != ["DOUBLE", "VECTOR3D"]:
+                    raise PayloadUnavailable(
+                        f"{where}: the controller does not report its payload setting (RTDE "
+                        f"outputs payload, payload_cog: {','.join(types)[:40]}; older software)"
+                    )
+                recipe = setup[0]
+                send(ord("S"))
+                if expect(ord("S"))[:1] != b"\x01":
+                    raise PayloadUnavailable(f"{where}: RTDE refused to start the payload read")
+                while True:
+                    body = expect(ord("U"))
+                    if body[:1] == bytes([recipe]) and len(body) == 1 + 4 * 8:
+                        break
+                mass, cx, cy, cz = struct.unpack(">dddd", body[1:])
+                try:
+                    send(ord("P"))
+                except OSError:
+                    pass
+        except TimeoutError:
+            raise PayloadUnavailable(
+                f"{where}: no answer to the payload read within {self.rtde_answer_timeout_s:g} s"
+            ) from None
+        except PayloadUnavailable:
+            raise
+        except OSError as e:
+            raise PayloadUnavailable(
+                f"{where}: payload read failed ({e.strerror or type(e).__name__})"
+            ) from None
+        com = (float(cx), float(cy), float(cz))
+        if not (math.isfinite(mass) and mass >= 0 and all(math.isfinite(c) for c in com)):
+            raise PayloadUnavailable(
+                f"{where}: the controller reports an unreadable payload ({mass!r} kg at {com!r})"
+            )
+        return PayloadSetting(float(mass), com)
 
     def _check_time_scale(self, rr) -> None:
         """Measure the controller's clock (RTDE timestamp against the wall clock) and refuse a

@@ -613,10 +613,21 @@ def payload_mismatch(model, table, payload_kg, *, ui: bool = False) -> str | Non
     )
 
 
-def payload_check(model, table, payload_kg, *, simulated: bool, ui: bool = False) -> str | None:
+PAYLOAD_ORIGIN = {
+    "declared": "the payload as declared",
+    "controller": "the payload as the controller is set",
+    "recording": "the recorded payload",
+    "default": "no payload stated and the controller's setting unread, so 0 kg",
+}
+
+
+def payload_check(
+    model, table, payload_kg, *, simulated: bool, ui: bool = False, source: str = "declared"
+) -> str | None:
     """`payload_mismatch` as `validate` acts on it: on a simulated arm (its payload known) a
-    UserError naming the table's problem; on a controller, whose payload workcell does not read,
-    the warning line to give (None when the payloads match)."""
+    UserError naming the table's problem; on a controller the warning line to give, saying where
+    the payload it compared came from (`source`, a `CellSetup.payload_source`); None when the
+    payloads match."""
     from workcell.errors import UserError
 
     why = payload_mismatch(model, table, payload_kg, ui=ui)
@@ -624,10 +635,8 @@ def payload_check(model, table, payload_kg, *, simulated: bool, ui: bool = False
         return None
     if simulated:
         raise UserError(why)
-    return (
-        f"{why} (the cell setup's payload: the controller's is not read; if the arm carries "
-        "the table's, disregard this)"
-    )
+    origin = PAYLOAD_ORIGIN.get(source, PAYLOAD_ORIGIN["declared"])
+    return f"{why} ({origin}; if the arm carries the table's, disregard this)"
 
 
 def payload_shift_rms_m(model, kg_a: float, kg_b: float, n: int = 64) -> float | None:

@@ -11,7 +11,7 @@ import argparse
 import importlib
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -128,6 +128,9 @@ def _namespace(cfg: DeviceConfig, robot: str, tracker: str) -> argparse.Namespac
     )
 
 
+TUI_PAYLOAD_HOW = "Payload on the Devices screen (kg[,CX,CY,CZ]), then connect again"
+
+
 def open_devices(cfg: DeviceConfig) -> Devices:
     """Open (and connect) the devices. With `start_sim`, start the protocol simulators first
     (`sim_devices.ur_process.SimProcess`); without that module, fall back on the in-process
@@ -175,12 +178,11 @@ def open_devices(cfg: DeviceConfig) -> Devices:
         if robot_url == "sim"
         else ("protocol simulators" if proc is not None else "hardware")
     )
-    if kind == "hardware" and not cell.payload_declared:
-        notes.append(
-            f"no payload declared: campaigns from here record {cell.payload_kg:g} kg at the "
-            "flange (the controller's setting is not read); for an arm with a payload, enter it "
-            "as Payload (as on the teach pendant) and connect again"
-        )
+    from workcell.campaign.payload import settle_payload
+
+    # the controller's payload setting against the Payload field (each campaign checks again)
+    for n in settle_payload(cell, robot, how=TUI_PAYLOAD_HOW):
+        notes.append(n["message"])
     return Devices(
         cell, Held(robot), Held(tracker), env, robot_url, tracker_url, kind, cfg, proc, notes
     )
@@ -498,6 +500,7 @@ def start_campaign(
     plan.validate()
     out = Path(plan.out)
     env = None
+    cell = dev.cell  # a resume not declaring a payload here: a copy with the recorded one
     if resume_from:
         from workcell.campaign.resume import (
             check_same_cell,
@@ -532,16 +535,26 @@ def start_campaign(
                 f"declares {np.asarray(dev.cell.tool_m).tolist()} m: a resume keeps the recorded "
                 "one; set it on the Devices screen and reconnect, or start a new campaign"
             )
-        pay = (info["recording"].session.get("payload") or {}).get("mass_kg")
-        if pay is not None and abs(float(pay) - float(dev.cell.payload_kg)) > 1e-9:
-            raise UserError(
-                f"{old} was recorded with a payload of {float(pay):g} kg, the Devices screen "
-                f"declares {float(dev.cell.payload_kg):g} kg: a resume keeps the recorded one; "
-                "set it on the Devices screen and reconnect, or start a new campaign"
+        rec_pay = info["recording"].session.get("payload") or {}
+        pay = rec_pay.get("mass_kg")
+        if dev.cell.payload_declared and dev.cell.payload_source != "controller":
+            if pay is not None and abs(float(pay) - float(dev.cell.payload_kg)) > 1e-9:
+                raise UserError(
+                    f"{old} was recorded with a payload of {float(pay):g} kg, the Devices "
+                    f"screen declares {float(dev.cell.payload_kg):g} kg: a resume keeps the "
+                    "recorded one; set it on the Devices screen and reconnect, or start a new "
+                    "campaign"
+                )
+        elif pay is not None:  # not declared here: the recorded one (the controller's is checked)
+            cell = replace(
+                dev.cell,
+                payload_kg=float(pay),
+                payload_com_m=tuple(float(c) for c in (rec_pay.get("com_m") or (0.0, 0.0, 0.0))),
+                payload_source="recording",
             )
         check_same_cell(camp, str(old), **_cell_identity(dev))
         check_same_plan(info, dev.cell.spec, env, dev.cell.tool_m, str(old))
-        cfg = recorded_config(camp, dev.cell.payload_kg, campaign_config(plan, dev))
+        cfg = recorded_config(camp, cell.payload_kg, campaign_config(plan, dev))
         plan = PlanConfig(
             kind=camp["plan"],
             poses=int(camp["poses"]),
@@ -557,10 +570,6 @@ def start_campaign(
     else:
         cfg = campaign_config(plan, dev)
         kw = {"reference_every": plan.reference_every}
-        from workcell.campaign.devices import payload_warning
-
-        if (w := payload_warning(dev.cell)) is not None:  # recorded, as the command line does
-            kw["notes"] = [{"level": "warning", "kind": "payload", "message": w}]
     if out.exists():
         raise UserError(f"{out} already exists; choose a new recording path or resume it")
     check_output_path(out, "recording", inputs=[resume_from] if resume_from else [])
@@ -568,7 +577,7 @@ def start_campaign(
     return run_campaign(
         dev.robot,
         dev.tracker,
-        dev.cell,
+        cell,
         out,
         plan=plan.kind,
         poses=plan.poses,
@@ -579,6 +588,7 @@ def start_campaign(
         on_sample=on_sample,
         on_event=on_event,
         extra_campaign={**_cell_identity(dev), "ui": "workcell tui"},
+        payload_how=TUI_PAYLOAD_HOW,
         **kw,
     )
 
@@ -1065,9 +1075,10 @@ def closed_loop(
     from workcell.export.validate import payload_check
 
     warnings: list[str] = []
-    try:  # the in-process simulation's payload is known; a controller's is not read
+    try:  # the in-process simulation's payload is known; a controller's as read at connect
         w = payload_check(model, table, dev.cell.payload_kg, ui=True,
-                          simulated=dev.kind == "in-process simulation")  # fmt: skip
+                          simulated=dev.kind == "in-process simulation",
+                          source=dev.cell.payload_source)  # fmt: skip
     except UserError as e:
         raise UserError(f"{table_path}: {e}") from None
     if w is not None:
