@@ -115,6 +115,11 @@ def test_campaign_records_the_declared_payload_and_resume_keeps_it(tmp_path, cap
     assert pay["controller"]["mass_kg"] != 1.25
     said = [e["message"] for e in rec.events if e["kind"] == "payload"]
     assert len(said) == 1 and "1.25 kg" in said[0] and "controller is set to" in said[0]
+    capsys.readouterr()
+    assert main(["info", str(out)]) == 0
+    line = [x for x in capsys.readouterr().out.splitlines() if x.startswith("payload ")]
+    assert len(line) == 1 and "1.25 kg at (0.0, 0.0, 30.0) mm (declared)" in line[0], line
+    assert "the controller was set to" in line[0]
     assert {s["payload_kg"] for s in rec.samples} == {1.25}
     capsys.readouterr()
     rc = main(["campaign", "--resume", str(out), "--payload", "2", "--out",
@@ -184,3 +189,29 @@ def test_validate_says_where_the_payload_it_compared_came_from(monkeypatch):
         assert w.startswith("the table is for 5 kg (") and words in w and "\n" not in w
     with pytest.raises(UserError, match="the table is for 5 kg"):  # a simulated arm: refused
         xv.payload_check(None, None, 0.0, simulated=True, source="controller")
+
+
+_JSON = st.recursive(
+    st.none() | st.booleans() | st.floats() | st.integers() | st.text(max_size=8),
+    lambda kids: (
+        st.lists(kids, max_size=4) | st.dictionaries(st.text(max_size=10), kids, max_size=4)
+    ),
+    max_leaves=12,
+)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    st.one_of(
+        _JSON,
+        st.fixed_dictionaries(
+            {"mass_kg": _JSON, "com_m": _JSON},
+            optional={"source": _JSON, "controller": _JSON},
+        ),
+    )
+)
+def test_info_reads_any_recorded_payload_without_failing(payload):
+    from workcell.commands.info import payload_line
+
+    line = payload_line(payload)
+    assert line is None or ("kg" in line and "\n" not in line)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 
 import numpy as np
@@ -92,6 +93,7 @@ def summary(path: str) -> dict:
         **dict(zip(("value_problems", "set_aside"), value_problems(rec), strict=True)),
         "plan": _get(s.get("campaign"), "plan"),
         "envelope": _get(s.get("campaign"), "envelope"),
+        "payload": s.get("payload"),
         "chained_from": s.get("chained_from"),
         "chain": chain_summary(rec),
         "size_bytes": rec.size_bytes,
@@ -117,6 +119,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"closed      {closed}")
     if d["envelope"] is not None:
         print(f"envelope    {envelope_line(d['envelope'])}")
+    if (pl := payload_line(d["payload"])) is not None:
+        print(f"payload     {pl}")
     if d["chained_from"]:
         print(f"continues   {_get(d['chained_from'], 'path')}")
     ch = d["chain"]
@@ -147,6 +151,50 @@ def run(args: argparse.Namespace) -> int:
     if vp:
         print("            fits refuse this file until these values are repaired")
     return 0
+
+
+_PAYLOAD_SOURCE = {
+    "declared": "declared",
+    "controller": "the controller's setting",
+    "recording": "kept from the recording it continues",
+    "default": "nothing stated it",
+}
+
+
+def _mass_com(d) -> str | None:
+    """'0.5 kg at (0.0, 0.0, 30.0) mm' from {mass_kg, com_m}; None if not readable numbers."""
+    m, com = _get(d, "mass_kg"), _get(d, "com_m")
+    if isinstance(m, bool) or not isinstance(m, (int, float)) or not math.isfinite(m):
+        return None
+    text = f"{m:.4g} kg"
+    if (
+        isinstance(com, list)
+        and len(com) == 3
+        and all(isinstance(c, (int, float)) and not isinstance(c, bool) for c in com)
+        and all(math.isfinite(c) and abs(c) < 1e6 for c in com)
+    ):
+        text += " at (" + ", ".join(f"{c * 1e3:.1f}" for c in com) + ") mm"
+    return text
+
+
+def payload_line(d) -> str | None:
+    """The recorded payload in one line: mass and centre of mass (flange, mm), where it came
+    from and what the controller reported (None without a readable payload; the value checks
+    say what is wrong with it)."""
+    text = _mass_com(d)
+    if text is None:
+        return None
+    src = _get(d, "source")
+    if isinstance(src, str):
+        text += f" ({_PAYLOAD_SOURCE.get(src, src[:40])})"
+    ctrl = _get(d, "controller")
+    if isinstance(ctrl, dict):
+        said = _mass_com(ctrl)
+        if said is not None and src != "controller":
+            text += f"; the controller was set to {said}"
+        elif isinstance(ctrl.get("unavailable"), str):
+            text += "; the controller's setting was not readable"
+    return text
 
 
 def envelope_line(d) -> str:
