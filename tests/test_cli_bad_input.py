@@ -254,7 +254,17 @@ def test_bench_ekf_ann_counts(capsys):
     """--repeats 0 divided by zero after minutes of work; now refused at once."""
     with pytest.raises(SystemExit) as e:
         main(["bench", "ekf-ann", "--repeats", "0"])
-    assert e.value.code == 2 and "need --draws >= 1, --repeats >= 1" in capsys.readouterr().err
+    assert e.value.code == 2 and "--repeats must be 1..100, got 0" in capsys.readouterr().err
+    for argv, said in (
+        (["bench", "ekf-ann", "--samples", str(10**30)], "--samples must be 50..1_000_000"),
+        (["bench", "dh", "--poses", str(10**30)], "--poses must be 12..20_000, got 1e+30"),
+        (["bench", "lddmm", "--eval-points", "0"], "--eval-points must be 1..100_000_000"),
+        (["bench", "design-real", "--tolerance", "nan"], "--tolerance must be a number"),
+    ):
+        with pytest.raises(SystemExit) as e:
+            main(argv)
+        err = capsys.readouterr().err.strip().splitlines()
+        assert e.value.code == 2 and len(err) == 1 and said in err[0], (argv, err)
 
 
 @pytest.mark.parametrize(

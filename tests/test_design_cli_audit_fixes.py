@@ -86,14 +86,17 @@ def bench_design(capsys, *argv):
         (["--plans", ","], "give at least one of random,dopt,vopt,bo"),
         (["--plans", " , "], "names no plan"),
         (["--plans", "random,random"], "--plans names random more than once; give each plan once"),
-        (["--seed0", "-1"], "--seed0 must be >= 0, got -1"),
+        (["--seed0", "-1"], "--seed0 must be 0..4_294_967_295, got -1"),
         (["--half-width-deg", "30"], "--half-width-deg goes with --envelope compact"),
         (["--small-errors"], "--small-errors goes with --robot wam7"),
         (["--robot", "ur5e", "--small-errors"], "--small-errors goes with --robot wam7"),
         (["--holdout", "0.25"], "a fraction, as `workcell fit --holdout` takes"),
         (["--holdout", "0.25"], "the number of held-out poses per simulated cell"),
-        (["--holdout", "5"], "need --holdout >= 10 (got 5)"),
-        (["--seeds", "0"], "need --seeds >= 1 (got 0)"),
+        (["--holdout", "5"], "--holdout must be 10..100_000, got 5"),
+        (["--seeds", "0"], "--seeds must be 1..1_000, got 0"),
+        # counts far beyond any run gave numpy's words or ran for days (audit 2026-11-26)
+        (["--max-poses", str(10**30)], "--max-poses must be 12..5_000, got 1e+30"),
+        (["--target-factor", "1e300"], "--target-factor must be 0.001..1000, got 1e+300"),
     ],
 )
 def test_bench_design_refuses_in_one_line(capsys, argv, match):

@@ -11,6 +11,20 @@ BENCHES: dict[str, str] = {
 }
 
 
+def check_ranges(ap, checks) -> None:
+    """`ap.error` (one line, exit 2) for the first option outside its range: `checks` is
+    (option, value, lo, hi) with inclusive bounds; a count far beyond any sensible run gave
+    numpy's own words ("Maximum allowed dimension exceeded") or ran for days."""
+
+    def num(x) -> str:
+        return f"{x:,}".replace(",", "_") if isinstance(x, int) else f"{x:g}"
+
+    for opt, v, lo, hi in checks:
+        if not lo <= v <= hi:
+            got = num(v) if len(str(v)) <= 20 else f"{v:.3g}"
+            ap.error(f"{opt} must be {num(lo)}..{num(hi)}, got {got}")
+
+
 def environment() -> dict:
     """What a benchmark figure was measured with, for its JSON (`environment`): a figure that
     moves between runs of the same commit moved with these (library versions change numerics,

@@ -59,7 +59,7 @@ import time
 
 import numpy as np
 
-from workcell.bench import environment
+from workcell.bench import check_ranges, environment
 from workcell.errors import OneLineParser
 
 PLANS = ("random", "dopt", "vopt", "bo")
@@ -401,8 +401,16 @@ def main(argv: list[str]) -> int:
             f"--small-errors goes with --robot wam7 (the {a.robot} cell has small random DH "
             "errors already); add --robot wam7 or leave it out"
         )
-    if a.seed0 < 0:
-        ap.error(f"--seed0 must be >= 0, got {a.seed0}")
+    check_ranges(
+        ap,
+        [
+            ("--seed0", a.seed0, 0, 2**32 - 1),
+            ("--seeds", a.seeds, 1, 1000),
+            ("--max-poses", a.max_poses, 12, 5000),
+            ("--holdout", a.holdout, 10, 100_000),
+            ("--target-factor", a.target_factor, 1e-3, 1e3),
+        ],
+    )
     plans = [p.strip() for p in a.plans.split(",") if p.strip()]
     if not plans:
         ap.error(f"--plans {a.plans!r} names no plan; give at least one of {','.join(PLANS)}")
@@ -412,11 +420,6 @@ def main(argv: list[str]) -> int:
     twice = sorted({p for p in plans if plans.count(p) > 1}, key=plans.index)
     if twice:
         ap.error(f"--plans names {', '.join(twice)} more than once; give each plan once")
-    low = [f"--{k} >= {m} (got {v})" for k, v, m in
-           (("seeds", a.seeds, 1), ("max-poses", a.max_poses, 12), ("holdout", a.holdout, 10))
-           if v < m]  # fmt: skip
-    if low:
-        ap.error(f"need {', '.join(low)}")
     log = (lambda m: print(m, file=sys.stderr, flush=True)) if a.json else print
     t0 = time.perf_counter()
     runs: dict[str, list[dict]] = {p: [] for p in plans}

@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from workcell.bench import environment
+from workcell.bench import check_ranges, environment
 from workcell.errors import OneLineParser
 
 PLANS = ("random", "dopt", "vopt", "bo")
@@ -126,8 +126,16 @@ def main(argv: list[str]) -> int:
     for p in plans:
         if p not in PLANS:
             ap.error(f"unknown plan {p!r}; choose from {', '.join(PLANS)}")
-    if a.seeds < 1 or a.max_poses < 12 or not a.tolerance > 0:
-        ap.error("need --seeds >= 1, --max-poses >= 12, --tolerance > 0")
+    if not math.isfinite(a.tolerance):
+        ap.error(f"--tolerance must be a number, got {a.tolerance}")
+    check_ranges(
+        ap,
+        [
+            ("--seeds", a.seeds, 1, 1000),
+            ("--max-poses", a.max_poses, 12, 100_000),
+            ("--tolerance", a.tolerance, 1e-6, 10.0),
+        ],
+    )
     path = Path(a.recording)
     if not path.is_file():
         print(

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from workcell.bench import environment
+from workcell.bench import check_ranges, environment
 from workcell.errors import OneLineParser
 
 
@@ -23,6 +23,7 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--poses", type=int, default=500)
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
+    check_ranges(ap, [("--poses", a.poses, 12, 20_000)])
     from sim_devices.cell import sim_cell
     from workcell.campaign.executor import CampaignConfig
     from workcell.campaign.run import run_campaign

@@ -33,7 +33,7 @@ import time
 
 import numpy as np
 
-from workcell.bench import environment
+from workcell.bench import check_ranges, environment
 from workcell.errors import OneLineParser
 
 
@@ -56,11 +56,16 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--filterpy-samples", type=int, default=60)
     ap.add_argument("--repeats", type=int, default=3, help="timed runs of each filter (best kept)")
     a = ap.parse_args(argv)
-    if a.draws < 1 or a.repeats < 1 or a.filterpy_samples < 1 or a.samples < 50 or a.seed < 0:
-        ap.error(
-            "need --draws >= 1, --repeats >= 1, --filterpy-samples >= 1, --samples >= 50, "
-            "--seed >= 0"
-        )
+    check_ranges(
+        ap,
+        [
+            ("--draws", a.draws, 1, 1000),
+            ("--samples", a.samples, 50, 1_000_000),
+            ("--seed", a.seed, 0, 2**32 - 1),
+            ("--filterpy-samples", a.filterpy_samples, 1, 100_000),
+            ("--repeats", a.repeats, 1, 100),
+        ],
+    )
 
     from sim_devices.trajectory import make_trajectory
     from workcell.estimation.dh import register_base

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from workcell.bench import environment
+from workcell.bench import check_ranges, environment
 from workcell.errors import OneLineParser
 
 TARGETS = {"pendulum_fit_s": 5.0, "fit_500_s": 60.0, "eval_points_per_s": 100_000.0}
@@ -126,8 +126,9 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--eval-points", type=int, default=100_000, help="points for the throughput")
     ap.add_argument("--skip-pendulum", action="store_true")
     args = ap.parse_args(argv)
-    if args.poses < 12 or args.eval_points < 1:
-        ap.error("need --poses >= 12 (a fit needs 12 poses) and --eval-points >= 1")
+    check_ranges(
+        ap, [("--poses", args.poses, 12, 20_000), ("--eval-points", args.eval_points, 1, 10**8)]
+    )
     doc: dict = {"targets": TARGETS, "cpu_count": os.cpu_count()}
     if not args.skip_pendulum:
         doc["pendulum"] = bench_pendulum()
