@@ -326,3 +326,33 @@ def test_a_geometry_in_millimetres_is_refused_not_written(tmp_path, change, matc
     with pytest.raises(UserError, match=match):
         export_ros_yaml(m, tmp_path / "bad.yaml")
     assert not (tmp_path / "bad.yaml").exists()
+
+
+def test_the_tcp_and_base_correction_carry_their_propagated_std(tmp_path):
+    """tcp_in_tool0 (the fitted SMR in tool0) and the base correction printed with every export
+    had no +- (uncertainty audit, 2026-11-27): both are the parameter covariance propagated to
+    first order, which agrees with the spread over parameters drawn from it."""
+    from workcell.export.frame import base_correction, base_correction_line
+    from workcell.export.ros_yaml import tcp_in_tool0, tcp_std_m
+    from workcell.kinematics.chain import base_slice
+
+    m = _calibrated_model(4)
+    rng = np.random.default_rng(8)
+    A = rng.normal(size=(39, 39)) * 2e-5
+    m.cov = A @ A.T
+    th, B = _geometry(m)
+    draws = rng.multivariate_normal(m.theta, m.cov, size=3000)
+    mc = np.array([tcp_in_tool0(t, B)[:3, 3] for t in draws]).std(axis=0)
+    np.testing.assert_allclose(tcp_std_m(m, th, B), mc, rtol=0.1)
+    path, _ = export_ros_yaml(m, tmp_path / "cal.yaml")
+    assert re.search(
+        r"tcp_in_tool0 .* m \(1-sigma \[[^]]+\] m, the fit's covariance\)", path.read_text()
+    )
+    bc = base_correction(m)
+    sd = np.sqrt(np.diag(m.cov)[base_slice(6)])
+    np.testing.assert_allclose(bc["translation_std_m"] + bc["rotation_std_rad"], sd)
+    line = base_correction_line(bc)
+    assert line.count(" +- ") == 6 and "1-sigma from the fit's covariance" in line
+    m.cov = None  # a model without a covariance says so instead of a bare number
+    assert "translation_std_m" not in base_correction(m)
+    assert "no covariance in the model" in base_correction_line(base_correction(m))

@@ -50,6 +50,29 @@ def _geometry(model):
     return None
 
 
+STD_BASIS = (
+    "1-sigma of each base offset from the fit's parameter covariance (first order, conditional "
+    "on the model; 0 for a parameter the fit held fixed)"
+)
+
+
+def _base_std(g, th: np.ndarray) -> np.ndarray | None:
+    """1-sigma (6,) of the base offsets from the model's parameter covariance, or None."""
+    from workcell.kinematics.chain import base_slice, joints_of
+
+    get = getattr(g, "theta_cov", None)
+    try:
+        cov = np.asarray(get() if callable(get) else getattr(g, "cov", None), float)
+    except Exception:  # noqa: BLE001 - a model without a usable covariance states none
+        return None
+    if cov.shape != (len(th), len(th)):
+        return None
+    var = np.diag(cov)[base_slice(joints_of(th))]
+    if var.shape != (6,) or not np.all(np.isfinite(var)) or np.any(var < 0):
+        return None
+    return np.sqrt(var)
+
+
 def _rotvec_matrix(r: np.ndarray) -> np.ndarray:
     from scipy.spatial.transform import Rotation
 
@@ -80,6 +103,11 @@ def base_correction(model, points: np.ndarray | None = None) -> dict:
         "rotation_angle_rad": float(np.linalg.norm(r)),
         "basis": BASE_BASIS,
     }
+    std = _base_std(g, th)
+    if std is not None:
+        out["translation_std_m"] = std[:3].tolist()
+        out["rotation_std_rad"] = std[3:].tolist()
+        out["std_basis"] = STD_BASIS
     if points is not None:
         P = np.asarray(points, float).reshape(-1, 3)
         if len(P):
@@ -117,10 +145,18 @@ def base_correction_line(bc: dict | None, where: str = "the exported positions")
         return f"{head}; its size is unknown: the model has no base parameters"
     t = np.asarray(bc["translation_m"], float) * 1e3
     r = np.asarray(bc["rotation_rad"], float) * 1e3
+    ts, rs = bc.get("translation_std_m"), bc.get("rotation_std_rad")
+    if ts is not None and rs is not None:
+        ts, rs = np.asarray(ts, float) * 1e3, np.asarray(rs, float) * 1e3
+        tt = ", ".join(f"{x:.3f} +- {e:.3f}" for x, e in zip(t, ts, strict=True))
+        rr = ", ".join(f"{x:.3f} +- {e:.3f}" for x, e in zip(r, rs, strict=True))
+        sig = " (+- 1-sigma from the fit's covariance)"
+    else:
+        tt, rr = ", ".join(f"{x:.3f}" for x in t), ", ".join(f"{x:.3f}" for x in r)
+        sig = " (no covariance in the model: no 1-sigma)"
     line = (
-        f"{head}: {np.linalg.norm(t):.3f} mm (base_tx, base_ty, base_tz "
-        f"{', '.join(f'{x:.3f}' for x in t)} mm) and {np.linalg.norm(r):.3f} mrad (base_rx, "
-        f"base_ry, base_rz {', '.join(f'{x:.3f}' for x in r)} mrad)"
+        f"{head}: {np.linalg.norm(t):.3f} mm (base_tx, base_ty, base_tz {tt} mm) and "
+        f"{np.linalg.norm(r):.3f} mrad (base_rx, base_ry, base_rz {rr} mrad){sig}"
     )
     if bc.get("max_shift_m") is not None:
         line += f", up to {bc['max_shift_m'] * 1e3:.3f} mm over {where}"

@@ -276,19 +276,45 @@ def kinematics_std(model, step: float = 1e-7) -> dict | None:
     covariance propagated to first order (central differences, angles wrapped); None when the
     model carries no covariance."""
     th, _, base_ref, _ = model_geometry(model)
-    cov = None
-    for attr in (None, "base", "base_model", "dh_model", "geometric"):
-        m = model if attr is None else getattr(model, attr, None)
-        if m is not None and hasattr(m, "theta") and hasattr(m, "theta_cov"):
-            c = m.theta_cov()
-            cov = None if c is None else np.asarray(c, float)
-            break
-    if cov is None or cov.shape != (len(th), len(th)) or not np.all(np.isfinite(cov)):
+    cov = _geometry_cov(model, th)
+    if cov is None:
         return None
     J = _yaml_jacobian(th, base_ref, np.flatnonzero(np.diag(cov) > 0), step)
     sd = np.sqrt(np.clip(np.einsum("ij,jk,ik->i", J, cov, J), 0.0, None))
     it = iter(sd)
     return {n: {k: float(next(it)) for k in KEYS} for n in LINKS}
+
+
+def _geometry_cov(model, th: np.ndarray) -> np.ndarray | None:
+    """The geometric part's parameter covariance (len(th), len(th)), or None."""
+    for attr in (None, "base", "base_model", "dh_model", "geometric"):
+        m = model if attr is None else getattr(model, attr, None)
+        if m is not None and hasattr(m, "theta") and hasattr(m, "theta_cov"):
+            c = m.theta_cov()
+            cov = None if c is None else np.asarray(c, float)
+            if cov is None or cov.shape != (len(th), len(th)) or not np.all(np.isfinite(cov)):
+                return None
+            return cov
+    return None
+
+
+def tcp_in_tool0(th: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """The SMR in tool0 (4x4): segment 6 then the tool offset (incl. a6/alpha6/beta6)."""
+    return segments(th, B)[6] @ _T(np.eye(3), th[36:39])
+
+
+def tcp_std_m(model, th: np.ndarray, B: np.ndarray, step: float = 1e-7) -> np.ndarray | None:
+    """1-sigma (3,) of tcp_in_tool0's translation, the parameter covariance propagated to first
+    order (central differences); None without a covariance."""
+    cov = _geometry_cov(model, th)
+    if cov is None:
+        return None
+    J = np.zeros((3, len(th)))
+    for j in np.flatnonzero(np.diag(cov) > 0):
+        d = np.zeros(len(th))
+        d[j] = step
+        J[:, j] = (tcp_in_tool0(th + d, B)[:3, 3] - tcp_in_tool0(th - d, B)[:3, 3]) / (2 * step)
+    return np.sqrt(np.clip(np.einsum("ij,jk,ik->i", J, cov, J), 0.0, None))
 
 
 def _yaml_jacobian(th: np.ndarray, base_ref: np.ndarray, cols, step: float = 1e-7) -> np.ndarray:
@@ -498,8 +524,8 @@ def export_ros_yaml(model, path, meta: dict | None = None) -> tuple[Path, dict]:
 
     th, B, base_ref, note = model_geometry(model)
     kin = ros_kinematics(th, B)
-    S6 = segments(th, B)[6]
-    tcp = S6 @ _T(np.eye(3), th[36:39])
+    tcp = tcp_in_tool0(th, B)
+    tcp_sd = tcp_std_m(model, th, B)
     check_units(th, tcp, getattr(model, "method", "?"))
     check_nominal_distance(model)
     dropped, size = _dropped_line(model, th, base_ref)
@@ -519,7 +545,13 @@ def export_ros_yaml(model, path, meta: dict | None = None) -> tuple[Path, dict]:
         "registers its own)",
         base_ref_line(base_ref),
         bc_line,
-        f"tcp_in_tool0 (SMR, incl. a6/alpha6/beta6): xyz {np.round(tcp[:3, 3], 9).tolist()} m, "
+        f"tcp_in_tool0 (SMR, incl. a6/alpha6/beta6): xyz {np.round(tcp[:3, 3], 9).tolist()} m"
+        + (
+            ""
+            if tcp_sd is None
+            else f" (1-sigma {np.round(tcp_sd, 9).tolist()} m, the fit's covariance)"
+        )
+        + ", "
         f"rotvec {np.round(matrix_to_rotvec(tcp[:3, :3]), 12).tolist()} rad",
         dropped,
         *unexplained,
