@@ -185,3 +185,24 @@ def test_cli_report_and_model_file_carry_the_verdicts(case, tmp_path, capsys):
     assert "kept in the augmented model" in (tmp_path / "rep" / "summary.txt").read_text()
     model = json.loads(Path(rep["model"]).read_text())
     assert model["info"]["effects_not_confirmed_on_heldout"]["effects"] == ["backlash/joint3"]
+
+
+def test_the_located_harmonic_amplitude_std_matches_its_spread():
+    """`locate` printed a periodic residual's amplitude with no +- (uncertainty audit,
+    2026-11-27): its 1-sigma (residual variance, delta method) agrees with the spread of the
+    amplitude over repeated noisy draws."""
+    import numpy as np
+
+    from workcell.estimation.discovery import _amplitude_std
+
+    rng = np.random.default_rng(3)
+    q = rng.uniform(-3, 3, 200)
+    B = np.column_stack([np.sin(2 * q), np.cos(2 * q), np.ones_like(q)])
+    amps, stds = [], []
+    for _ in range(2000):
+        y = 5e-5 * np.sin(2 * q + 0.4) + 1e-5 + rng.normal(0, 3e-5, len(q))
+        c, *_ = np.linalg.lstsq(B, y, rcond=None)
+        amps.append(np.hypot(c[0], c[1]))
+        stds.append(_amplitude_std(B, c, float(np.sum((y - B @ c) ** 2))))
+    np.testing.assert_allclose(np.median(stds), np.std(amps), rtol=0.1)
+    assert np.isnan(_amplitude_std(B[:3], np.zeros(3), 0.0))  # no residual degree of freedom

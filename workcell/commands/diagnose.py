@@ -166,7 +166,10 @@ def print_report(r: dict) -> None:
         f"{um(r['max_before_m']):>12}   {interval_um(r.get('rms_before_ci95_m'), False)}"
     )
     for s in r["steps"]:
-        print(f"{'  + ' + s['after']:42s}{um(s['heldout_rms_m']):>14}{um(s['heldout_max_m']):>12}")
+        print(
+            f"{'  + ' + s['after']:42s}{um(s['heldout_rms_m']):>14}{um(s['heldout_max_m']):>12}"
+            f"   {interval_um(s.get('heldout_rms_ci95_m'), False)}"
+        )
     print(
         f"{'final (nonlinear joint refit)':42s}{um(r['rms_after_m']):>14}"
         f"{um(r['max_after_m']):>12}   {interval_um(r.get('rms_after_ci95_m'), False)}"

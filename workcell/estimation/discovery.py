@@ -395,6 +395,18 @@ def _free_names(lin: _Linear) -> list[str]:
 
 
 # ----------------------------------------------------------------------------- locate
+def _amplitude_std(B: np.ndarray, c: np.ndarray, rss: float) -> float:
+    """1-sigma of hypot(c0, c1), the amplitude of a least-squares sine/cosine fit y ~ B c: the
+    residual variance rss / (n - p) times (B^T B)^-1, to first order (delta method)."""
+    n, p = B.shape
+    amp = float(np.hypot(c[0], c[1]))
+    if n <= p or amp <= 0.0:
+        return float("nan")
+    C = rss / (n - p) * np.linalg.pinv(B.T @ B)
+    g = np.array([c[0], c[1]]) / amp
+    return float(np.sqrt(max(g @ C[:2, :2] @ g, 0.0)))
+
+
 def locate(
     ds_tr: Dataset,
     X: np.ndarray,
@@ -427,9 +439,11 @@ def locate(
         row["residual_along_motion_rms_m"] = w_rms
         if np.std(tau[ok, j]) > 1e-6:
             r = float(np.corrcoef(tau[ok, j], y)[0, 1])
-            slope = float(np.polyfit(tau[ok, j], y, 1)[0])
+            (slope, _), cov = np.polyfit(tau[ok, j], y, 1, cov=True)
+            slope, slope_sd = float(slope), float(np.sqrt(max(cov[0, 0], 0.0)))
             row["torque_corr"] = r
             row["torque_slope_rad_per_n_m"] = slope
+            row["torque_slope_std_rad_per_n_m"] = slope_sd
             if abs(r) > thr:
                 findings.append(
                     {
@@ -437,7 +451,7 @@ def locate(
                         "text": f"residual along joint {j + 1}'s motion "
                         + ("grows" if r > 0 else "falls")
                         + f" with the gravity torque on joint {j + 1} (r = {r:+.2f}, "
-                        f"{slope * 1e6:+.2f} urad/(N m))",
+                        f"{slope * 1e6:+.2f} +- {slope_sd * 1e6:.2f} urad/(N m))",
                     }
                 )
         pos, neg = sgn[ok, j] > 0, sgn[ok, j] < 0
@@ -445,13 +459,15 @@ def locate(
             diff = float(y[pos].mean() - y[neg].mean())
             se = float(np.sqrt(y[pos].var() / pos.sum() + y[neg].var() / neg.sum()))
             row["approach_flip_rad"] = diff
+            row["approach_flip_std_rad"] = se
             z = abs(diff) / max(se, 1e-15)
             if z > 4:
                 findings.append(
                     {
                         "score": min(z / np.sqrt(n), 1.0),
                         "text": f"residual flips sign with the approach direction of joint {j + 1} "
-                        f"({diff * 1e6:+.1f} urad between + and - approach, {z:.0f} sigma)",
+                        f"({diff * 1e6:+.1f} +- {se * 1e6:.1f} urad between + and - approach, "
+                        f"{z:.0f} sigma)",
                     }
                 )
         qj = ds_tr.q[ok, j]
@@ -459,19 +475,22 @@ def locate(
         for k in (1, 2, 3):
             B = np.column_stack([np.sin(k * qj), np.cos(k * qj), np.ones_like(qj)])
             c, *_ = np.linalg.lstsq(B, y, rcond=None)
-            r2 = 1 - np.sum((y - B @ c) ** 2) / max(np.sum((y - y.mean()) ** 2), 1e-300)
+            rss = float(np.sum((y - B @ c) ** 2))
+            r2 = 1 - rss / max(np.sum((y - y.mean()) ** 2), 1e-300)
             if r2 > best_h[0]:
-                best_h = (float(r2), k, float(np.hypot(c[0], c[1])))
+                best_h = (float(r2), k, float(np.hypot(c[0], c[1])), _amplitude_std(B, c, rss))
         if best_h[1]:
             row["periodic_r2"] = best_h[0]
             row["periodic_order"] = best_h[1]
+            row["periodic_amplitude_rad"] = best_h[2]
+            row["periodic_amplitude_std_rad"] = best_h[3]
             if np.sqrt(best_h[0]) > thr * 1.2:
                 findings.append(
                     {
                         "score": float(np.sqrt(best_h[0])),
                         "text": f"residual along joint {j + 1}'s motion is periodic in joint "
                         f"{j + 1}'s angle (order {best_h[1]}, amplitude "
-                        f"{best_h[2] * 1e6:.1f} urad, R2 {best_h[0]:.2f})",
+                        f"{best_h[2] * 1e6:.1f} +- {best_h[3] * 1e6:.1f} urad, R2 {best_h[0]:.2f})",
                     }
                 )
         per_joint.append(row)
@@ -749,9 +768,14 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
     e_all_te = np.linalg.norm(lin_pred_te(M) - dte.p_tracker, axis=1)
     per_step = []
     for k in range(len(M)):
-        st = error_stats(lin_pred_te(M[: k + 1]), dte.p_tracker)
+        st = error_stats(lin_pred_te(M[: k + 1]), dte.p_tracker, interval=True)
         per_step.append(
-            {"after": M[k].key, "heldout_rms_m": st["rms_m"], "heldout_max_m": st["max_m"]}
+            {
+                "after": M[k].key,
+                "heldout_rms_m": st["rms_m"],
+                "heldout_max_m": st["max_m"],
+                "heldout_rms_ci95_m": st["rms_ci95_m"],
+            }
         )
 
     # explained fractions (CV, training) and per-effect held-out change when left out
@@ -771,7 +795,7 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
             (lin.cv_errors(prev).mean() - lin.cv_errors(upto).mean()) / max(cv_geo.mean(), 1e-300)
         )
         p_wo = lin_pred_te([d for d in M if d is not c])
-        wo = error_stats(p_wo, dte.p_tracker)
+        wo = error_stats(p_wo, dte.p_tracker, interval=True)
         # paired over the held-out poses, both linearised: the final model with / without c
         e_wo = np.linalg.norm(p_wo - dte.p_tracker, axis=1)
         gain = float(np.sqrt(np.mean(e_wo**2)) - np.sqrt(np.mean(e_all_te**2)))
@@ -798,6 +822,7 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
                     "bic_change": s.bic_change if s else None,
                     "identifiability_rho": s.rho if s else None,
                     "heldout_rms_without_m": wo["rms_m"],
+                    "heldout_rms_without_ci95_m": wo["rms_ci95_m"],
                     "heldout_rms_with_m": after["rms_m"],
                     "heldout_confirms": confirms,
                     "heldout_gain_m": gain,
@@ -1265,7 +1290,9 @@ def effect_sentence(e: dict) -> str:
         f"{100 * e['explained_fraction']:.0f} % of the geometry-only residual power in "
         f"cross-validation, added in acceptance order (F test p = {ev['p_value']:.1g}, CV p = "
         f"{ev['cv_p_value']:.1g}); held-out poses: RMS without it "
-        f"{ev['heldout_rms_without_m'] * 1e6:.1f} um{gain}{conf}{_range_note(e)}"
+        f"{ev['heldout_rms_without_m'] * 1e6:.1f} um"
+        + (f" ({ci_wo})" if (ci_wo := interval_um(ev.get("heldout_rms_without_ci95_m"))) else "")
+        + f"{gain}{conf}{_range_note(e)}"
     )
 
 
@@ -1465,8 +1492,11 @@ def summary_text(r: dict) -> str:
     u = r["unexplained"]
     if u.get("structured"):
         lines.append(
-            f"What is not explained: a structured residual of {um(u['excess_over_floor_m'])} above "
-            f"the noise floor remains that no candidate explains; it "
+            "What is not explained: a structured residual of "
+            + unexplained_text(
+                {"rms_m": u["excess_over_floor_m"], "upper_m": u.get("excess_over_floor_upper_m")}
+            )
+            + " remains that no candidate explains; it "
             + "; ".join(u["where"])
             + f". A non-parametric correction (GP over joint space) lowers the held-out RMS from "
             f"{um(u['np_test']['heldout_rms_without_m'])} to {um(u['np_test']['heldout_rms_with_m'])}"
