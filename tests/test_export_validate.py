@@ -316,3 +316,26 @@ def test_a_table_of_another_fit_of_the_same_recording_is_refused(tmp_path):
     assert table_model_mismatch(table, corr.nominal, None) is None  # no model given: not compared
     table.meta.pop("model_fingerprint")  # a table from before: not compared
     assert table_model_mismatch(table, corr.nominal, None, model=other) is None
+
+
+def test_the_improvement_and_the_bias_carry_their_uncertainty():
+    """`validate` printed its improvement factor and (JSON) the bias with none (uncertainty audit,
+    2026-11-27): the bias carries its standard error over the targets, the improvement a paired
+    bootstrap interval that covers the true ratio of the error distributions."""
+    from workcell.estimation.models import rms_ratio_interval
+    from workcell.export.validate import accuracy_stats
+
+    rng = np.random.default_rng(2)
+    ev = rng.normal([5e-6, 0, -5e-6], 1e-5, (40, 3))
+    st = accuracy_stats(ev)
+    np.testing.assert_allclose(st["bias_base_std_m"], ev.std(0, ddof=1) / np.sqrt(40))
+    assert np.all(np.isnan(accuracy_stats(ev[:1])["bias_base_std_m"]))
+    covered = 0
+    for k in range(40):  # before ~ 10x after in RMS: the true ratio is 10
+        r = np.random.default_rng(100 + k)
+        before = np.linalg.norm(r.normal(0, 1e-4, (20, 3)), axis=1)
+        after = np.linalg.norm(r.normal(0, 1e-5, (20, 3)), axis=1)
+        lo, hi = rms_ratio_interval(before, after)
+        covered += lo <= 10.0 <= hi
+    assert covered >= 34, covered  # a 95 % interval: about 38 of 40
+    assert np.isnan(rms_ratio_interval(before[:2], after[:2])[0])

@@ -338,6 +338,21 @@ def run(args: argparse.Namespace) -> int:
         print(
             f"skipped   {len(res['skipped'])} target(s) before any motion; first: {res['skipped'][0]}"
         )
-    print(f"improvement (RMS): {res['improvement']:.1f}x")
+    ci = res.get("improvement_ci95") or []
+    print(
+        f"improvement (RMS): {res['improvement']:.1f}x"
+        + (
+            f" (95 % CI {ci[0]:.1f}-{ci[1]:.1f}x, paired bootstrap over the targets)"
+            if len(ci) == 2 and all(np.isfinite(ci))
+            else ""
+        )
+    )
+    b, bs = res["after"].get("bias_base_m"), res["after"].get("bias_base_std_m")
+    if b is not None and bs is not None and all(np.isfinite(bs)):
+        cells = ", ".join(f"{x * 1e6:.1f} +- {e * 1e6:.1f}" for x, e in zip(b, bs, strict=True))
+        print(
+            f"bias after (mean error vector, reached - desired, base_ref x, y, z): {cells} um "
+            "(+- its standard error over the targets)"
+        )
     print(prose.fill(f"CI: {RMS_INTERVAL_BASIS} (here the targets)", width=100))
     return 0

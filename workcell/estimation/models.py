@@ -433,6 +433,26 @@ def rms_gain_interval(
     )
 
 
+def rms_ratio_interval(
+    e_before: np.ndarray, e_after: np.ndarray, level: float = RMS_INTERVAL_LEVEL, seed: int = 0
+) -> tuple[float, float]:
+    """Confidence interval of RMS(e_before) / RMS(e_after) over the same poses (paired BCa
+    bootstrap): an improvement factor with its pose-to-pose spread. (nan, nan) for fewer than 3
+    poses or a non-finite error."""
+    a = np.asarray(e_before, float).ravel()
+    b = np.asarray(e_after, float).ravel()
+    if a.shape != b.shape:
+        raise ValueError(f"paired errors need the same shape, got {a.shape} and {b.shape}")
+    if len(a) < 3 or not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+        return float("nan"), float("nan")
+    return _bootstrap_interval(
+        (a, b),
+        lambda x, y, axis=-1: _rms(x, axis) / np.maximum(_rms(y, axis), 1e-300),
+        level,
+        seed,
+    )
+
+
 def interval_um(ci, label: bool = True) -> str:
     """'95 % CI 88.2-115.3 um' (or without the label '88.2-115.3 um') for an interval [low,
     high] in metres; '' when there is none (an older report, too few poses)."""

@@ -27,7 +27,12 @@ import numpy as np
 
 from workcell.campaign.envelope import Guard
 from workcell.errors import UserError
-from workcell.estimation.models import interval_um, model_fingerprint, rms_interval
+from workcell.estimation.models import (
+    interval_um,
+    model_fingerprint,
+    rms_interval,
+    rms_ratio_interval,
+)
 from workcell.export.correction import Q_REF, Nominal, rotvec_to_matrix
 from workcell.export.table import CorrectionTable
 
@@ -51,12 +56,16 @@ def accuracy_stats(err_vec: np.ndarray) -> dict:
     errors (N, 3), reached minus desired, given in base_ref axes (the table's frame, the model's
     registered base: `error_vectors_base`); `bias_base_m` is their mean in those axes."""
     e = np.linalg.norm(err_vec, axis=1)
+    n = len(err_vec)
+    sem = err_vec.std(0, ddof=1) / np.sqrt(n) if n >= 2 else np.full(3, np.nan)
     return {
         "mean_m": float(e.mean()),
         "rms_m": float(np.sqrt(np.mean(e**2))),
         "rms_ci95_m": list(rms_interval(e)),
         "max_m": float(e.max()),
         "bias_base_m": err_vec.mean(0).tolist(),
+        # standard error of that mean over the targets (nan with one target)
+        "bias_base_std_m": sem.tolist(),
     }
 
 
@@ -194,9 +203,12 @@ def run_validation(
             "no target could be reached along paths inside the envelope; check the volume"
         )
     out = {"targets": int(keep.sum()), "skipped": skipped, "via_upright_moves": n_via}
+    norms = {}
     for key in ("before", "after"):
         # measured in the tracker frame; the bias is stated in base_ref axes, the table's
-        st = accuracy_stats(error_vectors_base(nominal, meas[key], p_goal[keep]))
+        ev = error_vectors_base(nominal, meas[key], p_goal[keep])
+        norms[key] = np.linalg.norm(ev, axis=1)
+        st = accuracy_stats(ev)
         out[key] = st
     if first is not None and out["targets"] >= 2:
         out["closure"] = _closure(
@@ -212,6 +224,7 @@ def run_validation(
     out["before_rms_m"] = out["before"]["rms_m"]
     out["after_rms_m"] = out["after"]["rms_m"]
     out["improvement"] = out["before_rms_m"] / max(out["after_rms_m"], 1e-15)
+    out["improvement_ci95"] = list(rms_ratio_interval(norms["before"], norms["after"]))
     if (rej := getattr(measure, "rejected", None)) is not None:
         out["rejected_readings"] = int(rej)
         if rej:
