@@ -69,3 +69,24 @@ def test_a_bad_smr_offset_is_one_line(capsys, tmp_path, value, match):
     rc = main(["fit", str(rec), "--smr-offset", value, "--out", str(tmp_path / "m.json")])
     err = [x for x in capsys.readouterr().err.splitlines() if x.strip()]
     assert rc == 2 and len(err) == 1 and match in err[0], err
+
+
+def test_the_kept_sideways_offset_carries_its_std():
+    """The note's sideways figure had no std (uncertainty audit, 2026-11-27): it is the
+    components' std along the sideways change, first order, like the note's own std."""
+    import numpy as np
+
+    from workcell.estimation.fitting import smr_change
+
+    def par(v, nom, sd):
+        return {"value": v, "nominal": nom, "std": sd}
+
+    params = {
+        "tool_x": par(3e-4, 0.0, 1e-4),
+        "tool_y": par(4e-4, 0.0, 2e-4),
+        "tool_z": par(0.125, 0.109, 5e-5),
+    }
+    c = smr_change(params)
+    assert c["sideways_kept_m"] == pytest.approx(5e-4)
+    assert c["sideways_std_m"] == pytest.approx(np.sqrt(0.36 * 1e-8 + 0.64 * 4e-8))
+    assert c["fitted_std_m"] == [1e-4, 2e-4, 5e-5]

@@ -315,7 +315,13 @@ def print_report(r: dict, refit=None) -> None:
                 + (
                     ""
                     if side is None
-                    else f" (its sideways components, {side * 1e3:.2f} mm from the declared, "
+                    else f" (its sideways components, {side * 1e3:.2f} mm from the declared"
+                    + (
+                        f" (std {smr['sideways_std_m'] * 1e3:.2f} mm)"
+                        if smr.get("sideways_std_m") is not None
+                        else ""
+                    )
+                    + ", "
                     "stay as declared: so small a sideways offset makes the wrist's parameters "
                     "look separately identifiable while the poses barely tell them apart)"
                 )

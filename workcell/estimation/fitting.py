@@ -435,6 +435,9 @@ def smr_change(params: dict) -> dict | None:
         "fitted_m": fitted.tolist(),
         "suggested_m": suggested.tolist(),
         "sideways_kept_m": side if side <= SMR_NOTE_M else None,
+        # its std along the sideways change (first order, as std_m along the whole change)
+        "sideways_std_m": float(np.sqrt(np.sum((d[:2] / max(side, 1e-12)) ** 2 * stds[:2] ** 2))),
+        "fitted_std_m": stds.tolist(),
     }
 
 
