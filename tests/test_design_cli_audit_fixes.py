@@ -151,3 +151,29 @@ def test_bench_design_help_shows_the_defaults(capsys):
         "(default: random,dopt,vopt,bo)",
     ):
         assert s in text, s
+
+
+def test_the_ratio_to_random_carries_a_paired_interval():
+    """The design benches printed 'ratio best / random 0.85' with no interval (uncertainty audit,
+    2026-11-27): a paired bootstrap over the seeds, which holds the point ratio and narrows with
+    more seeds."""
+    import numpy as np
+
+    from workcell.bench.design import poses_summary, ratio_intervals
+
+    rng = np.random.default_rng(0)
+
+    def summary(n):
+        rand = rng.integers(9, 13, n)
+        return {
+            "random": poses_summary([{"poses_to_target": int(x), "censored": False} for x in rand]),
+            "dopt": poses_summary([{"poses_to_target": 9, "censored": False}] * n),
+        }
+
+    s10, s100 = summary(10), summary(100)
+    lo, hi = ratio_intervals(s10)["dopt"]
+    point = s10["dopt"]["mean"] / s10["random"]["mean"]
+    assert lo < point < hi and hi - lo < 0.3
+    lo2, hi2 = ratio_intervals(s100)["dopt"]
+    assert hi2 - lo2 < hi - lo
+    assert ratio_intervals({"dopt": s10["dopt"]}) == {}  # no random baseline: no ratio

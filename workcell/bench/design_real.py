@@ -144,7 +144,14 @@ def main(argv: list[str]) -> int:
             file=sys.stderr,
         )
         return 2
-    from workcell.bench.design import best_vs_random, poses_summary, ratios_to_random
+    from workcell.bench.design import (
+        RATIO_CI_BASIS,
+        best_vs_random,
+        poses_summary,
+        ratio_intervals,
+        ratio_line,
+        ratios_to_random,
+    )
     from workcell.campaign.adaptive import identifiable_mask
     from workcell.estimation.bounded import fit_dh_bounded, jacobian_padded
     from workcell.kinematics.chain import pack
@@ -194,7 +201,10 @@ def main(argv: list[str]) -> int:
         "rank_bound_poses": n_min,
         "poses_to_target": summary,
         "ratio_best_to_random": ratio,
+        "ratio_best_to_random_ci95": ratio_intervals(summary).get(best) if best else None,
         "ratios_to_random": ratios_to_random(summary),
+        "ratios_to_random_ci95": ratio_intervals(summary),
+        "ratio_ci_basis": RATIO_CI_BASIS,
         "best_plan": best,
         "best_possible_ratio": n_min / summary["random"]["mean"] if "random" in summary else None,
         "wall_seconds": time.perf_counter() - t0,
@@ -209,10 +219,6 @@ def main(argv: list[str]) -> int:
         cens = f"  [{r['censored']} not reached]" if r["censored"] else ""
         print(f"{p:8}{r['mean']:8.1f}{r['std']:8.1f}{r['median']:8.1f}  {r['runs']}{cens}")
     if ratio is not None:
-        each = ", ".join(f"{p} {v:.2f}" for p, v in out["ratios_to_random"].items())
-        print(
-            f"ratio best ({best}) / random: {ratio:.2f} ({each}); rank bound {n_min} poses "
-            f"(best possible {out['best_possible_ratio']:.2f})"
-        )
+        print(ratio_line(out, best, f"rank bound {n_min} poses"))
     print(f"wall {out['wall_seconds']:.0f} s")
     return 0

@@ -453,6 +453,26 @@ def rms_ratio_interval(
     )
 
 
+def mean_ratio_interval(
+    a: np.ndarray, b: np.ndarray, level: float = RMS_INTERVAL_LEVEL, seed: int = 0
+) -> tuple[float, float]:
+    """Confidence interval of mean(a) / mean(b) over paired observations (paired bootstrap: BCa,
+    percentile when BCa is degenerate). (nan, nan) for fewer than 3 pairs or a non-finite
+    value."""
+    a = np.asarray(a, float).ravel()
+    b = np.asarray(b, float).ravel()
+    if a.shape != b.shape:
+        raise ValueError(f"paired values need the same shape, got {a.shape} and {b.shape}")
+    if len(a) < 3 or not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+        return float("nan"), float("nan")
+    return _bootstrap_interval(
+        (a, b),
+        lambda x, y, axis=-1: np.mean(x, axis) / np.maximum(np.mean(y, axis), 1e-300),
+        level,
+        seed,
+    )
+
+
 def interval_um(ci, label: bool = True) -> str:
     """'95 % CI 88.2-115.3 um' (or without the label '88.2-115.3 um') for an interval [low,
     high] in metres; '' when there is none (an older report, too few poses)."""
