@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 
 import numpy as np
 
@@ -119,12 +120,30 @@ def _deviation(model, env, spec) -> dict:
         raise UserError(f"envelope: {e}") from None
 
 
+def _finite_pair(v) -> tuple[float, float] | None:
+    """(low, high) from a model file's interval, or None when it is not two finite numbers."""
+    try:
+        lo, hi = (float(x) for x in v)
+    except (TypeError, ValueError):
+        return None
+    return (lo, hi) if math.isfinite(lo) and math.isfinite(hi) else None
+
+
 def describe_deviation(dev: dict, source: str) -> str:
     rms = dev["model_heldout_rms_m"]
     lines = [
         f"model {source}: how far its SMR is from the nominal kinematics the checks use, over "
         f"{dev['configurations']} configurations the envelope allows"
-        + (f" (the model's own held-out RMS: {1e3 * rms:.3f} mm)" if rms else "")
+        + (
+            f" (the model's own held-out RMS: {1e3 * rms:.3f} mm"
+            + (
+                f", 95 % CI {1e3 * ci[0]:.3f}-{1e3 * ci[1]:.3f} mm)"
+                if (ci := _finite_pair(dev.get("model_heldout_rms_ci95_m")))
+                else ")"
+            )
+            if rms
+            else ""
+        )
     ]
     for name, f in dev["frames"].items():
         lines.append(

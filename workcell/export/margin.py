@@ -83,6 +83,7 @@ def model_deviation(model, env, spec, *, samples: int = SAMPLES, seed: int = 0) 
         "frames": out_frames,
         "max_m": worst,
         "model_heldout_rms_m": rms_model,
+        "model_heldout_rms_ci95_m": info.get("heldout_rms_ci95_m") if rms_model else None,
         "suggested_margin_m": math.ceil(suggested * 1e3 - 1e-9) / 1e3,
         "basis": (
             f"{SAFETY_FACTOR:g} x (largest deviation over {len(q)} allowed configurations, "
