@@ -54,3 +54,31 @@ def test_validate_warms_the_simulated_arm_to_the_recordings_last_sample(small):
     assert recorded_end_s(None) is None
     assert recorded_end_s(str(small) + ".missing") is None
     assert np.isfinite(max(e)) and max(e) > 0
+
+
+def test_the_combined_base_carries_its_propagated_std():
+    """`fit` never stated tracker_T_base, the base `replay` says to compare, and the model file
+    kept it without a std (uncertainty audit, 2026-11-27): base_pose_with_std propagates the
+    parameter covariance to first order, which agrees with draws from it."""
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from workcell.kinematics.chain import base_pose_with_std, pack, tracker_T_base
+    from workcell.kinematics.robots import UR5E
+
+    rng = np.random.default_rng(1)
+    th = pack(UR5E.dh, tool=(0.0, 0.0, 0.06))
+    th[30:36] += rng.normal(0, 1e-3, 6)
+    ref = np.eye(4)
+    ref[:3, :3] = Rotation.from_rotvec([0.1, -0.2, 0.7]).as_matrix()
+    ref[:3, 3] = (2.0, -0.5, 0.3)
+    A = rng.normal(size=(39, 39)) * 3e-5
+    cov = A @ A.T
+    got = base_pose_with_std(th, ref, cov)
+    T0 = np.asarray(tracker_T_base(th, ref))
+    draws = rng.multivariate_normal(th, cov, size=3000)
+    Ts = np.array([np.asarray(tracker_T_base(t, ref)) for t in draws])
+    np.testing.assert_allclose(got["translation_std_m"], Ts[:, :3, 3].std(0), rtol=0.1)
+    rot = Rotation.from_matrix(Ts[:, :3, :3] @ T0[:3, :3].T).as_rotvec()  # about tracker axes
+    np.testing.assert_allclose(got["rotation_std_rad"], rot.std(0), rtol=0.1)
+    assert "translation_std_m" not in base_pose_with_std(th, ref)  # no covariance, no std

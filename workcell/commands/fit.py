@@ -167,6 +167,20 @@ def identification_line(i: dict) -> str:
     return line
 
 
+def base_text(tb: dict) -> str:
+    """'base            tracker_T_base: translation [..] m +- [..] mm, ...' (fit's output)."""
+    t = ", ".join(f"{x:.6f}" for x in tb["translation_m"])
+    qt = ", ".join(f"{x:.8f}" for x in tb["quaternion_wxyz"])
+    txt = f"base            tracker_T_base (base_ref with the fitted base offsets): translation [{t}] m"
+    if "translation_std_m" in tb:
+        ts = ", ".join(f"{x * 1e3:.3f}" for x in tb["translation_std_m"])
+        rs = ", ".join(f"{x * 1e3:.3f}" for x in tb["rotation_std_rad"])
+        txt += f" (1-sigma [{ts}] mm), quaternion wxyz [{qt}] (1-sigma about x, y, z [{rs}] mrad)"
+    else:
+        txt += f", quaternion wxyz [{qt}] (no covariance: no 1-sigma)"
+    return txt + "; compare this, not the base offsets, with another model's base"
+
+
 def print_report(r: dict, refit=None) -> None:
     print(f"method          {r['method']}")
     print(f"recording       {r['recording']}")
@@ -221,6 +235,9 @@ def print_report(r: dict, refit=None) -> None:
             f"({interval_um(ho['heldout_rms_ci95_m'])}), unexplained "
             f"{unexplained_text(ho['unexplained'])}"
         )
+    tb = r.get("tracker_T_base")
+    if tb:
+        print(prose.fill(base_text(tb), width=100, subsequent_indent=" " * 16))
     print(f"fit time        {r['fit_seconds']:.2f} s")
     if r.get("unidentifiable"):
         print(

@@ -35,6 +35,7 @@ from workcell.estimation.models import error_stats
 from workcell.kinematics.chain import (
     IDX,
     N_PARAMS,
+    base_pose_with_std,
     base_slice,
     jac_params,
     joints_of,
@@ -45,7 +46,7 @@ from workcell.kinematics.chain import (
     tracker_T_base,
     unpack_dh,
 )
-from workcell.kinematics.frames import apply_transform, kabsch, quat_wxyz_from_matrix
+from workcell.kinematics.frames import apply_transform, kabsch
 from workcell.kinematics.robots import DH, robot_by_name, robot_from_session
 from workcell.recording.dataset import Dataset
 from workcell.recording.tracker_spec import TRACKER_MPE_M, tracker_spec_sigma
@@ -122,7 +123,6 @@ class DHModel:
         return out
 
     def to_dict(self) -> dict:
-        T = self.tracker_T_base
         return {
             "method": self.method,
             "robot": self.robot_model,
@@ -133,10 +133,8 @@ class DHModel:
             "cov": self.cov.tolist(),
             "free": self.free.tolist(),
             "unidentifiable": self.unidentifiable,
-            "tracker_T_base": {
-                "translation_m": T[:3, 3].tolist(),
-                "quaternion_wxyz": quat_wxyz_from_matrix(T[:3, :3]).tolist(),
-            },
+            # with its 1-sigma from `cov` (first order): the base another tool or model compares
+            "tracker_T_base": base_pose_with_std(self.theta, self.base_ref, self.cov),
             "info": self.info,
         }
 

@@ -255,7 +255,29 @@ def fit_dataset(
         else None
     )
     report["smr_change"] = smr_change(params)
+    report["tracker_T_base"] = combined_base(model)
     return model, report
+
+
+def combined_base(model) -> dict | None:
+    """The model's tracker_T_base (its base_ref registration with the fitted base offsets) with
+    the 1-sigma of its translation and rotation (`chain.base_pose_with_std`), from the geometric
+    part of the model; None for a model without one. Two fits of one cell differ in how they
+    split the base between base_ref and the offsets: compare this, not the offsets."""
+    from workcell.kinematics.chain import base_pose_with_std
+
+    for attr in (None, "base", "base_model", "dh_model", "geometric"):
+        g = model if attr is None else getattr(model, attr, None)
+        th, ref = getattr(g, "theta", None), getattr(g, "base_ref", None)
+        if th is None or ref is None or np.ndim(th) != 1 or np.shape(ref) != (4, 4):
+            continue
+        get = getattr(g, "theta_cov", None)
+        try:
+            cov = get() if callable(get) else None
+        except Exception:  # noqa: BLE001 - no covariance: the pose without its std
+            cov = None
+        return base_pose_with_std(th, ref, cov)
+    return None
 
 
 def bounds_summary(model, bounds, heldout_rms_m: float, dtr, ev, tracker_mpe) -> dict:

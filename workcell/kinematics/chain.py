@@ -188,6 +188,33 @@ def tracker_T_base(theta, base_ref):
     return base_ref @ off
 
 
+def base_pose_with_std(theta, base_ref, cov=None) -> dict:
+    """tracker_T_base (the base_ref registration with the fitted base offsets) as a translation
+    (m) and a quaternion (w, x, y, z); with a parameter covariance `cov` (P, P) also the 1-sigma
+    of its translation and of a small rotation about the tracker's axes (rad), first order."""
+    from workcell.kinematics.frames import quat_wxyz_from_matrix
+
+    th = jnp.asarray(theta, dtype=float)
+    ref = jnp.asarray(base_ref, dtype=float)
+    T = np.asarray(tracker_T_base(th, ref), float)
+    out = {
+        "translation_m": T[:3, 3].tolist(),
+        "quaternion_wxyz": quat_wxyz_from_matrix(T[:3, :3]).tolist(),
+    }
+    if cov is None:
+        return out
+    C = np.asarray(cov, float)
+    if C.shape != (th.shape[0],) * 2 or not np.all(np.isfinite(C)):
+        return out
+    J = np.asarray(jax.jacfwd(lambda t: tracker_T_base(t, ref))(th))
+    W = np.einsum("ijp,kj->ikp", J[:3, :3, :], T[:3, :3])  # dR R^T: skew in each column
+    Jb = np.vstack([J[:3, 3, :], np.stack([W[2, 1], W[0, 2], W[1, 0]])])
+    sd = np.sqrt(np.clip(np.diag(Jb @ C @ Jb.T), 0, None))
+    out["translation_std_m"] = sd[:3].tolist()
+    out["rotation_std_rad"] = sd[3:].tolist()
+    return out
+
+
 def p_tracker_single(theta, base_ref, q):
     """SMR position in the tracker frame for one q (n,); theta (5 n + 9,)."""
     T = tracker_T_base(theta, base_ref) @ base_T_flange_single(theta, q)

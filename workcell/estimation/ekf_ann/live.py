@@ -52,12 +52,13 @@ from workcell.kinematics.chain import (
     PARAM_NAMES,
     PARAM_UNITS,
     PARAMETER_FRAMES,
+    base_pose_with_std,
     jac_params,
     p_tracker,
     pack,
     tracker_T_base,
 )
-from workcell.kinematics.frames import kabsch, quat_wxyz_from_matrix
+from workcell.kinematics.frames import kabsch
 from workcell.kinematics.robots import DH, RobotSpec, robot_from_session
 
 # A geometric state is "held by its prior" when the data left its (unscaled) filter std above
@@ -374,21 +375,7 @@ class LiveFilter:
         """The combined base tracker_T_base = base_ref @ Trans(t) @ Rot(r) with the std of its
         translation and rotation (first order, from the geometric states' covariance, scaled by
         `k`); the rotation std is of a small rotation about the tracker's axes."""
-        from workcell._jax import jax, jnp
-
-        base_ref = jnp.asarray(f.base_ref)
-        T = np.asarray(tracker_T_base(f.theta, f.base_ref), float)
-        J = np.asarray(jax.jacfwd(lambda th: tracker_T_base(th, base_ref))(jnp.asarray(f.theta)))
-        W = np.einsum("ijp,kj->ikp", J[:3, :3, :], T[:3, :3])  # dR R^T: skew in each column
-        Jb = np.vstack([J[:3, 3, :], np.stack([W[2, 1], W[0, 2], W[1, 0]])])
-        C = Jb @ cls._theta_cov(f) @ Jb.T * k**2
-        sd = np.sqrt(np.clip(np.diag(C), 0, None))
-        return {
-            "translation_m": T[:3, 3].tolist(),
-            "quaternion_wxyz": quat_wxyz_from_matrix(T[:3, :3]).tolist(),
-            "translation_std_m": sd[:3].tolist(),
-            "rotation_std_rad": sd[3:].tolist(),
-        }
+        return base_pose_with_std(f.theta, f.base_ref, cls._theta_cov(f) * k**2)
 
     @staticmethod
     def _split(f: EkfAnnFilter) -> dict:
