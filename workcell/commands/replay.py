@@ -17,6 +17,7 @@ from workcell import strict_json
 from workcell.commands import prose
 from workcell.errors import UserError, check_output_path
 from workcell.estimation.identifiability import GROUP_STAR_NOTE
+from workcell.estimation.models import interval_um
 from workcell.recording.chain import add_chain_option
 
 
@@ -165,10 +166,16 @@ def split_lines(est: dict) -> list[str]:
     `geometry_split_basis`)."""
     if est.get("geometric_part_rms_m") is None:
         return []
+
+    def ci(key: str) -> str:
+        c = interval_um(est.get(key))
+        return f" ({c})" if c else ""
+
     return prose.wrap(
         f"geometry vs network: the geometry alone (network off) fits the {est['fit_samples']} "
-        f"samples at {est['geometric_part_rms_m'] * 1e6:.0f} um RMS, geometry and network at "
-        f"{est['rms_m'] * 1e6:.0f} um (in-sample, final state). The geometric parameters are the "
+        f"samples at {est['geometric_part_rms_m'] * 1e6:.0f} um RMS"
+        f"{ci('geometric_part_rms_ci95_m')}, geometry and network at "
+        f"{est['rms_m'] * 1e6:.0f} um{ci('rms_ci95_m')} (in-sample, final state). The geometric parameters are the "
         "filter's split between geometry and network, which absorbs part of the geometry: not "
         "comparable one by one with `workcell fit --method dh`'s (compare its RMS with the "
         "geometry-alone figure); their stds are conditional on the network",

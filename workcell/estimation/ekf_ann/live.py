@@ -46,7 +46,7 @@ from workcell.estimation.identifiability import (
     candidates_for,
     group_representatives,
 )
-from workcell.estimation.models import note_joint_range
+from workcell.estimation.models import note_joint_range, rms_interval
 from workcell.kinematics.chain import (
     N_PARAMS,
     PARAM_NAMES,
@@ -390,7 +390,9 @@ class LiveFilter:
         return {
             "fit_samples": len(q),
             "rms_m": float(np.sqrt(np.mean(np.sum((y - full) ** 2, axis=1)))),
+            "rms_ci95_m": list(rms_interval(np.linalg.norm(y - full, axis=1))),
             "geometric_part_rms_m": float(np.sqrt(np.mean(np.sum((y - geo) ** 2, axis=1)))),
+            "geometric_part_rms_ci95_m": list(rms_interval(np.linalg.norm(y - geo, axis=1))),
         }
 
     def _geometric(self, f: EkfAnnFilter, s0: float) -> dict[str, dict]:
