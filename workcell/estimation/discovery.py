@@ -567,8 +567,9 @@ def _fit_augmented(
     free: np.ndarray,
     eff0: np.ndarray,
     active: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Nonlinear weighted least squares over theta[free] and eff[active]."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, int]:
+    """Nonlinear weighted least squares over theta[free] and eff[active] -> (theta, eff, cov,
+    s0^2, its degrees of freedom)."""
     nf = int(free.sum())
 
     def unpack(x):
@@ -596,7 +597,7 @@ def _fit_augmented(
     dof = max(len(r) - len(x0), 1)
     s0_2 = float(r @ r / dof)
     cov = s0_2 * np.linalg.pinv(J.T @ J)
-    return th, ef, cov
+    return th, ef, cov, s0_2, dof
 
 
 SPLIT_HALF_Z = 3.0  # |z| beyond which an effect's +- is said to understate its spread
@@ -618,7 +619,9 @@ def _split_half(dfit, w, X, theta, base_ref, free, eff, active, seed: int = 7) -
     vals, var = [], []
     nf = int(free.sum())
     for h in halves:
-        _, ef, cov = _fit_augmented(dfit.subset(h), w[h], X[h], theta, base_ref, free, eff, active)
+        _, ef, cov, *_ = _fit_augmented(
+            dfit.subset(h), w[h], X[h], theta, base_ref, free, eff, active
+        )
         vals.append(ef[active])
         var.append(np.clip(np.diag(cov)[nf:], 0.0, None))
     sd = np.sqrt(var[0] + var[1])
@@ -728,10 +731,14 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
     eff_lin[idx] = beta
     active = np.asarray(sorted(idx), int)
     if len(active):
-        th_f, eff_f, cov = _fit_augmented(dfit, w, X, theta, base_ref, free, eff_lin, active)
+        th_f, eff_f, cov, s0_2, s0_dof = _fit_augmented(
+            dfit, w, X, theta, base_ref, free, eff_lin, active
+        )
     else:
         th_f, eff_f = theta, eff0
         cov = dh.cov[np.ix_(free, free)]
+        s0_2 = (getattr(dh, "info", None) or {}).get("variance_factor")
+        s0_dof = 3 * len(dfit) - int(free.sum())
     model = AugmentedModel(
         features_spec=fs,
         theta=th_f,
@@ -750,6 +757,11 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
     )
 
     split = _split_half(dfit, w, X, th_f, base_ref, free, eff_f, active) if len(active) else None
+    split_note = (
+        f"not run: {len(dfit)} training poses fitted, it needs 40 (20 a half)"
+        if len(active) and split is None
+        else None
+    )
 
     # ---- 6. show: held-out before/after, per step (linearised prefix models)
     pred_dh_te = padded_call(dh.predict, dte.q)
@@ -916,6 +928,8 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
         "max_after_m": after["max_m"],
         "rms_interval_basis": RMS_INTERVAL_BASIS,
         "parameter_std_basis": PARAMETER_STD_BASIS,
+        "variance_factor": s0_2,  # s0^2 of the joint refit, its degrees of freedom below
+        "variance_factor_dof": int(s0_dof),
         "parameter_frames": PARAMETER_FRAMES,
         "noise_floor_m": floor,
         "noise_floor_basis": (
@@ -959,6 +973,7 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
         "split_half": (
             {k: split[k] for k in ("z_rms", "n_parameters", "basis")} if split else None
         ),
+        "split_half_note": split_note,
         "geometry_basis": (
             "the final model's geometric parameters, estimated jointly with the accepted "
             "effects (deviations from the session's nominal chain)"
@@ -1392,8 +1407,19 @@ def summary_text(r: dict) -> str:
             )
             for e in unconfirmed:
                 lines.append("  - " + effect_sentence(e))
-        lines.append(f"  ({r.get('parameter_std_basis', PARAMETER_STD_BASIS)}.)")
+        s02 = r.get("variance_factor")
+        lines.append(
+            f"  ({r.get('parameter_std_basis', PARAMETER_STD_BASIS)}"
+            + (
+                f"; here s0^2 = {s02:.3g} over {r['variance_factor_dof']} degrees of freedom"
+                if isinstance(s02, (int, float)) and r.get("variance_factor_dof")
+                else ""
+            )
+            + ".)"
+        )
         sh = r.get("split_half")
+        if sh is None and r.get("split_half_note"):
+            lines.append(f"  Split-half check of the +-: {r['split_half_note']}.")
         if sh:
             moved = [
                 f"{e['description']} (|z| {e['evidence']['split_half_z']:.1f})"
