@@ -165,3 +165,26 @@ def test_the_dry_run_gives_the_pose_count_curve(capsys):
     assert "(vopt;" in line and line.endswith("at 20")
     assert main([*argv, "--plan", "bo"]) == 0
     assert pre not in capsys.readouterr().out
+
+
+def test_the_expected_heldout_rms_carries_its_sampling_range():
+    """The dry run's 'held-out RMS about X um' had no interval (uncertainty audit, 2026-11-27):
+    the 95 % range of an RMS over the held-out poses from their sampling alone (3 m squared
+    errors, a scaled chi-square), narrower with more held-out poses."""
+    from scipy.stats import chi2
+
+    from workcell.campaign.identification import expected_after_fit
+    from workcell.campaign.plans import random_configurations
+
+    spec, env, tool = _ur5e()
+    q = random_configurations(spec, env, 80, np.random.default_rng(2), tool)
+    e30, e80 = expected_after_fit(spec, env, q[:30], tool), expected_after_fit(spec, env, q, tool)
+    assert (e30["heldout_poses"], e80["heldout_poses"]) == (8, 20)
+    for e in (e30, e80):
+        lo, hi = e["heldout_rms_range95_m"]
+        m = 3 * e["heldout_poses"]
+        assert lo / e["heldout_rms_m"] == pytest.approx(np.sqrt(chi2.ppf(0.025, m) / m))
+        assert hi / e["heldout_rms_m"] == pytest.approx(np.sqrt(chi2.ppf(0.975, m) / m))
+    w30 = np.subtract(*e30["heldout_rms_range95_m"][::-1]) / e30["heldout_rms_m"]
+    w80 = np.subtract(*e80["heldout_rms_range95_m"][::-1]) / e80["heldout_rms_m"]
+    assert w80 < w30

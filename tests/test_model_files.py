@@ -101,3 +101,29 @@ def test_a_saved_model_states_the_units_and_frames_of_its_arrays(dh_model, tmp_p
     assert model_fingerprint(load_model(save_model(m, tmp_path / "m2.json"))) == model_fingerprint(
         m
     )
+
+
+def test_the_fingerprint_of_a_model_is_that_of_earlier_versions():
+    """Tables name the model they were built from by its fingerprint. On 2026-11-27 the model
+    file's derived tracker_T_base gained its 1-sigma, which changed every fingerprint: every
+    earlier table was refused as 'built from another model' of its own recording (bad-input
+    audit). The hash below was computed by the code before that change (d9a59a2)."""
+    import numpy as np
+
+    from workcell.estimation.dh import DHModel
+    from workcell.estimation.models import model_fingerprint
+    from workcell.kinematics.chain import pack
+    from workcell.kinematics.robots import UR5E
+
+    th = pack(UR5E.dh, tool=(0.0, 0.0, 0.06))
+    th[:24] += np.linspace(-3e-4, 3e-4, 24)
+    th[30:36] += np.array([1e-3, -2e-3, 5e-4, 2e-3, -1e-3, 3e-3])
+    ref = np.eye(4)
+    ref[:3, 3] = (2.0, -0.5, -0.3)
+    cov = np.diag(np.linspace(1e-10, 4e-10, 39))
+    m = DHModel(robot_model="ur5e", nominal_dh=UR5E.dh, theta=th, base_ref=ref, cov=cov,
+                free=np.ones(39, bool), info={})  # fmt: skip
+    assert "translation_std_m" in m.to_dict()["tracker_T_base"]  # the file carries the std
+    assert model_fingerprint(m) == (
+        "d4d2620b038799c5be08fd4a6087a1ef5968583712c43a920789c3c79e49acf6"
+    )

@@ -93,7 +93,20 @@ def expected_after_fit(
     )["expected_prediction"]
     if e is None:
         return None
-    return {**e, "train_poses": int(len(train)), "pose_sigma_m": sig, "range_m": rng}
+    m = len(q) - len(train)
+    out = {**e, "train_poses": int(len(train)), "pose_sigma_m": sig, "range_m": rng}
+    out["heldout_poses"] = int(m)
+    if m > 0:
+        # the spread of a held-out RMS over m poses from sampling alone: 3 m squared errors of
+        # the expected size, a scaled chi-square with 3 m degrees of freedom
+        from scipy.stats import chi2
+
+        lo, hi = chi2.ppf([0.025, 0.975], 3 * m) / (3 * m)
+        out["heldout_rms_range95_m"] = [
+            float(e["heldout_rms_m"] * np.sqrt(lo)),
+            float(e["heldout_rms_m"] * np.sqrt(hi)),
+        ]
+    return out
 
 
 def identification_lines(
@@ -127,7 +140,14 @@ def identification_lines(
             f"is the whole error and the tracker meets its MPE (1-sigma {sig.min() * um:.1f}-"
             f"{sig.max() * um:.1f} um an axis at {rng.min():.2f}-{rng.max():.2f} m{where}): the "
             f"model's 1-sigma over the envelope {e['rms_m'] * um:.1f} um RMS (max "
-            f"{e['max_m'] * um:.1f} um); held-out RMS about {e['heldout_rms_m'] * um:.1f} um, "
+            f"{e['max_m'] * um:.1f} um); held-out RMS about {e['heldout_rms_m'] * um:.1f} um"
+            + (
+                f" (95 % range {rr[0] * um:.1f}-{rr[1] * um:.1f} um on {e['heldout_poses']} "
+                "held-out poses, from their sampling alone)"
+                if (rr := e.get("heldout_rms_range95_m"))
+                else ""
+            )
+            + ", "
             f"{e['heldout_rms_m'] / e['floor_m']:.2f}x the noise floor of "
             f"{e['floor_m'] * um:.1f} um"
         )

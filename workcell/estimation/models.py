@@ -152,8 +152,27 @@ def model_fingerprint(model: FittedModel) -> str:
     reloaded copy; different for another fit, even of the same recording and method."""
     import hashlib
 
-    d = {k: v for k, v in model.to_dict().items() if k != "info"}
+    d = _fingerprinted({k: v for k, v in model.to_dict().items() if k != "info"})
     return hashlib.sha256(json.dumps(d, sort_keys=True, allow_nan=True).encode()).hexdigest()
+
+
+# the keys of a derived `tracker_T_base` the fingerprint has always covered: its 1-sigma, added
+# to model files on 2026-11-27, is left out, so tables exported before still match their model
+_POSE_KEYS = ("translation_m", "quaternion_wxyz")
+
+
+def _fingerprinted(d):
+    """`d` as `model_fingerprint` hashes it: every `tracker_T_base` reduced to `_POSE_KEYS`."""
+    if isinstance(d, dict):
+        return {
+            k: (
+                {p: v[p] for p in _POSE_KEYS if p in v}
+                if k == "tracker_T_base" and isinstance(v, dict)
+                else _fingerprinted(v)
+            )
+            for k, v in d.items()
+        }
+    return d
 
 
 def load_model(path: str | os.PathLike) -> FittedModel:
