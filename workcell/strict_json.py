@@ -20,9 +20,23 @@ def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict:
     return seen
 
 
+def _int(s: str) -> int | float:
+    """A JSON integer; one beyond 64 bits as a float (inf past 1e308), as a JSON number with a
+    decimal point or exponent is read: `float(10**400)` raised OverflowError deep in a loader
+    (a traceback), while the loaders' finiteness checks name an inf."""
+    v = int(s)
+    return v if -(2**63) <= v < 2**63 else float(s)
+
+
 def loads(text: str) -> Any:
     """`json.loads`, raising `DuplicateKey` for a key given twice in any object."""
-    return json.loads(text, object_pairs_hook=_no_duplicates)
+    return json.loads(text, object_pairs_hook=_no_duplicates, parse_int=_int)
+
+
+def loads_numbers(text: str) -> Any:
+    """`json.loads` with integers beyond 64 bits read as floats (`_int`), for files workcell
+    writes and a user may edit (models, tables): duplicate keys are not refused here."""
+    return json.loads(text, parse_int=_int)
 
 
 def finite(v: Any) -> Any:

@@ -566,6 +566,15 @@ class AugmentedModel:
             thermal_ref=np.asarray(d.get("thermal", {}).get("ref", [0.0] * 6), float),
             payload_kg_default=float(d.get("payload_kg_default", 0.0)),
         )
+        # what `export` states as the recording's conditions: checked here, not where it fails
+        if fs.thermal_ref.shape != (6,) or not np.all(np.isfinite(fs.thermal_ref)):
+            raise ValueError(f"thermal.ref must be 6 finite temperatures, got {fs.thermal_ref}")
+        if not (np.isfinite(fs.payload_kg_default) and fs.payload_kg_default >= 0.0):
+            raise ValueError(
+                f"payload_kg_default must be a mass >= 0 kg, got {fs.payload_kg_default:g}"
+            )
+        if fs.payload_com_m.shape != (3,) or not np.all(np.isfinite(fs.payload_com_m)):
+            raise ValueError(f"payload_com_m must be 3 finite numbers (m), got {fs.payload_com_m}")
         return cls(
             features_spec=fs,
             theta=np.asarray(d["theta"], float),

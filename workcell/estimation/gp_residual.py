@@ -141,6 +141,10 @@ class GPResidualModel:
 
     @classmethod
     def from_dict(cls, d: dict) -> GPResidualModel:
+        for k in ("signal_var", "noise_var"):  # a variance: positive, finite
+            v = float(d[k])
+            if not (np.isfinite(v) and v > 0.0):
+                raise ValueError(f"{k} must be a variance > 0, got {v:g}")
         return cls(
             base=model_from_dict(d["base"]),
             X=np.asarray(d["X"], float),

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import importlib
 import json
+import math
 import os
 import warnings
 from pathlib import Path
@@ -15,6 +16,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
+from workcell import strict_json
 from workcell.errors import REPLACE_REMEDY, UserError, folder_problem, replace_or_refuse
 
 MODEL_FORMAT = "workcell-model/1"
@@ -97,7 +99,7 @@ def check_model_output(
     if not p.is_file() or not Path(recording).is_file():
         return  # nothing to replace, or the command refuses the missing recording itself
     try:
-        d = json.loads(p.read_text(encoding="utf-8-sig"))
+        d = strict_json.loads_numbers(p.read_text(encoding="utf-8-sig"))
     except PermissionError:
         raise UserError(
             f"model file {p} exists and cannot be read (permissions), so it cannot be checked "
@@ -182,7 +184,7 @@ def load_model(path: str | os.PathLike) -> FittedModel:
     if not p.is_file():  # a directory, or a pipe (reading it would wait forever)
         raise UserError(f"{p}: not a regular file; give a model file (.json)")
     try:
-        d = json.loads(p.read_text(encoding="utf-8-sig"))
+        d = strict_json.loads_numbers(p.read_text(encoding="utf-8-sig"))
     except (ValueError, UnicodeDecodeError):
         raise UserError(f"{p}: not a workcell model file (not JSON)") from None
     if not isinstance(d, dict) or d.get("format") != MODEL_FORMAT:
@@ -249,6 +251,11 @@ def model_from_dict(d: dict, source: str = "model") -> FittedModel:
         raise UserError(f"{source}: malformed {method} model file (info is not an object)")
     if info.get("recording") is not None and not isinstance(info.get("recording"), str):
         raise UserError(f"{source}: malformed {method} model file (recording is not a path)")
+    if (why := info_problem(info)) is not None:
+        raise UserError(
+            f"{source}: the {method} model file's info.{why}: edited by hand? restore the file "
+            "or fit it again with `workcell fit`"
+        )
     try:
         model = klass.from_dict(d)
         model.parameters()
@@ -259,7 +266,8 @@ def model_from_dict(d: dict, source: str = "model") -> FittedModel:
         if os.environ.get("WORKCELL_DEBUG"):
             raise
         raise UserError(
-            f"{source}: malformed {method} model file ({type(e).__name__}: {str(e)[:100]}); "
+            f"{source}: malformed {method} model file ({type(e).__name__}: "
+            f"{' '.join(str(e).split())[:100]}); "
             "fit it again with `workcell fit`"
         ) from None
     if p.shape != (len(_PROBE_Q), 3) or not np.all(np.isfinite(p)):
@@ -272,6 +280,7 @@ def model_from_dict(d: dict, source: str = "model") -> FittedModel:
             f"{source}: the {method} model puts the SMR {np.abs(p).max():.3g} m from the tracker "
             "(a parameter of the file is out of range); fit it again with `workcell fit`"
         )
+    _check_joint_count(model, source, method)
     _check_derived_fields(d, model, source, method)
     _check_nominal_units(model, source, method)
     # a std may be "not given" (None/NaN: a hyperparameter at its bound, a CV-chosen one), but
@@ -287,7 +296,92 @@ def model_from_dict(d: dict, source: str = "model") -> FittedModel:
     return model
 
 
+def _number(v) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool)
+
+
+def _metres(v, *, allow_nan: bool = False) -> bool:
+    """A length in metres a model file states: a finite number >= 0 (NaN: none, where allowed)."""
+    if not _number(v):
+        return False
+    return (allow_nan and math.isnan(v)) or (math.isfinite(v) and v >= 0.0)
+
+
+def info_problem(info: dict) -> str | None:
+    """What is wrong with the figures a model file's `info` states, which export, envelope and
+    validate act on (a negative held-out RMS made `envelope --model` suggest a 1 mm margin where
+    the model needs 5 mm; a 10**400 one was a traceback), or None. Absent keys are fine."""
+    for key in ("heldout_rms_m", "heldout_rms_unbounded_m"):
+        v = info.get(key)
+        if v is not None and not _metres(v):
+            return f"{key} must be a finite number >= 0 (metres), got {str(v)[:40]}"
+    ci = info.get("heldout_rms_ci95_m")
+    if ci is not None:
+        ok = isinstance(ci, list) and len(ci) == 2
+        ok = ok and all(v is None or _metres(v, allow_nan=True) for v in ci)
+        if ok and all(_metres(v) for v in ci):
+            ok = ci[0] <= ci[1]
+        if not ok:
+            return f"heldout_rms_ci95_m must be [low, high] in metres, got {str(ci)[:60]}"
+    u = info.get("unexplained")
+    if u is not None:
+        if not isinstance(u, dict):
+            return "unexplained must be an object"
+        for k, v in u.items():
+            if k.endswith("_m") and v is not None and not _metres(v):
+                return f"unexplained.{k} must be a finite number >= 0 (metres), got {str(v)[:40]}"
+    jr = info.get("joint_range_rad")
+    if jr is not None:
+        ok = isinstance(jr, list) and all(
+            isinstance(r, list)
+            and len(r) == 2
+            and all(_number(x) and math.isfinite(x) and abs(x) <= 4 * math.pi for x in r)
+            and r[0] <= r[1]
+            for r in jr
+        )
+        if not ok:
+            return "joint_range_rad must be [low, high] radians per joint, within +-4 pi"
+    tool = info.get("nominal_tool_m")
+    if tool is not None and not (  # its size: `_check_nominal_units` (says millimetres)
+        isinstance(tool, list)
+        and len(tool) == 3
+        and all(_number(x) and math.isfinite(x) for x in tool)
+    ):
+        return f"nominal_tool_m must be 3 finite numbers (metres), got {str(tool)[:60]}"
+    sha = info.get("recording_sha256")
+    if sha is not None and not isinstance(sha, str):
+        return f"recording_sha256 must be a text hash, got {str(sha)[:40]}"
+    return None
+
+
+def _check_joint_count(model, source: str, method: str) -> None:
+    """Campaigns, recordings, exports and validation are for the 6-joint arms: a model of
+    another chain (the design bench's 7-joint one) is refused, not folded into a UR's six."""
+    from workcell.kinematics.chain import N_JOINTS, joints_of
+
+    for attr in (None, "base", "base_model", "dh_model", "geometric"):
+        g = model if attr is None else getattr(model, attr, None)
+        th = getattr(g, "theta", None)
+        if th is None or np.ndim(th) != 1:
+            continue
+        try:
+            n = joints_of(np.asarray(th))
+        except (ValueError, TypeError):
+            n = None
+        if n != N_JOINTS:
+            raise UserError(
+                f"{source}: the {method} model has {len(th)} geometric parameters, not the "
+                f"{5 * N_JOINTS + 9} of a {N_JOINTS}-joint arm: exports, envelopes and "
+                "validation are for the 6-joint UR arms (a 7-joint chain is the design bench's "
+                "only); fit a model of this arm's recording"
+            )
+        return
+
+
 COV_PSD_RTOL = 1e-9  # eigenvalues down to -this x the largest are rounding
+
+
+MAX_GEOMETRIC_VARIANCE = 100.0  # (10 m or 10 rad)^2: beyond any geometric parameter's std
 
 
 def _check_covariance(c: np.ndarray, source: str, method: str, attr: str) -> None:
@@ -301,6 +395,13 @@ def _check_covariance(c: np.ndarray, source: str, method: str, attr: str) -> Non
         )
     if c.shape[0] != c.shape[1] or not c.size:
         raise UserError(f"{source}: the {method} model's {attr} is not a square matrix; {again}")
+    if c.shape[0] % 5 == 4 and v.max() > MAX_GEOMETRIC_VARIANCE:  # a geometric (5 n + 9) one
+        j = int(np.argmax(v))
+        raise UserError(
+            f"{source}: the {method} model's {attr} gives parameter {j} a standard deviation of "
+            f"{np.sqrt(v[j]):.3g} (metres or radians): no calibration is that uncertain; edited "
+            f"by hand? {again}"
+        )
     w = np.linalg.eigvalsh(0.5 * (c + c.T))
     if w[0] < -COV_PSD_RTOL * max(float(w[-1]), 0.0):
         raise UserError(

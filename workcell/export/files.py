@@ -41,6 +41,13 @@ def check_export_outputs(outputs, force: bool, say) -> None:
     export, unless `force`; `say(line)` is told what is replaced."""
     for o in outputs:
         o = Path(o)
+        if o.exists() and not o.is_file():
+            # a directory (or a device) where one of the files goes: refused before any work,
+            # not after the first file of a pair was written
+            raise UserError(
+                f"cannot write {o}: it exists and is not a regular file (a directory?); choose "
+                "another --out"
+            )
         if not o.is_file():
             continue
         kind = export_kind(o)

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from workcell import strict_json
 from workcell.atomic import atomic_files
 from workcell.errors import UserError
 from workcell.export.correction import (
@@ -231,20 +232,31 @@ class CorrectionTable:
         g = d["grid"]
         if not isinstance(d.get("meta", {}), dict):
             raise ValueError("meta must be an object")
+        shape = g["shape"]
+        if not (
+            isinstance(shape, list)
+            and len(shape) == 3
+            and all(isinstance(x, int) and not isinstance(x, bool) and x >= 2 for x in shape)
+        ):
+            raise ValueError(f"grid shape must be 3 whole numbers >= 2, got {str(shape)[:60]}")
         tab = cls(
-            lo_m=np.asarray(g["lo_m"], float),
-            hi_m=np.asarray(g["hi_m"], float),
-            shape=tuple(int(x) for x in g["shape"]),
-            orientations_rotvec=np.asarray(d["orientations_rotvec"], float).reshape(-1, 3),
-            delta_m=np.asarray(d["delta_m"], float),
-            std_m=None if d.get("std_m") is None else np.asarray(d["std_m"], float),
+            lo_m=_numbers(g["lo_m"], "grid lo_m"),
+            hi_m=_numbers(g["hi_m"], "grid hi_m"),
+            shape=tuple(shape),
+            orientations_rotvec=_numbers(d["orientations_rotvec"], "orientations_rotvec").reshape(
+                -1, 3
+            ),
+            delta_m=_numbers(d["delta_m"], "delta_m"),
+            std_m=None if d.get("std_m") is None else _numbers(d["std_m"], "std_m"),
             meta=d.get("meta", {}),
-            orientation_tol_rad=float(d.get("orientation_tol_rad", DEFAULT_ORIENTATION_TOL_RAD)),
+            orientation_tol_rad=float(
+                _numbers(d.get("orientation_tol_rad", DEFAULT_ORIENTATION_TOL_RAD), "tolerance")
+            ),
         )
         cfg = d.get("configuration")
         if cfg is not None:
-            signs = np.asarray(cfg["signs_shoulder_elbow_wrist"], float)
-            dh = np.asarray(cfg["dh_m"], float)
+            signs = _numbers(cfg["signs_shoulder_elbow_wrist"], "configuration signs")
+            dh = _numbers(cfg["dh_m"], "configuration dh_m")
             K = len(tab.orientations_rotvec)
             if signs.shape != (K, 3) or not np.all(np.isin(signs, (-1.0, 1.0))):
                 raise ValueError(f"configuration signs must be {K} triples of -1/+1")
@@ -568,6 +580,23 @@ def table_files(path: str | os.PathLike) -> tuple[Path, Path]:
     return base.with_name(base.name + ".json"), base.with_name(base.name + ".csv")
 
 
+def _numbers(v, name: str) -> np.ndarray:
+    """A table's numeric field as a float array: every leaf a JSON number (not text, not true or
+    false, which `np.asarray(..., float)` reads as 1.0: a hi_m of "1" stretched the grid)."""
+
+    def leaves(x):
+        if isinstance(x, list):
+            for y in x:
+                yield from leaves(y)
+        else:
+            yield x
+
+    for x in leaves(v):
+        if isinstance(x, bool) or not isinstance(x, int | float):
+            raise ValueError(f"{name} holds {str(x)[:20]!r}, not a number")
+    return np.asarray(v, float)
+
+
 def load_table(path: str | os.PathLike) -> CorrectionTable:
     given = p = Path(path)
     if p.suffix.lower() != ".json":
@@ -582,13 +611,13 @@ def load_table(path: str | os.PathLike) -> CorrectionTable:
     if not p.is_file():
         raise UserError(f"{p}: not a regular file; give a correction table (.json)")
     try:
-        d = json.loads(p.read_text(encoding="utf-8-sig"))
+        d = strict_json.loads_numbers(p.read_text(encoding="utf-8-sig"))
         if not isinstance(d, dict):
             raise ValueError("not a JSON object")
         return CorrectionTable.from_dict(d)
     except UserError as e:
         raise UserError(f"{p}: {e}") from None
-    except (ValueError, KeyError, TypeError, AttributeError, IndexError) as e:
+    except (ValueError, KeyError, TypeError, AttributeError, IndexError, OverflowError) as e:
         raise UserError(f"{p}: unreadable correction table ({type(e).__name__}: {e})") from None
 
 

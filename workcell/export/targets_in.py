@@ -210,6 +210,15 @@ def read_targets(path: str | Path) -> TargetsIn:
     """The targets of a `--in` file (see the module's doc); raises UserError, in one line
     naming the file's line and what to do, on anything else."""
     src = Path(path)
+    from workcell.export.files import export_kind
+
+    kind = export_kind(src) if src.is_file() else None
+    if kind is not None and kind != "targets CSV":
+        # a table's CSV has x,y,z columns too: its grid nodes were read as 2376 targets
+        raise UserError(
+            f"{src} is a workcell {kind}, not a list of targets; {FORMAT_HINT} (or give the "
+            "targets CSV `export --format targets` wrote)"
+        )
     comments, header, body = _rows(src)
     if header is None:
         raise UserError(

@@ -132,7 +132,9 @@ def run_validation(
     if guard is not None and q_start is None:
         raise ValueError("run_validation: a guard needs q_start, the arm's joints now")
     P, k = random_targets(table, n, seed)
-    sign = np.sign(np.asarray(table.meta.get("conditions", {}).get("approach_sign", [1.0] * 6)))
+    sign = np.sign(
+        np.asarray((table.meta.get("conditions") or {}).get("approach_sign") or [1.0] * 6)
+    )
     q_u = commanded_joints(nominal, table, P, k, corrected=False)
     q_c = commanded_joints(nominal, table, P, k, corrected=True)
     if callable(q_start):
@@ -247,7 +249,7 @@ def run_validation(
         log(
             f"  the table's own 1-sigma at these targets (model uncertainty): RMS "
             f"{out['after']['predicted_rms_std_m'] * 1e6:.1f} um; max interpolation error "
-            f"{table.meta.get('max_interp_error_m', float('nan')) * 1e6:.1f} um"
+            f"{(table.meta.get('max_interp_error_m') or float('nan')) * 1e6:.1f} um"
         )
     return out
 
@@ -425,6 +427,18 @@ def table_model_mismatch(
     model's 1-sigma. The remedy is said for the command line, or with `ui` for the terminal
     UI's Export screen."""
     meta = table.meta if isinstance(table.meta, dict) else {}
+    ident = ("model_fingerprint", "recording_sha256")
+    if not any(meta.get(k) for k in ident):
+        return (
+            "the table names neither the model nor the recording it was built from (meta "
+            "model_fingerprint, recording_sha256), so it cannot be told it belongs to this model; "
+            + (
+                "export the table from this model on the Export screen"
+                if ui
+                else "build the table from this model with `workcell export MODEL --format table` "
+                "(or leave --table out: validate then builds it)"
+            )
+        )
     remedy = (
         "export the table from this model on the Export screen"
         if ui

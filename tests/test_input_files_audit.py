@@ -1,0 +1,145 @@
+"""What an audit of the files the commands read (models, tables, targets; 2026-11-27) found:
+tracebacks on a JSON integer beyond a float, on nulls and scalars where arrays go; a negative
+held-out RMS in a model that made `envelope --model` suggest a 1 mm margin where 5 mm were
+needed; a 7-joint model folded into a UR's six links; a table whose "1" (text) stretched its
+grid, or without any identity, validated against any model; an export that wrote half of its
+pair before finding a directory in the way; a table's CSV read as 2376 targets. Each is now
+one line, before anything is written."""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+
+import numpy as np
+import pytest
+
+from workcell.cli import main
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    d = tmp_path_factory.mktemp("inputs")
+    rec, model, table = d / "c.mcap", d / "m.json", d / "t.json"
+    argv = ["campaign", "--robot", "sim", "--tracker", "sim", "--poses", "30", "--out", str(rec)]
+    assert main(argv) == 0
+    assert main(["fit", str(rec), "--method", "dh", "--out", str(model)]) == 0
+    argv = ["export", str(model), "--format", "table", "--out", str(table), "--spacing", "0.2"]
+    assert main(argv) == 0
+    return d, json.loads(model.read_text()), json.loads(table.read_text())
+
+
+def _one_line(capsys, argv) -> tuple[int, list[str]]:
+    rc = main(argv)
+    return rc, capsys.readouterr().err.strip().splitlines()
+
+
+BIG = 10**400  # json.dumps writes it as digits; float() of it raised OverflowError
+
+
+@pytest.mark.parametrize(
+    "edit, words",
+    [
+        (lambda m: m["info"].__setitem__("heldout_rms_m", -0.001), "heldout_rms_m must be"),
+        (lambda m: m["info"].__setitem__("heldout_rms_m", BIG), "heldout_rms_m must be"),
+        (lambda m: m["info"]["unexplained"].__setitem__("floor_m", BIG), "floor_m must be"),
+        (lambda m: m["info"]["joint_range_rad"][0].__setitem__(0, BIG), "joint_range_rad"),
+        (lambda m: m["info"].__setitem__("recording_sha256", 5), "recording_sha256"),
+        (lambda m: m["cov"][0].__setitem__(0, 1e300), "standard deviation of 1e+150"),
+    ],
+    ids=["negative rms", "huge rms", "huge floor", "huge joint range", "sha a number", "cov"],
+)
+def test_a_model_with_impossible_figures_is_refused_in_one_line(files, capsys, edit, words):
+    d, model, _ = files
+    m = copy.deepcopy(model)
+    edit(m)
+    f = d / "bad.json"
+    f.write_text(json.dumps(m))
+    env = d / "env_out.json"
+    rc, err = _one_line(capsys, ["envelope", "--model", str(f), "--out", str(env)])
+    assert rc == 2 and len(err) == 1 and words in err[0], err
+    assert not env.exists()  # no envelope with a margin from a bad figure
+
+
+def test_a_seven_joint_model_is_refused_by_the_six_joint_commands(files, capsys):
+    from workcell.estimation.dh import DHModel
+    from workcell.estimation.models import save_model
+    from workcell.kinematics.chain import pack
+    from workcell.kinematics.robots import WAM7
+
+    d, _, _ = files
+    th = pack(WAM7.dh, tool=(0.0, 0.05, 0.0))
+    m = DHModel(robot_model="ur5e", nominal_dh=WAM7.dh, theta=th, base_ref=np.eye(4),
+                cov=np.zeros((44, 44)), free=np.ones(44, bool), info={})  # fmt: skip
+    f = save_model(m, d / "seven.json")
+    for argv in (
+        ["export", str(f), "--format", "ros-yaml", "--out", str(d / "seven.yaml")],
+        ["envelope", "--model", str(f)],
+    ):
+        rc, err = _one_line(capsys, argv)
+        assert rc == 2 and len(err) == 1 and "not the 39 of a 6-joint arm" in err[0], err
+    assert not (d / "seven.yaml").exists()
+
+
+@pytest.mark.parametrize(
+    "edit, words",
+    [
+        (lambda t: t["grid"]["shape"].__setitem__(0, 1e300), "grid shape must be 3 whole numbers"),
+        (lambda t: t["grid"]["lo_m"].__setitem__(0, -BIG), "lo_m/hi_m must be 3 finite"),
+        (lambda t: t["grid"]["hi_m"].__setitem__(0, "1"), "hi_m holds '1', not a number"),
+        (lambda t: t["orientations_rotvec"][0].__setitem__(0, True), "holds 'True'"),
+        (lambda t: t.__setitem__("meta", {}), "names neither the model nor the recording"),
+    ],
+    ids=["shape", "huge lo", "text hi", "bool rotvec", "no identity"],
+)
+def test_a_malformed_table_is_refused_in_one_line(files, capsys, edit, words):
+    d, _, table = files
+    t = copy.deepcopy(table)
+    edit(t)
+    f = d / "bad_t.json"
+    f.write_text(json.dumps(t))
+    argv = ["validate", str(d / "m.json"), "--table", str(f), "--targets", "2"]
+    rc, err = _one_line(capsys, argv)
+    assert rc == 2 and len(err) == 1 and words in err[0], err
+
+
+@pytest.mark.parametrize(
+    "key, value",
+    [("approach_sign", None), ("max_interp_error_m", None)],
+)
+def test_null_table_fields_are_read_as_absent(files, capsys, key, value):
+    """`null` where the table's meta allows it was a TypeError in validate."""
+    d, _, table = files
+    t = copy.deepcopy(table)
+    if key == "approach_sign":
+        t["meta"]["conditions"][key] = value
+    else:
+        t["meta"][key] = value
+    f = d / "null_t.json"
+    f.write_text(json.dumps(t))
+    rc, err = _one_line(
+        capsys, ["validate", str(d / "m.json"), "--table", str(f), "--targets", "2"]
+    )
+    assert rc == 0 and not any("Traceback" in x for x in err), err
+
+
+def test_export_refuses_a_directory_in_its_pair_before_writing_anything(files, capsys):
+    d, _, _ = files
+    (d / "pair.csv").mkdir()
+    out = d / "pair.json"
+    argv = ["export", str(d / "m.json"), "--format", "table", "--out", str(out), "--spacing", "0.2"]
+    rc, err = _one_line(capsys, argv)
+    assert rc == 2 and len(err) == 1 and "not a regular file" in err[0], err
+    assert not out.exists()
+
+
+def test_a_tables_csv_is_not_read_as_targets(files, capsys):
+    d, _, _ = files
+    csv = d / "t.csv"
+    before = hashlib.sha256(csv.read_bytes()).hexdigest()
+    out = d / "targets_out.csv"
+    argv = ["export", str(d / "m.json"), "--format", "targets", "--in", str(csv), "--out", str(out)]
+    rc, err = _one_line(capsys, argv)
+    assert rc == 2 and len(err) == 1 and "correction table CSV, not a list of targets" in err[0]
+    assert not out.exists() and hashlib.sha256(csv.read_bytes()).hexdigest() == before
