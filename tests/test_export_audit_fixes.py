@@ -14,7 +14,7 @@ from test_export_table import DOWN, HI, LO, make_model
 from workcell.errors import UserError
 from workcell.estimation.ekf_ann import ann as A
 from workcell.estimation.ekf_ann.model import EkfAnnModel
-from workcell.estimation.models import save_model
+from workcell.estimation.models import model_fingerprint, save_model
 from workcell.export.correction import Corrector, nominal_for
 from workcell.export.table import build_table, load_table, unexplained_lines
 from workcell.export.urscript import generate_urscript
@@ -380,6 +380,7 @@ def test_validate_refuses_a_table_for_another_payload(tmp_path, monkeypatch):
     for kg in (5.0, 0.5):
         corr = Corrector(m, nom, Conditions(payload_kg=kg))
         tab = build_table(corr, LO, HI, [DOWN], spacing_m=0.2, n_check=10)
+        tab.meta["model_fingerprint"] = model_fingerprint(m)  # as `export` names its model
         tables[kg] = (tab, tab.save(tmp_path / f"t{kg:g}")[0])
     with pytest.raises(UserError, match=r"payload of 5 kg \(given at export\); the arm carries "):
         validate.run(_sim_validate_args(mp, tables[5.0][1]))

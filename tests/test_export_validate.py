@@ -314,8 +314,15 @@ def test_a_table_of_another_fit_of_the_same_recording_is_refused(tmp_path):
     w = table_model_mismatch(table, corr.nominal, None, model=other)
     assert "another model of this recording (dh model" in w and "workcell export" in w
     assert table_model_mismatch(table, corr.nominal, None) is None  # no model given: not compared
-    table.meta.pop("model_fingerprint")  # a table from before: not compared
+    # a table from before 2026-11-26 names its recording (since the first day), not its model:
+    # the model is not compared
+    table.meta.pop("model_fingerprint")
+    table.meta["recording_sha256"] = "ab" * 32
     assert table_model_mismatch(table, corr.nominal, None, model=other) is None
+    # a table naming neither (edited by hand): cannot be told to belong to the model, refused
+    table.meta.pop("recording_sha256")
+    w = table_model_mismatch(table, corr.nominal, None, model=other)
+    assert "names neither the model nor the recording" in w
 
 
 def test_the_improvement_and_the_bias_carry_their_uncertainty():
