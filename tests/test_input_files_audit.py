@@ -143,3 +143,28 @@ def test_a_tables_csv_is_not_read_as_targets(files, capsys):
     rc, err = _one_line(capsys, argv)
     assert rc == 2 and len(err) == 1 and "correction table CSV, not a list of targets" in err[0]
     assert not out.exists() and hashlib.sha256(csv.read_bytes()).hexdigest() == before
+
+
+@pytest.mark.parametrize(
+    "free", [lambda f: f + [True], lambda f: ["1"] * len(f), lambda f: [float("nan")] * len(f)]
+)
+def test_a_models_free_mask_must_be_true_false_values(files, capsys, free):
+    """`free` with 40 entries, text or NaN loaded (np.asarray(..., bool) makes a mask of it)."""
+    d, model, _ = files
+    m = copy.deepcopy(model)
+    m["free"] = free(m["free"])
+    f = d / "free.json"
+    f.write_text(json.dumps(m))
+    rc, err = _one_line(capsys, ["envelope", "--model", str(f)])
+    assert rc == 2 and len(err) == 1 and "free must be 39 true/false values" in err[0], err
+
+
+def test_a_target_with_digit_grouping_is_not_a_number(files, capsys):
+    """float() reads "0_1" as 1.0: a target 1 m off where 0.1 was meant."""
+    d, _, _ = files
+    f = d / "targets.csv"
+    f.write_text("x,y,z\n0_1,-0.4,0.3\n")
+    argv = ["export", str(d / "m.json"), "--format", "targets", "--in", str(f), "--out",
+            str(d / "tout.csv")]  # fmt: skip
+    rc, err = _one_line(capsys, argv)
+    assert rc == 2 and len(err) == 1 and "'0_1' is not a number" in err[0], err

@@ -52,6 +52,19 @@ from workcell.recording.dataset import Dataset
 from workcell.recording.tracker_spec import TRACKER_MPE_M, tracker_spec_sigma
 
 
+def free_mask(v, n: int) -> np.ndarray:
+    """A model file's `free` (which parameters the fit estimated): n true/false values (1/0
+    accepted); anything else (text, NaN, another length) is a ValueError, not a mask that
+    `np.asarray(v, bool)` would make of it."""
+    if not (
+        isinstance(v, list)
+        and len(v) == n
+        and all(isinstance(x, bool) or (isinstance(x, int) and x in (0, 1)) for x in v)
+    ):
+        raise ValueError(f"free must be {n} true/false values, got {str(v)[:60]}")
+    return np.asarray(v, bool)
+
+
 @dataclass
 class DHModel:
     """A calibrated geometric model. `predict(q)` gives SMR positions in the tracker frame."""
@@ -148,7 +161,7 @@ class DHModel:
             theta=np.asarray(d["theta"], float),
             base_ref=np.asarray(d["base_ref"], float),
             cov=np.asarray(d["cov"], float),
-            free=np.asarray(d["free"], bool),
+            free=free_mask(d["free"], len(d["theta"])),
             unidentifiable=d.get("unidentifiable", []),
             info=d.get("info", {}),
         )

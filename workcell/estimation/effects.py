@@ -557,6 +557,8 @@ class AugmentedModel:
 
     @classmethod
     def from_dict(cls, d: dict) -> AugmentedModel:
+        from workcell.estimation.dh import free_mask
+
         if list(d.get("effect_names", EFF_NAMES)) != EFF_NAMES:
             raise ValueError("augmented model: effect layout differs from this build's library")
         fs = FeatureSpec(
@@ -581,7 +583,7 @@ class AugmentedModel:
             base_ref=np.asarray(d["base_ref"], float),
             eff=np.asarray(d["eff"], float),
             accepted=[candidate_from_list(x) for x in d.get("accepted", [])],
-            free=np.asarray(d["free"], bool),
+            free=free_mask(d["free"], len(d["theta"])),
             cov=np.asarray(d["cov"], float),
             nominal_tool_m=np.asarray(d.get("nominal_tool_m", [0, 0, 0]), float),
             residual=d.get("residual"),

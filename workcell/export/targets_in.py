@@ -192,6 +192,8 @@ def _value(cell: str, src: Path, line: int, col: Column) -> float:
             f"{unit} or delete the line"
         )
     try:
+        if "_" in v:  # float() reads "0_1" as 1.0 (Python's digit grouping): not a CSV number
+            raise ValueError(v)
         x = float(v)
     except ValueError:
         raise UserError(
