@@ -536,20 +536,26 @@ def rms_interval(
     return min(b_lo, c_lo), max(b_hi, c_hi)
 
 
+def _paired_interval(a, b, stat, level: float, seed: int) -> tuple[float, float]:
+    """`_bootstrap_interval` of stat(a, b) over paired values; (nan, nan) for fewer than 3 pairs
+    or a non-finite value; ValueError for arrays of other shapes."""
+    a = np.asarray(a, float).ravel()
+    b = np.asarray(b, float).ravel()
+    if a.shape != b.shape:
+        raise ValueError(f"paired values need the same shape, got {a.shape} and {b.shape}")
+    if len(a) < 3 or not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+        return float("nan"), float("nan")
+    return _bootstrap_interval((a, b), stat, level, seed)
+
+
 def rms_gain_interval(
     e_without: np.ndarray, e_with: np.ndarray, level: float = RMS_INTERVAL_LEVEL, seed: int = 0
 ) -> tuple[float, float]:
     """Confidence interval of RMS(e_without) - RMS(e_with) over the same poses (paired BCa
     bootstrap): the held-out gain of adding something to a model, with the pose-to-pose spread
     that a point comparison hides. (nan, nan) for fewer than 3 poses."""
-    a = np.asarray(e_without, float).ravel()
-    b = np.asarray(e_with, float).ravel()
-    if a.shape != b.shape:
-        raise ValueError(f"paired errors need the same shape, got {a.shape} and {b.shape}")
-    if len(a) < 3 or not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
-        return float("nan"), float("nan")
-    return _bootstrap_interval(
-        (a, b), lambda x, y, axis=-1: _rms(x, axis) - _rms(y, axis), level, seed
+    return _paired_interval(
+        e_without, e_with, lambda x, y, axis=-1: _rms(x, axis) - _rms(y, axis), level, seed
     )
 
 
@@ -559,18 +565,11 @@ def rms_ratio_interval(
     """Confidence interval of RMS(e_before) / RMS(e_after) over the same poses (paired BCa
     bootstrap): an improvement factor with its pose-to-pose spread. (nan, nan) for fewer than 3
     poses or a non-finite error."""
-    a = np.asarray(e_before, float).ravel()
-    b = np.asarray(e_after, float).ravel()
-    if a.shape != b.shape:
-        raise ValueError(f"paired errors need the same shape, got {a.shape} and {b.shape}")
-    if len(a) < 3 or not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
-        return float("nan"), float("nan")
-    return _bootstrap_interval(
-        (a, b),
-        lambda x, y, axis=-1: _rms(x, axis) / np.maximum(_rms(y, axis), 1e-300),
-        level,
-        seed,
-    )
+
+    def ratio(x, y, axis=-1):
+        return _rms(x, axis) / np.maximum(_rms(y, axis), 1e-300)
+
+    return _paired_interval(e_before, e_after, ratio, level, seed)
 
 
 def mean_ratio_interval(
@@ -579,18 +578,11 @@ def mean_ratio_interval(
     """Confidence interval of mean(a) / mean(b) over paired observations (paired bootstrap: BCa,
     percentile when BCa is degenerate). (nan, nan) for fewer than 3 pairs or a non-finite
     value."""
-    a = np.asarray(a, float).ravel()
-    b = np.asarray(b, float).ravel()
-    if a.shape != b.shape:
-        raise ValueError(f"paired values need the same shape, got {a.shape} and {b.shape}")
-    if len(a) < 3 or not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
-        return float("nan"), float("nan")
-    return _bootstrap_interval(
-        (a, b),
-        lambda x, y, axis=-1: np.mean(x, axis) / np.maximum(np.mean(y, axis), 1e-300),
-        level,
-        seed,
-    )
+
+    def ratio(x, y, axis=-1):
+        return np.mean(x, axis) / np.maximum(np.mean(y, axis), 1e-300)
+
+    return _paired_interval(a, b, ratio, level, seed)
 
 
 def interval_um(ci, label: bool = True) -> str:
