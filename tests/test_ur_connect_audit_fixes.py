@@ -149,7 +149,9 @@ def test_a_time_scale_faster_than_the_controller_is_refused_before_anything_move
         with pytest.raises(TimeScaleMismatch) as ei:
             r.connect()
         msg = str(ei.value)
-        assert "\n" not in msg and "20x real time" in msg and "--time-scale 400" in msg, msg
+        assert "\n" not in msg and "--time-scale 400" in msg, msg
+        rate = re.search(r"runs at ([0-9.]+)x real time", msg)  # 20x, or 19x under load
+        assert rate and 16.0 <= float(rate.group(1)) <= 24.0, msg
         # the settle figure is from the measured clock rate (51 ms at 19.6x on a loaded machine)
         settle = re.search(r"a 1 s settle to ([0-9.]+) ms", msg)
         assert settle and 45.0 <= float(settle.group(1)) <= 56.0, msg
@@ -206,7 +208,10 @@ def test_campaign_time_scale_on_a_real_time_controller_is_refused_in_one_line(tm
     assert "Traceback" not in r.stderr
     line = [x for x in err if "real time" in x]
     assert len(line) == 1, err
-    assert "1x real time" in line[0] and "--time-scale 50" in line[0] and "20 ms" in line[0]
+    # the measured rate: 1x, or 0.99x on a loaded machine (CI, 2026-11-27); a 50x claim is 50
+    rate = re.search(r"runs at ([0-9.]+)x real time", line[0])
+    assert rate and 0.8 <= float(rate.group(1)) <= 1.2, line[0]
+    assert "--time-scale 50" in line[0] and "20 ms" in line[0]
     assert "give --time-scale 1 " in line[0]
     assert time.monotonic() - t0 < 30
 
