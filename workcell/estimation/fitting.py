@@ -264,20 +264,11 @@ def combined_base(model) -> dict | None:
     the 1-sigma of its translation and rotation (`chain.base_pose_with_std`), from the geometric
     part of the model; None for a model without one. Two fits of one cell differ in how they
     split the base between base_ref and the offsets: compare this, not the offsets."""
+    from workcell.estimation.models import geometric_cov, geometric_part
     from workcell.kinematics.chain import base_pose_with_std
 
-    for attr in (None, "base", "base_model", "dh_model", "geometric"):
-        g = model if attr is None else getattr(model, attr, None)
-        th, ref = getattr(g, "theta", None), getattr(g, "base_ref", None)
-        if th is None or ref is None or np.ndim(th) != 1 or np.shape(ref) != (4, 4):
-            continue
-        get = getattr(g, "theta_cov", None)
-        try:
-            cov = get() if callable(get) else None
-        except Exception:  # noqa: BLE001 - no covariance: the pose without its std
-            cov = None
-        return base_pose_with_std(th, ref, cov)
-    return None
+    g = geometric_part(model)
+    return None if g is None else base_pose_with_std(g.theta, g.base_ref, geometric_cov(g))
 
 
 def bounds_summary(model, bounds, heldout_rms_m: float, dtr, ev, tracker_mpe) -> dict:

@@ -354,28 +354,59 @@ def info_problem(info: dict) -> str | None:
     return None
 
 
+GEOMETRY_ATTRS = (None, "base", "base_model", "dh_model", "geometric")
+
+
+def geometric_part(model):
+    """The object holding a model's geometry: `theta` (5 n + 9,) with the base parameters and
+    `base_ref` (4x4): the model itself or the geometric model it wraps (`GEOMETRY_ATTRS`); None
+    for a model without one."""
+    for attr in GEOMETRY_ATTRS:
+        g = model if attr is None else getattr(model, attr, None)
+        if g is None or isinstance(g, np.ndarray):
+            continue
+        th, ref = getattr(g, "theta", None), getattr(g, "base_ref", None)
+        if th is not None and ref is not None and np.ndim(th) == 1 and np.shape(ref) == (4, 4):
+            return g
+    return None
+
+
+def geometric_cov(g) -> np.ndarray | None:
+    """`g.theta_cov()` of a `geometric_part` as a finite (P, P) array, P = len(g.theta); None
+    when it has none (or one of another shape, or not finite)."""
+    get = getattr(g, "theta_cov", None)
+    if not callable(get):
+        return None
+    try:
+        c = get()
+    except Exception:  # noqa: BLE001 - a model without a usable covariance states none
+        return None
+    if c is None:
+        return None
+    c = np.asarray(c, float)
+    n = len(g.theta)
+    return c if c.shape == (n, n) and np.all(np.isfinite(c)) else None
+
+
 def _check_joint_count(model, source: str, method: str) -> None:
     """Campaigns, recordings, exports and validation are for the 6-joint arms: a model of
     another chain (the design bench's 7-joint one) is refused, not folded into a UR's six."""
     from workcell.kinematics.chain import N_JOINTS, joints_of
 
-    for attr in (None, "base", "base_model", "dh_model", "geometric"):
-        g = model if attr is None else getattr(model, attr, None)
-        th = getattr(g, "theta", None)
-        if th is None or np.ndim(th) != 1:
-            continue
-        try:
-            n = joints_of(np.asarray(th))
-        except (ValueError, TypeError):
-            n = None
-        if n != N_JOINTS:
-            raise UserError(
-                f"{source}: the {method} model has {len(th)} geometric parameters, not the "
-                f"{5 * N_JOINTS + 9} of a {N_JOINTS}-joint arm: exports, envelopes and "
-                "validation are for the 6-joint UR arms (a 7-joint chain is the design bench's "
-                "only); fit a model of this arm's recording"
-            )
+    g = geometric_part(model)
+    if g is None:
         return
+    try:
+        n = joints_of(np.asarray(g.theta))
+    except (ValueError, TypeError):
+        n = None
+    if n != N_JOINTS:
+        raise UserError(
+            f"{source}: the {method} model has {len(g.theta)} geometric parameters, not the "
+            f"{5 * N_JOINTS + 9} of a {N_JOINTS}-joint arm: exports, envelopes and "
+            "validation are for the 6-joint UR arms (a 7-joint chain is the design bench's "
+            "only); fit a model of this arm's recording"
+        )
 
 
 COV_PSD_RTOL = 1e-9  # eigenvalues down to -this x the largest are rounding

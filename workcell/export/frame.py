@@ -37,19 +37,6 @@ BASE_BASIS = (
 )
 
 
-def _geometry(model):
-    """The object holding the model's geometry (`theta` with base parameters, `base_ref`), or
-    None."""
-    for attr in (None, "base", "base_model", "dh_model", "geometric"):
-        m = model if attr is None else getattr(model, attr, None)
-        if m is None or isinstance(m, np.ndarray):
-            continue
-        th, ref = getattr(m, "theta", None), getattr(m, "base_ref", None)
-        if th is not None and ref is not None and np.ndim(th) == 1 and np.shape(ref) == (4, 4):
-            return m
-    return None
-
-
 STD_BASIS = (
     "1-sigma of each base offset from the fit's parameter covariance (first order, conditional "
     "on the model; 0 for a parameter the fit held fixed)"
@@ -58,19 +45,14 @@ STD_BASIS = (
 
 def _base_std(g, th: np.ndarray) -> np.ndarray | None:
     """1-sigma (6,) of the base offsets from the model's parameter covariance, or None."""
+    from workcell.estimation.models import geometric_cov
     from workcell.kinematics.chain import base_slice, joints_of
 
-    get = getattr(g, "theta_cov", None)
-    try:
-        cov = np.asarray(get() if callable(get) else getattr(g, "cov", None), float)
-    except Exception:  # noqa: BLE001 - a model without a usable covariance states none
-        return None
-    if cov.shape != (len(th), len(th)):
+    cov = geometric_cov(g)
+    if cov is None:
         return None
     var = np.diag(cov)[base_slice(joints_of(th))]
-    if var.shape != (6,) or not np.all(np.isfinite(var)) or np.any(var < 0):
-        return None
-    return np.sqrt(var)
+    return np.sqrt(var) if var.shape == (6,) and np.all(var >= 0) else None
 
 
 def _rotvec_matrix(r: np.ndarray) -> np.ndarray:
@@ -83,9 +65,10 @@ def base_correction(model, points: np.ndarray | None = None) -> dict:
     """The model's fitted base correction relative to its base_ref (`BASE_BASIS`), with
     `max_shift_m` over `points` (N, 3, base_ref) when given; {"basis": NO_BASE_BASIS} for a
     model without base parameters."""
+    from workcell.estimation.models import geometric_part
     from workcell.kinematics.chain import base_slice, joints_of
 
-    g = _geometry(model)
+    g = geometric_part(model)
     if g is None:
         return {"basis": NO_BASE_BASIS}
     th = np.asarray(g.theta, float)

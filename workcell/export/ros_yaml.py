@@ -287,15 +287,11 @@ def kinematics_std(model, step: float = 1e-7) -> dict | None:
 
 def _geometry_cov(model, th: np.ndarray) -> np.ndarray | None:
     """The geometric part's parameter covariance (len(th), len(th)), or None."""
-    for attr in (None, "base", "base_model", "dh_model", "geometric"):
-        m = model if attr is None else getattr(model, attr, None)
-        if m is not None and hasattr(m, "theta") and hasattr(m, "theta_cov"):
-            c = m.theta_cov()
-            cov = None if c is None else np.asarray(c, float)
-            if cov is None or cov.shape != (len(th), len(th)) or not np.all(np.isfinite(cov)):
-                return None
-            return cov
-    return None
+    from workcell.estimation.models import geometric_cov, geometric_part
+
+    g = geometric_part(model)
+    c = None if g is None else geometric_cov(g)
+    return c if c is not None and c.shape == (len(th), len(th)) else None
 
 
 def tcp_in_tool0(th: np.ndarray, B: np.ndarray) -> np.ndarray:
