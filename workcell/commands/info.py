@@ -11,7 +11,7 @@ import numpy as np
 
 from workcell import strict_json
 from workcell.recording import checks
-from workcell.recording.reader import Recording, read_recording
+from workcell.recording.reader import Recording, is_finite_list, read_recording
 from workcell.recording.repeats import repeats_of
 
 
@@ -167,12 +167,7 @@ def _mass_com(d) -> str | None:
     if isinstance(m, bool) or not isinstance(m, (int, float)) or not math.isfinite(m):
         return None
     text = f"{m:.4g} kg"
-    if (
-        isinstance(com, list)
-        and len(com) == 3
-        and all(isinstance(c, (int, float)) and not isinstance(c, bool) for c in com)
-        and all(math.isfinite(c) and abs(c) < 1e6 for c in com)
-    ):
+    if is_finite_list(com, 3) and max(map(abs, com)) < 1e6:
         text += " at (" + ", ".join(f"{c * 1e3:.1f}" for c in com) + ") mm"
     return text
 

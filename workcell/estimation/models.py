@@ -311,6 +311,8 @@ def info_problem(info: dict) -> str | None:
     """What is wrong with the figures a model file's `info` states, which export, envelope and
     validate act on (a negative held-out RMS made `envelope --model` suggest a 1 mm margin where
     the model needs 5 mm; a 10**400 one was a traceback), or None. Absent keys are fine."""
+    from workcell.recording.reader import is_finite_list
+
     for key in ("heldout_rms_m", "heldout_rms_unbounded_m"):
         v = info.get(key)
         if v is not None and not _metres(v):
@@ -333,20 +335,12 @@ def info_problem(info: dict) -> str | None:
     jr = info.get("joint_range_rad")
     if jr is not None:
         ok = isinstance(jr, list) and all(
-            isinstance(r, list)
-            and len(r) == 2
-            and all(_number(x) and math.isfinite(x) and abs(x) <= 4 * math.pi for x in r)
-            and r[0] <= r[1]
-            for r in jr
+            is_finite_list(r, 2) and r[0] <= r[1] and max(map(abs, r)) <= 4 * math.pi for r in jr
         )
         if not ok:
             return "joint_range_rad must be [low, high] radians per joint, within +-4 pi"
     tool = info.get("nominal_tool_m")
-    if tool is not None and not (  # its size: `_check_nominal_units` (says millimetres)
-        isinstance(tool, list)
-        and len(tool) == 3
-        and all(_number(x) and math.isfinite(x) for x in tool)
-    ):
+    if tool is not None and not is_finite_list(tool, 3):  # its size: `_check_nominal_units`
         return f"nominal_tool_m must be 3 finite numbers (metres), got {str(tool)[:60]}"
     sha = info.get("recording_sha256")
     if sha is not None and not isinstance(sha, str):

@@ -427,24 +427,18 @@ def table_model_mismatch(
     model's 1-sigma. The remedy is said for the command line, or with `ui` for the terminal
     UI's Export screen."""
     meta = table.meta if isinstance(table.meta, dict) else {}
-    ident = ("model_fingerprint", "recording_sha256")
-    if not any(meta.get(k) for k in ident):
-        return (
-            "the table names neither the model nor the recording it was built from (meta "
-            "model_fingerprint, recording_sha256), so it cannot be told it belongs to this model; "
-            + (
-                "export the table from this model on the Export screen"
-                if ui
-                else "build the table from this model with `workcell export MODEL --format table` "
-                "(or leave --table out: validate then builds it)"
-            )
-        )
     remedy = (
         "export the table from this model on the Export screen"
         if ui
         else "build the table from this model with `workcell export MODEL --format table` (or "
         "leave --table out: validate then builds it)"
     )
+    if not any(meta.get(k) for k in ("model_fingerprint", "recording_sha256")):
+        return (
+            "the table names neither the model nor the recording it was built from (meta "
+            "model_fingerprint, recording_sha256), so it cannot be told it belongs to this "
+            f"model; {remedy}"
+        )
     sha = meta.get("recording_sha256")
     if sha and recording_sha256 and sha != recording_sha256:
         return (
