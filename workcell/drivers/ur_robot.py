@@ -353,6 +353,42 @@ def _control_worker_main(host: str, frequency: float) -> int:
     os._exit(0)  # skip the destructor: it joins threads that a broken reconnect left behind
 
 
+class _NotRtde(Exception):
+    """The peer sent bytes that are not the RTDE packet expected (args[0]: the first of them)."""
+
+
+class _RtdeClosed(Exception):
+    """The peer closed the connection before a whole RTDE packet came."""
+
+
+def _rtde_packet(s: socket.socket, t_end: float, expect=None) -> tuple[int, bytes]:
+    """One RTDE packet (type, body) from socket `s` before `time.monotonic()` reaches `t_end`,
+    read exactly (never a byte of the next packet). TimeoutError when it does not come in time,
+    `_RtdeClosed` when the peer closes first, `_NotRtde` when its header gives an impossible size
+    (3..4096 bytes) or, with `expect` (type, size), another one: judged on the header's 3 bytes,
+    so a device that is not an RTDE server is named at once."""
+    buf, size = b"", 3
+    while len(buf) < size:
+        left = t_end - time.monotonic()
+        if left <= 0:
+            raise TimeoutError
+        s.settimeout(left)
+        chunk = s.recv(size - len(buf))
+        if not chunk:
+            raise _RtdeClosed
+        buf += chunk
+        if size == 3 and len(buf) == 3:
+            size = struct.unpack(">H", buf[:2])[0]
+            if not 3 <= size <= 4096 or (expect is not None and (buf[2], size) != expect):
+                try:  # what else it sent at once, to name it (an HTTP status line...)
+                    s.settimeout(0.05)
+                    buf += s.recv(9)
+                except OSError:
+                    pass
+                raise _NotRtde(buf)
+    return buf[2], buf[3:]
+
+
 class UrRobot:
     """A UR arm (e-Series, PolyScope 5) through ur_rtde. See the module doc."""
 
@@ -632,33 +668,20 @@ class UrRobot:
         try:
             with socket.create_connection((self.host, RTDE_PORT), self.connect_timeout_s) as s:
                 s.sendall(struct.pack(">HBH", 5, RTDE_REQUEST_PROTOCOL_VERSION, 2))
-                reply = b""
-                while len(reply) < 3 or len(reply) < struct.unpack(">H", reply[:2])[0]:
-                    left = t_end - time.monotonic()
-                    if left <= 0:
-                        raise TimeoutError
-                    s.settimeout(left)
-                    chunk = s.recv(64)
-                    if not chunk:
-                        raise DeviceUnreachable(
-                            f"{where} accepts connections but closed one without an RTDE "
-                            f"answer: {check}"
-                        )
-                    reply += chunk
-                    if len(reply) >= 3 and (
-                        reply[2] != RTDE_REQUEST_PROTOCOL_VERSION
-                        or struct.unpack(">H", reply[:2])[0] != 4
-                    ):
-                        raise DeviceUnreachable(
-                            f"{where} answers, but not as a UR RTDE server (it sent "
-                            f"{reply[:12]!r} to a protocol-version request): {check}"
-                        )
+                _rtde_packet(s, t_end, expect=(RTDE_REQUEST_PROTOCOL_VERSION, 4))
+        except _RtdeClosed:
+            raise DeviceUnreachable(
+                f"{where} accepts connections but closed one without an RTDE answer: {check}"
+            ) from None
+        except _NotRtde as e:
+            raise DeviceUnreachable(
+                f"{where} answers, but not as a UR RTDE server (it sent {e.args[0][:12]!r} to a "
+                f"protocol-version request): {check}"
+            ) from None
         except TimeoutError:
             raise DeviceUnreachable(
                 f"{where} accepts connections but gives no RTDE answer within {wait:g} s: {check}"
             ) from None
-        except DeviceUnreachable:
-            raise
         except OSError as e:
             raise DeviceUnreachable(
                 f"UR controller {self.host} unreachable: port {RTDE_PORT}: "
@@ -679,23 +702,16 @@ class UrRobot:
         def send(ptype: int, body: bytes = b"") -> None:
             s.sendall(struct.pack(">HB", 3 + len(body), ptype) + body)
 
-        def packet() -> tuple[int, bytes]:
-            buf = b""
-            while len(buf) < 3 or len(buf) < struct.unpack(">H", buf[:2])[0]:
-                left = t_end - time.monotonic()
-                if left <= 0:
-                    raise TimeoutError
-                s.settimeout(left)
-                want = 3 - len(buf) if len(buf) < 3 else struct.unpack(">H", buf[:2])[0] - len(buf)
-                chunk = s.recv(max(want, 1))
-                if not chunk:
-                    raise PayloadUnavailable(f"{where}: RTDE closed the connection")
-                buf += chunk
-                if len(buf) >= 3 and not 3 <= struct.unpack(">H", buf[:2])[0] <= 4096:
-                    raise PayloadUnavailable(
-                        f"{where}: answers the payload read, but not in RTDE (it sent {buf!r})"
-                    )
-            return buf[2], buf[3:]
+        def packet(expect=None) -> tuple[int, bytes]:
+            try:
+                return _rtde_packet(s, t_end, expect)
+            except _RtdeClosed:
+                raise PayloadUnavailable(f"{where}: RTDE closed the connection") from None
+            except _NotRtde as e:
+                raise PayloadUnavailable(
+                    f"{where}: answers the payload read, but not in RTDE (it sent "
+                    f"{e.args[0][:12]!r})"
+                ) from None
 
         def expect(ptype: int) -> bytes:
             while True:  # skip text messages and anything else the controller sends first
@@ -706,12 +722,7 @@ class UrRobot:
         try:
             with socket.create_connection((self.host, RTDE_PORT), self.connect_timeout_s) as s:
                 send(RTDE_REQUEST_PROTOCOL_VERSION, struct.pack(">H", RTDE_PROTOCOL_VERSION))
-                t, body = packet()  # the first answer is the version's
-                if t != RTDE_REQUEST_PROTOCOL_VERSION or len(body) != 1:
-                    raise PayloadUnavailable(
-                        f"{where}: answers the payload read, but not in RTDE (it sent "
-                        f"{(bytes([t]) + body)[:12]!r} to a protocol-version request)"
-                    )
+                _, body = packet(expect=(RTDE_REQUEST_PROTOCOL_VERSION, 4))  # the version's
                 if body != b"\x01":
                     raise PayloadUnavailable(f"{where}: RTDE protocol version 2 refused")
                 send(ord("O"), struct.pack(">d", 10.0) + b"payload,payload_cog")
