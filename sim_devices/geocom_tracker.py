@@ -23,14 +23,19 @@ Faults (`faults` dict; rates are probabilities per request, drawn from `seed`):
                       ("mixed", the default)
     drop_rate         no reply at all (a dropped line)
     vanish_after      after this many requests the pty is closed: the port disappears
+    stale_rate        a TMC_DoMeasure answers GRC_OK but measures nothing (kind `stale` below)
 `inject(kind, count, rpc=None)` forces a fault on the next `count` requests (of RPC `rpc` only, if
 given) for deterministic tests; kinds:
-`beam_break`, `slow`, `garbage`, `garbage_before`, `garbage_instead`, `drop`, `vanish`.
+`beam_break`, `slow`, `garbage`, `garbage_before`, `garbage_instead`, `drop`, `vanish`, and
+`stale` (a TMC_DoMeasure answers GRC_OK but measures nothing: the next TMC_GetCoordinate returns
+the previous measurement with its CoordTime, as an instrument that did not refresh its
+coordinate would).
 
 time_scale: simulated time runs `time_scale` times faster than the wall clock (as
 `sim_devices.world.ScaledClock`): a simulated delay d (slow replies, `measure_time_s`) takes
 d / time_scale wall seconds, and the instrument clock (CoordTime, ms) advances time_scale ms per
-wall ms. `math.inf` makes delays instantaneous.
+wall ms. `math.inf` makes delays instantaneous. Each new measurement's CoordTime is at least 1 ms
+after the one before (a measurement takes time), so instantaneous delays never repeat a CoordTime.
 """
 
 from __future__ import annotations
@@ -60,10 +65,20 @@ FAULT_KEYS = frozenset(
         "garbage_len",
         "drop_rate",
         "vanish_after",
+        "stale_rate",
     }
 )
 INJECT_KINDS = frozenset(
-    {"beam_break", "slow", "garbage", "garbage_before", "garbage_instead", "drop", "vanish"}
+    {
+        "beam_break",
+        "slow",
+        "garbage",
+        "garbage_before",
+        "garbage_instead",
+        "drop",
+        "vanish",
+        "stale",
+    }
 )
 _MEASURE_PRGS = {
     gc.TmcMeasurePrg.TMC_DEF_DIST,
@@ -101,7 +116,7 @@ def validate_faults(faults: dict | None) -> dict:
     unknown = set(f) - FAULT_KEYS
     if unknown:
         raise ValueError(f"unknown fault keys {sorted(unknown)}; known: {sorted(FAULT_KEYS)}")
-    for key in ("beam_break_rate", "slow_rate", "garbage_rate", "drop_rate"):
+    for key in ("beam_break_rate", "slow_rate", "garbage_rate", "drop_rate", "stale_rate"):
         rate = _number(key, f.get(key, 0.0))
         if not 0.0 <= rate <= 1.0:
             raise ValueError(f"fault rate {key} must be in [0, 1], got {rate!r}")
@@ -177,6 +192,7 @@ class SimGeoComTracker:
         self._slave: int | None = None
         self._port: str | None = None
         self._stored: tuple[np.ndarray, str, int] | None = None
+        self._last_coord_ms: int | None = None  # CoordTime of the last measurement
         self._t0 = time.monotonic()
 
     # ------------------------------------------------------------------ lifecycle
@@ -420,6 +436,9 @@ class SimGeoComTracker:
         if prg not in _MEASURE_PRGS:
             return 0, gc.Grc.OK, ()  # signal / frequency programs: nothing to store
         self._sleep(self.measure_time_s)
+        if self._stored is not None and self._take("stale", self.faults["stale_rate"], req.rpc):
+            self.stats["stale"] += 1
+            return 0, gc.Grc.OK, ()  # nothing measured: the stored coordinate stays
         try:
             p, status = self.measure_fn()
             p = np.asarray(p, dtype=float)
@@ -434,7 +453,13 @@ class SimGeoComTracker:
         if self._take("beam_break", self.faults["beam_break_rate"], req.rpc):
             self.stats["beam_break"] += 1
             status = "beam_broken"
-        self._stored = (p, str(status), self._instrument_ms())
+        t_ms = self._instrument_ms()
+        if self._last_coord_ms is not None:  # not in or behind the last one's millisecond
+            step = (t_ms - self._last_coord_ms) % 2**31
+            if step == 0 or step > 2**30:
+                t_ms = (self._last_coord_ms + 1) % 2**31
+        self._last_coord_ms = t_ms
+        self._stored = (p, str(status), t_ms)
         return 0, gc.Grc.OK, ()
 
     def _get_coordinate(self, req: gc.Request) -> tuple[int, int, tuple]:

@@ -526,6 +526,42 @@ def test_a_tracker_reconnect_that_reaches_another_instrument_stops_the_campaign(
     assert e.value.exit_code == 3 and "\n" not in msg and "--resume" in msg
 
 
+def test_a_stale_tracker_reading_is_recorded_as_refused_and_measured_again(tmp_path):
+    """Over the real GeoCOM driver: the instrument repeats its previous measurement once, at the
+    second pose (what that pose would have recorded is the first pose's position). The reading
+    is recorded as refused with its CoordTime, an event says why, the pose is measured again and
+    its position is its own; every raw reading keeps the instrument's time stamp."""
+    from sim_devices.geocom_tracker import SimGeoComTracker
+    from workcell.drivers.serial_tracker import SerialTracker
+
+    world, robot, _, cell = sim_cell("ur5e", "none", 1, beam_break_prob=0.0)
+    sim = SimGeoComTracker(world.read_tracker, seed=1, time_scale=float("inf")).start()
+    driver = SerialTracker(sim.port)
+
+    def stale_next(sample: dict) -> None:
+        if sample["index"] == 0:
+            sim.inject("stale")
+
+    out = tmp_path / "stale.mcap"
+    try:
+        _, res = run_campaign(robot, driver, cell, out, poses=4, seed=1, config=FAST,
+                              control=CampaignControl(), on_sample=stale_next)  # fmt: skip
+    finally:
+        sim.stop()
+    assert not res.aborted and res.measured == 4 and sim.stats["stale"] == 1
+    rec = read_recording(out)
+    raw = rec.tracker_measurements
+    refused = [m for m in raw if m["status"] != "ok"]
+    assert len(refused) == 1 and refused[0]["position_m"] == [None, None, None]
+    times = [m["instrument_time_s"] for m in raw]
+    assert refused[0]["instrument_time_s"] == times[raw.index(refused[0]) - 1]
+    ok_times = [m["instrument_time_s"] for m in raw if m["status"] == "ok"]
+    assert len(ok_times) == 4 * FAST.readings_per_pose and np.all(np.diff(ok_times) > 0)
+    assert [e["kind"] for e in rec.events].count("stale_reading") == 1
+    p = np.array([s["tracker_position_m"] for s in rec.samples])
+    assert np.linalg.norm(p[1] - p[0]) > 0.01  # the second pose holds its own position
+
+
 class OneGoodReading(Wrapped):
     """A tracker whose beam breaks after the first reading at every pose: each pose keeps 1
     reading of 5, too few, so it is skipped; never a pose without any reading (no tracker stop)."""

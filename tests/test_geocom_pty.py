@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import re
 import sys
@@ -521,3 +522,68 @@ def test_a_clean_resync_answer_to_com_nullproc_is_an_answer(world: World) -> Non
             assert any(k == "resync" for k, _ in t.pop_faults())
         finally:
             t.close()
+
+
+def test_a_stale_coordinate_is_refused_not_averaged(
+    sim: SimGeoComTracker, tracker: SerialTracker, world: World
+) -> None:
+    """An instrument that answers TMC_DoMeasure with GRC_OK but measures nothing returns its
+    previous coordinate again, CoordTime and all. Read as a new reading it would be averaged as
+    an independent one (or, at the next pose, recorded as that pose's position). It is refused:
+    status not ok, a `stale_reading` fault naming the repeated CoordTime; the next real
+    measurement is read as usual."""
+    first = tracker.measure()
+    _assert_reading_is_latest(first, world)
+    sim.inject("stale")
+    r = tracker.measure()
+    assert sim.stats["stale"] == 1 and len(world.produced) == 1  # nothing new was measured
+    assert r.status == "error" and np.all(np.isnan(r.position_m))
+    assert r.extra["rc_name"] == "stale_reading"
+    assert r.extra["instrument_time_ms"] == first.extra["instrument_time_ms"]
+    faults = tracker.pop_faults()
+    assert [k for k, _ in faults] == ["stale_reading"]
+    assert f"CoordTime {first.extra['instrument_time_ms']} ms" in faults[0][1]
+    after = tracker.measure()
+    _assert_reading_is_latest(after, world)
+    assert after.extra["instrument_time_ms"] > first.extra["instrument_time_ms"]
+
+
+def test_instant_simulated_measurements_never_repeat_a_coordtime(world: World) -> None:
+    """With instantaneous simulated delays many measurements fall in one millisecond; each still
+    gets its own CoordTime (a measurement takes time), so none is taken for a stale repeat."""
+    with SimGeoComTracker(world, time_scale=math.inf) as s:
+        t = SerialTracker(s.port, timeout_s=TIMEOUT_S)
+        t.connect()
+        times = []
+        for _ in range(30):
+            r = t.measure()
+            _assert_reading_is_latest(r, world)
+            times.append(r.extra["instrument_time_ms"])
+        t.close()
+    assert np.all(np.diff(times) >= 1), times
+    assert t.pop_faults() == []
+
+
+class _NoClockSim(SimGeoComTracker):
+    """An instrument that keeps no measurement time: CoordTime is always 0."""
+
+    def _get_coordinate(self, req):
+        rc0, rc, v = super()._get_coordinate(req)
+        if len(v) == 8:
+            v = (v[0], v[1], v[2], 0, v[4], v[5], v[6], 0)
+        return rc0, rc, v
+
+
+def test_an_instrument_without_coordtime_still_gives_new_readings(world: World) -> None:
+    """The same CoordTime with new coordinates is a new measurement (an instrument that keeps no
+    clock): only the same time and the very same coordinates are a stale repeat."""
+    with _NoClockSim(world, time_scale=1.0) as s:
+        t = SerialTracker(s.port, timeout_s=TIMEOUT_S)
+        t.connect()
+        for _ in range(5):
+            r = t.measure()
+            _assert_reading_is_latest(r, world)
+            assert r.extra["instrument_time_ms"] == 0
+        s.inject("stale")
+        assert t.measure().extra["rc_name"] == "stale_reading"
+        t.close()

@@ -802,7 +802,9 @@ class Executor:
                 continue
             for kind, msg in _pop_faults(self.tracker):
                 self.event("warning", kind, msg)
-            self.sink.tracker_measurement(self._t_ns(), r.position_m, r.sigma_m, r.status)
+            self.sink.tracker_measurement(
+                self._t_ns(), r.position_m, r.sigma_m, r.status, _instrument_time_s(r)
+            )
             if r.status != "ok" or not np.all(np.isfinite(r.position_m)):
                 problem = f"status {r.status}" if r.status != "ok" else "non-finite coordinates"
                 failures += 1
@@ -1042,6 +1044,14 @@ def refused_advice(suggest: np.ndarray | None, what: str) -> str:
         f"jog the arm to a posture well inside the envelope{at} and resume, or widen the "
         "envelope there (a new campaign: a resume keeps the recorded envelope)"
     )
+
+
+def _instrument_time_s(r) -> float | None:
+    """The reading's own time stamp in seconds (the driver's `instrument_time_ms`), or None."""
+    ms = (r.extra or {}).get("instrument_time_ms")
+    if isinstance(ms, (int, float)) and not isinstance(ms, bool) and np.isfinite(ms):
+        return float(ms) / 1000.0
+    return None
 
 
 def _pop_faults(tracker) -> list[tuple[str, str]]:

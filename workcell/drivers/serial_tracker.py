@@ -147,6 +147,11 @@ class SerialTracker:
         self._rx = Counter()  # bytes, stale (other transaction id), junk lines, unterminated
         self._rx_tail = b""
         self._lost = False  # the port vanished under us; cleared by a successful connect()
+        # (CoordTime ms, E, N, H) of the last coordinate read: a reply carrying the same time and
+        # the very same coordinates is that measurement again, not a new one (a new one differs
+        # by its noise; an instrument that keeps no CoordTime still gives new coordinates). Kept
+        # across reconnects: `reconnect` checks that the same instrument answers.
+        self._last_coord: tuple[int, float, float, float] | None = None
 
     # ------------------------------------------------------------------ Tracker protocol
     def connect(self) -> None:
@@ -276,8 +281,19 @@ class SerialTracker:
             coord = gc.decode_coordinate(rep, finite=False)
             p = gc.p_tracker_from_enh(coord.e_m, coord.n_m, coord.h_m)
             bad = _implausible(p)
+            this = (coord.time_ms, coord.e_m, coord.n_m, coord.h_m)
+            if bad is None and this == self._last_coord:
+                bad = (
+                    f"TMC_GetCoordinate returned the previous measurement again (CoordTime "
+                    f"{coord.time_ms} ms and coordinates unchanged): the instrument measured nothing new"
+                )
+                kind = "stale_reading"
+            else:
+                kind = "bad_reading"
+                if bad is None:
+                    self._last_coord = this
             if bad is not None:
-                self._fault("bad_reading", f"tracker on {self.port!r}: {bad}; reading refused")
+                self._fault(kind, f"tracker on {self.port!r}: {bad}; reading refused")
                 nan3 = np.full(3, np.nan)
                 return TrackerReading(
                     position_m=nan3,
@@ -286,7 +302,8 @@ class SerialTracker:
                     t_s=t_s,
                     extra={
                         "rc": int(rep.rc),
-                        "rc_name": "bad_reading",
+                        "rc_name": kind,
+                        "instrument_time_ms": coord.time_ms,
                         "message": f"TMC_GetCoordinate: {bad}",
                         "faults": len(self.fault_log) - faults_before,
                     },

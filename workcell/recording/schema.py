@@ -82,6 +82,8 @@ SCHEMAS: dict[str, tuple[str, dict]] = {
                 "position_m": _vec_nullable_items(3),
                 "sigma_m": _vec_nullable_items(3),
                 "status": {"enum": ["ok", "beam_broken", "out_of_range", "error"]},
+                # optional: the instrument's own time stamp (s on its clock; GeoCOM CoordTime)
+                "instrument_time_s": {"type": "number"},
             },
         },
     ),

@@ -112,14 +112,24 @@ class RecordingWriter:
             t_ns,
         )
 
-    def tracker_measurement(self, t_ns: int, position_m, sigma_m, status: str) -> None:
+    def tracker_measurement(
+        self,
+        t_ns: int,
+        position_m,
+        sigma_m,
+        status: str,
+        instrument_time_s: float | None = None,
+    ) -> None:
         """One raw reading. A reading whose status is not `ok` read no position: its position and
-        sigma are recorded as nulls whatever the device returned beside the status."""
+        sigma are recorded as nulls whatever the device returned beside the status.
+        `instrument_time_s`: the instrument's own time stamp of the measurement (GeoCOM's
+        CoordTime, seconds on the instrument's clock, not the epoch), when it gives one."""
         if status != "ok":
             position_m = sigma_m = [None, None, None]
-        self._write(
-            S.TRACKER, {"position_m": position_m, "sigma_m": sigma_m, "status": status}, t_ns
-        )
+        msg = {"position_m": position_m, "sigma_m": sigma_m, "status": status}
+        if instrument_time_s is not None and math.isfinite(instrument_time_s):
+            msg["instrument_time_s"] = float(instrument_time_s)
+        self._write(S.TRACKER, msg, t_ns)
 
     def sample(self, t_ns: int, sample: dict, *, flush: bool = True) -> None:
         """Record one pose sample. `flush=False` (bulk import of a trajectory) skips the
