@@ -1017,6 +1017,14 @@ def _serial_correlation(res: np.ndarray, t: np.ndarray) -> dict:
     return {"lag1": rho, "significant": bool(abs(rho) > 3.0 / np.sqrt(max(n, 1)))}
 
 
+def _lengthscale_text(ls: float, std, j: int) -> str:
+    """'0.45 +- 0.06 rad' (the residual GP's Laplace 1-sigma), or why there is none."""
+    sd = None if std is None else float(std[j - 1])
+    if sd is None or not np.isfinite(sd):
+        return f"{ls:.2f} rad, no 1-sigma: at a search bound, or no proper likelihood maximum"
+    return f"{ls:.2f} +- {sd:.2f} rad"
+
+
 def _nonparametric(
     model, dfit, res_tr, dte, res_te, after, cfg, log, *, serial: bool = False, floor: float
 ):
@@ -1045,7 +1053,10 @@ def _nonparametric(
         if joints:
             where.append(
                 "depends on joint(s) "
-                + ", ".join(f"{j} (length scale {ls:.2f} rad)" for j, ls in joints[:3])
+                + ", ".join(
+                    f"{j} (length scale {_lengthscale_text(ls, gp.lengthscale_std, j)})"
+                    for j, ls in joints[:3]
+                )
             )
         en = np.linalg.norm(res_tr, axis=1)
         for j, _ in joints[:2]:
@@ -1077,6 +1088,11 @@ def _nonparametric(
                 "p_value": p,
                 "level": cfg.np_alpha,
                 "lengthscales_rad": gp.lengthscales.tolist(),
+                # Laplace 1-sigma from the marginal likelihood's curvature (null: at a bound
+                # of the search range, or no proper maximum)
+                "lengthscales_std_rad": None
+                if gp.lengthscale_std is None
+                else [None if not np.isfinite(v) else float(v) for v in gp.lengthscale_std],
             },
         }
     )

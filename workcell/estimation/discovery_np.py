@@ -28,6 +28,10 @@ class ResidualGP:
     noise_var: float
     y_mean: np.ndarray  # (3,)
     y_std: np.ndarray  # (3,)
+    # Laplace 1-sigma (6,) of each length scale (rad; delta method from the log-hyperparameters'
+    # `gp_residual.laplace_log_std`), nan for one at a bound of its search range; None: not
+    # computed (the drift check's fits, a model read from a file)
+    lengthscale_std: np.ndarray | None = None
 
     def kernel(self, A: np.ndarray, B: np.ndarray) -> np.ndarray:
         a = A / self.lengthscales
@@ -84,10 +88,12 @@ def fit_residual_gp(
     r = np.asarray(r, float)
     if q.ndim != 2 or q.shape[1] != 6 or r.shape != (len(q), 3):
         raise ValueError(f"fit_residual_gp: q {q.shape} and r {r.shape} must be (N, 6), (N, 3)")
-    return _fit_ard_gp(q, r, max_points=max_points, seed=seed)
+    return _fit_ard_gp(q, r, max_points=max_points, seed=seed, laplace=True)
 
 
-def _fit_ard_gp(X: np.ndarray, r: np.ndarray, *, max_points: int, seed: int) -> ResidualGP:
+def _fit_ard_gp(
+    X: np.ndarray, r: np.ndarray, *, max_points: int, seed: int, laplace: bool = False
+) -> ResidualGP:
     """ARD-RBF + white-noise GP on inputs X (N, d) for residuals r (N, 3): hyperparameters by
     maximum marginal likelihood on at most `max_points` poses, weights on all of them."""
     from sklearn.gaussian_process import GaussianProcessRegressor
@@ -114,6 +120,11 @@ def _fit_ard_gp(X: np.ndarray, r: np.ndarray, *, max_points: int, seed: int) -> 
     K = model.kernel(X, X) + noise * np.eye(len(X))
     L = np.linalg.cholesky(K + 1e-10 * np.eye(len(X)))
     model.alpha = np.linalg.solve(L.T, np.linalg.solve(L, Y))
+    if laplace:
+        from workcell.estimation.gp_residual import laplace_log_std
+
+        # kernel_.theta: log(signal), log(length scales) (d), log(noise)
+        model.lengthscale_std = ls * laplace_log_std(gp)[1 : 1 + X.shape[1]]
     return model
 
 
