@@ -444,14 +444,20 @@ class AugmentedModel:
         out[np.ix_(idx, idx)] = self.cov[: len(idx), : len(idx)]
         return out
 
+    def prediction_jacobian(self, q: np.ndarray, **aux) -> np.ndarray:
+        """Jacobian (N, 3, P) of the parametric `predict(q, **aux)` (tracker frame) with respect
+        to the estimated parameters, in `cov`'s order (free geometry, then accepted effects)."""
+        q = np.atleast_2d(np.asarray(q, float))
+        Jt, Je = jac_aug(self.theta, self.eff, self.base_ref, q, self.features(q, **aux))
+        return np.concatenate([Jt[:, :, self.free], Je[:, :, self.active]], axis=2)
+
     def prediction_cov(self, q: np.ndarray, **aux) -> np.ndarray | None:
         """Covariance (N, 3, 3) of `predict(q, **aux)` (tracker frame) from the covariance of the
         geometry and the accepted effects, to first order (features held at their values). With
         a residual GP, plus its posterior variance per axis, added as if independent of the
         parametric part (the GP was fitted to its residuals): an upper estimate."""
         q = np.atleast_2d(np.asarray(q, float))
-        Jt, Je = jac_aug(self.theta, self.eff, self.base_ref, q, self.features(q, **aux))
-        J = np.concatenate([Jt[:, :, self.free], Je[:, :, self.active]], axis=2)
+        J = self.prediction_jacobian(q, **aux)
         C = np.einsum("nip,pq,njq->nij", J, self.cov, J)
         if self.residual is not None:
             from workcell.estimation.discovery_np import ResidualGP

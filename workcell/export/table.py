@@ -25,6 +25,7 @@ from workcell.export.correction import (
     CONFIGURATION_BASIS,
     Q_REF,
     Corrector,
+    _pad,
     configuration,
     configuration_dh,
     matrix_to_rotvec,
@@ -856,12 +857,56 @@ def approach_sensitivity(corr: Corrector, q_nodes: np.ndarray) -> dict | None:
     )
     if not np.all(np.isfinite(d)) or d.max() < 1e-9:
         return None
-    return {
+    out = {
         "rms_m": float(np.sqrt(np.mean(d**2))),
         "max_m": float(d.max()),
         "basis": "SMR displacement the model predicts at the table's node joints if every joint "
         "arrived from the other side than declared (conditions.approach_sign): the correction "
         "holds for the declared approach only",
+    }
+    out.update(_approach_std(corr, flipped, q, d))
+    return out
+
+
+def approach_line(a: dict) -> str:
+    """The export log's line for `approach_sensitivity`'s result, with the 1-sigma when given."""
+
+    def um(key: str) -> str:
+        sd = a.get(key.replace("_m", "_std_m"))
+        return f"{a[key] * 1e6:.1f}" + ("" if sd is None else f" +- {sd * 1e6:.1f}")
+
+    sig = " (+- 1-sigma from the fit's covariance)" if "rms_std_m" in a else ""
+    return (
+        "approach: if every joint arrived from the other side than declared, the model moves "
+        f"the SMR by {um('rms_m')} um RMS, {um('max_m')} um at most over the nodes{sig} (its "
+        "backlash terms): approach as declared"
+    )
+
+
+def _approach_std(corr: Corrector, flipped, q: np.ndarray, d: np.ndarray) -> dict:
+    """1-sigma of `approach_sensitivity`'s RMS and max from the model's parameter covariance
+    (first order; the nodes share the parameters, so the RMS's std is not a per-node average);
+    {} when the model gives no Jacobian and covariance of its prediction."""
+    jac = getattr(corr.model, "prediction_jacobian", None)
+    cov = getattr(corr.model, "cov", None)
+    if jac is None or cov is None:
+        return {}
+    qp = _pad(q)
+    n = len(q)
+    a, b = corr.conditions.aux(len(qp)), flipped.aux(len(qp))
+    delta = np.asarray(corr.model.predict(qp, **b) - corr.model.predict(qp, **a), float)[:n]
+    Jd = np.asarray(jac(qp, **b) - jac(qp, **a), float)[:n]  # (n, 3, P), tracker axes
+    u = delta / np.maximum(np.linalg.norm(delta, axis=1), 1e-300)[:, None]
+    g = np.einsum("ni,nip->np", u, Jd)  # d(d_i)/d(params); |delta| is frame-independent
+    C = np.asarray(cov, float)
+    rms = float(np.sqrt(np.mean(d**2)))
+    g_rms = (d[:, None] * g).sum(0) / (n * max(rms, 1e-300))
+    k = int(np.argmax(d))
+    return {
+        "rms_std_m": float(np.sqrt(max(g_rms @ C @ g_rms, 0.0))),
+        "max_std_m": float(np.sqrt(max(g[k] @ C @ g[k], 0.0))),
+        "std_basis": "1-sigma from the fit's parameter covariance (first order; the max's at "
+        "the node where it occurs)",
     }
 
 
@@ -1092,11 +1137,7 @@ def build_table(
         )
     approach = approach_sensitivity(corr, tab.q_nodes)
     if approach is not None:
-        log(
-            f"  approach: if every joint arrived from the other side than declared, the model "
-            f"moves the SMR by {approach['rms_m'] * 1e6:.1f} um RMS, {approach['max_m'] * 1e6:.1f}"
-            " um at most over the nodes (its backlash terms): approach as declared"
-        )
+        log("  " + approach_line(approach))
     coverage = joint_coverage(corr, tab.q_nodes)
     log("  " + coverage_line(coverage))
     tab.std_m = node_std(corr, tab.q_nodes)
