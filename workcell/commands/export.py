@@ -414,6 +414,7 @@ def _targets(args, model, cond, summary, log, logged: list[str]) -> int:
         no_std_line,
         no_std_why,
         node_std,
+        std_is_posterior,
         undetermined_line,
         unexplained_lines,
     )
@@ -479,6 +480,7 @@ def _targets(args, model, cond, summary, log, logged: list[str]) -> int:
         s3 = np.linalg.norm(sd, axis=1)
         summary["median_std_m"], summary["max_std_m"] = float(np.median(s3)), float(s3.max())
         summary["std_basis"] = STD_BASIS
+        summary["std_posterior"] = std_is_posterior(model)
         summary["targets_std_exceeds_correction"] = int(np.sum(s3 > mags))
         log(
             f"  correction 1-sigma (model uncertainty, 3-D): median {np.median(s3) * 1e6:.1f} um, "

@@ -12,6 +12,7 @@ deviation from the reference evaluation.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -58,6 +59,9 @@ class LddmmCalibration:
     on: str
     info: dict = field(default_factory=dict)
     method: str = "lddmm"
+    # tau^2 (m^2) of the deformation's linearised posterior (`LddmmModel.posterior_scale`);
+    # None (a model file from before 2026-11-27): no covariance of the prediction
+    posterior_scale_m2: float | None = None
 
     @property
     def unidentifiable(self):
@@ -65,6 +69,23 @@ class LddmmCalibration:
 
     def predict(self, q: np.ndarray, **aux) -> np.ndarray:
         return self.lddmm.predict(np.atleast_2d(np.asarray(q, float)))
+
+    def prediction_cov(self, q: np.ndarray, **aux) -> np.ndarray | None:
+        """Covariance (N, 3, 3) of `predict(q)` (tracker frame): the base's (a DH fit's, from its
+        parameter covariance; none for the registered nominal chain) plus the deformation's
+        linearised Gaussian-process posterior (`LddmmModel.linear_posterior_cov`, scale tau^2
+        by maximum likelihood on the training poses), added as if independent (the deformation
+        was fitted to the base's residual: an upper estimate). None for a model file without
+        tau^2."""
+        if self.posterior_scale_m2 is None:
+            return None
+        q = np.atleast_2d(np.asarray(q, float))
+        C = self.lddmm.linear_posterior_cov(q, self.posterior_scale_m2)
+        if self.on == "dh":
+            Cb = self.base.prediction_cov(q)
+            if Cb is not None:
+                C = C + np.asarray(Cb, float)
+        return C
 
     def min_jacobian_det(self, q: np.ndarray) -> tuple[float, float]:
         return self.lddmm.min_jacobian_det(np.atleast_2d(np.asarray(q, float)))
@@ -80,19 +101,32 @@ class LddmmCalibration:
         return out
 
     def to_dict(self) -> dict:
-        return {
+        out = {
             "method": self.method,
             "on": self.on,
             "base": self.base.to_dict(),
             "lddmm": self.lddmm.to_dict(),
             "info": self.info,
         }
+        if self.posterior_scale_m2 is not None:
+            out["posterior_scale_m2"] = float(self.posterior_scale_m2)
+        return out
 
     @classmethod
     def from_dict(cls, d: dict) -> LddmmCalibration:
         base = model_from_dict(d["base"])
         lm = LddmmModel.from_dict(d["lddmm"], _k0(base.theta, base.base_ref))
-        return cls(base=base, lddmm=lm, on=d.get("on", "dh"), info=d.get("info", {}))
+        tau2 = d.get("posterior_scale_m2")
+        ok = isinstance(tau2, (int, float)) and not isinstance(tau2, bool)
+        if tau2 is not None and not (ok and math.isfinite(tau2) and 0.0 <= tau2 < 1.0):
+            raise ValueError(f"posterior_scale_m2 must be a variance in m^2 (0 to 1), got {tau2!r}")
+        return cls(
+            base=base,
+            lddmm=lm,
+            on=d.get("on", "dh"),
+            info=d.get("info", {}),
+            posterior_scale_m2=None if tau2 is None else float(tau2),
+        )
 
 
 def _nominal_as_model(ds) -> DHModel:
@@ -196,5 +230,8 @@ def fit_method(
         "evaluation": ev,
         "identifiability": bases[on].info.get("identifiability"),
     }
-    model = LddmmCalibration(base=bases[on], lddmm=lm, on=on, info=info)
+    tau2 = lm.posterior_scale(ds.p_tracker)
+    # what the linearised posterior reads as measurement noise (tau sigma) beside the tracker's
+    info["posterior_noise_std_m"] = float(np.sqrt(tau2) * lm.sigma)
+    model = LddmmCalibration(base=bases[on], lddmm=lm, on=on, info=info, posterior_scale_m2=tau2)
     return model, {k: v for k, v in info.items() if k != "identifiability"}

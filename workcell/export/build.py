@@ -380,16 +380,9 @@ def note_unexplained(model, meta: dict, log=None) -> None:
         return
     meta["model_unexplained"] = u
     if log:
-        if meta.get("median_std_m") is None:
-            log(
-                f"  the model gives no 1-sigma; what it leaves unexplained: {unexplained_text(u)} "
-                "on its held-out poses"
-            )
-        else:
-            log(
-                f"  not in that 1-sigma: the model leaves {unexplained_text(u)} on its held-out "
-                "poses"
-            )
+        from workcell.export.table import unexplained_lines
+
+        log(f"  {unexplained_lines(meta)[0]}")  # its line without the outliers comes below
         if isinstance(sel := model.info.get("heldout_selection"), str):
             log(f"  ({sel})")
     w = model_unexplained(model, without_outliers=True)

@@ -463,6 +463,8 @@ def unexplained_lines(meta: dict) -> list[str]:
 
     has_std = meta.get("median_std_m") is not None
     lead = "not in that 1-sigma:" if has_std else "the model gives no 1-sigma; what it leaves"
+    if has_std and meta.get("std_posterior"):
+        lead = f"beside that 1-sigma ({POSTERIOR_STD_NOTE}):"
     u = meta.get("model_unexplained")
     if not isinstance(u, dict):
         if has_std:
@@ -827,7 +829,10 @@ STD_BASIS = (
     "model's own basis for that covariance holds (see `workcell fit`). A model with a "
     "Gaussian-process residual (gp, or augmented with a residual) adds the GP's posterior "
     "variance of that residual, as if independent of the parametric part (an upper estimate); "
-    "it grows away from the measured poses. Between nodes, trilinear interpolation of these "
+    "it grows away from the measured poses. An lddmm model adds its deformation's posterior "
+    "variance, linearised at its base chain as its cross-validation is (the kernel ridge fit read "
+    "as a Gaussian process, scale by maximum likelihood), to its base's, likewise as if "
+    "independent. Between nodes, trilinear interpolation of these "
     "stds bounds the interpolated correction's std from above"
 )
 
@@ -982,6 +987,20 @@ EKF_NO_STD_WHY = (
     "YAML's +-), not its network weights' joint covariance with them, so the covariance of its "
     "prediction (geometry plus network) cannot be propagated from it"
 )
+
+
+POSTERIOR_STD_NOTE = (
+    "a Gaussian-process posterior in part: it holds some of the error the model expects "
+    "between its poses, not what it cannot represent"
+)
+
+
+def std_is_posterior(model) -> bool:
+    """Whether a model's prediction covariance holds a Gaussian-process posterior (gp, lddmm,
+    an augmented model with a residual GP): part of what it leaves unexplained on held-out
+    poses is then in its 1-sigma, not all outside it as for a parametric model's."""
+    method = getattr(model, "method", None)
+    return method in ("gp", "lddmm") or getattr(model, "residual", None) is not None
 
 
 def no_std_why(model) -> str:
@@ -1148,6 +1167,7 @@ def build_table(
             "std_basis": STD_BASIS,
             "median_std_m": float(np.median(s3)),
             "max_std_m": float(s3.max()),
+            "std_posterior": std_is_posterior(corr.model),
         }
         i = int(np.argmax(s3))
         log(

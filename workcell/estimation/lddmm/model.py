@@ -205,6 +205,7 @@ class LddmmModel:
         self.n_steps = int(n_steps)
         self.div_term = bool(div_term)
         self.info = info
+        self._lin_cho = None  # Cholesky of the linearised Gram (`linear_posterior_cov`)
         self._k0j = _k0_and_jac(k0)
         q0, J0 = self._k0j(jnp.asarray(self.x))
         self.dx = self.x.shape[1]
@@ -332,6 +333,45 @@ class LddmmModel:
         """(min det D phi_1 over X, min det D psi_1 over k0(X)); both > 0 for a diffeomorphism."""
         dphi, dpsi = self.jacobian_dets(X)
         return float(np.min(dphi)), float(np.min(dpsi))
+
+    # ------------------------------------------------------------------ linearised posterior
+    def _linear_factor(self):
+        """Cholesky of the landmarks' linearised Gram G + sigma^2 I (cached)."""
+        if getattr(self, "_lin_cho", None) is None:
+            q0, J0 = (np.asarray(a) for a in (self._s0.q, self._s0.J))
+            self._lin_cho = _cho(_gram(self.x, q0, J0, self.kp), self.sigma)
+        return self._lin_cho
+
+    def posterior_scale(self, Y: Any) -> float:
+        """tau^2 (dy units squared): the maximum-likelihood scale of the linearised model read as
+        a Gaussian process, residual r = Y - k0(x) ~ N(0, tau^2 (G + sigma^2 I)) over the
+        landmarks (the kernel ridge regression the cross-validation scores is its posterior
+        mean): tau^2 = r^T (G + sigma^2 I)^-1 r / (N dy). Y (N, dy): the training targets."""
+        _, Y = _check_xy(self.x, Y)
+        r = (Y - np.asarray(self._s0.q)).ravel()
+        return float(r @ scipy.linalg.cho_solve(self._linear_factor(), r) / len(r))
+
+    def linear_posterior_cov(self, X: Any, scale2: float, batch: int = 512) -> np.ndarray:
+        """Covariance (M, dy, dy) of the deformation at X (M, dx): the linearised model's
+        Gaussian-process posterior, tau^2 (G(x*, x*) - G(x*, x) (G + sigma^2 I)^-1 G(x, x*)),
+        linearised at k0 (zero momentum) as the cross-validation is, tau^2 = `scale2`. Small
+        where the landmarks are, growing to the prior's tau^2 G(x*, x*) away from them."""
+        X, _ = _check_xy(X)
+        if X.shape[1] != self.dx:
+            raise ValueError(f"X must have {self.dx} columns, got {X.shape[1]}")
+        cho = self._linear_factor()
+        q0, J0 = (np.asarray(a) for a in (self._s0.q, self._s0.J))
+        m, kp = self.dy, self.kp
+        out = np.empty((len(X), m, m))
+        for s in range(0, len(X), batch):
+            xs = X[s : s + batch]
+            qs, Js = (np.asarray(a) for a in self._k0j(jnp.asarray(xs)))
+            Gc = _gram_cross(xs, qs, Js, self.x, q0, J0, kp).reshape(len(xs), m, -1)
+            V = scipy.linalg.cho_solve(cho, Gc.reshape(len(xs) * m, -1).T)
+            V = V.T.reshape(len(xs), m, -1)
+            prior = kp.lam_v * np.einsum("ian,ibn->iab", Js, Js) + kp.lam_w * np.eye(m)
+            out[s : s + len(xs)] = scale2 * (prior - np.einsum("iak,ibk->iab", Gc, V))
+        return 0.5 * (out + np.swapaxes(out, 1, 2))
 
     # ---------------------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
