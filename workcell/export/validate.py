@@ -167,6 +167,7 @@ def run_validation(
     if not keep.any():
         raise UserError("no target could be reached inside the envelope; check the volume")
     meas = {"before": [], "after": []}
+    t_after = []  # when each corrected target was measured (s; visit order without a clock)
     q_at = None if q_start is None else np.asarray(q_start, float)
     n_via = 0
     first = None  # the first corrected visit: (target, joints, position, sigma, time)
@@ -197,6 +198,8 @@ def run_validation(
                 move(w)
             move(q)
             meas[key].append(measure())
+            if key == "after":
+                t_after.append(clock() if clock else float(len(t_after)))
             q_at = q
             if key == "after" and first is None:
                 first = (int(i), q, meas[key][-1], _sigma(measure), clock() if clock else None)
@@ -212,6 +215,11 @@ def run_validation(
         norms[key] = np.linalg.norm(ev, axis=1)
         st = accuracy_stats(ev)
         out[key] = st
+        if key == "after":
+            ev_after = ev
+    trend = drift_trend(ev_after, np.asarray(t_after, float), "s" if clock else "target")
+    if trend is not None:
+        out["drift"] = trend
     if first is not None and out["targets"] >= 2:
         out["closure"] = _closure(
             nominal, first, q_at, move, measure, guard, sign, approach_rad, clock
@@ -244,6 +252,11 @@ def run_validation(
         log(f"  {closure_line(c)}")
         if (w := closure_warning(c, out["after_rms_m"])) is not None:
             c["warning"] = w
+            log(f"warning: {w}")
+    if (d := out.get("drift")) is not None:
+        log(f"  {drift_line(d)}")
+        if (w := drift_warning(d)) is not None:
+            d["warning"] = w
             log(f"warning: {w}")
     if "predicted_rms_std_m" in out["after"]:
         log(
@@ -302,6 +315,68 @@ def _closure(nominal, first, q_at, move, measure, guard, sign, approach_rad, clo
         "noise_m": noise,
         "beyond_noise": bool(beyond),
     }
+
+
+DRIFT_ALPHA = 0.01  # a trend of the corrected errors in time is warned about below this p
+
+
+def drift_trend(ev: np.ndarray, t: np.ndarray, unit: str = "s") -> dict | None:
+    """A linear trend in time of the corrected error vectors ev (N, 3) measured at t (N,): each
+    axis e_j = a_j + b_j (t - mean t) + noise, least squares, one residual variance pooled over
+    the axes; the F test of b = 0 (3 and 3N - 6 degrees of freedom) and the change the trend makes
+    over the validation's span with its 1-sigma. The targets are visited in random order over
+    the volume, so their position-dependent errors are noise to it; a drift of the cell (warm-up,
+    temperature, a tracker stand settling) is not. None for fewer than 6 targets or no span."""
+    from scipy import stats
+
+    ev = np.asarray(ev, float)
+    t = np.asarray(t, float)
+    n = len(t)
+    if n < 6 or ev.shape != (n, 3) or not np.all(np.isfinite(t)) or np.ptp(t) <= 0:
+        return None
+    tc = t - t.mean()
+    sxx = float(tc @ tc)
+    b = tc @ (ev - ev.mean(0)) / sxx  # (3,) m per unit
+    res = ev - ev.mean(0) - np.outer(tc, b)
+    dof = 3 * (n - 2)
+    s2 = float(np.sum(res**2) / dof)
+    span = float(np.ptp(t))
+    f = float(b @ b * sxx / 3 / s2) if s2 > 0 else float("inf")
+    change = b * span
+    return {
+        "unit": unit,
+        "span": span,
+        "rate_base_m": b.tolist(),  # per `unit`, base_ref axes
+        "rate_std_m": float(np.sqrt(s2 / sxx)),  # each axis's 1-sigma
+        "change_m": float(np.linalg.norm(change)),
+        "change_std_m": float(np.sqrt(s2 / sxx) * span),  # along the change's direction
+        "p_value": float(stats.f.sf(f, 3, dof)),
+        "targets": n,
+        "basis": "least-squares trend of the corrected error vectors in time (one per axis, "
+        "residual variance pooled); F test of no trend",
+    }
+
+
+def drift_line(d: dict) -> str:
+    """One line for `drift_trend`'s result."""
+    over = f"its {d['span'] / 60:.1f} min" if d["unit"] == "s" else f"its {d['targets']} targets"
+    return (
+        f"drift: the corrected error changes by {d['change_m'] * 1e6:.1f} +- "
+        f"{d['change_std_m'] * 1e6:.1f} um over {over} (linear trend; p = {d['p_value']:.2g} "
+        "for none)"
+    )
+
+
+def drift_warning(d: dict) -> str | None:
+    """A warning when the corrected errors trend in time (p < DRIFT_ALPHA)."""
+    if not d["p_value"] < DRIFT_ALPHA:
+        return None
+    return (
+        f"the corrected error drifted during the validation ({d['change_m'] * 1e6:.1f} +- "
+        f"{d['change_std_m'] * 1e6:.1f} um, p = {d['p_value']:.1g}): the after figure carries "
+        "that drift (warm-up, temperature, the tracker's stand); let the cell settle and "
+        "validate again"
+    )
 
 
 def closure_line(c: dict) -> str:
