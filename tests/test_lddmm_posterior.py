@@ -141,3 +141,19 @@ def test_what_a_posterior_model_leaves_out_is_not_said_to_be_outside_its_1_sigma
     assert unexplained_lines(meta)[0].startswith("not in that 1-sigma:")
     line = unexplained_lines({**meta, "std_posterior": True})[0]
     assert line.startswith("beside that 1-sigma (a Gaussian-process posterior in part")
+
+
+def test_the_cv_errors_are_the_ones_the_cv_score_is_made_of():
+    """`linear_cv_errors` (behind the CV RMS interval and `--on auto`'s paired comparison) uses
+    the folds of `linear_cv_scores`: the RMS of its per-point errors is the score."""
+    from workcell.estimation.lddmm import linear_cv_scores
+    from workcell.estimation.lddmm.model import linear_cv_errors
+
+    rng = np.random.default_rng(6)
+    X = rng.uniform(-1, 1, (60, 3))
+    Y = np.asarray(jax.vmap(k0_toy)(jnp.asarray(X))) * 1.01 + rng.normal(0, 1e-3, (60, 2))
+    scores = linear_cv_scores(k0_toy, X, Y, sigma=[0.05, 0.2], sigma_v=0.8, sigma_w=0.4)
+    for (sv, sw, s), rms in scores.items():
+        e = linear_cv_errors(k0_toy, X, Y, sigma_v=sv, sigma_w=sw, sigma=s)
+        assert e.shape == (60,)
+        assert np.sqrt(np.mean(e**2)) == pytest.approx(rms, rel=1e-10)

@@ -19,7 +19,13 @@ import numpy as np
 
 from workcell.estimation.dh import TRACKER_MPE_M, DHModel, fit_dh, nominal_registered
 from workcell.estimation.lddmm import LddmmModel, fit_lddmm, linear_cv_scores
-from workcell.estimation.models import model_from_dict
+from workcell.estimation.lddmm.model import linear_cv_errors
+from workcell.estimation.models import (
+    interval_um,
+    model_from_dict,
+    rms_interval,
+    rms_ratio_interval,
+)
 from workcell.kinematics.chain import p_tracker_and_jacobian_single, p_tracker_single
 
 
@@ -171,6 +177,13 @@ def cv_scores_on(base: DHModel, ds, *, k_folds: int = 5, seed: int = 0) -> dict:
     )
 
 
+def cv_errors_on(base: DHModel, ds, sv: float, sw: float, sigma: float) -> np.ndarray:
+    """Per-pose error norms (N,) of `cv_scores_on`'s CV at one configuration (same folds)."""
+    return linear_cv_errors(
+        _k0(base.theta, base.base_ref), ds.q, ds.p_tracker, sigma_v=sv, sigma_w=sw, sigma=sigma
+    )
+
+
 def fit_method(
     ds, *, on: str = "auto", progress=None, tracker_mpe=TRACKER_MPE_M, **_
 ) -> tuple[LddmmCalibration, dict]:
@@ -191,12 +204,38 @@ def fit_method(
         bases["nominal"] = _nominal_as_model(ds)
     scores = {}
     cv_best = {}
+    cv_ci = {}
+    cv_err = {}
     for name, b in bases.items():
         scores[name] = cv_scores_on(b, ds)
         cv_best[name] = min(scores[name].values())
+        cv_err[name] = cv_errors_on(b, ds, *min(scores[name], key=scores[name].get))
+        cv_ci[name] = list(rms_interval(cv_err[name]))
         if progress:
-            progress(f"lddmm on {name}: 5-fold linearised CV RMS {cv_best[name] * 1e6:.1f} um")
+            progress(
+                f"lddmm on {name}: 5-fold linearised CV RMS {cv_best[name] * 1e6:.1f} um "
+                f"({interval_um(cv_ci[name]) or 'no interval'}; at the best of its grid)"
+            )
     on = min(cv_best, key=cv_best.get)
+    choice = None
+    if len(bases) == 2:  # auto: how clearly the CV prefers one base, paired over the poses
+        other = "nominal" if on == "dh" else "dh"
+        ratio_ci = rms_ratio_interval(cv_err[other], cv_err[on])
+        choice = {
+            "kept": on,
+            "other": other,
+            "cv_rms_ratio_other_to_kept": cv_best[other] / max(cv_best[on], 1e-300),
+            "ratio_ci95": list(ratio_ci),
+            "basis": "paired BCa bootstrap over the training poses' CV errors, each base at the "
+            "best of its grid (the selection itself is not in the interval)",
+        }
+        if progress:
+            lo, hi = ratio_ci
+            progress(
+                f"lddmm: kept {on}; {other}'s CV RMS is {choice['cv_rms_ratio_other_to_kept']:.2f}x "
+                f"(95 % CI {lo:.2f}-{hi:.2f}x, paired over the poses)"
+                + ("; the two are not told apart" if lo <= 1.0 else "")
+            )
     sv, sw, sigma = min(scores[on], key=scores[on].get)
     lm = fit_lddmm_on(bases[on], ds, sigma_v=sv, sigma_w=sw, sigma=sigma)
     det_phi, det_psi = lm.min_jacobian_det(ds.q)
@@ -208,6 +247,10 @@ def fit_method(
     info = {
         "on": on,
         "cv_rms_m": cv_best,
+        # 95 % interval of each CV RMS over the training poses (at the best of its grid: the
+        # selection makes the figure somewhat optimistic, which the interval does not hold)
+        "cv_rms_ci95_m": cv_ci,
+        **({"cv_choice": choice} if choice is not None else {}),
         "cv_grid": {
             "sigma": list(SIGMAS),
             "sigma_v_factors": list(WIDTH_FACTORS_V),

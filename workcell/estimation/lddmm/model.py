@@ -461,6 +461,41 @@ def _linear_cv(x, q0, J0, y, grid, sigmas, lam_v, lam_w, k_folds, seed):
     return scores
 
 
+def linear_cv_errors(
+    k0: K0,
+    X_train: Any,
+    Y_train: Any,
+    *,
+    sigma_v: float,
+    sigma_w: float,
+    sigma: float,
+    lam_v: float = 1.0,
+    lam_w: float = 1.0,
+    k_folds: int = 5,
+    seed: int = 0,
+) -> np.ndarray:
+    """Per-point held-out error norms (N,) of the linearised k-fold CV at one configuration,
+    with the folds `linear_cv_scores` uses (same seed): their RMS is its score there."""
+    X, Y = _check_xy(X_train, Y_train)
+    N = X.shape[0]
+    if N < 2 * k_folds:
+        raise ValueError(f"need at least {2 * k_folds} points for {k_folds}-fold CV, got {N}")
+    q0, J0 = (np.asarray(a) for a in _k0_and_jac(k0)(jnp.asarray(X)))
+    m = q0.shape[1]
+    G = _gram(X, q0, J0, KernelParams(sigma_v, sigma_w, lam_v, lam_w))
+    idx = np.arange(N * m).reshape(N, m)
+    r_all = (Y - q0).ravel()
+    err = np.empty((N, m))
+    rng = np.random.default_rng(seed)
+    for f in np.array_split(rng.permutation(N), k_folds):
+        tr = np.setdiff1d(np.arange(N), f)
+        itr, ite = idx[tr].ravel(), idx[f].ravel()
+        c = _cho(G[np.ix_(itr, itr)], sigma)
+        pred = G[np.ix_(ite, itr)] @ scipy.linalg.cho_solve(c, r_all[itr])
+        err[f] = (pred - r_all[ite]).reshape(len(f), m)
+    return np.linalg.norm(err, axis=1)
+
+
 def linear_cv_scores(
     k0: K0,
     X_train: Any,
