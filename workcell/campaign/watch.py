@@ -138,7 +138,7 @@ class MarginWatch:
         R, t, P = np.array(self.R), np.array(self.t), np.array(self.p)
         n = len(P)
         tool0 = self.tool_m
-        residual, x0 = smr_registration_problem(R, t, P, tool0, PRIOR_WEIGHT)
+        residual, jac, x0 = smr_registration_problem(R, t, P, tool0, PRIOR_WEIGHT)
 
         def distances(x: np.ndarray) -> np.ndarray:
             return np.linalg.norm(residual(x, np.arange(n))[:-3].reshape(-1, 3), axis=1)
@@ -152,14 +152,20 @@ class MarginWatch:
         everything = np.arange(n)
         starts = [
             least_squares(
-                residual, x0, args=(everything,), x_scale=scale, loss="cauchy", f_scale=ROBUST_M
+                residual,
+                x0,
+                jac=jac,
+                args=(everything,),
+                x_scale=scale,
+                loss="cauchy",
+                f_scale=ROBUST_M,
             ).x
         ]
         if n <= LEAVE_ONE_OUT_UP_TO and np.any(distances(starts[0]) > self.margin_m):
             for j in range(n):
                 keep = np.delete(everything, j)
                 starts.append(
-                    least_squares(residual, x0, args=(keep,), x_scale=scale, max_nfev=30).x
+                    least_squares(residual, x0, jac=jac, args=(keep,), x_scale=scale, max_nfev=30).x
                 )
         best = None
         for x in starts:
@@ -170,7 +176,7 @@ class MarginWatch:
                 best = (key, x, np.flatnonzero(inside))
         _, x, rows = best
         if len(rows) >= MIN_POSES:
-            fit = least_squares(residual, x, args=(rows,), x_scale=scale)
+            fit = least_squares(residual, x, jac=jac, args=(rows,), x_scale=scale)
             x, dof = fit.x, 3 * len(rows) - 9
             r = fit.fun[:-3]
             s2 = float(r @ r) / dof

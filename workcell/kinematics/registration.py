@@ -44,9 +44,11 @@ def smr_registration_problem(
     """The least-squares problem behind every registration with the SMR offset free: flange
     rotations `R_flange` (N, 3, 3) and positions `t_flange` (N, 3) in base, measured SMR
     positions `p_tracker` (N, 3), nominal offset `p_flange_smr_m` (3,). Returns
-    (residual(x, rows), x0): x = (rotvec of tracker_T_base, its translation, the SMR offset);
-    the residual stacks the position errors of poses `rows` (m) and `prior_weight` times the
-    offset's change; x0 is the Kabsch registration with the nominal offset."""
+    (residual(x, rows), jacobian(x, rows), x0): x = (rotvec of tracker_T_base, its translation,
+    the SMR offset); the residual stacks the position errors of poses `rows` (m) and
+    `prior_weight` times the offset's change; `jacobian` is its exact derivative (for
+    `least_squares(jac=...)`: finite differences cost nine residuals a step); x0 is the Kabsch
+    registration with the nominal offset."""
     R, t = np.asarray(R_flange, float), np.asarray(t_flange, float)
     P = check_points(p_tracker, "p_tracker")
     tool0 = np.asarray(p_flange_smr_m, dtype=float).reshape(3)
@@ -58,7 +60,43 @@ def smr_registration_problem(
         r = (p_base @ matrix_from_rotvec(x[:3]).T + x[3:6] - P[rows]).ravel()
         return np.concatenate([r, prior_weight * (x[6:] - tool0)])
 
-    return residual, x0
+    def jacobian(x: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        Rb = matrix_from_rotvec(x[:3])
+        p_base = np.einsum("nij,j->ni", R[rows], x[6:]) + t[rows]
+        n = len(p_base)
+        J = np.zeros((3 * n + 3, 9))
+        # d(Rb p)/d rotvec = -Rb [p]x Jr(rotvec), Jr the right Jacobian of SO(3)
+        J[: 3 * n, :3] = (-Rb @ skew_batch(p_base) @ right_jacobian(x[:3])).reshape(3 * n, 3)
+        J[: 3 * n, 3:6] = np.tile(np.eye(3), (n, 1))
+        J[: 3 * n, 6:] = (Rb @ R[rows]).reshape(3 * n, 3)
+        J[3 * n :, 6:] = prior_weight * np.eye(3)
+        return J
+
+    return residual, jacobian, x0
+
+
+def skew_batch(v: np.ndarray) -> np.ndarray:
+    """[v]x for each row of v (N, 3) -> (N, 3, 3)."""
+    v = np.asarray(v, float)
+    z = np.zeros(len(v))
+    return np.stack(
+        [
+            np.stack([z, -v[:, 2], v[:, 1]], -1),
+            np.stack([v[:, 2], z, -v[:, 0]], -1),
+            np.stack([-v[:, 1], v[:, 0], z], -1),
+        ],
+        axis=1,
+    )
+
+
+def right_jacobian(r: np.ndarray) -> np.ndarray:
+    """Right Jacobian (3, 3) of SO(3) at rotation vector r: R(r + d) ~ R(r) exp([Jr d]x)."""
+    r = np.asarray(r, float)
+    th = float(np.linalg.norm(r))
+    K = skew_batch(r[None])[0]
+    if th < 1e-6:  # series: I - K/2 + K^2/6
+        return np.eye(3) - 0.5 * K + K @ K / 6.0
+    return np.eye(3) - (1 - np.cos(th)) / th**2 * K + (th - np.sin(th)) / th**3 * K @ K
 
 
 def register_nominal(
@@ -73,11 +111,12 @@ def register_nominal(
     T = np.asarray(base_T_flange, dtype=float)
     if T.shape != (len(P), 4, 4):
         raise ValueError(f"base_T_flange: expected shape ({len(P)}, 4, 4), got {T.shape}")
-    residual, x0 = smr_registration_problem(T[:, :3, :3], T[:, :3, 3], P, p_flange_smr_m)
+    residual, jac, x0 = smr_registration_problem(T[:, :3, :3], T[:, :3, 3], P, p_flange_smr_m)
     rows = np.arange(len(P))
     x = least_squares(
         residual,
         x0,
+        jac=jac,
         args=(rows,),
         x_scale=np.full(9, 0.1),
         loss="cauchy",
