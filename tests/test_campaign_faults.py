@@ -560,6 +560,13 @@ def test_a_stale_tracker_reading_is_recorded_as_refused_and_measured_again(tmp_p
     assert [e["kind"] for e in rec.events].count("stale_reading") == 1
     p = np.array([s["tracker_position_m"] for s in rec.samples])
     assert np.linalg.norm(p[1] - p[0]) > 0.01  # the second pose holds its own position
+    from workcell.commands.info import summary, tracker_line
+
+    tr = summary(str(out))["tracker_readings"]
+    assert tr["status"] == {"ok": len(ok_times), "error": 1}
+    assert tr["instrument_time_stamped"] == len(raw)
+    assert tr["instrument_time_span_s"] == pytest.approx(max(times) - min(times))
+    assert f"{len(raw)} with the instrument's own time stamp" in tracker_line(tr)
 
 
 class OneGoodReading(Wrapped):

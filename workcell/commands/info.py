@@ -98,7 +98,46 @@ def summary(path: str) -> dict:
         "chain": chain_summary(rec),
         "size_bytes": rec.size_bytes,
         "repeats": repeats_of(rec),
+        "tracker_readings": tracker_readings(rec),
     }
+
+
+def tracker_readings(rec: Recording) -> dict | None:
+    """The raw tracker readings (`/tracker/measurement`): how many of each status, and how many
+    carry the instrument's own time stamp (`instrument_time_s`) with the span it covers; None
+    when the recording holds none (a file with only the two channels fits need)."""
+    ms = rec.tracker_measurements
+    if not ms:
+        return None
+    status: dict[str, int] = {}
+    for m in ms:
+        k = str(m.get("status", "?"))
+        status[k] = status.get(k, 0) + 1
+    t = [
+        float(v)
+        for m in ms
+        if isinstance(v := m.get("instrument_time_s"), (int, float)) and not isinstance(v, bool)
+    ]
+    return {
+        "readings": len(ms),
+        "status": status,
+        "instrument_time_stamped": len(t),
+        "instrument_time_span_s": (max(t) - min(t)) if t else None,
+    }
+
+
+def tracker_line(d: dict) -> str:
+    """One line for `tracker_readings`'s result."""
+    st = ", ".join(f"{v} {k}" for k, v in sorted(d["status"].items(), key=lambda kv: -kv[1]))
+    n = d["instrument_time_stamped"]
+    if n == 0:
+        ts = "no instrument time stamps (the in-process simulated tracker, or a tool that keeps none)"
+    else:
+        ts = (
+            f"{n} with the instrument's own time stamp, spanning "
+            f"{d['instrument_time_span_s']:.1f} s of its clock"
+        )
+    return f"{d['readings']} raw readings ({st}); {ts}"
 
 
 def run(args: argparse.Namespace) -> int:
@@ -117,6 +156,8 @@ def run(args: argparse.Namespace) -> int:
     if d["trailing_bytes"]:
         closed += f", then {d['trailing_bytes']} bytes appended after its end (ignored)"
     print(f"closed      {closed}")
+    if d["tracker_readings"] is not None:
+        print(f"readings    {tracker_line(d['tracker_readings'])}")
     if d["envelope"] is not None:
         print(f"envelope    {envelope_line(d['envelope'])}")
     if (pl := payload_line(d["payload"])) is not None:
