@@ -349,25 +349,30 @@ def test_the_improvement_and_the_bias_carry_their_uncertainty():
 
 
 def test_the_drift_trend_is_a_calibrated_test_and_estimate():
-    """`drift_trend`: under no drift its p-value is uniform (about 5 % below 0.05), a drift of
-    the corrected error shows, and the stated 1-sigma of the change matches its scatter."""
+    """`drift_trend`: under no drift its p-value is uniform (about 5 % below 0.05), also when one
+    axis is 4x noisier than the others (a pooled variance gave about 10 %: the review of
+    2026-11-27); a drift of the corrected error shows, and the stated 1-sigma of each axis's
+    change matches its scatter."""
     from workcell.export.validate import drift_trend
 
     rng = np.random.default_rng(5)
-    t = np.sort(rng.uniform(0, 600, 30))  # 30 targets over 10 min
-    ps, changes = [], []
-    for _ in range(400):
-        ev = rng.normal(0, 5e-6, (30, 3))
-        d = drift_trend(ev, t)
-        ps.append(d["p_value"])
-        changes.append(np.asarray(d["rate_base_m"])[0] * d["span"])
-    assert 0.02 < np.mean(np.array(ps) < 0.05) < 0.09
-    stated = drift_trend(rng.normal(0, 5e-6, (30, 3)), t)["change_std_m"]
-    assert stated == pytest.approx(np.std(changes), rel=0.15)
-    ev = rng.normal(0, 5e-6, (30, 3)) + np.outer(t / 600, [20e-6, 0, 0])  # 20 um in 10 min
+    t = np.sort(rng.uniform(0, 600, 20))  # 20 targets over 10 min
+    for sd in ([5e-6] * 3, [5e-6, 5e-6, 20e-6]):
+        ps, changes, stated = [], [], []
+        for _ in range(1000):
+            d = drift_trend(rng.normal(0, sd, (20, 3)), t)
+            ps.append(d["p_value"])
+            changes.append(np.asarray(d["rate_base_m"]) * d["span"])
+            stated.append(np.asarray(d["rate_std_m"]) * d["span"])
+        below = np.mean(np.array(ps) < 0.05)
+        assert 0.035 < below < 0.065, (sd, below)
+        np.testing.assert_allclose(
+            np.sqrt(np.mean(np.square(stated), 0)), np.std(changes, 0), rtol=0.1
+        )
+    ev = rng.normal(0, 5e-6, (20, 3)) + np.outer(t / 600, [20e-6, 0, 0])  # 20 um in 10 min
     d = drift_trend(ev, t)
     assert d["p_value"] < 0.01 and d["change_m"] == pytest.approx(20e-6, abs=3 * d["change_std_m"])
-    assert drift_trend(ev[:5], t[:5]) is None and drift_trend(ev, np.zeros(30)) is None
+    assert drift_trend(ev[:5], t[:5]) is None and drift_trend(ev, np.zeros(20)) is None
 
 
 def test_a_drifting_cell_is_warned_about_in_the_validation(capsys):
@@ -403,3 +408,8 @@ def test_a_drifting_cell_is_warned_about_in_the_validation(capsys):
     assert res1["drift"]["p_value"] < 0.01 and res1["drift"]["unit"] == "target"
     assert res1["drift"]["change_m"] == pytest.approx(2e-6 * (res1["targets"] - 1), rel=0.3)
     assert any(x.startswith("warning: the corrected error drifted") for x in lines1)
+    from workcell.export.validate import validation_warnings
+
+    assert validation_warnings(res0) == []
+    # both go to `warnings` (validate --json, the TUI): the closure's and the drift's
+    assert validation_warnings(res1) == [res1["closure"]["warning"], res1["drift"]["warning"]]

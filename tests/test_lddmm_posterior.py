@@ -122,7 +122,11 @@ def test_the_model_file_keeps_the_scale_and_older_files_give_no_1_sigma(tmp_path
     np.testing.assert_allclose(back.prediction_cov(q), C, rtol=1e-9)
     d = m.to_dict()
     del d["posterior_scale_m2"]  # a model file from before 2026-11-27
-    assert model_from_dict(d).prediction_cov(q) is None
+    old = model_from_dict(d)
+    assert old.prediction_cov(q) is None
+    from workcell.export.table import no_std_why
+
+    assert "fit it again for a 1-sigma" in no_std_why(old) and "predates" in no_std_why(old)
     for bad in (-1e-9, "1e-9", True, float("nan"), 5.0):
         with pytest.raises(UserError, match="posterior_scale_m2 must be a variance"):
             model_from_dict({**d, "posterior_scale_m2": bad})

@@ -38,8 +38,17 @@ def test_the_jacobian_is_the_residuals_derivative(rot):
 
 
 def test_the_right_jacobian_near_zero_joins_its_closed_form():
-    r = np.array([3e-7, -2e-7, 5e-7])
-    big = right_jacobian(r * 1e3)  # closed form
-    small = right_jacobian(r)  # series
-    np.testing.assert_allclose(small, np.eye(3), atol=1e-6)
-    assert not np.allclose(big, np.eye(3), atol=1e-5)
+    """Below 1e-6 rad the series I - K/2 + K^2/6 stands in for the closed form, which loses its
+    digits there: its first-order term (J - I) / theta must be -[r/theta]x / 2 (a wrong sign or
+    a plain identity fails), and at 1e-3 rad, where the closed form is still exact to ~1e-10,
+    the series agrees with it to third order."""
+    from workcell.kinematics.frames import skew
+
+    u = np.array([0.6, -0.48, 0.64])  # unit axis
+    th = 1e-7
+    first = (right_jacobian(u * th) - np.eye(3)) / th
+    np.testing.assert_allclose(first, -0.5 * skew(u), atol=1e-6)
+    r = u * 1e-3
+    K = skew(r)
+    series = np.eye(3) - 0.5 * K + K @ K / 6.0
+    np.testing.assert_allclose(right_jacobian(r), series, atol=1e-10)

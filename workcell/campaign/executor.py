@@ -1048,10 +1048,10 @@ def refused_advice(suggest: np.ndarray | None, what: str) -> str:
 
 def _instrument_time_s(r) -> float | None:
     """The reading's own time stamp in seconds (the driver's `instrument_time_ms`), or None."""
+    from workcell.recording.reader import is_finite_number
+
     ms = (r.extra or {}).get("instrument_time_ms")
-    if isinstance(ms, (int, float)) and not isinstance(ms, bool) and np.isfinite(ms):
-        return float(ms) / 1000.0
-    return None
+    return float(ms) / 1000.0 if is_finite_number(ms) else None
 
 
 def _pop_faults(tracker) -> list[tuple[str, str]]:

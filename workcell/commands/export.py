@@ -209,6 +209,7 @@ def run(args: argparse.Namespace) -> int:
     # printed and as the table's meta holds them
     summary["median_std_m"] = table.meta.get("median_std_m")
     summary["max_std_m"] = table.meta.get("max_std_m")
+    summary["std_posterior"] = table.meta.get("std_posterior", False)
     _copy_unexplained(table.meta, summary)
     summary["warnings"] = [line.strip() for line in logged if is_warning(line)]
     if (w := _interp_warning(args, summary)) is not None:

@@ -11,7 +11,7 @@ import numpy as np
 
 from workcell import strict_json
 from workcell.recording import checks
-from workcell.recording.reader import Recording, is_finite_list, read_recording
+from workcell.recording.reader import Recording, is_finite_list, is_finite_number, read_recording
 from workcell.recording.repeats import repeats_of
 
 
@@ -113,11 +113,7 @@ def tracker_readings(rec: Recording) -> dict | None:
     for m in ms:
         k = str(m.get("status", "?"))
         status[k] = status.get(k, 0) + 1
-    t = [
-        float(v)
-        for m in ms
-        if isinstance(v := m.get("instrument_time_s"), (int, float)) and not isinstance(v, bool)
-    ]
+    t = [float(v) for m in ms if is_finite_number(v := m.get("instrument_time_s"))]
     return {
         "readings": len(ms),
         "status": status,

@@ -174,6 +174,7 @@ def run(args: argparse.Namespace) -> int:
         thermal_mismatch,
         tracker_measure,
         validation_envelope,
+        validation_warnings,
     )
 
     check_options(args)
@@ -328,7 +329,7 @@ def run(args: argparse.Namespace) -> int:
         close_quietly(robot, tracker)
     res["truth"] = "simulated robot" if args.robot == "sim" else "tracker"
     res["envelope"] = env_what
-    res["warnings"] = warnings + [w for c in [res.get("closure") or {}] if (w := c.get("warning"))]
+    res["warnings"] = warnings + validation_warnings(res)
     res["rms_interval_basis"] = RMS_INTERVAL_BASIS
     if args.json:
         print(strict_json.dumps(res))

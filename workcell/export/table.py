@@ -1003,10 +1003,21 @@ def std_is_posterior(model) -> bool:
     return method in ("gp", "lddmm") or getattr(model, "residual", None) is not None
 
 
+LDDMM_OLD_NO_STD_WHY = (
+    "the lddmm model file predates its prediction covariance (no posterior_scale_m2, before "
+    "2026-11-27); fit it again for a 1-sigma"
+)
+
+
 def no_std_why(model) -> str:
     """Why a model's correction has no 1-sigma (`node_std` gave None)."""
     if getattr(model, "method", None) == "ekf-ann" and _has_theta_cov(model):
         return EKF_NO_STD_WHY
+    if (
+        getattr(model, "method", None) == "lddmm"
+        and getattr(model, "posterior_scale_m2", None) is None
+    ):
+        return LDDMM_OLD_NO_STD_WHY
     return NO_STD_WHY
 
 

@@ -321,12 +321,14 @@ DRIFT_ALPHA = 0.01  # a trend of the corrected errors in time is warned about be
 
 
 def drift_trend(ev: np.ndarray, t: np.ndarray, unit: str = "s") -> dict | None:
-    """A linear trend in time of the corrected error vectors ev (N, 3) measured at t (N,): each
-    axis e_j = a_j + b_j (t - mean t) + noise, least squares, one residual variance pooled over
-    the axes; the F test of b = 0 (3 and 3N - 6 degrees of freedom) and the change the trend makes
-    over the validation's span with its 1-sigma. The targets are visited in random order over
-    the volume, so their position-dependent errors are noise to it; a drift of the cell (warm-up,
-    temperature, a tracker stand settling) is not. None for fewer than 6 targets or no span."""
+    """A linear trend in time of the corrected error vectors ev (N, 3) measured at t (N,):
+    e = a + b (t - mean t) + noise, least squares per axis, the noise's 3 x 3 covariance S
+    estimated from the residuals (each axis its own variance, and their correlation: a tracker
+    measures range and angles differently); Hotelling's T^2 test of b = 0, F(3, N - 4); the change
+    the trend makes over the validation's span, its length with the 1-sigma along it. The targets
+    are visited in random order over the volume, so their position-dependent errors are noise to
+    it; a drift of the cell (warm-up, temperature, a tracker stand settling) is not. None for
+    fewer than 6 targets or no span."""
     from scipy import stats
 
     ev = np.asarray(ev, float)
@@ -338,22 +340,28 @@ def drift_trend(ev: np.ndarray, t: np.ndarray, unit: str = "s") -> dict | None:
     sxx = float(tc @ tc)
     b = tc @ (ev - ev.mean(0)) / sxx  # (3,) m per unit
     res = ev - ev.mean(0) - np.outer(tc, b)
-    dof = 3 * (n - 2)
-    s2 = float(np.sum(res**2) / dof)
+    S = res.T @ res / (n - 2)
+    try:
+        t2 = float(sxx * b @ np.linalg.solve(S, b))
+    except np.linalg.LinAlgError:
+        return None  # errors along a line or a point: no test
+    f = (n - 4) / (3 * (n - 2)) * t2
     span = float(np.ptp(t))
-    f = float(b @ b * sxx / 3 / s2) if s2 > 0 else float("inf")
     change = b * span
+    size = float(np.linalg.norm(change))
+    u = change / size if size > 0 else np.array([1.0, 0.0, 0.0])
     return {
         "unit": unit,
         "span": span,
         "rate_base_m": b.tolist(),  # per `unit`, base_ref axes
-        "rate_std_m": float(np.sqrt(s2 / sxx)),  # each axis's 1-sigma
-        "change_m": float(np.linalg.norm(change)),
-        "change_std_m": float(np.sqrt(s2 / sxx) * span),  # along the change's direction
-        "p_value": float(stats.f.sf(f, 3, dof)),
+        "rate_std_m": np.sqrt(np.diag(S) / sxx).tolist(),  # each axis's 1-sigma
+        "change_m": size,
+        "change_std_m": float(np.sqrt(u @ S @ u / sxx) * span),  # along the change
+        "p_value": float(stats.f.sf(f, 3, n - 4)),
         "targets": n,
-        "basis": "least-squares trend of the corrected error vectors in time (one per axis, "
-        "residual variance pooled); F test of no trend",
+        "basis": "least-squares trend of the corrected error vectors in time, the residuals' "
+        "3 x 3 covariance; Hotelling's T^2 test of no trend, F(3, N - 4). change_m is a length: "
+        "with no drift it is about 1.6 times change_std_m, not 0",
     }
 
 
@@ -365,6 +373,11 @@ def drift_line(d: dict) -> str:
         f"{d['change_std_m'] * 1e6:.1f} um over {over} (linear trend; p = {d['p_value']:.2g} "
         "for none)"
     )
+
+
+def validation_warnings(res: dict) -> list[str]:
+    """The warnings `run_validation` put in its result (closure, drift), for `warnings` lists."""
+    return [w for k in ("closure", "drift") if (w := (res.get(k) or {}).get("warning"))]
 
 
 def drift_warning(d: dict) -> str | None:

@@ -287,11 +287,10 @@ def _check_session(p: Path, s: dict) -> None:
             raise RecordingError(f"{p}: session has no '{key}' object; not a workcell recording")
 
 
+def is_finite_number(x) -> bool:
+    """A JSON number that is finite (not a bool, not NaN or infinite)."""
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
 def is_finite_list(v, n: int) -> bool:
-    return (
-        isinstance(v, list)
-        and len(v) == n
-        and all(
-            isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v
-        )
-    )
+    return isinstance(v, list) and len(v) == n and all(is_finite_number(x) for x in v)

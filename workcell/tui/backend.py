@@ -1045,6 +1045,7 @@ def closed_loop(
         thermal_mismatch,
         tracker_measure,
         validation_envelope,
+        validation_warnings,
     )
 
     targets = DEFAULT_TARGETS if targets is None else targets
@@ -1113,7 +1114,7 @@ def closed_loop(
         )
     finally:
         close_quietly(dev.robot, dev.tracker)
-    res["warnings"] = warnings + [w for c in [res.get("closure") or {}] if (w := c.get("warning"))]
+    res["warnings"] = warnings + validation_warnings(res)
     res["envelope"] = env_what
     res["truth"] = "tracker"
     res["table"] = str(table_path)

@@ -430,6 +430,14 @@ def _rms_scale(A: np.ndarray) -> float:
     return s if s > 0 else 1.0
 
 
+def _cv_splits(N: int, m: int, k_folds: int, seed: int) -> list:
+    """The CV folds: [(train rows, held-out rows of the stacked (N m) system, held-out points)]
+    from one seeded permutation (the CV scores and the per-point errors share them)."""
+    folds = np.array_split(np.random.default_rng(seed).permutation(N), k_folds)
+    idx = np.arange(N * m).reshape(N, m)
+    return [(idx[np.setdiff1d(np.arange(N), f)].ravel(), idx[f].ravel(), f) for f in folds]
+
+
 def _linear_cv(x, q0, J0, y, grid, sigmas, lam_v, lam_w, k_folds, seed):
     """Linearised k-fold CV: {(sigma_v, sigma_w, sigma): held-out RMS of the kernel-ridge model}.
 
@@ -437,14 +445,8 @@ def _linear_cv(x, q0, J0, y, grid, sigmas, lam_v, lam_w, k_folds, seed):
     block and the cross block), and one Cholesky per fold and sigma.
     """
     N, m = q0.shape
-    rng = np.random.default_rng(seed)
-    folds = np.array_split(rng.permutation(N), k_folds)
-    idx = np.arange(N * m).reshape(N, m)
     r_all = (y - q0).ravel()
-    splits = []
-    for f in folds:
-        tr = np.setdiff1d(np.arange(N), f)
-        splits.append((idx[tr].ravel(), idx[f].ravel()))
+    splits = [(itr, ite) for itr, ite, _ in _cv_splits(N, m, k_folds, seed)]
     scores = {}
     for sv, sw in grid:
         G = _gram(x, q0, J0, KernelParams(sv, sw, lam_v, lam_w))
@@ -483,13 +485,9 @@ def linear_cv_errors(
     q0, J0 = (np.asarray(a) for a in _k0_and_jac(k0)(jnp.asarray(X)))
     m = q0.shape[1]
     G = _gram(X, q0, J0, KernelParams(sigma_v, sigma_w, lam_v, lam_w))
-    idx = np.arange(N * m).reshape(N, m)
     r_all = (Y - q0).ravel()
     err = np.empty((N, m))
-    rng = np.random.default_rng(seed)
-    for f in np.array_split(rng.permutation(N), k_folds):
-        tr = np.setdiff1d(np.arange(N), f)
-        itr, ite = idx[tr].ravel(), idx[f].ravel()
+    for itr, ite, f in _cv_splits(N, m, k_folds, seed):
         c = _cho(G[np.ix_(itr, itr)], sigma)
         pred = G[np.ix_(ite, itr)] @ scipy.linalg.cho_solve(c, r_all[itr])
         err[f] = (pred - r_all[ite]).reshape(len(f), m)
