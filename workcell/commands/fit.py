@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -62,6 +63,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     add_tracker_mpe(p)
     add_chain_option(p)
+
+
+def heldout_std_text(hs: dict) -> str:
+    """The fit's line on its 1-sigma at the held-out poses (`fitting.heldout_std_check`)."""
+    k = hs["z2_mean_over_3"]
+    verdict = (
+        "the 1-sigma and the tracker's noise hold them"
+        if k <= 1.5
+        else f"about {math.sqrt(k):.1f}x what the 1-sigma and the tracker's noise say: what the "
+        "model leaves out (above), or a 1-sigma stated too small"
+    )
+    return (
+        f"model 1-sigma   {hs['median_m'] * 1e6:.1f} um median, {hs['max_m'] * 1e6:.1f} um max "
+        "(3-D, its "
+        f"covariance) at the held-out poses; their errors: e'(C + s^2)^-1 e / 3 = {k:.2f}, "
+        f"{hs['inside_95']:.0%} inside the 95 % ellipsoid: {verdict}"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -223,6 +241,8 @@ def print_report(r: dict, refit=None) -> None:
             f"unexplained     {unexplained_text(r['unexplained'])}: what the model leaves out "
             "beyond the tracker's noise, not in the parameters' std"
         )
+    if (hs := r.get("heldout_model_std")) is not None:
+        print(prose.fill(heldout_std_text(hs), width=100, subsequent_indent=" " * 16))
     ho = r.get("heldout_outliers")
     if ho:
         poses = ", ".join(

@@ -256,7 +256,44 @@ def fit_dataset(
     )
     report["smr_change"] = smr_change(params)
     report["tracker_T_base"] = combined_base(model)
+    report["heldout_model_std"] = heldout_std_check(model, dte, tracker_mpe) if len(dte) else None
     return model, report
+
+
+def heldout_std_check(model, ds: Dataset, tracker_mpe=TRACKER_MPE_M) -> dict | None:
+    """The model's stated 1-sigma of its prediction at held-out poses `ds`, and how it holds
+    their errors: e^T (C + s^2 I)^-1 e / 3 per pose, C the model's prediction covariance and s
+    the tracker's per-pose sigma (max(recorded, MPE / 4), as the fits weight a pose). Its mean
+    is 1 when the 1-sigma and the tracker's noise hold the errors; above 1 by what the model
+    leaves out, or by a 1-sigma stated too small. None for a model without a covariance of its
+    prediction."""
+    from scipy import stats
+
+    from workcell.estimation.dh import pose_sigma_model
+
+    f = getattr(model, "prediction_cov", None)
+    C = None if f is None else f(ds.q, **aux_from_dataset(ds))
+    if C is None or len(ds) < 3:
+        return None
+    C = np.asarray(C, float)
+    e = ds.p_tracker - np.asarray(model.predict(ds.q, **aux_from_dataset(ds)), float)
+    s2 = pose_sigma_model(ds, tracker_mpe) ** 2
+    try:
+        z2 = np.einsum("ni,nij,nj->n", e, np.linalg.inv(C + s2[:, None, None] * np.eye(3)), e)
+    except np.linalg.LinAlgError:
+        return None
+    s3 = np.sqrt(np.clip(np.einsum("nii->n", C), 0.0, None))
+    return {
+        "median_m": float(np.median(s3)),
+        "max_m": float(s3.max()),
+        "z2_mean_over_3": float(np.mean(z2) / 3),
+        "inside_95": float(np.mean(z2 < stats.chi2.ppf(0.95, 3))),
+        "poses": int(len(ds)),
+        "basis": "3-D 1-sigma of the model's prediction (its covariance) at the held-out poses; "
+        "z2_mean_over_3: mean of e^T (C + tracker sigma^2)^-1 e / 3 over them, 1 when the "
+        "1-sigma and the tracker's noise hold the errors (inside_95: share inside the 95 % "
+        "ellipsoid, 0.95 then)",
+    }
 
 
 def combined_base(model) -> dict | None:
