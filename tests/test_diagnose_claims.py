@@ -206,3 +206,17 @@ def test_the_located_harmonic_amplitude_std_matches_its_spread():
         stds.append(_amplitude_std(B, c, float(np.sum((y - B @ c) ** 2))))
     np.testing.assert_allclose(np.median(stds), np.std(amps), rtol=0.1)
     assert np.isnan(_amplitude_std(B[:3], np.zeros(3), 0.0))  # no residual degree of freedom
+
+
+def test_the_final_models_1_sigma_is_checked_on_the_held_out_poses(case, capsys):
+    """The diagnosis states the final model's 1-sigma at its held-out poses and checks it
+    against their errors (as `fit` does): here the model holds the simulated physics, so its
+    1-sigma and the tracker's noise should hold the errors."""
+    _, _, d = case
+    hs = d.report["heldout_model_std"]
+    assert hs["poses"] == d.report["heldout_poses"]
+    assert 0 < hs["median_m"] <= hs["max_m"]
+    assert hs["z2_mean_over_3"] < 2.0  # a 1-sigma 2x too small gives about 4
+    cmd.print_report(d.report)
+    flat = " ".join(capsys.readouterr().out.split())
+    assert f"final model 1-sigma {hs['median_m'] * 1e6:.1f} um median" in flat

@@ -195,6 +195,10 @@ def print_report(r: dict) -> None:
     if npm:
         note += f" GP row: {npm.get('heldout_selection', GP_CAVEAT_FALLBACK)}."
     print(prose.fill(note, width=100))
+    if (hs := r.get("heldout_model_std")) is not None:
+        from workcell.commands.fit import heldout_std_text
+
+        print(prose.fill("final " + heldout_std_text(hs), width=100, subsequent_indent="  "))
     if r["effects"]:
         print()
         print(effects_table(r))
