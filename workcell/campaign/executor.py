@@ -1048,7 +1048,7 @@ def refused_advice(suggest: np.ndarray | None, what: str) -> str:
 
 def _instrument_time_s(r) -> float | None:
     """The reading's own time stamp in seconds (the driver's `instrument_time_ms`), or None."""
-    from workcell.recording.reader import is_finite_number
+    from workcell.recording.checks import is_finite_number
 
     ms = (r.extra or {}).get("instrument_time_ms")
     return float(ms) / 1000.0 if is_finite_number(ms) else None

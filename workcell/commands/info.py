@@ -11,7 +11,8 @@ import numpy as np
 
 from workcell import strict_json
 from workcell.recording import checks
-from workcell.recording.reader import Recording, is_finite_list, is_finite_number, read_recording
+from workcell.recording.checks import is_finite_list, is_finite_number
+from workcell.recording.reader import Recording, read_recording
 from workcell.recording.repeats import repeats_of
 
 

@@ -12,7 +12,6 @@ deviation from the reference evaluation.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -27,6 +26,7 @@ from workcell.estimation.models import (
     rms_ratio_interval,
 )
 from workcell.kinematics.chain import p_tracker_and_jacobian_single, p_tracker_single
+from workcell.recording.checks import is_finite_number
 
 
 class _ChainK0:
@@ -123,8 +123,7 @@ class LddmmCalibration:
         base = model_from_dict(d["base"])
         lm = LddmmModel.from_dict(d["lddmm"], _k0(base.theta, base.base_ref))
         tau2 = d.get("posterior_scale_m2")
-        ok = isinstance(tau2, (int, float)) and not isinstance(tau2, bool)
-        if tau2 is not None and not (ok and math.isfinite(tau2) and 0.0 <= tau2 < 1.0):
+        if tau2 is not None and not (is_finite_number(tau2) and 0.0 <= tau2 < 1.0):
             raise ValueError(f"posterior_scale_m2 must be a variance in m^2 (0 to 1), got {tau2!r}")
         return cls(
             base=base,

@@ -311,7 +311,7 @@ def info_problem(info: dict) -> str | None:
     """What is wrong with the figures a model file's `info` states, which export, envelope and
     validate act on (a negative held-out RMS made `envelope --model` suggest a 1 mm margin where
     the model needs 5 mm; a 10**400 one was a traceback), or None. Absent keys are fine."""
-    from workcell.recording.reader import is_finite_list
+    from workcell.recording.checks import is_finite_list
 
     for key in ("heldout_rms_m", "heldout_rms_unbounded_m"):
         v = info.get(key)

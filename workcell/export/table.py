@@ -32,7 +32,7 @@ from workcell.export.correction import (
     rotvec_to_matrix,
 )
 from workcell.export.frame import frame_lines, frame_meta
-from workcell.recording.checks import DH_LENGTH_MAX_M
+from workcell.recording.checks import DH_LENGTH_MAX_M, is_finite_number
 
 TABLE_FORMAT = "workcell-correction-table/1"
 DEFAULT_MAX_CORRECTION_M = 5e-3
@@ -405,17 +405,13 @@ META_NUMBERS = (
 )
 
 
-def _is_number(v) -> bool:
-    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
-
-
 def check_meta(meta: dict, again: str) -> None:
     """Raise ValueError naming the first meta field of a wrong type (a hand edit): the numbers
     `validate` and the headers compute with, and the conditions the correction was computed
     for (`conditions`: approach_sign, joint_temperature_c, elapsed_s, payload_kg)."""
     for key in META_NUMBERS:
         v = meta.get(key)
-        if v is not None and not (_is_number(v) and v >= 0):
+        if v is not None and not (is_finite_number(v) and v >= 0):
             raise ValueError(
                 f"meta {key} must be a non-negative number of metres, got {v!r}; {again}"
             )
@@ -436,19 +432,21 @@ def check_meta(meta: dict, again: str) -> None:
     if sign is not None and not (
         isinstance(sign, list)
         and len(sign) == 6
-        and all(_is_number(x) and x in (-1, 0, 1) for x in sign)
+        and all(is_finite_number(x) and x in (-1, 0, 1) for x in sign)
     ):
         raise ValueError(
             f"meta conditions approach_sign must be 6 signs (-1, 0 or 1), got {sign!r}; {again}"
         )
     t = cond.get("joint_temperature_c")
-    if t is not None and not (isinstance(t, list) and len(t) == 6 and all(map(_is_number, t))):
+    if t is not None and not (
+        isinstance(t, list) and len(t) == 6 and all(map(is_finite_number, t))
+    ):
         raise ValueError(
             f"meta conditions joint_temperature_c must be 6 numbers (degC), got {t!r}; {again}"
         )
     for key, unit in (("elapsed_s", "seconds"), ("payload_kg", "kilograms")):
         v = cond.get(key)
-        if v is not None and not (_is_number(v) and v >= 0):
+        if v is not None and not (is_finite_number(v) and v >= 0):
             raise ValueError(
                 f"meta conditions {key} must be a non-negative number of {unit}, got {v!r}; {again}"
             )
@@ -802,7 +800,7 @@ def orientation_line(m: dict, tol: float | None = None) -> str:
     table CSV's and the URScript's headers); `m`: the table's meta (`orientation_tolerance`)."""
     tol = float(m.get("orientation_tol_rad") if tol is None else tol)
     c, e = m.get("orientation_change_at_tol_m"), m.get("orientation_error_at_tol_m")
-    if not (_is_number(c) and _is_number(e)):
+    if not (is_finite_number(c) and is_finite_number(e)):
         why = (
             "no tilted correction converged"
             if "orientation_tol_basis" in m

@@ -36,7 +36,7 @@ QUAT_NORM_TOL = 1e-3
 DH_LENGTH_MAX_M = 10.0  # the longest serial arms reach ~4 m; a 10 m link is millimetres
 
 
-def _number(x) -> bool:
+def is_finite_number(x) -> bool:
     """A finite JSON number (an integer too large for a float is not: OverflowError)."""
     if not isinstance(x, (int, float)) or isinstance(x, bool):
         return False
@@ -46,8 +46,8 @@ def _number(x) -> bool:
         return False
 
 
-def _numbers(v, n: int) -> bool:
-    return isinstance(v, list) and len(v) == n and all(_number(x) for x in v)
+def is_finite_list(v, n: int) -> bool:
+    return isinstance(v, list) and len(v) == n and all(is_finite_number(x) for x in v)
 
 
 def _fmt(x: float) -> str:
@@ -98,7 +98,7 @@ def session_problems(s: dict, robot: RobotSpec | None = None) -> list[str]:
         out.extend(_dh_problems(robot))
     tool = s.get("tool")
     smr = tool.get("smr_offset_m") if isinstance(tool, dict) else None
-    if not _numbers(smr, 3):
+    if not is_finite_list(smr, 3):
         out.append("session tool.smr_offset_m must be 3 finite numbers (metres)")
     elif _norm(smr) > SMR_OFFSET_MAX_M:
         out.append(
@@ -109,7 +109,7 @@ def session_problems(s: dict, robot: RobotSpec | None = None) -> list[str]:
     bit = tracker.get("base_in_tracker") if isinstance(tracker, dict) else None
     t = bit.get("translation_m") if isinstance(bit, dict) else None
     qw = bit.get("quaternion_wxyz") if isinstance(bit, dict) else None
-    if not (_numbers(t, 3) and _numbers(qw, 4)):
+    if not (is_finite_list(t, 3) and is_finite_list(qw, 4)):
         out.append(
             "session tracker.base_in_tracker needs translation_m (3 numbers, metres) and "
             "quaternion_wxyz (4 numbers)"
@@ -133,12 +133,12 @@ def session_problems(s: dict, robot: RobotSpec | None = None) -> list[str]:
         out.append("session payload must be an object with mass_kg and com_m")
     elif isinstance(payload, dict):
         m = payload.get("mass_kg")
-        if m is not None and not _number(m):
+        if m is not None and not is_finite_number(m):
             out.append("session payload.mass_kg must be a finite number (kilograms)")
         elif m is not None:
             out.extend(_payload_problem("session payload.mass_kg", float(m), robot))
         com = payload.get("com_m")
-        if com is not None and not _numbers(com, 3):
+        if com is not None and not is_finite_list(com, 3):
             out.append("session payload.com_m must be 3 finite numbers (metres)")
         elif com is not None and _norm(com) > SMR_OFFSET_MAX_M:
             out.append(
@@ -187,14 +187,16 @@ def sample_problems(smp: dict, k: int, robot: RobotSpec) -> list[str]:
     """Problems of one /campaign/sample message (k: its position in the file)."""
     n = robot.n_joints
     idx = smp.get("index", k)
-    where = f"sample {idx if _number(idx) else k} (pose_id {smp.get('pose_id')!r})"
+    where = f"sample {idx if is_finite_number(idx) else k} (pose_id {smp.get('pose_id')!r})"
     out: list[str] = []
     pid = smp.get("pose_id")
-    if not (_number(pid) and float(pid) == int(pid) and abs(pid) < 2**53):
+    if not (is_finite_number(pid) and float(pid) == int(pid) and abs(pid) < 2**53):
         out.append(f"{where}: pose_id must be an integer (below 2^53)")
     for key, least in (("index", 0), ("n_readings", 1)):
         v = smp.get(key)
-        if v is not None and not (_number(v) and float(v) == int(v) and least <= v < 2**53):
+        if v is not None and not (
+            is_finite_number(v) and float(v) == int(v) and least <= v < 2**53
+        ):
             out.append(f"{where}: {key} must be an integer >= {least}, got {v!r}")
     for key, width, required in (
         ("q_measured_rad", n, True),
@@ -206,7 +208,7 @@ def sample_problems(smp: dict, k: int, robot: RobotSpec) -> list[str]:
         v = smp.get(key)
         if v is None and not required:
             continue
-        if not _numbers(v, width):
+        if not is_finite_list(v, width):
             out.append(
                 f"{where}: {key} must be {width} finite numbers"
                 + ("; repair or drop that sample" if required else " or null")
@@ -238,7 +240,7 @@ def sample_problems(smp: dict, k: int, robot: RobotSpec) -> list[str]:
             out.append(f"{where}: joint_temperature_c must be {n} numbers or null")
         else:
             t = [x for x in temps if x is not None]
-            if not all(_number(x) for x in t):
+            if not all(is_finite_number(x) for x in t):
                 out.append(f"{where}: joint_temperature_c has a non-number")
             else:
                 out.extend(
@@ -246,18 +248,18 @@ def sample_problems(smp: dict, k: int, robot: RobotSpec) -> list[str]:
                 )
     amb = smp.get("ambient_temperature_c")
     if amb is not None:
-        if not _number(amb):
+        if not is_finite_number(amb):
             out.append(f"{where}: ambient_temperature_c must be a finite number or null")
         else:
             out.extend(
                 _temperature_problem(where, "ambient_temperature_c", [amb], AMBIENT_TEMP_RANGE_C)
             )
     el = smp.get("elapsed_s")
-    if el is not None and not (_number(el) and el >= 0):
+    if el is not None and not (is_finite_number(el) and el >= 0):
         out.append(f"{where}: elapsed_s must be a finite number of seconds >= 0")
     pk = smp.get("payload_kg")
     if pk is not None:
-        if not _number(pk):
+        if not is_finite_number(pk):
             out.append(f"{where}: payload_kg must be a finite number (kilograms)")
         else:
             out.extend(_payload_problem(f"{where}: payload_kg", float(pk), robot))
@@ -316,7 +318,8 @@ def sigma_problems(sigmas: Sequence) -> list[str]:
     mistake (millimetres). A few large ones are disturbed poses, which the fit down-weights."""
     # a sample without sigmas counts as small: 5 large of 40 is not "most are millimetres"
     worst = [
-        max(v) if isinstance(v, list) and v and all(_number(x) for x in v) else 0.0 for v in sigmas
+        max(v) if isinstance(v, list) and v and all(is_finite_number(x) for x in v) else 0.0
+        for v in sigmas
     ]
     if not worst:
         return []

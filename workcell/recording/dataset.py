@@ -15,7 +15,8 @@ from workcell.kinematics.frames import matrix_from_quat_wxyz, transform_from
 from workcell.kinematics.robots import RobotSpec
 from workcell.recording import checks, consistency
 from workcell.recording.chain import Chain, file_sha256, load_chain  # noqa: F401 - file_sha256: here since before
-from workcell.recording.reader import Recording, RecordingError, is_finite_list
+from workcell.recording.checks import is_finite_list
+from workcell.recording.reader import Recording, RecordingError
 
 HOLDOUT_SEED = 20240601
 

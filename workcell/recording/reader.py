@@ -5,7 +5,6 @@ complete chunk before the cut is read, and `Recording.problems` says what could 
 from __future__ import annotations
 
 import json
-import math
 import os
 import struct
 from dataclasses import dataclass, field
@@ -285,12 +284,3 @@ def _check_session(p: Path, s: dict) -> None:
     for key in ("robot", "tool", "tracker"):
         if not isinstance(s.get(key), dict):
             raise RecordingError(f"{p}: session has no '{key}' object; not a workcell recording")
-
-
-def is_finite_number(x) -> bool:
-    """A JSON number that is finite (not a bool, not NaN or infinite)."""
-    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
-
-
-def is_finite_list(v, n: int) -> bool:
-    return isinstance(v, list) and len(v) == n and all(is_finite_number(x) for x in v)
