@@ -20,7 +20,7 @@ from workcell.estimation.effects import (
     te_index,
 )
 from workcell.estimation.models import load_model, save_model
-from workcell.kinematics.chain import p_tracker
+from workcell.kinematics.chain import p_tracker, pack
 
 
 def _truth_theta(tr):
@@ -239,3 +239,40 @@ def test_the_bench_simulator_records_with_few_readings_a_pose(tmp_path, readings
     rec = read_recording(p)
     assert len(rec.samples) == 6
     assert all(s["n_readings"] == readings for s in rec.samples)
+
+
+def test_a_models_ambient_thermal_term_sees_the_datasets_ambient_temperature():
+    """`aux_from_dataset` (fit's and export's evaluation of a model on a recording) left out the
+    ambient temperature, which only `diagnose` passed: an augmented model whose thermal term
+    follows the air temperature was evaluated without it (its thermal part zero) in the ROS
+    YAML's "not carried" figure and the TUI's held-out figures."""
+    from types import SimpleNamespace
+
+    from workcell.estimation.models import aux_from_dataset
+    from workcell.kinematics.robots import UR5E
+
+    acc = [c for c in library() if c.key == "thermal_drift"]
+    eff = np.zeros(E.N_EFF)
+    eff[acc[0].idx[0]] = 2e-5  # a thermal coefficient per kelvin
+    m = AugmentedModel(
+        features_spec=FeatureSpec(
+            spec=UR5E,
+            payload_com_m=np.zeros(3),
+            thermal_source="ambient",
+            thermal_ref=np.full(6, 20.0),
+        ),  # fmt: skip
+        theta=pack(UR5E.dh, tool=(0.0, 0.0, 0.06)),
+        base_ref=np.eye(4),
+        eff=eff,
+        accepted=acc,
+        free=np.ones(39, bool),
+        cov=np.zeros((40, 40)),
+        nominal_tool_m=np.array([0, 0, 0.06]),
+    )
+    q = np.random.default_rng(1).uniform(-2, 2, (4, 6))
+    ds = SimpleNamespace(q=q, approach_sign=np.ones((4, 6)), joint_temperature_c=None,
+                         ambient_temperature_c=np.full(4, 30.0), elapsed_s=np.zeros(4),
+                         payload_kg=np.zeros(4))  # fmt: skip
+    warm = m.predict(q, **aux_from_dataset(ds))
+    cold = m.predict(q, **{**aux_from_dataset(ds), "ambient_temperature_c": np.full(4, 20.0)})
+    assert np.linalg.norm(warm - cold, axis=1).min() > 1e-7  # 10 K moves the SMR

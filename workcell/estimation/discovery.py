@@ -91,6 +91,7 @@ from workcell.estimation.effects import (
 from workcell.estimation.fitting import heldout_std_check
 from workcell.estimation.models import (
     RMS_INTERVAL_BASIS,
+    aux_from_dataset,
     error_stats,
     interval_um,
     note_joint_range,
@@ -693,14 +694,7 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
         payload_kg_default=float(np.nanmedian(ds.payload_kg)) if len(ds) else 0.0,
     )
 
-    def aux(d: Dataset) -> dict:
-        return {
-            "approach_sign": d.approach_sign,
-            "joint_temperature_c": d.joint_temperature_c,
-            "ambient_temperature_c": d.ambient_temperature_c,
-            "elapsed_s": d.elapsed_s,
-            "payload_kg": d.payload_kg,
-        }
+    aux = aux_from_dataset
 
     X = fs.features(theta, dfit.q, **aux(dfit))
     eff0 = np.zeros(N_EFF)

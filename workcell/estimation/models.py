@@ -51,9 +51,12 @@ class FittedModel(Protocol):
 
 
 def aux_from_dataset(ds) -> dict:
+    """A dataset's operating conditions as the models' `predict(q, **aux)` takes them (an
+    augmented model's thermal term reads the joint or the ambient temperature, or the time)."""
     return {
         "approach_sign": ds.approach_sign,
         "joint_temperature_c": ds.joint_temperature_c,
+        "ambient_temperature_c": ds.ambient_temperature_c,
         "elapsed_s": ds.elapsed_s,
         "payload_kg": ds.payload_kg,
     }
