@@ -30,6 +30,8 @@ def _model(cov_scale: float) -> AugmentedModel:
     A = rng.normal(size=(p, p)) * cov_scale
     base_ref = np.eye(4)
     base_ref[:3, 3] = (2.0, -0.5, -0.3)
+    c, s = np.cos(0.7), np.sin(0.7)  # a turned base: the Jacobian is in tracker axes
+    base_ref[:2, :2] = [[c, -s], [s, c]]
     return AugmentedModel(
         features_spec=FeatureSpec(spec=UR5E, payload_com_m=np.zeros(3), payload_kg_default=0.0),
         theta=th,

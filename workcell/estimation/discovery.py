@@ -919,7 +919,7 @@ def _diagnose(ds: Dataset, cfg: DiagnoseConfig, progress) -> Diagnosis:
         "rms_after_m": after["rms_m"],
         "rms_after_ci95_m": after["rms_ci95_m"],
         # the final model's own 1-sigma at the held-out poses, checked against their errors
-        "heldout_model_std": heldout_std_check(model, dte, cfg.tracker_mpe),
+        "heldout_model_std": heldout_std_check(model, dte, cfg.tracker_mpe, pred=pred_te),
         # does the final model's held-out RMS reach the noise floor within its 95 % interval?
         "floor_reached": _floor_reached(after["rms_ci95_m"], floor),
         "max_after_m": after["max_m"],

@@ -256,17 +256,21 @@ def fit_dataset(
     )
     report["smr_change"] = smr_change(params)
     report["tracker_T_base"] = combined_base(model)
-    report["heldout_model_std"] = heldout_std_check(model, dte, tracker_mpe) if len(dte) else None
+    report["heldout_model_std"] = (
+        heldout_std_check(model, dte, tracker_mpe, pred=pred) if len(dte) else None
+    )
     return model, report
 
 
-def heldout_std_check(model, ds: Dataset, tracker_mpe=TRACKER_MPE_M) -> dict | None:
+def heldout_std_check(
+    model, ds: Dataset, tracker_mpe=TRACKER_MPE_M, *, pred: np.ndarray | None = None
+) -> dict | None:
     """The model's stated 1-sigma of its prediction at held-out poses `ds`, and how it holds
     their errors: e^T (C + s^2 I)^-1 e / 3 per pose, C the model's prediction covariance and s
     the tracker's per-pose sigma (max(recorded, MPE / 4), as the fits weight a pose). Its mean
     is 1 when the 1-sigma and the tracker's noise hold the errors; above 1 by what the model
-    leaves out, or by a 1-sigma stated too small. None for a model without a covariance of its
-    prediction."""
+    leaves out, or by a 1-sigma stated too small. `pred`: the model's prediction at `ds` when
+    the caller has it. None for a model without a covariance of its prediction."""
     from scipy import stats
 
     from workcell.estimation.dh import pose_sigma_model
@@ -276,7 +280,9 @@ def heldout_std_check(model, ds: Dataset, tracker_mpe=TRACKER_MPE_M) -> dict | N
     if C is None or len(ds) < 3:
         return None
     C = np.asarray(C, float)
-    e = ds.p_tracker - np.asarray(model.predict(ds.q, **aux_from_dataset(ds)), float)
+    if pred is None:
+        pred = model.predict(ds.q, **aux_from_dataset(ds))
+    e = ds.p_tracker - np.asarray(pred, float)
     s2 = pose_sigma_model(ds, tracker_mpe) ** 2
     try:
         z2 = np.einsum("ni,nij,nj->n", e, np.linalg.inv(C + s2[:, None, None] * np.eye(3)), e)

@@ -855,9 +855,8 @@ def approach_sensitivity(corr: Corrector, q_nodes: np.ndarray) -> dict | None:
     flipped = replace(
         corr.conditions, approach_sign=-np.asarray(corr.conditions.approach_sign, float)
     )
-    d = np.linalg.norm(
-        Corrector(corr.model, corr.nominal, flipped).real_base(q) - corr.real_base(q), axis=1
-    )
+    delta = Corrector(corr.model, corr.nominal, flipped).real_base(q) - corr.real_base(q)
+    d = np.linalg.norm(delta, axis=1)
     if not np.all(np.isfinite(d)) or d.max() < 1e-9:
         return None
     out = {
@@ -867,7 +866,7 @@ def approach_sensitivity(corr: Corrector, q_nodes: np.ndarray) -> dict | None:
         "arrived from the other side than declared (conditions.approach_sign): the correction "
         "holds for the declared approach only",
     }
-    out.update(_approach_std(corr, flipped, q, d))
+    out.update(_approach_std(corr, flipped, q, delta))
     return out
 
 
@@ -886,10 +885,11 @@ def approach_line(a: dict) -> str:
     )
 
 
-def _approach_std(corr: Corrector, flipped, q: np.ndarray, d: np.ndarray) -> dict:
+def _approach_std(corr: Corrector, flipped, q: np.ndarray, delta: np.ndarray) -> dict:
     """1-sigma of `approach_sensitivity`'s RMS and max from the model's parameter covariance
-    (first order; the nodes share the parameters, so the RMS's std is not a per-node average);
-    {} when the model gives no Jacobian and covariance of its prediction."""
+    (first order; the nodes share the parameters, so the RMS's std is not a per-node average),
+    `delta` (n, 3) its displacements in base axes; {} when the model gives no Jacobian and
+    covariance of its prediction."""
     jac = getattr(corr.model, "prediction_jacobian", None)
     cov = getattr(corr.model, "cov", None)
     if jac is None or cov is None:
@@ -897,10 +897,11 @@ def _approach_std(corr: Corrector, flipped, q: np.ndarray, d: np.ndarray) -> dic
     qp = _pad(q)
     n = len(q)
     a, b = corr.conditions.aux(len(qp)), flipped.aux(len(qp))
-    delta = np.asarray(corr.model.predict(qp, **b) - corr.model.predict(qp, **a), float)[:n]
     Jd = np.asarray(jac(qp, **b) - jac(qp, **a), float)[:n]  # (n, 3, P), tracker axes
-    u = delta / np.maximum(np.linalg.norm(delta, axis=1), 1e-300)[:, None]
-    g = np.einsum("ni,nip->np", u, Jd)  # d(d_i)/d(params); |delta| is frame-independent
+    d = np.linalg.norm(delta, axis=1)
+    # the displacement's direction in tracker axes (the Jacobian's): base -> tracker rotation
+    u = (delta / np.maximum(d, 1e-300)[:, None]) @ corr.nominal.base_ref[:3, :3].T
+    g = np.einsum("ni,nip->np", u, Jd)  # d(d_i)/d(params)
     C = np.asarray(cov, float)
     rms = float(np.sqrt(np.mean(d**2)))
     g_rms = (d[:, None] * g).sum(0) / (n * max(rms, 1e-300))
