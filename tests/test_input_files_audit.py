@@ -38,6 +38,14 @@ def _one_line(capsys, argv) -> tuple[int, list[str]]:
 BIG = 10**400  # json.dumps writes it as digits; float() of it raised OverflowError
 
 
+def _edited(doc: dict, edit, path):
+    """A copy of a model or table file's JSON with one hand edit, written to `path`."""
+    d = copy.deepcopy(doc)
+    edit(d)
+    path.write_text(json.dumps(d))
+    return path
+
+
 @pytest.mark.parametrize(
     "edit, words",
     [
@@ -52,10 +60,7 @@ BIG = 10**400  # json.dumps writes it as digits; float() of it raised OverflowEr
 )
 def test_a_model_with_impossible_figures_is_refused_in_one_line(files, capsys, edit, words):
     d, model, _ = files
-    m = copy.deepcopy(model)
-    edit(m)
-    f = d / "bad.json"
-    f.write_text(json.dumps(m))
+    f = _edited(model, edit, d / "bad.json")
     env = d / "env_out.json"
     rc, err = _one_line(capsys, ["envelope", "--model", str(f), "--out", str(env)])
     assert rc == 2 and len(err) == 1 and words in err[0], err
@@ -95,10 +100,7 @@ def test_a_seven_joint_model_is_refused_by_the_six_joint_commands(files, capsys)
 )
 def test_a_malformed_table_is_refused_in_one_line(files, capsys, edit, words):
     d, _, table = files
-    t = copy.deepcopy(table)
-    edit(t)
-    f = d / "bad_t.json"
-    f.write_text(json.dumps(t))
+    f = _edited(table, edit, d / "bad_t.json")
     argv = ["validate", str(d / "m.json"), "--table", str(f), "--targets", "2"]
     rc, err = _one_line(capsys, argv)
     assert rc == 2 and len(err) == 1 and words in err[0], err
@@ -111,13 +113,8 @@ def test_a_malformed_table_is_refused_in_one_line(files, capsys, edit, words):
 def test_null_table_fields_are_read_as_absent(files, capsys, key, value):
     """`null` where the table's meta allows it was a TypeError in validate."""
     d, _, table = files
-    t = copy.deepcopy(table)
-    if key == "approach_sign":
-        t["meta"]["conditions"][key] = value
-    else:
-        t["meta"][key] = value
-    f = d / "null_t.json"
-    f.write_text(json.dumps(t))
+    meta = (lambda t: t["meta"]["conditions"]) if key == "approach_sign" else (lambda t: t["meta"])
+    f = _edited(table, lambda t: meta(t).__setitem__(key, value), d / "null_t.json")
     rc, err = _one_line(
         capsys, ["validate", str(d / "m.json"), "--table", str(f), "--targets", "2"]
     )
@@ -151,10 +148,7 @@ def test_a_tables_csv_is_not_read_as_targets(files, capsys):
 def test_a_models_free_mask_must_be_true_false_values(files, capsys, free):
     """`free` with 40 entries, text or NaN loaded (np.asarray(..., bool) makes a mask of it)."""
     d, model, _ = files
-    m = copy.deepcopy(model)
-    m["free"] = free(m["free"])
-    f = d / "free.json"
-    f.write_text(json.dumps(m))
+    f = _edited(model, lambda m: m.__setitem__("free", free(m["free"])), d / "free.json")
     rc, err = _one_line(capsys, ["envelope", "--model", str(f)])
     assert rc == 2 and len(err) == 1 and "free must be 39 true/false values" in err[0], err
 

@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from workcell.kinematics.frames import matrix_from_rotvec
-from workcell.kinematics.registration import right_jacobian, smr_registration_problem
+from workcell.kinematics.frames import matrix_from_rotvec, right_jacobian
+from workcell.kinematics.registration import smr_registration_problem
 
 
 def _problem(seed: int):

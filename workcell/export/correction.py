@@ -189,7 +189,7 @@ def _frames_np(theta: np.ndarray, q: np.ndarray) -> np.ndarray:
     return T
 
 
-def _pad(x: np.ndarray) -> np.ndarray:
+def pad_batch(x: np.ndarray) -> np.ndarray:
     """Pad the batch axis to a power of two (>= 8) by repeating the last row: jitted models then
     compile once per size class instead of once per batch size."""
     x = np.asarray(x, float)
@@ -242,7 +242,7 @@ class Corrector:
     def real_base(self, q: np.ndarray) -> np.ndarray:
         """The model's SMR position (N, 3) in base for joints q (N, 6) under the conditions."""
         q = np.atleast_2d(np.asarray(q, float))
-        qp = _pad(q)
+        qp = pad_batch(q)
         p = np.asarray(self.model.predict(qp, **self.conditions.aux(len(qp))), float)[: len(q)]
         return self.nominal.to_base(p)
 
@@ -253,7 +253,7 @@ class Corrector:
         if f is None:
             return None
         q = np.atleast_2d(np.asarray(q, float))
-        qp = _pad(q)
+        qp = pad_batch(q)
         C = f(qp, **self.conditions.aux(len(qp)))
         if C is None:
             return None

@@ -25,10 +25,10 @@ from workcell.export.correction import (
     CONFIGURATION_BASIS,
     Q_REF,
     Corrector,
-    _pad,
     configuration,
     configuration_dh,
     matrix_to_rotvec,
+    pad_batch,
     rotvec_to_matrix,
 )
 from workcell.export.frame import frame_lines, frame_meta
@@ -894,7 +894,7 @@ def _approach_std(corr: Corrector, flipped, q: np.ndarray, delta: np.ndarray) ->
     cov = getattr(corr.model, "cov", None)
     if jac is None or cov is None:
         return {}
-    qp = _pad(q)
+    qp = pad_batch(q)
     n = len(q)
     a, b = corr.conditions.aux(len(qp)), flipped.aux(len(qp))
     Jd = np.asarray(jac(qp, **b) - jac(qp, **a), float)[:n]  # (n, 3, P), tracker axes

@@ -36,6 +36,30 @@ def skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
+def skew_batch(v: np.ndarray) -> np.ndarray:
+    """[v]x for each row of v (N, 3) -> (N, 3, 3)."""
+    v = np.asarray(v, float)
+    z = np.zeros(len(v))
+    return np.stack(
+        [
+            np.stack([z, -v[:, 2], v[:, 1]], -1),
+            np.stack([v[:, 2], z, -v[:, 0]], -1),
+            np.stack([-v[:, 1], v[:, 0], z], -1),
+        ],
+        axis=1,
+    )
+
+
+def right_jacobian(r: np.ndarray) -> np.ndarray:
+    """Right Jacobian (3, 3) of SO(3) at rotation vector r: R(r + d) ~ R(r) exp([Jr d]x)."""
+    r = np.asarray(r, float)
+    th = float(np.linalg.norm(r))
+    K = skew(r)
+    if th < 1e-6:  # series: I - K/2 + K^2/6
+        return np.eye(3) - 0.5 * K + K @ K / 6.0
+    return np.eye(3) - (1 - np.cos(th)) / th**2 * K + (th - np.sin(th)) / th**3 * K @ K
+
+
 def matrix_from_rotvec(r: np.ndarray) -> np.ndarray:
     """Rodrigues formula for a rotation vector (3,) -> (3, 3)."""
     r = np.asarray(r, dtype=float)

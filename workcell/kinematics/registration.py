@@ -18,7 +18,9 @@ from workcell.kinematics.frames import (
     check_points,
     kabsch,
     matrix_from_rotvec,
+    right_jacobian,
     rotvec_from_matrix,
+    skew_batch,
     transform_from,
 )
 
@@ -73,30 +75,6 @@ def smr_registration_problem(
         return J
 
     return residual, jacobian, x0
-
-
-def skew_batch(v: np.ndarray) -> np.ndarray:
-    """[v]x for each row of v (N, 3) -> (N, 3, 3)."""
-    v = np.asarray(v, float)
-    z = np.zeros(len(v))
-    return np.stack(
-        [
-            np.stack([z, -v[:, 2], v[:, 1]], -1),
-            np.stack([v[:, 2], z, -v[:, 0]], -1),
-            np.stack([-v[:, 1], v[:, 0], z], -1),
-        ],
-        axis=1,
-    )
-
-
-def right_jacobian(r: np.ndarray) -> np.ndarray:
-    """Right Jacobian (3, 3) of SO(3) at rotation vector r: R(r + d) ~ R(r) exp([Jr d]x)."""
-    r = np.asarray(r, float)
-    th = float(np.linalg.norm(r))
-    K = skew_batch(r[None])[0]
-    if th < 1e-6:  # series: I - K/2 + K^2/6
-        return np.eye(3) - 0.5 * K + K @ K / 6.0
-    return np.eye(3) - (1 - np.cos(th)) / th**2 * K + (th - np.sin(th)) / th**3 * K @ K
 
 
 def register_nominal(
