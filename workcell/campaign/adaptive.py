@@ -402,6 +402,21 @@ def _seed_order(poses: np.ndarray, n_seed: int, seed: int) -> list[int]:
     return maximin_indices(poses, max(n_seed, 1), first=first)[:n_seed] if n_seed > 0 else []
 
 
+def _visit(i, pid, info, q_c, s_c, available, meas, measured_idx, on_choice, reach) -> Plan:
+    """Move to candidate `i` as pose `pid`: mark it taken, report the choice, and add what was
+    measured there (None: the pose was skipped) to the plan's measurements."""
+    available[i] = False
+    info["candidate"] = i
+    if on_choice:
+        on_choice(info)
+    sample = yield PoseTarget(pose_id=pid, q_rad=q_c[i].copy(), approach_sign=s_c[i].copy())
+    if sample is not None:
+        meas.add(sample)
+        measured_idx.append(i)
+        if reach is not None:
+            reach.last = q_c[i]
+
+
 def _bo_plan(
     spec, q_c, s_c, poses, free, tool_m, ids, n_seed, seed, beta_schedule, negate, on_choice,
     reach, replay,
@@ -438,16 +453,7 @@ def _bo_plan(
                 calibrated=meas.calibrated,
                 rms_error_m=float(np.sqrt(np.mean(err**2))),
             )
-        available[i] = False
-        info["candidate"] = i
-        if on_choice:
-            on_choice(info)
-        sample = yield PoseTarget(pose_id=pid, q_rad=q_c[i].copy(), approach_sign=s_c[i].copy())
-        if sample is not None:
-            meas.add(sample)
-            measured_idx.append(i)
-            if reach is not None:
-                reach.last = q_c[i]
+        yield from _visit(i, pid, info, q_c, s_c, available, meas, measured_idx, on_choice, reach)
 
 
 def _replay_mask(available: np.ndarray, replay: dict[int, int | None]):
@@ -554,16 +560,7 @@ def _dopt_plan(
             order = np.argsort(-score, kind="stable")
             i = _pick(reach, cand[order], info, rec, kind)
             info["score"] = float(score[cand == i][0])
-        available[i] = False
-        info["candidate"] = i
-        if on_choice:
-            on_choice(info)
-        sample = yield PoseTarget(pose_id=pid, q_rad=q_c[i].copy(), approach_sign=s_c[i].copy())
-        if sample is not None:
-            meas.add(sample)
-            measured_idx.append(i)
-            if reach is not None:
-                reach.last = q_c[i]
+        yield from _visit(i, pid, info, q_c, s_c, available, meas, measured_idx, on_choice, reach)
 
 
 __all__ = [
