@@ -56,6 +56,9 @@ def test_unwritable_output_refused_first(tmp_path, capsys, argv, match):
         ),
         (["--readings", "3"], "--readings is for a real cell"),
         (["--model-name", "ur10"], "--model-name is for a real cell"),
+        (["--time-scale", "50"], "--time-scale is for a real cell"),
+        (["--robot", "ur://127.0.0.1", "--time-scale", "0"], "--time-scale must be a number"),
+        (["--robot", "ur://127.0.0.1", "--time-scale", "nan"], "--time-scale must be a number"),
     ],
 )
 def test_validate_options_refused_before_connecting(tmp_path, capsys, extra, match):
@@ -110,3 +113,27 @@ def test_fit_notes_an_smr_far_from_the_declared_one(capsys):
     assert smr_change(params(-0.0165, 0.027)) is None  # series D: std 27 mm, says nothing
     assert smr_change(params(-0.0007, 2e-5)) is None  # below 1 mm (the demo's 0.7 mm)
     assert smr_change({"tool_x": {"value": 0.0}}) is None  # a model without the SMR terms
+
+
+def test_validate_passes_its_time_scale_to_the_controller(tmp_path, capsys, monkeypatch):
+    """validate's own warning against `workcell sim --time-scale X` says "give --time-scale X":
+    validate takes it (until 2026-11-28 it did not) and opens the controller with it."""
+    import workcell.campaign.devices as devices
+    from workcell.errors import UserError
+
+    seen = {}
+
+    def open_cell(ns):
+        seen["time_scale"] = ns.time_scale
+        raise UserError("stop here: no controller in this test")
+
+    monkeypatch.setattr(devices, "open_cell", open_cell)
+    argv = ["demo", "--out", str(tmp_path / "d"), "--poses", "30", "--methods", "dh"]
+    assert main([*argv, "--no-correction"]) == 0
+    capsys.readouterr()
+    model = next((tmp_path / "d").glob("*dh*.json"))
+    argv = ["validate", str(model), "--robot", "ur://127.0.0.1", "--tracker", "serial:///dev/null"]
+    assert main([*argv, "--time-scale", "50"]) == 2
+    assert seen["time_scale"] == 50.0
+    assert "stop here" in capsys.readouterr().err
+    assert main(argv) == 2 and seen["time_scale"] is None  # a real controller: the driver's 1

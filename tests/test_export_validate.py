@@ -413,3 +413,36 @@ def test_a_drifting_cell_is_warned_about_in_the_validation(capsys):
     assert validation_warnings(res0) == []
     # both go to `warnings` (validate --json, the TUI): the closure's and the drift's
     assert validation_warnings(res1) == [res1["closure"]["warning"], res1["drift"]["warning"]]
+
+
+def test_a_moved_tracker_is_refused_at_the_first_target():
+    """A tracker wheeled elsewhere since the fit (here 0.3 m along x) makes every uncorrected
+    target miss by the move: validate stops at the first one with one line, instead of printing
+    a metre-sized "validation" (as it did on a real cell until 2026-11-28)."""
+    world, cell, table, corr = _cell_and_table()
+    measure = sim_measure(world)
+    moved = []
+
+    def measure_moved():
+        return measure() + np.array([0.3, 0.0, 0.0])
+
+    def move(q):
+        moved.append(q)
+        world.clock.advance(world.command_move(q, 0.5, 1.0))
+
+    with pytest.raises(UserError, match=r"measured 300\.\d mm from where the model puts it"):
+        run_validation(corr.nominal, table, move, measure_moved, n=8, seed=1)
+    assert len(moved) == 2  # the first target's pre-pose and the target, nothing after
+
+
+def test_an_uncalibrated_cell_within_the_bound_is_validated():
+    """The check is no tighter than calibration errors: a tracker 5 mm off still validates (its
+    bias after the correction shows the 5 mm)."""
+    world, cell, table, corr = _cell_and_table()
+    measure = sim_measure(world)
+    res = run_validation(
+        corr.nominal, table, lambda q: world.clock.advance(world.command_move(q, 0.5, 1.0)),
+        lambda: measure() + np.array([0.0, 0.005, 0.0]), n=4, seed=1,
+    )  # fmt: skip
+    assert res["targets"] == 4
+    assert 4e-3 < res["after_rms_m"] < 6e-3

@@ -48,6 +48,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "mass in m), which a --table is checked against (default: the controller's payload "
         "setting; 0 kg if it does not report one)",
     )
+    p.add_argument(
+        "--time-scale",
+        type=float,
+        help="with `workcell sim --time-scale X` and --robot ur://...: the same X (default 1, "
+        "a real controller; checked against the controller's clock before anything moves)",
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object")
 
 
@@ -72,8 +78,13 @@ def check_options(args: argparse.Namespace) -> None:
             "for the table validate builds from the model); leave one of them out"
         )
     sim = args.robot == "sim" and args.tracker == "sim"
+    if getattr(args, "time_scale", None) is not None:
+        from workcell.campaign.devices import check_time_scale_range
+
+        check_time_scale_range(args.time_scale)
     real_only = (
         ("--readings", args.readings),
+        ("--time-scale", getattr(args, "time_scale", None)),
         ("--model-name", args.robot_model),
         ("--payload", getattr(args, "payload", None)),
     )
@@ -247,6 +258,7 @@ def run(args: argparse.Namespace) -> int:
             effects=None,
             seed=0,
             payload=getattr(args, "payload", None),
+            time_scale=getattr(args, "time_scale", None),
         )
         cell, robot, tracker, _ = open_cell(ns)
         measure = tracker_measure(tracker, args.readings or DEFAULT_READINGS)

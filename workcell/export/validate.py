@@ -198,6 +198,8 @@ def run_validation(
                 move(w)
             move(q)
             meas[key].append(measure())
+            if key == "before":
+                _check_registration(nominal, table, meas[key][-1], p_goal[i], P[i], int(k[i]))
             if key == "after":
                 t_after.append(clock() if clock else float(len(t_after)))
             q_at = q
@@ -265,6 +267,29 @@ def run_validation(
             f"{(table.meta.get('max_interp_error_m') or float('nan')) * 1e6:.1f} um"
         )
     return out
+
+
+# an uncorrected target misses by about the table's correction there (the errors the model
+# found, up to a few mm on an arm of this class) plus what the model leaves out; this much more
+# is no calibration error: the tracker was moved since the fitting campaign, or the model is of
+# another cell
+REGISTRATION_GROSS_M = 0.02
+
+
+def _check_registration(nominal, table, p_tracker, p_goal_tracker, p_base, k: int) -> None:
+    """Refuse a validation whose first uncorrected target is far beyond any calibration error:
+    the model's tracker_T_base does not hold for this tracker setup (nothing else measured)."""
+    miss = float(np.linalg.norm(np.asarray(p_tracker, float) - p_goal_tracker))
+    corr = float(np.linalg.norm(table.interpolate(np.asarray(p_base)[None], k)[0]))
+    if np.isfinite(miss) and miss <= corr + REGISTRATION_GROSS_M:
+        return
+    raise UserError(
+        f"the first uncorrected target was measured {miss * 1e3:.1f} mm from where the model "
+        f"puts it (its correction there is {corr * 1e3:.2f} mm): the tracker is not where it "
+        "was when the model was fitted (moved, or the model is of another cell), so every "
+        "figure would measure the tracker's move; measure a campaign with the tracker where it "
+        "stands now (`workcell campaign`, `workcell fit`) and validate that model"
+    )
 
 
 def _sigma(measure) -> np.ndarray | None:
