@@ -900,3 +900,24 @@ def test_the_same_controller_sample_is_written_once_to_the_joint_state_stream():
     t[0] = 1.008
     ex._record_state(force=True)
     assert len(sink.states) == 2
+
+
+def test_a_campaign_too_short_to_fit_says_so_before_moving_and_fit_says_what_to_do(
+    tmp_path, capsys
+):
+    """Not only the dry run: a campaign of 10 poses warns before its first motion that a fit
+    needs 16 (it still measures: a short campaign can be meant); `fit` then refuses with what to
+    do, which for 10 poses cannot be a smaller hold-out (until 2026-11-28: no warning, and only
+    "only 8 training poses; a fit needs at least 12")."""
+    from workcell.cli import main
+
+    rec = tmp_path / "c10.mcap"
+    argv = ["campaign", "--robot", "sim", "--tracker", "sim", "--poses", "10", "--out", str(rec)]
+    assert main(argv) == 0
+    err = capsys.readouterr().err
+    warn = err.index("warning: too few poses to fit (10)")
+    assert warn < err.index("pose    0") and "ask for more with --poses" in err
+    assert main(["fit", str(rec)]) == 2
+    line = capsys.readouterr().err.strip()
+    assert "only 8 training poses (of 10 with 25% held out)" in line and "\n" not in line
+    assert "measure a campaign with at least 16 poses" in line and "--holdout" not in line

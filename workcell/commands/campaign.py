@@ -259,6 +259,10 @@ def run(args: argparse.Namespace) -> int:
             )
         raise UserError(f"{args.out} already exists; choose a new file or use --resume")
     check_output_path(args.out, "recording")
+    from workcell.campaign.identification import too_few_to_fit
+
+    for line in too_few_to_fit(args.poses):  # said before the arm moves, as the dry run says it
+        progress(f"{line}; ask for more with --poses to fit this recording alone")
     control = _control(args)
     n = [0]
 

@@ -173,7 +173,15 @@ def fit_dataset(
         raise UserError(f"unknown method {method!r}; choose from {', '.join(FIT_METHODS)}")
     train, test = ds.holdout_split(holdout)
     if len(train) < MIN_TRAIN_POSES:
-        raise UserError(f"only {len(train)} training poses; a fit needs at least {MIN_TRAIN_POSES}")
+        raise UserError(
+            f"only {len(train)} training poses (of {len(ds)} with {holdout:.0%} held out); a "
+            f"fit needs at least {MIN_TRAIN_POSES}: "
+            + (
+                "hold fewer out (--holdout) or measure a campaign with more poses"
+                if len(ds) > MIN_TRAIN_POSES
+                else f"measure a campaign with at least {min_poses_for_fit()} poses"
+            )
+        )
     n_distinct = distinct_poses(ds.q[train])
     if n_distinct < MIN_TRAIN_POSES:
         raise UserError(
