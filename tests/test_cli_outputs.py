@@ -137,3 +137,17 @@ def test_validate_passes_its_time_scale_to_the_controller(tmp_path, capsys, monk
     assert seen["time_scale"] == 50.0
     assert "stop here" in capsys.readouterr().err
     assert main(argv) == 2 and seen["time_scale"] is None  # a real controller: the driver's 1
+
+
+def test_validate_with_too_few_targets_for_an_interval_says_so(tmp_path, capsys):
+    """Two targets: the improvement factor has no interval, and validate says why instead of a
+    blank and a paragraph about an interval it did not print."""
+    argv = ["demo", "--out", str(tmp_path / "d"), "--poses", "30", "--methods", "dh"]
+    assert main([*argv, "--no-correction"]) == 0
+    model = next((tmp_path / "d").glob("*dh*.json"))
+    capsys.readouterr()
+    assert main(["validate", str(model), "--targets", "2"]) == 0
+    out = capsys.readouterr().out
+    line = next(ln for ln in out.splitlines() if ln.startswith("improvement (RMS)"))
+    assert "(no interval: 2 target(s); one needs at least 3, --targets)" in line
+    assert "CI: " not in out

@@ -357,6 +357,8 @@ def run(args: argparse.Namespace) -> int:
         + (
             f" (95 % CI {ci[0]:.1f}-{ci[1]:.1f}x, paired bootstrap over the targets)"
             if len(ci) == 2 and all(np.isfinite(ci))
+            else f" (no interval: {res['targets']} target(s); one needs at least 3, --targets)"
+            if res["targets"] < 3
             else ""
         )
     )
@@ -367,5 +369,6 @@ def run(args: argparse.Namespace) -> int:
             f"bias after (mean error vector, reached - desired, base_ref x, y, z): {cells} um "
             "(+- its standard error over the targets)"
         )
-    print(prose.fill(f"CI: {RMS_INTERVAL_BASIS} (here the targets)", width=100))
+    if res["targets"] >= 3:
+        print(prose.fill(f"CI: {RMS_INTERVAL_BASIS} (here the targets)", width=100))
     return 0
