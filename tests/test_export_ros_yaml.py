@@ -112,6 +112,20 @@ def test_calibrated_yaml_reproduces_calibrated_fk(tmp_path, seed):
     )
 
 
+@pytest.mark.parametrize("robot", ["kuka", "", "ur5e-but-not"])
+def test_a_model_of_another_arm_is_refused(tmp_path, robot):
+    """A model whose robot field is not a UR arm (edited by hand over a UR chain, or of another
+    maker's arm) gets no UR ROS driver calibration file: until 2026-11-28 "kuka" was written."""
+    from dataclasses import replace
+
+    m = replace(_calibrated_model(1), robot_model=robot)
+    with pytest.raises(UserError, match="for Universal Robots arms"):
+        export_ros_yaml(m, tmp_path / "x.yaml")
+    assert not (tmp_path / "x.yaml").exists()
+    for ur in ("ur10", "UR16e", "ur3"):  # any UR name (a chain not in the catalogue too)
+        export_ros_yaml(replace(m, robot_model=ur), tmp_path / f"{ur}.yaml")
+
+
 def test_model_without_geometry_is_refused(tmp_path):
     class Blob:
         method = "gp"

@@ -445,6 +445,21 @@ def check_nominal_distance(model) -> None:
             )
 
 
+def check_ur_arm(model) -> None:
+    """The UR ROS driver's calibration file is for a Universal Robots arm: refuse a model whose
+    robot field names another (a hand-edited "kuka" over a UR chain was written as one)."""
+    g, _ = _geometric_part(model)
+    spec = getattr(getattr(g, "features_spec", None), "spec", None)  # augmented
+    robot = getattr(g, "robot_model", None) or getattr(spec, "model", None) or ""
+    if re.fullmatch(r"ur\d+e?", str(robot).strip().lower()):
+        return
+    raise UserError(
+        f"the model is of a {str(robot)[:40]!r} (its robot field), and the ros-yaml export is "
+        "the UR ROS driver's calibration file, for Universal Robots arms (ur3, ur5e, ur10, ...); "
+        "export a table or URScript, or fit a recording of a UR arm"
+    )
+
+
 def check_units(th: np.ndarray, tcp: np.ndarray, method: str) -> None:
     """Refuse a geometry in the wrong unit (one line): a link length beyond any arm or a TCP
     (SMR) farther than `TCP_MAX_M` from the flange, which a controller would use as given."""
@@ -523,6 +538,7 @@ def export_ros_yaml(model, path, meta: dict | None = None) -> tuple[Path, dict]:
     tcp = tcp_in_tool0(th, B)
     tcp_sd = tcp_std_m(model, th, B)
     check_units(th, tcp, getattr(model, "method", "?"))
+    check_ur_arm(model)
     check_nominal_distance(model)
     dropped, size = _dropped_line(model, th, base_ref)
     unexplained, u = _unexplained_lines(model)
