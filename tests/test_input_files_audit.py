@@ -55,8 +55,19 @@ def _edited(doc: dict, edit, path):
         (lambda m: m["info"]["joint_range_rad"][0].__setitem__(0, BIG), "joint_range_rad"),
         (lambda m: m["info"].__setitem__("recording_sha256", 5), "recording_sha256"),
         (lambda m: m["cov"][0].__setitem__(0, 1e300), "standard deviation of 1e+150"),
+        (lambda m: m["theta"].__setitem__(1, str(m["theta"][1])), "number written as text"),
+        (lambda m: m["base_ref"][0].__setitem__(3, "1.5"), "(base_ref[0][3] = '1.5')"),
     ],
-    ids=["negative rms", "huge rms", "huge floor", "huge joint range", "sha a number", "cov"],
+    ids=[
+        "negative rms",
+        "huge rms",
+        "huge floor",
+        "huge joint range",
+        "sha a number",
+        "cov",
+        "text theta",
+        "text base_ref",
+    ],  # fmt: skip
 )
 def test_a_model_with_impossible_figures_is_refused_in_one_line(files, capsys, edit, words):
     d, model, _ = files

@@ -259,6 +259,11 @@ def model_from_dict(d: dict, source: str = "model") -> FittedModel:
             f"{source}: the {method} model file's info.{why}: edited by hand? restore the file "
             "or fit it again with `workcell fit`"
         )
+    if (where := _number_as_text(d)) is not None:
+        raise UserError(
+            f"{source}: the {method} model file has a number written as text ({where}): edited "
+            "by hand? write it as a number, or fit it again with `workcell fit`"
+        )
     try:
         model = klass.from_dict(d)
         model.parameters()
@@ -297,6 +302,28 @@ def model_from_dict(d: dict, source: str = "model") -> FittedModel:
                 continue
             _check_covariance(np.asarray(c, dtype=float), source, method, where + attr)
     return model
+
+
+def _number_as_text(x, path: str = "", in_list: bool = False) -> str | None:
+    """Where a list of a model file holds a number as a string ("-0.425"), or None: numpy's
+    float conversion would read it as the number, though the file is not what fit wrote."""
+    if isinstance(x, dict):
+        for k, v in x.items():
+            if not path and k == "free":  # true/false values: its own check says so
+                continue
+            if (w := _number_as_text(v, f"{path}.{k}" if path else str(k))) is not None:
+                return w
+    elif isinstance(x, list):
+        for i, v in enumerate(x):
+            if (w := _number_as_text(v, f"{path}[{i}]", True)) is not None:
+                return w
+    elif in_list and isinstance(x, str):
+        try:
+            float(x)
+        except ValueError:
+            return None
+        return f"{path} = {x[:20]!r}"
+    return None
 
 
 def _number(v) -> bool:
