@@ -151,3 +151,27 @@ def test_validate_with_too_few_targets_for_an_interval_says_so(tmp_path, capsys)
     line = next(ln for ln in out.splitlines() if ln.startswith("improvement (RMS)"))
     assert "(no interval: 2 target(s); one needs at least 3, --targets)" in line
     assert "CI: " not in out
+
+
+@pytest.mark.parametrize(
+    "argv, flag",
+    [
+        (["demo", "--out", ""], "--out"),
+        (["fit", "{rec}", "--out", " "], "--out"),
+        (["diagnose", "{rec}", "--report", ""], "--report"),
+        (["envelope", "--out", ""], "--out"),
+        (["replay", "{rec}", "--online", "ekf-ann", "--save", ""], "--save"),
+        (["validate", "{rec}", "--table", ""], "--table"),
+        (["export", "{rec}", "--format", "targets", "--in", "", "--out", "x.csv"], "--in"),
+    ],
+)
+def test_an_empty_path_is_refused_not_read_as_the_default(tmp_path, capsys, monkeypatch, argv,
+                                                           flag):  # fmt: skip
+    """`--out ""` (a shell variable unset) was read as "not given": `demo --out ''` wrote its
+    recording and models into the working directory, `fit --out ''` the default file."""
+    monkeypatch.chdir(tmp_path)
+    rc = main([a.format(rec=str(tmp_path / "missing.mcap")) for a in argv])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and err == [f"workcell {argv[0]}: error: {flag} is empty: give a path (or "
+                               f"leave {flag} out)"], err  # fmt: skip
+    assert list(tmp_path.iterdir()) == []

@@ -84,6 +84,23 @@ def build_parser() -> argparse.ArgumentParser:
 FP_NOTES = r"(overflow|invalid value|divide by zero|underflow) encountered"
 
 
+# options that name a file or folder (their dest, their flag): an empty one is a slip of the
+# shell (`--out "$DIR"` with DIR unset), which some commands read as "not given" and wrote
+# their default, `demo --out ''` into the working directory
+_PATH_OPTIONS = (
+    ("out", "--out"), ("save", "--save"), ("report", "--report"), ("table", "--table"),
+    ("envelope", "--envelope"), ("resume", "--resume"), ("check", "--check"),
+    ("targets_in", "--in"),
+)  # fmt: skip
+
+
+def _refuse_empty_paths(args: argparse.Namespace) -> None:
+    for dest, flag in _PATH_OPTIONS:
+        v = getattr(args, dest, None)
+        if isinstance(v, str) and not v.strip():
+            raise UserError(f"{flag} is empty: give a path (or leave {flag} out)")
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run one command; returns its exit code. As the console entry point (argv None), a Ctrl-C
     at any moment (loading modules included) is one line and exit 130: the process ends at once
@@ -121,6 +138,7 @@ def _main(argv: list[str] | None) -> int:
         parser.print_help()
         return 2
     try:
+        _refuse_empty_paths(args)
         with warnings.catch_warnings():
             if not os.environ.get("WORKCELL_DEBUG"):
                 # numpy's floating-point notes ("overflow encountered in dot") printed before a

@@ -47,7 +47,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "replaced without it)",
     )
     p.add_argument("--json", action="store_true", help="print one JSON object")
-    p.add_argument("--on", default="auto", help="lddmm/gp: base model (dh, nominal or auto)")
+    p.add_argument(
+        "--on",
+        default="auto",
+        help="lddmm: base model (dh, nominal or auto); gp: dh or auto (it models the DH fit's "
+        "residual)",
+    )
     p.add_argument(
         "--bounds",
         help="dh: parameter bounds file (JSON, SI units: m, rad), 'default' or 'none' (bounded "
