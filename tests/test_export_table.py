@@ -591,7 +591,7 @@ def test_joint_coverage_counts_the_nodes_outside_the_fitted_range():
 
 
 def test_a_correction_smaller_than_its_1_sigma_is_flagged():
-    """A model whose SMR offset along the tool is uncertain by 10 mm (as a fit whose poses cannot
+    """A model whose SMR offset along the tool is uncertain by 4 mm (as a fit whose poses cannot
     tell tool_z from a base offset): every node's correction is undetermined, and export says
     so; with 0.1 um stds none is."""
     m = make_model(4)
@@ -601,9 +601,32 @@ def test_a_correction_smaller_than_its_1_sigma_is_flagged():
     tab = build_table(corr, LO, HI, [DOWN], spacing_m=0.1, log=lines.append)
     assert tab.meta["nodes_std_exceeds_correction"] == 0
     assert not any("1-sigma is larger" in x for x in lines)
-    m.cov[38, 38] = 0.01**2  # tool_z
+    m.cov[38, 38] = 0.004**2  # tool_z (above 5 mm no table is built: the next test)
     lines = []
     tab = build_table(corr, LO, HI, [DOWN], spacing_m=0.1, log=lines.append)
     n = tab.delta_m[..., 0].size
     assert tab.meta["nodes_std_exceeds_correction"] == n
     assert any(x.strip().startswith(f"WARNING: at {n} of {n} nodes") for x in lines)
+
+
+def test_corrections_whose_1_sigma_exceeds_the_bound_are_refused_with_the_weak_group():
+    """The same model with tool_z uncertain by 20 mm: its corrections' median 1-sigma exceeds 5
+    mm, so no table is built, even with --max-correction raised (series D's DH model, whose
+    {base_ty, tool_z} the poses barely tell apart, wrote one with a 38 mm median 1-sigma until
+    2026-11-28); the refusal names the weakly identified group the fit recorded."""
+    m = make_model(4)
+    m.cov = np.eye(39) * 1e-14
+    m.cov[38, 38] = 0.02**2
+    m.info["identifiability"] = {
+        "weakly_identified": [{"parameters": ["base_ty", "tool_z"], "std_inflation": 2614.0}]
+    }
+    corr = Corrector(m, nominal_for(m))
+    for bound in (5e-3, 0.05):
+        with pytest.raises(CorrectionRefused) as e:
+            build_table(corr, LO, HI, [DOWN], spacing_m=0.1, max_correction_m=bound)
+        msg = str(e.value)
+        assert "median 1-sigma is 20 mm over the nodes, more than 5 mm" in msg, msg
+        assert "the fit left {base_ty, tool_z} weakly identified" in msg and "\n" not in msg
+    m.cov[38, 38] = 0.004**2  # 4 mm: within the bound, built (and flagged as undetermined)
+    tab = build_table(corr, LO, HI, [DOWN], spacing_m=0.1)
+    assert tab.meta["nodes_std_exceeds_correction"] == tab.delta_m[..., 0].size

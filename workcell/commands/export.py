@@ -409,6 +409,7 @@ def _targets(args, model, cond, summary, log, logged: list[str]) -> int:
     from workcell.export.table import (
         STD_BASIS,
         check_corrections,
+        check_std_bound,
         coverage_line,
         is_warning,
         joint_coverage,
@@ -418,6 +419,7 @@ def _targets(args, model, cond, summary, log, logged: list[str]) -> int:
         std_is_posterior,
         undetermined_line,
         unexplained_lines,
+        weak_hint,
     )
     from workcell.export.targets_in import read_targets
 
@@ -463,7 +465,8 @@ def _targets(args, model, cond, summary, log, logged: list[str]) -> int:
             f"{np.round(P[i], 4).tolist()} m with its orientation (IK did not converge: out of "
             f"reach or at a singularity){f'; and {bad.sum() - 1} more' if bad.sum() > 1 else ''}"
         )
-    check_corrections(c - P, P, args.max_correction, where="target")  # finite: checked above
+    # finite: checked above
+    check_corrections(c - P, P, args.max_correction, where="target", hint=weak_hint(model))
     log("  " + _check_commanded(src, q, model, nom, lines))
     q_nom = seeds if tin.P is None else nom.ik(P, R, seeds, iters=60)[0]
     if (line := joint_swing_line(q, q_nom, np.linalg.norm(c - P, axis=1), lines)) is not None:
@@ -482,6 +485,7 @@ def _targets(args, model, cond, summary, log, logged: list[str]) -> int:
         summary["median_std_m"], summary["max_std_m"] = float(np.median(s3)), float(s3.max())
         summary["std_basis"] = STD_BASIS
         summary["std_posterior"] = std_is_posterior(model)
+        check_std_bound(s3, args.max_correction, model, where="target")
         summary["targets_std_exceeds_correction"] = int(np.sum(s3 > mags))
         log(
             f"  correction 1-sigma (model uncertainty, 3-D): median {np.median(s3) * 1e6:.1f} um, "

@@ -661,14 +661,64 @@ def _solve_grid(corr: Corrector, X: np.ndarray, R: np.ndarray) -> tuple[np.ndarr
     return D, Q
 
 
+def weak_groups(model) -> list[list[str]]:
+    """The parameter groups the model's fit found weakly identified (`fit` prints them), from
+    its own info or its geometric base's; [] when it names none."""
+    for m in (model, getattr(model, "base", None)):
+        info = getattr(m, "info", None)
+        ident = info.get("identifiability") if isinstance(info, dict) else None
+        groups = ident.get("weakly_identified") if isinstance(ident, dict) else None
+        if isinstance(groups, list) and groups:
+            return [
+                [str(n) for n in g.get("parameters", [])]
+                for g in groups
+                if isinstance(g, dict) and isinstance(g.get("parameters"), list)
+            ]
+    return []
+
+
+def weak_hint(model) -> str:
+    """'; the fit left {a, b} weakly identified ...' for a refusal's line, or ''."""
+    groups = weak_groups(model)
+    if not groups:
+        return ""
+    names = ", ".join("{" + ", ".join(g) + "}" for g in groups[:3])
+    return (
+        f"; the fit left {names} weakly identified (only their combination is known), which "
+        "can put a large and uncertain correction anywhere: measure poses that tell them apart "
+        "(other tool orientations), then fit again"
+    )
+
+
+def check_std_bound(s3: np.ndarray, bound_m: float, model, where: str = "node") -> None:
+    """Refuse corrections whose median 1-sigma (3-D, `s3`) exceeds the correction bound, or the
+    default bound when a larger one is given (a bound raised to let large corrections through
+    does not make them known): the measured poses do not determine them, and a controller would
+    apply noise (series D's DH model with --max-correction 0.05: a table with a 38 mm median
+    1-sigma was written)."""
+    med = float(np.median(s3))
+    lim = min(float(bound_m), DEFAULT_MAX_CORRECTION_M)
+    if med > lim:
+        raise CorrectionRefused(
+            f"refused: the corrections' median 1-sigma is {med * 1e3:.3g} mm over the {where}s, "
+            f"more than {lim * 1e3:g} mm (the "
+            + ("correction bound" if lim == bound_m else "default correction bound, whatever "
+               "--max-correction allows")
+            + "): the measured poses do not determine them"
+            + (weak_hint(model) or "; measure poses in this volume and orientation")
+        )  # fmt: skip
+
+
 def check_corrections(
     delta: np.ndarray,
     X: np.ndarray,
     bound_m: float,
     orientation: int = 0,
     where: str = "node",
+    hint: str = "",
 ) -> None:
-    """Refuse non-finite or oversized corrections, naming where (one clear line)."""
+    """Refuse non-finite or oversized corrections, naming where (one clear line); `hint` (from
+    `weak_hint`) follows the advice on an oversized one."""
     delta = delta.reshape(-1, 3)
     X = X.reshape(-1, 3)
     bad = ~np.all(np.isfinite(delta), axis=1)
@@ -686,6 +736,7 @@ def check_corrections(
             f"refused: correction {mag[i] * 1e3:.3f} mm at {np.round(X[i], 4).tolist()} m (base), "
             f"orientation {orientation}, exceeds the bound {bound_m * 1e3:g} mm "
             f"({(mag > bound_m).sum()} {where}(s) over); check the model or raise --max-correction"
+            + hint
         )
 
 
@@ -1134,13 +1185,15 @@ def build_table(
         X = tab.node_positions()
         for k in range(K):
             D, Q = _solve_grid(corr, X, Rs[k])
-            check_corrections(D, X, max_correction_m, k)
+            check_corrections(D, X, max_correction_m, k, hint=weak_hint(corr.model))
             tab.delta_m[k], tab.q_nodes[k] = D, Q
         errs = []
         for k in range(K):
             if exact[k] is None:
                 c, _, _ = corr.correct_positions(P, Rs[k], tab.seed_for(P, k))
-                check_corrections(c - P, P, max_correction_m, k, where="check point")
+                check_corrections(
+                    c - P, P, max_correction_m, k, "check point", weak_hint(corr.model)
+                )
                 exact[k] = c - P
             errs.append(np.linalg.norm(tab.interpolate(P, k) - exact[k], axis=1))
         err = np.concatenate(errs)
@@ -1184,6 +1237,7 @@ def build_table(
             f"  correction 1-sigma (model uncertainty, 3-D): median {np.median(s3) * 1e6:.1f} um, "
             f"max {s3.max() * 1e6:.1f} um at {np.round(X.reshape(-1, 3)[i % X[..., 0].size], 3).tolist()} m"
         )
+        check_std_bound(s3, max_correction_m, corr.model)
         # a correction smaller than its own 1-sigma is not determined by the measurements
         std_meta["nodes_std_exceeds_correction"] = int(np.sum(s3 > mags))
         if (line := undetermined_line(s3, mags)) is not None:
