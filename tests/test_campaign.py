@@ -915,8 +915,12 @@ def test_a_campaign_too_short_to_fit_says_so_before_moving_and_fit_says_what_to_
     argv = ["campaign", "--robot", "sim", "--tracker", "sim", "--poses", "10", "--out", str(rec)]
     assert main(argv) == 0
     err = capsys.readouterr().err
-    warn = err.index("warning: too few poses to fit (10)")
+    warn = err.index("[warning] too_few_to_fit: too few poses to fit (10)")
     assert warn < err.index("pose    0") and "ask for more with --poses" in err
+    from workcell.recording.reader import read_recording
+
+    kinds = [e.get("kind") for e in read_recording(rec).events]
+    assert kinds.count("too_few_to_fit") == 1  # recorded with the campaign
     assert main(["fit", str(rec)]) == 2
     line = capsys.readouterr().err.strip()
     assert "only 8 training poses (of 10 with 25% held out)" in line and "\n" not in line

@@ -261,8 +261,16 @@ def run(args: argparse.Namespace) -> int:
     check_output_path(args.out, "recording")
     from workcell.campaign.identification import too_few_to_fit
 
-    for line in too_few_to_fit(args.poses):  # said before the arm moves, as the dry run says it
-        progress(f"{line}; ask for more with --poses to fit this recording alone")
+    # said (and recorded) once the devices answer, before the arm moves, as the dry run says it
+    notes = [
+        {
+            "level": "warning",
+            "kind": "too_few_to_fit",
+            "message": line.removeprefix("warning: ")
+            + "; ask for more with --poses to fit this recording alone",
+        }
+        for line in too_few_to_fit(args.poses)
+    ]
     control = _control(args)
     n = [0]
 
@@ -316,6 +324,7 @@ def run(args: argparse.Namespace) -> int:
                 "sim_seed": args.seed if args.robot == "sim" else None,
             },
             reference_every=args.reference_every or 0,
+            notes=notes,
         )
     if online is not None:  # the filter's final estimate, or why there is none
         _online_report(online, path, control)
