@@ -215,3 +215,16 @@ def test_info_reads_any_recorded_payload_without_failing(payload):
 
     line = payload_line(payload)
     assert line is None or ("kg" in line and "\n" not in line)
+
+
+def test_info_says_when_a_payload_has_no_recorded_source():
+    """An imported recording (series B) records 0 kg without saying where it came from: `info`
+    says the source is not recorded instead of printing the value as if stated."""
+    from workcell.commands.info import payload_line
+
+    assert payload_line({"mass_kg": 0.0, "com_m": [0, 0, 0]}) == (
+        "0 kg at (0.0, 0.0, 0.0) mm (its source not recorded)"
+    )
+    assert payload_line({"mass_kg": 1.5, "com_m": [0, 0, 0.03], "source": "declared"}) == (
+        "1.5 kg at (0.0, 0.0, 30.0) mm (declared)"
+    )

@@ -220,6 +220,8 @@ def payload_line(d) -> str | None:
     src = _get(d, "source")
     if isinstance(src, str):
         text += f" ({_PAYLOAD_SOURCE.get(src, src[:40])})"
+    else:  # an imported or older recording: the value without where it came from
+        text += " (its source not recorded)"
     ctrl = _get(d, "controller")
     if isinstance(ctrl, dict):
         said = _mass_com(ctrl)
