@@ -925,3 +925,6 @@ def test_a_campaign_too_short_to_fit_says_so_before_moving_and_fit_says_what_to_
     line = capsys.readouterr().err.strip()
     assert "only 8 training poses (of 10 with 25% held out)" in line and "\n" not in line
     assert "measure a campaign with at least 16 poses" in line and "--holdout" not in line
+    assert main(["fit", str(rec), "--holdout", "0"]) == 2  # no hold-out: 12 poses would do
+    line = capsys.readouterr().err.strip()
+    assert "(of 10 with 0% held out)" in line and "at least 12 poses" in line

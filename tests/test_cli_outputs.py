@@ -175,3 +175,29 @@ def test_an_empty_path_is_refused_not_read_as_the_default(tmp_path, capsys, monk
     assert rc == 2 and err == [f"workcell {argv[0]}: error: {flag} is empty: give a path (or "
                                f"leave {flag} out)"], err  # fmt: skip
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    "argv, words",
+    [
+        (
+            ["export", "m.json", "--format", "table", "--out", "t", "--volume", ""],
+            "--volume is empty",
+        ),
+        (["campaign", "--payload", "", "--poses", "3", "--out", "c.mcap"], "--payload is empty"),
+        (["campaign", "--smr-offset=", "--poses", "3", "--out", "c.mcap"], "--smr-offset is empty"),
+        (["fit", ""], "an empty argument ('')"),
+        (["info", " "], "an empty argument ('')"),
+        (["bench", "dh", "--out", ""], "--out is empty: give a path"),
+        (["fit", "x.mcap", "--bounds", ""], "--bounds is empty: give a JSON file of bounds"),
+    ],
+)
+def test_any_empty_value_typed_is_refused(tmp_path, capsys, monkeypatch, argv, words):
+    """Not only paths: `export --volume ''` wrote a table over the default volume, `campaign
+    --payload ''` ran with the controller's payload, `fit ''` said "PosixPath('.') has an empty
+    name"."""
+    monkeypatch.chdir(tmp_path)
+    rc = main(argv)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and words in err[0], err
+    assert list(tmp_path.iterdir()) == []

@@ -94,11 +94,41 @@ _PATH_OPTIONS = (
 )  # fmt: skip
 
 
-def _refuse_empty_paths(args: argparse.Namespace) -> None:
-    for dest, flag in _PATH_OPTIONS:
-        v = getattr(args, dest, None)
-        if isinstance(v, str) and not v.strip():
-            raise UserError(f"{flag} is empty: give a path (or leave {flag} out)")
+# what to give instead, where a generic "give a value" says less
+_EMPTY_SAYS = {
+    "--bounds": "give a JSON file of bounds or 'default' (leave --bounds out, or give 'none', "
+    "for the unbounded fit)",
+    "--smr-offset": "give X,Y,Z in metres on the flange (or leave --smr-offset out)",
+    "--payload": "give KG or KG,CX,CY,CZ (or leave --payload out)",
+}
+
+
+def _refuse_empty_values(argv: list[str], args: argparse.Namespace) -> None:
+    """An empty value typed on the command line (`--volume ''`, `fit ''`) is refused in one
+    line: read as "not given", it ran the default (a table over the default volume, the
+    controller's payload for `--payload ''`). Options whose value is '' by default are not
+    affected: only what was typed is looked at."""
+    paths = {flag: dest for dest, flag in _PATH_OPTIONS}
+    for j, a in enumerate(argv):
+        if a.startswith("--") and "=" in a:
+            flag, value = a.split("=", 1)
+        elif not a.strip():
+            flag, value = (argv[j - 1] if j else ""), a
+        else:
+            continue
+        if value.strip():
+            continue
+        dest = paths.get(flag) or flag[2:].replace("-", "_")
+        # a flag's own value (a sub-command's, as bench's, is not in `args`); after a switch
+        # (`--json ''`) the empty string is a positional argument
+        if flag.startswith("--") and not isinstance(getattr(args, dest, None), bool):
+            what = _EMPTY_SAYS.get(flag) or (
+                f"give {'a path' if flag in paths else 'a value'} (or leave {flag} out)"
+            )
+            raise UserError(f"{flag} is empty: {what}")
+        raise UserError(
+            "an empty argument ('') on the command line, where a file or name goes: give it"
+        )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -138,7 +168,7 @@ def _main(argv: list[str] | None) -> int:
         parser.print_help()
         return 2
     try:
-        _refuse_empty_paths(args)
+        _refuse_empty_values(argv, args)
         with warnings.catch_warnings():
             if not os.environ.get("WORKCELL_DEBUG"):
                 # numpy's floating-point notes ("overflow encountered in dot") printed before a

@@ -177,9 +177,10 @@ def fit_dataset(
             f"only {len(train)} training poses (of {len(ds)} with {holdout:.0%} held out); a "
             f"fit needs at least {MIN_TRAIN_POSES}: "
             + (
-                "hold fewer out (--holdout) or measure a campaign with more poses"
-                if len(ds) > MIN_TRAIN_POSES
-                else f"measure a campaign with at least {min_poses_for_fit()} poses"
+                "hold fewer out (the held-out fraction, --holdout) or measure a campaign with "
+                "more poses"
+                if len(ds) >= MIN_TRAIN_POSES
+                else f"measure a campaign with at least {min_poses_for_fit(holdout)} poses"
             )
         )
     n_distinct = distinct_poses(ds.q[train])
