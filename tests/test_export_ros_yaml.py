@@ -112,7 +112,7 @@ def test_calibrated_yaml_reproduces_calibrated_fk(tmp_path, seed):
     )
 
 
-@pytest.mark.parametrize("robot", ["kuka", "", "ur5e-but-not"])
+@pytest.mark.parametrize("robot", ["kuka", "", "ur5e-but-not", "ur1"])
 def test_a_model_of_another_arm_is_refused(tmp_path, robot):
     """A model whose robot field is not a UR arm (edited by hand over a UR chain, or of another
     maker's arm) gets no UR ROS driver calibration file: until 2026-11-28 "kuka" was written."""
@@ -122,8 +122,24 @@ def test_a_model_of_another_arm_is_refused(tmp_path, robot):
     with pytest.raises(UserError, match="for Universal Robots arms"):
         export_ros_yaml(m, tmp_path / "x.yaml")
     assert not (tmp_path / "x.yaml").exists()
-    for ur in ("ur10", "UR16e", "ur3"):  # any UR name (a chain not in the catalogue too)
+    for ur in ("ur10", "UR16e", "ur3", "ur8long"):  # any UR arm (not in the catalogue too)
         export_ros_yaml(replace(m, robot_model=ur), tmp_path / f"{ur}.yaml")
+
+
+def test_a_geometry_the_poses_do_not_determine_is_refused(tmp_path):
+    """tool_z uncertain by 27 mm, as series D's DH model ({base_ty, tool_z} weakly identified):
+    no calibration file, as no table (until 2026-11-28 the YAML was written with "+- 0.027 m");
+    the refusal names the group the fit recorded. 4 mm is written."""
+    m = _calibrated_model(1)
+    m.cov = np.eye(39) * 1e-14
+    m.cov[38, 38] = 0.027**2
+    m.info["identifiability"] = {"weakly_identified": [{"parameters": ["base_ty", "tool_z"]}]}
+    with pytest.raises(UserError, match=r"the TCP's z has a 1-sigma of 27 mm") as e:
+        export_ros_yaml(m, tmp_path / "x.yaml")
+    assert "{base_ty, tool_z} weakly identified" in str(e.value)
+    assert not (tmp_path / "x.yaml").exists()
+    m.cov[38, 38] = 0.004**2
+    export_ros_yaml(m, tmp_path / "x.yaml")
 
 
 def test_model_without_geometry_is_refused(tmp_path):

@@ -445,18 +445,45 @@ def check_nominal_distance(model) -> None:
             )
 
 
+# Universal Robots arm model names (CB3, e-Series and later), lower case
+UR_ARMS = frozenset(
+    "ur3 ur5 ur10 ur3e ur5e ur7e ur10e ur12e ur16e ur8long ur15 ur18 ur20 ur30".split()
+)
+
+
 def check_ur_arm(model) -> None:
     """The UR ROS driver's calibration file is for a Universal Robots arm: refuse a model whose
     robot field names another (a hand-edited "kuka" over a UR chain was written as one)."""
     g, _ = _geometric_part(model)
     spec = getattr(getattr(g, "features_spec", None), "spec", None)  # augmented
     robot = getattr(g, "robot_model", None) or getattr(spec, "model", None) or ""
-    if re.fullmatch(r"ur\d+e?", str(robot).strip().lower()):
+    if str(robot).strip().lower() in UR_ARMS:
         return
     raise UserError(
         f"the model is of a {str(robot)[:40]!r} (its robot field), and the ros-yaml export is "
         "the UR ROS driver's calibration file, for Universal Robots arms (ur3, ur5e, ur10, ...); "
-        "export a table or URScript, or fit a recording of a UR arm"
+        "export a table (--format table, or targets), or fit a recording of a UR arm"
+    )
+
+
+def check_std(model, std: dict | None, tcp_sd: np.ndarray | None) -> None:
+    """Refuse a geometry whose values the measured poses do not determine: a position (of a
+    link or the TCP) whose 1-sigma exceeds the default correction bound (5 mm), which a
+    controller would take as given (series D's DH model, {base_ty, tool_z} weakly identified,
+    was written with a 27 mm 1-sigma in y while its table was refused)."""
+    from workcell.export.table import DEFAULT_MAX_CORRECTION_M, weak_hint
+
+    worst = max(
+        [(v, f"{link}.{k}") for link, d in (std or {}).items() for k, v in d.items() if k in "xyz"]
+        + [(float(v), f"the TCP's {'xyz'[i]}") for i, v in enumerate([] if tcp_sd is None else tcp_sd)],
+        default=None,
+    )  # fmt: skip
+    if worst is None or not worst[0] > DEFAULT_MAX_CORRECTION_M:
+        return
+    raise UserError(
+        f"refused: {worst[1]} has a 1-sigma of {worst[0] * 1e3:.3g} mm (more than "
+        f"{DEFAULT_MAX_CORRECTION_M * 1e3:g} mm): the measured poses do not determine it"
+        + (weak_hint(model) or "; measure poses that spread the tool's orientation, then fit again")
     )
 
 
@@ -569,6 +596,7 @@ def export_ros_yaml(model, path, meta: dict | None = None) -> tuple[Path, dict]:
         *unexplained,
     ]
     std = kinematics_std(model)
+    check_std(model, std, tcp_sd)
     fixed, held = fixed_values(model)
     method = getattr(model, "method", "?")
     if std is not None:
