@@ -916,7 +916,7 @@ def test_a_campaign_too_short_to_fit_says_so_before_moving_and_fit_says_what_to_
     assert main(argv) == 0
     err = capsys.readouterr().err
     warn = err.index("[warning] too_few_to_fit: too few poses to fit (10)")
-    assert warn < err.index("pose    0") and "ask for more with --poses" in err
+    assert warn < err.index("pose    0") and "ask for more poses to fit this recording alone" in err
     from workcell.recording.reader import read_recording
 
     kinds = [e.get("kind") for e in read_recording(rec).events]

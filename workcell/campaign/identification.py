@@ -273,6 +273,20 @@ def too_few_to_fit(poses: int) -> list[str]:
     ]
 
 
+def too_few_to_fit_notes(poses: int) -> list[dict]:
+    """`too_few_to_fit` as campaign events ({level, kind, message}) a campaign records and says
+    once its devices answer, before the first motion (`run_campaign(notes=...)`)."""
+    return [
+        {
+            "level": "warning",
+            "kind": "too_few_to_fit",
+            "message": line.removeprefix("warning: ")
+            + "; ask for more poses to fit this recording alone",
+        }
+        for line in too_few_to_fit(poses)
+    ]
+
+
 def pose_count_warnings(spec, env, tool_m, poses: int) -> list[str]:
     """The dry run's warnings that need only the number of poses (a plan whose poses cannot be
     listed before the campaign, bo): too few for a point tracker to identify what well-spread

@@ -259,18 +259,10 @@ def run(args: argparse.Namespace) -> int:
             )
         raise UserError(f"{args.out} already exists; choose a new file or use --resume")
     check_output_path(args.out, "recording")
-    from workcell.campaign.identification import too_few_to_fit
+    from workcell.campaign.identification import too_few_to_fit_notes
 
     # said (and recorded) once the devices answer, before the arm moves, as the dry run says it
-    notes = [
-        {
-            "level": "warning",
-            "kind": "too_few_to_fit",
-            "message": line.removeprefix("warning: ")
-            + "; ask for more with --poses to fit this recording alone",
-        }
-        for line in too_few_to_fit(args.poses)
-    ]
+    notes = too_few_to_fit_notes(args.poses)
     control = _control(args)
     n = [0]
 

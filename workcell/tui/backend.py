@@ -568,8 +568,10 @@ def start_campaign(
         )
         kw = continuation(info, old)
     else:
+        from workcell.campaign.identification import too_few_to_fit_notes
+
         cfg = campaign_config(plan, dev)
-        kw = {"reference_every": plan.reference_every}
+        kw = {"reference_every": plan.reference_every, "notes": too_few_to_fit_notes(plan.poses)}
     if out.exists():
         raise UserError(f"{out} already exists; choose a new recording path or resume it")
     check_output_path(out, "recording", inputs=[resume_from] if resume_from else [])
