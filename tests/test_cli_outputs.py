@@ -149,7 +149,7 @@ def test_validate_with_too_few_targets_for_an_interval_says_so(tmp_path, capsys)
     assert main(["validate", str(model), "--targets", "2"]) == 0
     out = capsys.readouterr().out
     line = next(ln for ln in out.splitlines() if ln.startswith("improvement (RMS)"))
-    assert "(no interval: 2 target(s); one needs at least 3, --targets)" in line
+    assert "(no interval: 2 target(s) measured; one needs at least 3, --targets)" in line
     assert "CI: " not in out
 
 

@@ -357,7 +357,8 @@ def run(args: argparse.Namespace) -> int:
         + (
             f" (95 % CI {ci[0]:.1f}-{ci[1]:.1f}x, paired bootstrap over the targets)"
             if len(ci) == 2 and all(np.isfinite(ci))
-            else f" (no interval: {res['targets']} target(s); one needs at least 3, --targets)"
+            else f" (no interval: {res['targets']} target(s) measured; one needs at least 3"
+            + (", --targets)" if not res.get("skipped") else "; the envelope skipped the others)")
             if res["targets"] < 3
             else ""
         )
