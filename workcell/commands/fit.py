@@ -92,11 +92,6 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"unknown method {args.method!r}; choose from {', '.join(FIT_METHODS)}")
     if not 0.0 <= args.holdout < 0.9:
         raise UserError(f"--holdout must be in [0, 0.9), got {args.holdout}")
-    if args.bounds is not None and not args.bounds.strip():
-        raise UserError(
-            "--bounds is empty: give a JSON file of bounds or 'default' (leave --bounds out, "
-            "or give 'none', for the unbounded fit)"
-        )
     if args.bounds and args.method != "dh":
         raise UserError(f"--bounds applies to --method dh only (the bounded QP), not {args.method}")
     if args.on not in ("auto", "dh", "nominal"):
@@ -108,9 +103,7 @@ def run(args: argparse.Namespace) -> int:
     if getattr(args, "smr_offset", None) is not None:
         from workcell.campaign.devices import parse_smr_offset
 
-        if not args.smr_offset.strip():
-            raise UserError("--smr-offset is empty: give X,Y,Z in metres on the flange")
-        smr = parse_smr_offset(args.smr_offset)
+        smr = parse_smr_offset(args.smr_offset)  # typed empty: refused by the CLI, one place
     if args.out:
         out = Path(args.out)
     else:

@@ -474,7 +474,7 @@ def check_std(model, std: dict | None, tcp_sd: np.ndarray | None) -> None:
     from workcell.export.table import DEFAULT_MAX_CORRECTION_M, weak_hint
 
     worst = max(
-        [(v, f"{link}.{k}") for link, d in (std or {}).items() for k, v in d.items() if k in "xyz"]
+        [(v, f"{link}.{k}") for link, d in (std or {}).items() for k, v in d.items() if k in ("x", "y", "z")]
         + [(float(v), f"the TCP's {'xyz'[i]}") for i, v in enumerate([] if tcp_sd is None else tcp_sd)],
         default=None,
     )  # fmt: skip

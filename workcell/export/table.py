@@ -1177,6 +1177,7 @@ def build_table(
     h = float(spacing_m) if spacing_m is not None else float(min(0.1, (hi_m - lo_m).max() / 2))
     log = log or (lambda m: None)
     exact = [None] * K
+    hint = weak_hint(corr.model)  # for a refusal's line
     while True:
         shape = _grid_shape(lo_m, hi_m, h)
         tab = CorrectionTable(
@@ -1185,15 +1186,13 @@ def build_table(
         X = tab.node_positions()
         for k in range(K):
             D, Q = _solve_grid(corr, X, Rs[k])
-            check_corrections(D, X, max_correction_m, k, hint=weak_hint(corr.model))
+            check_corrections(D, X, max_correction_m, k, hint=hint)
             tab.delta_m[k], tab.q_nodes[k] = D, Q
         errs = []
         for k in range(K):
             if exact[k] is None:
                 c, _, _ = corr.correct_positions(P, Rs[k], tab.seed_for(P, k))
-                check_corrections(
-                    c - P, P, max_correction_m, k, "check point", weak_hint(corr.model)
-                )
+                check_corrections(c - P, P, max_correction_m, k, "check point", hint)
                 exact[k] = c - P
             errs.append(np.linalg.norm(tab.interpolate(P, k) - exact[k], axis=1))
         err = np.concatenate(errs)

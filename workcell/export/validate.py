@@ -199,7 +199,7 @@ def run_validation(
             move(q)
             meas[key].append(measure())
             if key == "before" and len(meas["before"]) == 1:  # the first target only
-                _check_registration(nominal, table, meas[key][-1], p_goal[i], P[i], int(k[i]))
+                _check_registration(table, meas[key][-1], p_goal[i], P[i], int(k[i]))
             if key == "after":
                 t_after.append(clock() if clock else float(len(t_after)))
             q_at = q
@@ -276,7 +276,7 @@ def run_validation(
 REGISTRATION_GROSS_M = 0.02
 
 
-def _check_registration(nominal, table, p_tracker, p_goal_tracker, p_base, k: int) -> None:
+def _check_registration(table, p_tracker, p_goal_tracker, p_base, k: int) -> None:
     """Refuse a validation whose first uncorrected target is far beyond any calibration error:
     the model's tracker_T_base does not hold for this tracker setup (nothing else measured).
     Checked on the first target only: a later one off (a bumped SMR, another reflector) is
