@@ -372,3 +372,32 @@ def test_commanded_joints_outside_the_cells_envelope_are_refused(tmp_path, capsy
     rc, lines, _ = _run(["export", bare, "--format", "targets", "--in", inside, "--out",
                          tmp_path / "t2.csv"], capsys)  # fmt: skip
     assert rc == 0 and any("checked against the arm's joint ranges only" in x for x in lines)
+
+
+def test_a_target_whose_correction_1_sigma_exceeds_the_bound_is_refused_by_its_line(
+    tmp_path, capsys
+):
+    """Each target is commanded on its own, so one target the model does not determine is
+    refused by its CSV line, as an oversized correction is. Joint 1's offset uncertain by 10
+    mrad: about 3 mm of 1-sigma at 0.3 m from its axis, 7 mm at 0.7 m. Until 2026-11-28 the
+    targets were judged by their median 1-sigma (3 mm here), so the far target was written
+    with its 7 mm 1-sigma."""
+    m = make_model(8)
+    m.cov = np.eye(39) * 1e-14
+    m.cov[18, 18] = 0.01**2  # theta1_offset
+    model = save_model(m, tmp_path / "m.json")
+    rows = [(0.0, -0.3, 0.3), (0.05, -0.3, 0.3), (-0.05, -0.3, 0.3), (0.0, -0.7, 0.3)]
+    src = tmp_path / "t.csv"
+    src.write_text("x,y,z,rx,ry,rz\n" + "".join(f"{x},{y},{z},0,{math.pi},0\n" for x, y, z in rows))
+    out = tmp_path / "c.csv"
+    rc, _, err = _run(["export", model, "--format", "targets", "--in", src, "--out", out], capsys)
+    assert rc == 2 and len(err) == 1, err
+    assert re.search(rf"{re.escape(str(src))}: line 5: the correction's 1-sigma there is 7(\.\d+)? mm, "
+                     r"more than 5 mm \(the correction bound\)", err[0]), err[0]  # fmt: skip
+    assert not out.exists()
+    # the near ones alone are written
+    src.write_text(
+        "x,y,z,rx,ry,rz\n" + "".join(f"{x},{y},{z},0,{math.pi},0\n" for x, y, z in rows[:3])
+    )
+    rc, _, err = _run(["export", model, "--format", "targets", "--in", src, "--out", out], capsys)
+    assert rc == 0 and out.exists(), err

@@ -409,7 +409,7 @@ def _targets(args, model, cond, summary, log, logged: list[str]) -> int:
     from workcell.export.table import (
         STD_BASIS,
         check_corrections,
-        check_std_bound,
+        check_target_std,
         coverage_line,
         is_warning,
         joint_coverage,
@@ -485,7 +485,7 @@ def _targets(args, model, cond, summary, log, logged: list[str]) -> int:
         summary["median_std_m"], summary["max_std_m"] = float(np.median(s3)), float(s3.max())
         summary["std_basis"] = STD_BASIS
         summary["std_posterior"] = std_is_posterior(model)
-        check_std_bound(s3, args.max_correction, model, where="target")
+        check_target_std(s3, args.max_correction, model, src, lines)
         summary["targets_std_exceeds_correction"] = int(np.sum(s3 > mags))
         log(
             f"  correction 1-sigma (model uncertainty, 3-D): median {np.median(s3) * 1e6:.1f} um, "

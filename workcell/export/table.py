@@ -709,6 +709,26 @@ def check_std_bound(s3: np.ndarray, bound_m: float, model, where: str = "node") 
         )  # fmt: skip
 
 
+def check_target_std(s3: np.ndarray, bound_m: float, model, src: object, lines: list[int]) -> None:
+    """Refuse targets whose correction 1-sigma (3-D, `s3`) exceeds the correction bound (at most
+    the default): each target is commanded on its own, so one undetermined target is refused by
+    its CSV line as an oversized correction is, where a table's grid is judged by its median."""
+    lim = min(float(bound_m), DEFAULT_MAX_CORRECTION_M)
+    over = s3 > lim
+    if over.any():
+        i = int(np.argmax(over))
+        more = int(over.sum()) - 1
+        raise CorrectionRefused(
+            f"refused: {src}: line {lines[i]}: the correction's 1-sigma there is "
+            f"{s3[i] * 1e3:.3g} mm, more than {lim * 1e3:g} mm (the "
+            + ("correction bound" if lim == bound_m else "default correction bound, whatever "
+               "--max-correction allows")
+            + f"){f'; and {more} more target(s)' if more else ''}: the measured poses do not "
+            "determine it"
+            + (weak_hint(model) or "; measure poses near these targets")
+        )  # fmt: skip
+
+
 def check_corrections(
     delta: np.ndarray,
     X: np.ndarray,
