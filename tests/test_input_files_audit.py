@@ -57,6 +57,14 @@ def _edited(doc: dict, edit, path):
         (lambda m: m["cov"][0].__setitem__(0, 1e300), "standard deviation of 1e+150"),
         (lambda m: m["theta"].__setitem__(1, str(m["theta"][1])), "number written as text"),
         (lambda m: m["base_ref"][0].__setitem__(3, "1.5"), "(base_ref[0][3] = '1.5')"),
+        (
+            lambda m: m["info"].__setitem__("variance_factor", "1.5"),
+            "number written as text (info.variance_factor = '1.5')",
+        ),
+        (
+            lambda m: m["info"]["unexplained"].__setitem__("floor_m", "1e-05"),
+            "number written as text (info.unexplained.floor_m = '1e-05')",
+        ),
     ],
     ids=[
         "negative rms",
@@ -67,6 +75,8 @@ def _edited(doc: dict, edit, path):
         "cov",
         "text theta",
         "text base_ref",
+        "text scalar",
+        "text info figure",
     ],  # fmt: skip
 )
 def test_a_model_with_impossible_figures_is_refused_in_one_line(files, capsys, edit, words):

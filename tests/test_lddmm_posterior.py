@@ -127,9 +127,11 @@ def test_the_model_file_keeps_the_scale_and_older_files_give_no_1_sigma(tmp_path
     from workcell.export.table import no_std_why
 
     assert "fit it again for a 1-sigma" in no_std_why(old) and "predates" in no_std_why(old)
-    for bad in (-1e-9, "1e-9", True, float("nan"), 5.0):
+    for bad in (-1e-9, True, float("nan"), 5.0):
         with pytest.raises(UserError, match="posterior_scale_m2 must be a variance"):
             model_from_dict({**d, "posterior_scale_m2": bad})
+    with pytest.raises(UserError, match=r"number written as text \(posterior_scale_m2 = '1e-9'"):
+        model_from_dict({**d, "posterior_scale_m2": "1e-9"})
 
 
 def test_what_a_posterior_model_leaves_out_is_not_said_to_be_outside_its_1_sigma():

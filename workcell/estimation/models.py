@@ -254,15 +254,15 @@ def model_from_dict(d: dict, source: str = "model") -> FittedModel:
         raise UserError(f"{source}: malformed {method} model file (info is not an object)")
     if info.get("recording") is not None and not isinstance(info.get("recording"), str):
         raise UserError(f"{source}: malformed {method} model file (recording is not a path)")
-    if (why := info_problem(info)) is not None:
-        raise UserError(
-            f"{source}: the {method} model file's info.{why}: edited by hand? restore the file "
-            "or fit it again with `workcell fit`"
-        )
     if (where := _number_as_text(d)) is not None:
         raise UserError(
             f"{source}: the {method} model file has a number written as text ({where}): edited "
             "by hand? write it as a number, or fit it again with `workcell fit`"
+        )
+    if (why := info_problem(info)) is not None:
+        raise UserError(
+            f"{source}: the {method} model file's info.{why}: edited by hand? restore the file "
+            "or fit it again with `workcell fit`"
         )
     try:
         model = klass.from_dict(d)
@@ -304,20 +304,25 @@ def model_from_dict(d: dict, source: str = "model") -> FittedModel:
     return model
 
 
-def _number_as_text(x, path: str = "", in_list: bool = False) -> str | None:
-    """Where a list of a model file holds a number as a string ("-0.425"), or None: numpy's
-    float conversion would read it as the number, though the file is not what fit wrote."""
+# text fields of a model file whose value may read as a number ("unit": "1", a hash, a path)
+_TEXT_KEYS = frozenset({"unit", "units", "recording", "recording_sha256", "model_fingerprint"})
+
+
+def _number_as_text(x, path: str = "", key: str = "") -> str | None:
+    """Where a model file holds a number as a string ("-0.425", in a list or as a value), or
+    None: numpy's and Python's float conversion would read it as the number, though the file is
+    not what fit wrote. Text fields (`_TEXT_KEYS`) and words ("nan" in a note) are not numbers."""
     if isinstance(x, dict):
         for k, v in x.items():
             if not path and k == "free":  # true/false values: its own check says so
                 continue
-            if (w := _number_as_text(v, f"{path}.{k}" if path else str(k))) is not None:
+            if (w := _number_as_text(v, f"{path}.{k}" if path else str(k), str(k))) is not None:
                 return w
     elif isinstance(x, list):
         for i, v in enumerate(x):
-            if (w := _number_as_text(v, f"{path}[{i}]", True)) is not None:
+            if (w := _number_as_text(v, f"{path}[{i}]", key)) is not None:
                 return w
-    elif in_list and isinstance(x, str):
+    elif isinstance(x, str) and key not in _TEXT_KEYS and any(c.isdigit() for c in x):
         try:
             float(x)
         except ValueError:
