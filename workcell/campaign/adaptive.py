@@ -173,15 +173,21 @@ def _pick(reach: Reach | None, order, info: dict, replayed: int | None = _NOT_RE
 class _Measurements:
     """What the plan has learnt: measured configurations, SMR positions, and the current fit."""
 
-    def __init__(self, spec: RobotSpec, tool_m: np.ndarray, free: np.ndarray) -> None:
+    def __init__(
+        self, spec: RobotSpec, tool_m: np.ndarray, free: np.ndarray, bounds: str | None = "default"
+    ) -> None:
         self.spec, self.tool_m, self.free = spec, np.asarray(tool_m, float), free
+        self.bounds = bounds  # the refit's parameter bounds (`fit_dh_bounded`'s)
         self.q: list[np.ndarray] = []
         self.p: list[np.ndarray] = []
         self.sigma: list[np.ndarray] = []
         self.theta = pack(spec.dh, tool=self.tool_m)
         self.base_ref: np.ndarray | None = None
         self.calibrated = False
-        self.n_fit = int(math.ceil(free.sum() / 3.0)) + 3
+        # the first pose count that can identify the L parameters (Theorem 1: 3 n >= L); the
+        # paper refits at every iteration. Until 2026-11-28 it was that + 3, so on the UR5e bo
+        # chased the nominal chain's errors up to 11 poses, where the design bench ends
+        self.n_fit = int(math.ceil(free.sum() / 3.0))
 
     def add(self, sample: dict) -> None:
         self.q.append(np.asarray(sample["q_measured_rad"], float))
@@ -217,7 +223,7 @@ class _Measurements:
         try:
             m = fit_dh_bounded(
                 ds,
-                bounds="default",
+                bounds=self.bounds,
                 theta0=self.theta if self.calibrated else None,
                 base_ref=self.base_ref if self.calibrated else None,
                 free=self.free,
@@ -259,6 +265,7 @@ def make_adaptive_plan(
     beta_schedule="srinivas",
     negate_objective: bool = True,
     relinearise_every: int = 5,
+    refit_bounds: str | None = "default",
     on_choice: Callable[[dict], None] | None = None,
     arm: ArmPosture | None = None,
     replace_skipped: bool = False,
@@ -268,6 +275,8 @@ def make_adaptive_plan(
     kind "bo", "dopt" or "vopt" (see the module docstring). `n_candidates` reachable
     configurations are drawn once (seeded); `n_seed` space-filling poses start the campaign
     (default 5 for bo, 1 for dopt and vopt); `index` is dopt's criterion ("o1" or "min_sv").
+    `refit_bounds`: the bounds of the plans' own refits (`fit_dh_bounded`; None: unbounded, for
+    errors beyond a manufacturing tolerance, as the paper's WAM setting has).
     `on_choice` is called with a small dict per chosen pose (for logs and tests). `arm`: where
     the arm is (the executor keeps it up to date); `replace_skipped`: with `history`, new poses
     in place of the ones the old run skipped (module docstring).
@@ -298,7 +307,7 @@ def make_adaptive_plan(
     plan = plan_over_candidates(
         kind, spec, q_c, s_c, tool_m, ids, seed=seed, n_seed=n_seed, index=index,
         beta_schedule=beta_schedule, negate_objective=negate_objective,
-        relinearise_every=relinearise_every, on_choice=on_choice,
+        relinearise_every=relinearise_every, refit_bounds=refit_bounds, on_choice=on_choice,
         reach=Reach(spec, env, tool_m, q_c, s_c, approach_rad, arm=arm), replay=replay,
     )  # fmt: skip
     return _replayed(plan, history, max(history)) if history else plan
@@ -342,6 +351,7 @@ def plan_over_candidates(
     beta_schedule="srinivas",
     negate_objective: bool = True,
     relinearise_every: int = 5,
+    refit_bounds: str | None = "default",
     on_choice: Callable[[dict], None] | None = None,
     reach: Reach | None = None,
     replay: dict[int, int | None] | None = None,
@@ -368,11 +378,12 @@ def plan_over_candidates(
     if kind == "bo":
         return _bo_plan(
             spec, q_c, s_c, poses, free, tool_m, ids, n_seed, seed, beta_schedule,
-            negate_objective, on_choice, reach, replay,
+            negate_objective, on_choice, reach, replay, refit_bounds,
         )  # fmt: skip
     return _dopt_plan(
         spec, q_c, s_c, poses, J_c, free, tool_m, ids, n_seed, seed,
         "v" if kind == "vopt" else index, relinearise_every, on_choice, reach, kind, replay,
+        refit_bounds,
     )  # fmt: skip
 
 
@@ -419,11 +430,11 @@ def _visit(i, pid, info, q_c, s_c, available, meas, measured_idx, on_choice, rea
 
 def _bo_plan(
     spec, q_c, s_c, poses, free, tool_m, ids, n_seed, seed, beta_schedule, negate, on_choice,
-    reach, replay,
+    reach, replay, refit_bounds="default",
 ) -> Plan:  # fmt: skip
     from workcell.estimation.design.gp import pose_error_objective, ucb_scores
 
-    meas = _Measurements(spec, tool_m, free)
+    meas = _Measurements(spec, tool_m, free, refit_bounds)
     available = np.ones(len(q_c), bool)
     measured_idx: list[int] = []
     seeds = _seed_order(poses, n_seed, seed)
@@ -447,7 +458,7 @@ def _bo_plan(
                 poses[cand], poses[measured_idx], y, beta_schedule=beta_schedule,
                 iteration=len(measured_idx) + 1,
             )  # fmt: skip
-            i = _pick(reach, cand[np.argsort(-score, kind="stable")], info, rec, "bo")
+            i = _pick(reach, _ucb_order(score, cand, poses, measured_idx), info, rec, "bo")
             info.update(
                 rule="GP-UCB",
                 calibrated=meas.calibrated,
@@ -471,6 +482,17 @@ def _replay_mask(available: np.ndarray, replay: dict[int, int | None]):
     return free_now
 
 
+def _ucb_order(score, cand, poses, measured_idx) -> np.ndarray:
+    """Candidates by UCB score, ties (within 1e-9 of the score range) farthest from the measured
+    poses first: a GP whose fitted length scales are shorter than the poses' spacing predicts
+    its prior everywhere, and the tie went to the lowest candidate index, i.e. a random pick
+    (20 of 70 steps in the design bench until 2026-11-28)."""
+    span = float(np.ptp(score)) if len(score) else 0.0
+    key = np.round(score / (span * 1e-9), 0) if span > 0 else np.zeros_like(score)
+    d = pose_distance2(poses[cand], poses[measured_idx]).min(axis=1)
+    return cand[np.lexsort((-d, -key))]
+
+
 def _farthest_order(poses, measured_idx, available) -> np.ndarray:
     """Available candidates, farthest from the measured poses first (S3 x R3 distance)."""
     cand = np.where(available)[0]
@@ -482,7 +504,7 @@ def _farthest_order(poses, measured_idx, available) -> np.ndarray:
 
 def _dopt_plan(
     spec, q_c, s_c, poses, J_c, free, tool_m, ids, n_seed, seed, index, relin_every, on_choice,
-    reach, kind="dopt", replay=None,
+    reach, kind="dopt", replay=None, refit_bounds="default",
 ) -> Plan:  # fmt: skip
     from workcell.estimation.bounded import jacobian_padded
 
@@ -502,7 +524,7 @@ def _dopt_plan(
     Js = scaled(J_c)
     W = mean_information(Js)
     eps = 1e-6 * float(np.mean(np.einsum("mkl,mkl->l", Js, Js))) / len(Js)
-    meas = _Measurements(spec, tool_m, free)
+    meas = _Measurements(spec, tool_m, free, refit_bounds)
     available = np.ones(len(q_c), bool)
     measured_idx: list[int] = []
     seeds = _seed_order(poses, n_seed, seed)
