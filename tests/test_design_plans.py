@@ -438,3 +438,31 @@ def test_the_plans_refit_honours_its_bounds_and_the_bench_refits_unbounded():
         err = predict_padded(meas.theta, meas.base_ref, np.array(meas.q)) - np.array(meas.p)
         rms[bounds] = float(np.sqrt(np.mean(np.sum(err**2, axis=1))))
     assert rms[None] < 1e-4 and rms["default"] > 1e-2, rms
+
+
+def test_a_non_finite_ucb_score_goes_last():
+    from workcell.campaign.adaptive import _ucb_order
+
+    truth, _, tool = _cell(0)
+    q = np.random.default_rng(1).uniform(-2.0, 2.0, (8, 6))
+    poses = candidate_poses(truth.nominal, q, tool)
+    cand = np.arange(3, 8)
+    order = _ucb_order(np.array([0.1, 5.0, np.nan, 0.2, 0.3]), cand, poses, [0, 1, 2])
+    assert list(order) == [4, 7, 6, 3, 5]
+
+
+def test_the_design_bench_asks_the_adaptive_plans_for_unbounded_refits(monkeypatch):
+    import workcell.campaign.plans as plans
+    from workcell.bench.design import one_run
+
+    asked = []
+    real = plans.make_plan
+
+    def spy(kind, *a, **kw):
+        asked.append((kind, kw.get("refit_bounds", "absent")))
+        return real(kind, *a, **kw)
+
+    monkeypatch.setattr(plans, "make_plan", spy)
+    for kind in ("random", "dopt"):
+        one_run(kind, 0, 10, 20)
+    assert asked == [("random", "absent"), ("dopt", None)]

@@ -183,3 +183,16 @@ def test_a_target_with_digit_grouping_is_not_a_number(files, capsys):
             str(d / "tout.csv")]  # fmt: skip
     rc, err = _one_line(capsys, argv)
     assert rc == 2 and len(err) == 1 and "'0_1' is not a number" in err[0], err
+
+
+def test_a_robot_named_by_digits_is_not_a_number_written_as_text(files, capsys):
+    """A robot's name is text even when it is digits ("1200"): the check for numbers written as
+    text refused every model of such a robot (review of 2026-11-28)."""
+    from workcell.estimation.models import load_model
+
+    d, model, _ = files
+    f = _edited(model, lambda m: m.__setitem__("robot", "1200"), d / "digits.json")
+    try:
+        load_model(f)
+    except Exception as e:  # noqa: BLE001 - any other refusal is not this check's
+        assert "number written as text" not in str(e), e

@@ -484,11 +484,15 @@ def _replay_mask(available: np.ndarray, replay: dict[int, int | None]):
 
 def _ucb_order(score, cand, poses, measured_idx) -> np.ndarray:
     """Candidates by UCB score, ties (within 1e-9 of the score range) farthest from the measured
-    poses first: a GP whose fitted length scales are shorter than the poses' spacing predicts
-    its prior everywhere, and the tie went to the lowest candidate index, i.e. a random pick
-    (20 of 70 steps in the design bench until 2026-11-28)."""
-    span = float(np.ptp(score)) if len(score) else 0.0
-    key = np.round(score / (span * 1e-9), 0) if span > 0 else np.zeros_like(score)
+    poses first, where the exploration term points: a GP that predicts its prior everywhere
+    scores every candidate alike, and the tie went to the lowest candidate index, a random pick
+    (a safeguard: in the design bench no pick changed). A non-finite score goes last."""
+    score = np.where(np.isfinite(score), score, -np.inf)  # a non-finite score last
+    fin = score[np.isfinite(score)]
+    span = float(np.ptp(fin)) if len(fin) else 0.0
+    key = (
+        np.round(score / (span * 1e-9), 0) if span > 0 else np.where(np.isfinite(score), 0.0, -1.0)
+    )
     d = pose_distance2(poses[cand], poses[measured_idx]).min(axis=1)
     return cand[np.lexsort((-d, -key))]
 

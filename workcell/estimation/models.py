@@ -304,8 +304,11 @@ def model_from_dict(d: dict, source: str = "model") -> FittedModel:
     return model
 
 
-# text fields of a model file whose value may read as a number ("unit": "1", a hash, a path)
-_TEXT_KEYS = frozenset({"unit", "units", "recording", "recording_sha256", "model_fingerprint"})
+# text fields of a model file whose value may read as a number ("unit": "1", a hash, a path, a
+# robot's name such as "1200": `robot` in dh/ekf-ann/gp/lddmm bases, `robot.model` in augmented)
+_TEXT_KEYS = frozenset(
+    {"unit", "units", "recording", "recording_sha256", "model_fingerprint", "robot", "model"}
+)
 
 
 def _number_as_text(x, path: str = "", key: str = "") -> str | None:

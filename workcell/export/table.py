@@ -714,13 +714,14 @@ def check_target_std(s3: np.ndarray, bound_m: float, model, src: object, lines: 
     the default): each target is commanded on its own, so one undetermined target is refused by
     its CSV line as an oversized correction is, where a table's grid is judged by its median."""
     lim = min(float(bound_m), DEFAULT_MAX_CORRECTION_M)
-    over = s3 > lim
+    over = ~(s3 <= lim)  # a non-finite 1-sigma too
     if over.any():
         i = int(np.argmax(over))
         more = int(over.sum()) - 1
+        said = f"{s3[i] * 1e3:.3g} mm" if np.isfinite(s3[i]) else "not finite"
         raise CorrectionRefused(
             f"refused: {src}: line {lines[i]}: the correction's 1-sigma there is "
-            f"{s3[i] * 1e3:.3g} mm, more than {lim * 1e3:g} mm (the "
+            f"{said}, more than {lim * 1e3:g} mm (the "
             + ("correction bound" if lim == bound_m else "default correction bound, whatever "
                "--max-correction allows")
             + f"){f'; and {more} more target(s)' if more else ''}: the measured poses do not "
