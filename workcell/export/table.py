@@ -690,6 +690,19 @@ def weak_hint(model) -> str:
     )
 
 
+def _std_limit(bound_m: float) -> tuple[float, str]:
+    """The largest correction 1-sigma an export accepts: the correction bound, never more than
+    the default (a bound raised to let large corrections through does not make them known),
+    and how a refusal names it."""
+    lim = min(float(bound_m), DEFAULT_MAX_CORRECTION_M)
+    said = (
+        "the correction bound"
+        if lim == bound_m
+        else "the default correction bound, whatever --max-correction allows"
+    )
+    return lim, f"more than {lim * 1e3:g} mm ({said})"
+
+
 def check_std_bound(s3: np.ndarray, bound_m: float, model, where: str = "node") -> None:
     """Refuse corrections whose median 1-sigma (3-D, `s3`) exceeds the correction bound, or the
     default bound when a larger one is given (a bound raised to let large corrections through
@@ -697,37 +710,30 @@ def check_std_bound(s3: np.ndarray, bound_m: float, model, where: str = "node") 
     apply noise (series D's DH model with --max-correction 0.05: a table with a 38 mm median
     1-sigma was written)."""
     med = float(np.median(s3))
-    lim = min(float(bound_m), DEFAULT_MAX_CORRECTION_M)
+    lim, more_than = _std_limit(bound_m)
     if med > lim:
         raise CorrectionRefused(
             f"refused: the corrections' median 1-sigma is {med * 1e3:.3g} mm over the {where}s, "
-            f"more than {lim * 1e3:g} mm (the "
-            + ("correction bound" if lim == bound_m else "default correction bound, whatever "
-               "--max-correction allows")
-            + "): the measured poses do not determine them"
+            f"{more_than}: the measured poses do not determine them"
             + (weak_hint(model) or "; measure poses in this volume and orientation")
-        )  # fmt: skip
+        )
 
 
 def check_target_std(s3: np.ndarray, bound_m: float, model, src: object, lines: list[int]) -> None:
     """Refuse targets whose correction 1-sigma (3-D, `s3`) exceeds the correction bound (at most
     the default): each target is commanded on its own, so one undetermined target is refused by
     its CSV line as an oversized correction is, where a table's grid is judged by its median."""
-    lim = min(float(bound_m), DEFAULT_MAX_CORRECTION_M)
+    lim, more_than = _std_limit(bound_m)
     over = ~(s3 <= lim)  # a non-finite 1-sigma too
     if over.any():
         i = int(np.argmax(over))
         more = int(over.sum()) - 1
         said = f"{s3[i] * 1e3:.3g} mm" if np.isfinite(s3[i]) else "not finite"
         raise CorrectionRefused(
-            f"refused: {src}: line {lines[i]}: the correction's 1-sigma there is "
-            f"{said}, more than {lim * 1e3:g} mm (the "
-            + ("correction bound" if lim == bound_m else "default correction bound, whatever "
-               "--max-correction allows")
-            + f"){f'; and {more} more target(s)' if more else ''}: the measured poses do not "
-            "determine it"
-            + (weak_hint(model) or "; measure poses near these targets")
-        )  # fmt: skip
+            f"refused: {src}: line {lines[i]}: the correction's 1-sigma there is {said}, "
+            f"{more_than}{f'; and {more} more target(s)' if more else ''}: the measured poses "
+            "do not determine it" + (weak_hint(model) or "; measure poses near these targets")
+        )
 
 
 def check_corrections(
