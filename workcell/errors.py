@@ -11,6 +11,14 @@ import threading
 INTERRUPTED = threading.Event()
 
 
+def stop_if_interrupted() -> None:
+    """Raise KeyboardInterrupt if a Ctrl-C was noted in INTERRUPTED: for a long loop that runs
+    before anything connects or moves (a plan of thousands of poses), so a Ctrl-C that Python
+    dropped stops it at the next step instead of after the whole loop."""
+    if INTERRUPTED.is_set():
+        raise KeyboardInterrupt
+
+
 def console_command() -> bool:
     """Whether this process is the `workcell` console command (not a test or a program calling
     `cli.main`): only then may a command end the process itself (`hard_exit`)."""

@@ -67,7 +67,7 @@ from workcell.drivers.protocols import (
     Robot,
     Tracker,
 )
-from workcell.errors import INTERRUPTED, UserError
+from workcell.errors import INTERRUPTED, UserError, stop_if_interrupted
 from workcell.kinematics.robots import RobotSpec
 
 # A campaign that meets the same fault again and again with nothing measured in between is not
@@ -572,6 +572,7 @@ class Executor:
         prev = None if start is None else np.asarray(start, float)
         at_start = start is not None
         for t in targets:
+            stop_if_interrupted()  # thousands of path checks: a Ctrl-C Python dropped stops it
             found = self._pose_problems(t, prev)
             if at_start:
                 found = [p.replace(" path: ", " path from the arm's start posture: ", 1)

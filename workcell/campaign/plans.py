@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from workcell.campaign.envelope import Envelope, Guard, upright
+from workcell.errors import stop_if_interrupted
 from workcell.kinematics.robots import RobotSpec
 
 
@@ -335,9 +336,14 @@ def order_for_paths(
     (the order then goes on from the pose before it).
     Deterministic, so a resumed campaign re-plans the same pose ids."""
     reach = Reach(spec, env, tool_m, q, signs, approach_rad)
-    remaining = [i for i in range(len(q)) if reach.approach_ok(i)]
+    remaining = []
+    for i in range(len(q)):  # a path check each: minutes for thousands, so Ctrl-C is heeded
+        stop_if_interrupted()
+        if reach.approach_ok(i):
+            remaining.append(i)
     order: list[int] = []
     while remaining:
+        stop_if_interrupted()
         reach.last = q[order[-1]] if order else None
         nxt, _ = reach.first(remaining)
         if nxt is None:

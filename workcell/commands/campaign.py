@@ -21,7 +21,7 @@ from workcell.campaign.run import (
     run_campaign,
     summary,
 )
-from workcell.errors import UserError, check_output_path
+from workcell.errors import UserError, check_output_path, stop_if_interrupted
 from workcell.recording.repeats import RepeatWatch
 
 # Defaults of the options a resumed campaign takes from its recording instead. They default to
@@ -472,12 +472,14 @@ def dry_run(args, cell, env, cfg, start_q=None) -> int:
             reference_poses,
         )
 
+        stop_if_interrupted()  # seconds to minutes of identification for thousands of poses
         q = np.array([t.q_rad for t in targets])
         ref = reference_poses(cell.spec, env, cell.tool_m)
         lines = identification_lines(
             cell.spec, env, q, cell.tool_m, cell.base_in_tracker, reference_q=ref
         )
         print("\n".join(lines))
+        stop_if_interrupted()
         line = plan_pose_count_line(
             args.plan, cell.spec, env, seed=args.seed, tool_m=cell.tool_m,
             base_in_tracker=cell.base_in_tracker, approach_rad=cfg.approach_rad,
