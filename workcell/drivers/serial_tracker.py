@@ -457,6 +457,7 @@ class SerialTracker:
                 return line[:-1] if line.endswith(b"\r") else line
             if len(self._buf) > gc.MAX_LINE_BYTES:
                 junk = bytes(self._buf[:60])
+                self._rx["unterminated"] += len(self._buf)
                 self._buf.clear()
                 raise gc.GeoComParseError(f"over {gc.MAX_LINE_BYTES} bytes without LF: {junk!r}")
             if self._clock() >= deadline:
@@ -474,10 +475,12 @@ class SerialTracker:
     def _read_reply(self, trid: int, deadline: float, *, skip_garbage: bool) -> gc.Reply:
         """The reply carrying `trid`; skips stale replies (and garbage if `skip_garbage`)."""
         while True:
-            line = self._read_line(deadline)
-            if not line.strip():
-                continue
             try:
+                # a flood without line end is garbage like any unparsable line (it escaped the
+                # resync's and the campaign's retries as a ValueError until 2026-11-28)
+                line = self._read_line(deadline)
+                if not line.strip():
+                    continue
                 rep = gc.parse_reply(line, expect_crc=self.use_crc)
             except gc.GeoComParseError:
                 self._rx["junk"] += 1
