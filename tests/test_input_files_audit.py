@@ -57,6 +57,15 @@ def _edited(doc: dict, edit, path):
         (lambda m: m["cov"][0].__setitem__(0, 1e300), "standard deviation of 1e+150"),
         (lambda m: m["theta"].__setitem__(1, str(m["theta"][1])), "number written as text"),
         (lambda m: m["base_ref"][0].__setitem__(3, "1.5"), "(base_ref[0][3] = '1.5')"),
+        (lambda m: m["base_ref"].pop(3), "base_ref is not a rigid transform (shape (3, 4)"),
+        (lambda m: m["base_ref"].pop(0), "base_ref is not a rigid transform (shape (3, 4)"),
+        (lambda m: m["base_ref"][3].__setitem__(0, 0.5), "bottom row [0.5, 0.0, 0.0, 1.0]"),
+        (
+            lambda m: m["base_ref"].__setitem__(
+                0, [1.001 * x for x in m["base_ref"][0][:3]] + m["base_ref"][0][3:]
+            ),
+            "a rotation block that is not a rotation",
+        ),
         (
             lambda m: m["info"].__setitem__("variance_factor", "1.5"),
             "number written as text (info.variance_factor = '1.5')",
@@ -75,6 +84,10 @@ def _edited(doc: dict, edit, path):
         "cov",
         "text theta",
         "text base_ref",
+        "base_ref 3 rows",
+        "base_ref row 0 gone",
+        "base_ref bottom row",
+        "base_ref scaled rotation",
         "text scalar",
         "text info figure",
     ],  # fmt: skip
@@ -196,3 +209,37 @@ def test_a_robot_named_by_digits_is_not_a_number_written_as_text(files, capsys):
         load_model(f)
     except Exception as e:  # noqa: BLE001 - any other refusal is not this check's
         assert "number written as text" not in str(e), e
+
+
+def test_deep_nesting_and_long_digit_strings_are_bad_json_not_tracebacks():
+    """`strict_json.loads` raised a RecursionError for nesting deeper than the parser recurses,
+    and Python's 'Exceeds the limit (4300 digits)' ValueError for a long integer; a bounds
+    file's loader catches JSONDecodeError only, so both passed it."""
+    from workcell import strict_json
+
+    with pytest.raises(json.JSONDecodeError, match="nested too deeply"):
+        strict_json.loads('{"a": ' + "[" * 100_000 + "]" * 100_000 + "}")
+    with pytest.raises(json.JSONDecodeError, match="nested too deeply"):
+        strict_json.loads_numbers('{"a": ' + "[" * 100_000 + "]" * 100_000 + "}")
+    assert strict_json.loads("[" + "9" * 5000 + "]") == [float("inf")]
+    assert strict_json.loads("[-" + "9" * 5000 + "]") == [float("-inf")]
+    assert strict_json.loads("[12345678901234567890123]") == [1.2345678901234568e22]
+    assert strict_json.loads("[-9223372036854775808]") == [-(2**63)]
+
+
+@pytest.mark.parametrize(
+    "text, words",
+    [
+        ('{"a2": [' + "9" * 5000 + ", 1]}", "a2 bound [inf, 1] is empty"),
+        ('{"a2": ' + "[" * 100_000 + "]" * 100_000 + "}", "bounds"),
+    ],
+    ids=["5000 digits", "deep"],
+)
+def test_a_bounds_file_with_absurd_json_is_one_line(files, capsys, text, words):
+    d, _, _ = files
+    b = d / "bounds_bad.json"
+    b.write_text(text)
+    rc, err = _one_line(capsys, ["fit", str(d / "c.mcap"), "--bounds", str(b), "--out",
+                                 str(d / "never.json")])  # fmt: skip
+    assert rc == 2 and len(err) == 1 and "bounds_bad.json" in err[0] and words in err[0], err
+    assert not (d / "never.json").exists()

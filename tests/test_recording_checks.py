@@ -339,6 +339,13 @@ def test_format_deviations_are_said_once_each(base, tmp_path):
     assert len(p) == 2 and all(f"{len(samples)} of {len(samples)} samples lack" in x for x in p)
     p = problems("garbage.mcap", sample_data=[b"\x00garbage"] * len(samples))
     assert p == [f"{S.SAMPLE}: {len(samples)} messages are not valid JSON objects; skipped"]
+    # one message nested deeper than the parser recurses: that message skipped, not the rest
+    # of the file (until 2026-11-28 a RecursionError ended the read there, and the file was
+    # said to have no footer)
+    deep = b'{"x": ' + b"[" * 5000 + b"]" * 5000 + b"}"
+    ok = [json.dumps(s).encode() for s in samples]
+    p = problems("deep.mcap", sample_data=[ok[0], deep, *ok[2:]])
+    assert p == [f"{S.SAMPLE}: 1 message is not a valid JSON object; skipped"], p
     # a record cut short: one line naming it, the messages before it read
     data = clean.read_bytes()
     cut = tmp_path / "cut.mcap"

@@ -24,19 +24,32 @@ def _int(s: str) -> int | float:
     """A JSON integer; one beyond 64 bits as a float (inf past 1e308), as a JSON number with a
     decimal point or exponent is read: `float(10**400)` raised OverflowError deep in a loader
     (a traceback), while the loaders' finiteness checks name an inf."""
+    if len(s) > 40:  # beyond 64 bits anyway; int() refuses over 4300 digits with a hint at
+        return float(s)  # sys.set_int_max_str_digits, meaningless to the file's author
     v = int(s)
     return v if -(2**63) <= v < 2**63 else float(s)
 
 
 def loads(text: str) -> Any:
-    """`json.loads`, raising `DuplicateKey` for a key given twice in any object."""
-    return json.loads(text, object_pairs_hook=_no_duplicates, parse_int=_int)
+    """`json.loads`, raising `DuplicateKey` for a key given twice in any object, and a
+    `json.JSONDecodeError` (not a RecursionError past the loaders' checks) for nesting deeper
+    than Python's parser recurses."""
+    try:
+        return json.loads(text, object_pairs_hook=_no_duplicates, parse_int=_int)
+    except RecursionError:
+        doc = text if isinstance(text, str) else ""
+        raise json.JSONDecodeError("nested too deeply to read", doc, 0) from None
 
 
 def loads_numbers(text: str) -> Any:
     """`json.loads` with integers beyond 64 bits read as floats (`_int`), for files workcell
-    writes and a user may edit (models, tables): duplicate keys are not refused here."""
-    return json.loads(text, parse_int=_int)
+    writes and a user may edit (models, tables): duplicate keys are not refused here. Nesting
+    deeper than the parser recurses is a `json.JSONDecodeError`, as in `loads`."""
+    try:
+        return json.loads(text, parse_int=_int)
+    except RecursionError:
+        doc = text if isinstance(text, str) else ""
+        raise json.JSONDecodeError("nested too deeply to read", doc, 0) from None
 
 
 def finite(v: Any) -> Any:

@@ -127,7 +127,8 @@ def read_recording(path: str | os.PathLike, *, streams: bool = True) -> Recordin
         rec.problems.append("no summary/footer: the writer did not finish (crash or still open)")
     for topic, n in rec._bad_json.items():
         rec.problems.append(
-            f"{topic}: {n} message{'s are' if n > 1 else ' is'} not valid JSON objects; skipped"
+            f"{topic}: {n} message{'s are' if n > 1 else ' is'} not {'' if n > 1 else 'a '}valid "
+            f"JSON object{'s' if n > 1 else ''}; skipped"
         )
     if rec.encoding_refusal:
         raise RecordingError(f"{p}: {rec.encoding_refusal}; write it with JSON messages")
@@ -254,7 +255,7 @@ def _message(rec: Recording, channels, schemas, m: Message, streams: bool) -> No
         return
     try:
         msg = json.loads(m.data)
-    except (ValueError, UnicodeDecodeError):
+    except (ValueError, UnicodeDecodeError, RecursionError):  # one bad message, not the file
         msg = None
     if not isinstance(msg, dict):
         rec._bad_json[topic] = rec._bad_json.get(topic, 0) + 1
