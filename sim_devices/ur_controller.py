@@ -396,10 +396,11 @@ def validate_faults(faults: dict | None) -> dict:
             raise ValueError(f"{k}: times must be finite and >= 0 s, got {vals}")
         out[k] = vals
     for k in ("rtde_drop_at_move", "protective_stop_at_move", "restart_at_move"):
-        vals = [int(v) for v in _as_list(f.get(k))]
-        if any(v < 1 for v in vals):
-            raise ValueError(f"{k}: move numbers count from 1, got {vals}")
-        out[k] = set(vals)
+        given = _as_list(f.get(k))
+        if any(not np.isfinite(v) or v != int(v) or v < 1 for v in given):
+            # int(inf) raised OverflowError (a traceback); 1.5 became move 1
+            raise ValueError(f"{k}: move numbers are whole numbers from 1, got {given}")
+        out[k] = {int(v) for v in given}
     down = float(f.get("restart_down_s", 2.0))
     if not (np.isfinite(down) and down >= 0):
         raise ValueError(f"restart_down_s must be >= 0 s, got {down}")
@@ -661,7 +662,10 @@ class UrControllerSim:
             with self.lock:
                 self._protective_stop(str(kw.get("reason", "injected")))
         elif kind == "restart":
-            self._restart(float(kw.get("down_s", self.faults["restart_down_s"])))
+            down = float(kw.get("down_s", self.faults["restart_down_s"]))
+            if not (np.isfinite(down) and down >= 0):  # NaN: the controller never came back
+                raise ValueError(f"restart down_s must be a finite time >= 0 s, got {down}")
+            self._restart(down)
         else:
             raise ValueError(
                 f"unknown fault kind {kind!r}; known: rtde_drop, protective_stop, restart"

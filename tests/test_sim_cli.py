@@ -22,6 +22,10 @@ from workcell.commands.sim import parse_faults
         ('{"tracker": {"beam_break_rate": 2}}', r"must be in \[0, 1\]"),
         ('{"robot": {"bogus": 3}}', "unknown UR controller fault"),
         ('{"robot": {"restart_power_off": 1}}', "restart_power_off must be true or false"),
+        # int(inf) raised OverflowError, a traceback; 1.5 was read as move 1 (2026-11-28)
+        ('{"robot": {"rtde_drop_at_move": 1e400}}', "move numbers are whole numbers from 1"),
+        ('{"robot": {"restart_at_move": NaN}}', "move numbers are whole numbers from 1"),
+        ('{"robot": {"protective_stop_at_move": [1.5]}}', "whole numbers from 1, got \\[1.5\\]"),
     ],
 )
 def test_bad_faults_are_one_line(capsys, text, match):

@@ -464,3 +464,18 @@ def test_a_device_that_is_not_a_ur_controller_is_named_as_such(mode, host):
     finally:
         for s in servers + conns:
             s.close()
+
+
+@pytest.mark.parametrize("down", [float("nan"), float("inf"), -1.0])
+def test_an_injected_restart_with_no_finite_down_time_is_refused(down):
+    """`{"cmd": "inject", "kind": "restart", "down_s": NaN}` on the simulator's stdin was
+    answered ok and left the controller down for ever (its down-until time NaN)."""
+    from sim_devices.truth import make_truth
+    from sim_devices.ur_controller import UrControllerSim
+    from sim_devices.world import SimWorld
+
+    world = SimWorld(make_truth("ur5e", "none", 0), q0=QA)
+    ctrl = UrControllerSim(world, "127.0.0.29")  # white-box: no sockets opened
+    with pytest.raises(ValueError, match="finite time >= 0 s"):
+        ctrl.inject("restart", down_s=down)
+    assert ctrl.stats["restarts"] == 0
