@@ -228,3 +228,26 @@ def test_info_says_when_a_payload_has_no_recorded_source():
     assert payload_line({"mass_kg": 1.5, "com_m": [0, 0, 0.03], "source": "declared"}) == (
         "1.5 kg at (0.0, 0.0, 30.0) mm (declared)"
     )
+
+
+@pytest.mark.parametrize(
+    "setting, why",
+    [
+        (PayloadSetting(1e300, (1e300, 0.0, 0.0)), "above the ur5e's rated payload of 5 kg"),
+        (PayloadSetting(1000.0, (409.0, 0.0, 0.0)), "above the ur5e's rated payload"),
+        (PayloadSetting(1.0, (0.0, 0.0, 0.8)), "its centre of mass 0.8 m from the flange"),
+    ],
+)
+def test_a_controller_payload_no_arm_carries_is_not_adopted(setting, why):
+    """A controller reporting 1e300 kg had it recorded as the payload the gravity terms are
+    fitted against (the same typed as --payload is refused): now a warning, the payload
+    assumed as before, and the controller's figure recorded as reported."""
+    cell, *_ = open_cell(_ns())
+    notes = settle_payload(cell, _Arm(setting))
+    assert [n["level"] for n in notes] == ["warning"], notes
+    w = notes[0]["message"]
+    assert why in w and "not used" in w and "--payload KG" in w and "\n" not in w, w
+    assert len(w) < 400, w
+    p = cell.session({})["payload"]
+    assert p["mass_kg"] == 0.0 and p["source"] == "default"
+    assert p["controller"]["mass_kg"] == setting.mass_kg

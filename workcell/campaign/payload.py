@@ -20,8 +20,24 @@ _STATED = {
 }
 
 
+def _implausible(cell, mass_kg: float, com) -> str | None:
+    """Why a controller's payload setting is no payload the arm can carry (above its rated
+    payload, or a centre of mass beyond `PAYLOAD_COM_MAX_M`, what `--payload` refuses), or
+    None. Until 2026-11-28 a controller reporting 1e300 kg had it recorded as the payload."""
+    from workcell.campaign.devices import PAYLOAD_COM_MAX_M
+
+    rated = getattr(getattr(cell, "spec", None), "max_payload_kg", None)
+    if rated is not None and mass_kg > rated:
+        return f"above the {cell.spec.model}'s rated payload of {rated:g} kg"
+    if math.hypot(*com) > PAYLOAD_COM_MAX_M:
+        return f"its centre of mass {math.hypot(*com):.3g} m from the flange"
+    return None
+
+
 def _payload_text(kg: float, com) -> str:
-    c = ", ".join(f"{float(x) * 1e3:.1f}" for x in com)
+    c = ", ".join(
+        f"{float(x) * 1e3:.1f}" if abs(float(x)) < 10.0 else f"{float(x) * 1e3:.3g}" for x in com
+    )
     return f"{kg:.3g} kg at ({c}) mm"
 
 
@@ -59,6 +75,18 @@ def settle_payload(cell, robot, how: str = CLI_HOW) -> list[dict]:
         ]
     com = tuple(float(c) for c in got.com_m)
     cell.payload_controller = {"mass_kg": float(got.mass_kg), "com_m": list(com)}
+    odd = _implausible(cell, float(got.mass_kg), com)
+    if odd and (not cell.payload_declared or cell.payload_source == "controller"):
+        # not adopted (the gravity terms would be fitted against it); recorded as reported
+        return [
+            _note(
+                "warning",
+                f"the controller reports a payload of {_payload_text(got.mass_kg, com)}, "
+                f"{odd}: not used; {cell.payload_kg:g} kg at the flange is assumed for the "
+                "gravity-dependent terms; check the teach pendant's payload setting and state "
+                f"the payload: {how}",
+            )
+        ]
     if not cell.payload_declared or cell.payload_source == "controller":
         cell.payload_kg, cell.payload_com_m = float(got.mass_kg), com
         cell.payload_source = "controller"
