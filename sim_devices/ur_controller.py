@@ -1031,16 +1031,21 @@ class UrControllerSim:
                 freq = struct.unpack(">d", body[:8])[0]
                 names = [n for n in body[8:].decode("ascii", "replace").split(",") if n]
                 types = [OUTPUT_TYPES.get(n, "NOT_FOUND") for n in names]
-                out_id += 1
+                out_id = out_id % 255 + 1  # a one-byte id: the 256th raised ValueError
                 reply(ord("O"), bytes([out_id]) + ",".join(types).encode())
                 if "NOT_FOUND" not in types:
                     out_names = names
                     out_fmt = ">B" + "".join(_FMT[t] for t in types)
-                    out_freq = freq if freq > 0 else 500.0
+                    # 500 Hz for none; at least 0.01 Hz (1e-300 Hz overflowed the stream's
+                    # sleep and killed its thread)
+                    out_freq = min(max(freq, 0.01), 500.0) if freq > 0 else 500.0
             elif ptype == ord("I"):
                 names = [n for n in body.decode("ascii", "replace").split(",") if n]
                 types = [INPUT_TYPES.get(n, "NOT_FOUND") for n in names]
                 rid = len(in_recipes) + 1
+                if rid > 255:  # a one-byte id: the 256th raised ValueError, dropping the link
+                    reply(ord("I"), bytes([0]) + b"NOT_FOUND")
+                    continue
                 if "NOT_FOUND" not in types:
                     in_recipes[rid] = (names, ">" + "".join(_FMT[t] for t in types))
                     if "input_int_register_0" in names or "input_int_register_24" in names:
@@ -1138,6 +1143,8 @@ class UrControllerSim:
                     return
                 line = raw.decode("utf-8", "replace").strip()
                 if not line:
+                    if raw.strip(b" \t\r\n"):  # control characters only: answered, not lost
+                        conn.send(b"could not understand: '" + raw.strip() + b"'\n")
                     continue
                 answer, close = self._dashboard(line)
                 conn.send((answer + "\n").encode())
@@ -1289,7 +1296,16 @@ class UrControllerSim:
                 # custom functions (sendCustomScriptFunction...): acknowledge like a finished call
                 self._event(f"script: ran custom program {name!r} ({len(program)} bytes)")
                 return
-            self.reg_offset = int(m.group(1)) if m else 0
+            off = m.group(1) if m else b"0"
+            if off not in (b"0", b"24"):  # ur_rtde's two register banks (0-23, 24-47)
+                # a real controller's script would fail at its first register read; here every
+                # control tick raised IndexError past register 47, filling the event list
+                self._event(
+                    f"script: {name!r} refused: register offset {off[:12].decode()} is neither "
+                    "0 nor 24"
+                )
+                return
+            self.reg_offset = int(off)
             self._event(
                 f"script: {name!r} uploaded ({len(program)} bytes, "
                 f"register offset {self.reg_offset})"

@@ -479,3 +479,20 @@ def test_an_injected_restart_with_no_finite_down_time_is_refused(down):
     with pytest.raises(ValueError, match="finite time >= 0 s"):
         ctrl.inject("restart", down_s=down)
     assert ctrl.stats["restarts"] == 0
+
+
+def test_a_control_script_with_a_register_offset_past_the_registers_is_refused():
+    """An uploaded rtde_control script with register offset 48 started, and every control
+    tick then raised IndexError (120 events in 0.5 s, the event list growing without end)."""
+    from sim_devices.truth import make_truth
+    from sim_devices.ur_controller import UrControllerSim
+    from sim_devices.world import SimWorld
+
+    world = SimWorld(make_truth("ur5e", "none", 0), q0=QA)
+    ctrl = UrControllerSim(world, "127.0.0.29")  # white-box: no sockets opened
+    prog = b"def rtde_control():\n  reg_offset_int = # int register offset\n  48\nend\n"
+    ctrl._program_uploaded("rtde_control", prog)
+    assert "register offset 48 is neither 0 nor 24" in ctrl.events[-1][-1]
+    assert not ctrl.program_loaded or ctrl.reg_offset != 48
+    ctrl._program_uploaded("rtde_control", prog.replace(b"48", b"24"))
+    assert ctrl.reg_offset == 24
