@@ -188,8 +188,10 @@ def load_model(path: str | os.PathLike) -> FittedModel:
         raise UserError(f"{p}: not a regular file; give a model file (.json)")
     try:
         d = strict_json.loads_numbers(p.read_text(encoding="utf-8-sig"))
-    except (ValueError, UnicodeDecodeError):
-        raise UserError(f"{p}: not a workcell model file (not JSON)") from None
+    except (ValueError, UnicodeDecodeError) as e:
+        why = getattr(e, "msg", "")
+        why = why if why.startswith("nested too deeply") else "not JSON"
+        raise UserError(f"{p}: not a workcell model file ({why})") from None
     if not isinstance(d, dict) or d.get("format") != MODEL_FORMAT:
         raise UserError(f"{p}: not a workcell model file (format is not {MODEL_FORMAT})")
     model = model_from_dict(d, source=str(p))
