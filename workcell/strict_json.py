@@ -34,19 +34,21 @@ def loads(text: str) -> Any:
     """`json.loads`, raising `DuplicateKey` for a key given twice in any object, and a
     `json.JSONDecodeError` (not a RecursionError past the loaders' checks) for nesting deeper
     than Python's parser recurses."""
-    try:
-        return json.loads(text, object_pairs_hook=_no_duplicates, parse_int=_int)
-    except RecursionError:
-        doc = text if isinstance(text, str) else ""
-        raise json.JSONDecodeError("nested too deeply to read", doc, 0) from None
+    return _loads(text, object_pairs_hook=_no_duplicates)
 
 
 def loads_numbers(text: str) -> Any:
     """`json.loads` with integers beyond 64 bits read as floats (`_int`), for files workcell
     writes and a user may edit (models, tables): duplicate keys are not refused here. Nesting
     deeper than the parser recurses is a `json.JSONDecodeError`, as in `loads`."""
+    return _loads(text)
+
+
+def _loads(text: str, **kw) -> Any:
+    """`json.loads` with `_int`; nesting deeper than the parser recurses (a RecursionError) is
+    a `json.JSONDecodeError`, what the loaders catch."""
     try:
-        return json.loads(text, parse_int=_int)
+        return json.loads(text, parse_int=_int, **kw)
     except RecursionError:
         doc = text if isinstance(text, str) else ""
         raise json.JSONDecodeError("nested too deeply to read", doc, 0) from None

@@ -308,32 +308,26 @@ def model_from_dict(d: dict, source: str = "model") -> FittedModel:
 
 
 def _check_base_ref(model: FittedModel, source: str, method: str) -> None:
-    """A model's `base_ref` (the tracker_T_base its base parameters are offsets from) must be a
-    rigid transform: 4x4, finite, bottom row 0 0 0 1, a rotation block orthonormal with
-    determinant +1. Until 2026-11-28 a (3, 4) or (5, 4) matrix, or an inf in the bottom row,
-    loaded (the prediction reads the top rows only) and failed later in an export."""
+    """A model's `base_ref` (the tracker_T_base its base parameters are offsets from) must be one
+    rigid transform (`frames.check_transform`). Until 2026-11-28 a (3, 4) or (5, 4) matrix, or
+    an inf in the bottom row, loaded (the prediction reads the top rows only) and failed later
+    in an export."""
+    from workcell.kinematics.frames import check_transform
+
     for m in (model, getattr(model, "base", None)):
         ref = getattr(m, "base_ref", None) if m is not None else None
         if ref is None:
             continue
         T = np.asarray(ref, dtype=float)
-        why = None
-        if T.shape != (4, 4):
-            why = f"shape {T.shape}, not (4, 4)"
-        elif not np.all(np.isfinite(T)):
-            why = "values that are not finite"
-        elif np.abs(T[3] - [0.0, 0.0, 0.0, 1.0]).max() > 1e-9:
-            why = f"bottom row {T[3].tolist()}, not [0, 0, 0, 1]"
-        else:
-            R = T[:3, :3]
-            err = float(np.abs(R.T @ R - np.eye(3)).max())
-            if err > 1e-6 or np.linalg.det(R) <= 0:
-                why = f"a rotation block that is not a rotation (|R^T R - I| = {err:.2g})"
-        if why is not None:
+        try:
+            if T.shape != (4, 4):
+                raise ValueError(f"shape {T.shape}, not (4, 4)")
+            check_transform(T)
+        except ValueError as e:
             raise UserError(
-                f"{source}: the {method} model's base_ref is not a rigid transform ({why}): "
+                f"{source}: the {method} model's base_ref is not a rigid transform ({e}): "
                 "edited by hand? restore the file or fit it again with `workcell fit`"
-            )
+            ) from None
 
 
 # text fields of a model file whose value may read as a number ("unit": "1", a hash, a path, a

@@ -10,16 +10,22 @@ import numpy as np
 
 
 def check_transform(T: np.ndarray) -> np.ndarray:
-    """Validate a homogeneous transform (4, 4) or a stack (..., 4, 4); raise ValueError if not."""
+    """Validate a rigid homogeneous transform (4, 4) or a stack (..., 4, 4): finite, bottom row
+    0 0 0 1, a rotation block orthonormal with determinant +1; raise ValueError if not."""
     T = np.asarray(T, dtype=float)
     if T.shape[-2:] != (4, 4):
         raise ValueError(f"expected a transform of shape (..., 4, 4), got {T.shape}")
     if not np.all(np.isfinite(T)):
         raise ValueError("transform contains non-finite values")
+    if np.abs(T[..., 3, :] - [0.0, 0.0, 0.0, 1.0]).max() > 1e-9:
+        raise ValueError(f"bottom row {T[..., 3, :].tolist()}, not [0, 0, 0, 1]")
     R = T[..., :3, :3]
     err = np.abs(np.einsum("...ji,...jk->...ik", R, R) - np.eye(3)).max()
-    if err > 1e-6:
-        raise ValueError(f"rotation part is not orthonormal (max |R^T R - I| = {err:.2e})")
+    if err > 1e-6 or np.any(np.linalg.det(R) <= 0):
+        raise ValueError(
+            f"a rotation block that is not a rotation (max |R^T R - I| = {err:.2e}, "
+            f"det {np.min(np.linalg.det(R)):.3g})"
+        )
     return T
 
 
