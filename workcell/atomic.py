@@ -13,19 +13,24 @@ from pathlib import Path
 
 
 @contextlib.contextmanager
-def atomic_files(*paths: str | os.PathLike, newline: str | None = None) -> Iterator[list]:
-    """Open a temporary text file beside each of `paths`; yields the open files. When the block
-    ends without an error, every file is flushed and synced, then all are renamed into place
-    (in the order given); otherwise the temporaries are removed and nothing is replaced."""
+def atomic_files(
+    *paths: str | os.PathLike, newline: str | None = None, binary: bool = False
+) -> Iterator[list]:
+    """Open a temporary file (text, or bytes when `binary`) beside each of `paths`; yields the
+    open files. When the block ends without an error, every file is flushed and synced, then all
+    are renamed into place (in the order given); otherwise the temporaries are removed and
+    nothing is replaced."""
     targets = [Path(p) for p in paths]
     tmps: list[str] = []
     files = []
     try:
         for p in targets:
             p.parent.mkdir(parents=True, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent)
+            # the name cut short: a target name near the file system's limit (255 bytes) still
+            # gets a temporary one within it
+            fd, tmp = tempfile.mkstemp(prefix=f".{p.name[:48]}.", suffix=".tmp", dir=p.parent)
             tmps.append(tmp)
-            files.append(os.fdopen(fd, "w", newline=newline))
+            files.append(os.fdopen(fd, "wb") if binary else os.fdopen(fd, "w", newline=newline))
         yield files
         umask = os.umask(0)
         os.umask(umask)
@@ -49,3 +54,20 @@ def write_text(path: str | os.PathLike, text: str) -> Path:
     with atomic_files(path) as (f,):
         f.write(text)
     return Path(path)
+
+
+def write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """`Path.write_bytes`, whole or not at all."""
+    with atomic_files(path, binary=True) as (f,):
+        f.write(data)
+    return Path(path)
+
+
+def save_figure(fig, path: str | os.PathLike, **kw) -> Path:
+    """`fig.savefig(path, **kw)` (a matplotlib figure), whole or not at all: the image is made
+    in memory (its format from the name's suffix), then written by `write_bytes`."""
+    import io
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format=Path(path).suffix.lstrip(".") or "png", **kw)
+    return write_bytes(path, buf.getvalue())

@@ -134,9 +134,20 @@ def check_output_path(path, what: str = "output", *, folder: bool = False, input
     is needed (or the reverse), a folder that takes no new file (`folder_problem`), or one of the
     command's `inputs` or an existing recording (`refuse_overwrite`). Missing folders are fine
     (created). Returns the path as a `pathlib.Path`."""
+    import os
     from pathlib import Path
 
     p = Path(path)
+    try:  # a name the file system cannot take fails only at the write, after the work
+        name_max = os.pathconf(p.parent if p.parent.exists() else "/", "PC_NAME_MAX")
+    except (OSError, ValueError):
+        name_max = 255
+    for part in p.parts:
+        if len(os.fsencode(part)) > name_max:
+            raise UserError(
+                f"cannot write {what}: the name {part[:40]}... is {len(os.fsencode(part))} bytes "
+                f"long, and the file system takes at most {name_max}; choose a shorter name"
+            )
     if not folder:
         refuse_overwrite([p], inputs, what)
     if folder and p.exists() and not p.is_dir():

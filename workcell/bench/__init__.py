@@ -65,3 +65,49 @@ def environment() -> dict:
         "load_avg_1min": load,
         "versions": versions,
     }
+
+
+# keys that mark a result written before results carried their bench's name
+_OLD_RESULT_KEYS = {
+    "discovery": {"master_seed", "cases", "environment"},
+    "lddmm-pendulum": {"scenarios", "heatmap_png", "environment"},
+}
+
+
+def result_of(path) -> str | None:
+    """Which bench wrote the JSON file at `path` (its `bench` key, or the keys of an older
+    result), or None: not a bench result, missing, or unreadable."""
+    import json
+    from pathlib import Path
+
+    try:
+        d = json.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, ValueError, UnicodeDecodeError, RecursionError):
+        return None
+    if not isinstance(d, dict):
+        return None
+    if isinstance(d.get("bench"), str):
+        return d["bench"]
+    return next((b for b, keys in _OLD_RESULT_KEYS.items() if keys <= d.keys()), None)
+
+
+def check_bench_outputs(paths, bench: str, result, *, force: bool, say) -> None:
+    """Refuse, before any work, to write a bench's output files (`paths`) over existing files
+    that are not an earlier run of the same bench: `result` is the JSON result among `paths`,
+    whose `bench` key tells. An earlier run's files are replaced (`say` is told); anything else
+    only with `force`."""
+    from pathlib import Path
+
+    from workcell.errors import replace_or_refuse
+
+    earlier = f"an earlier `workcell bench {bench}` result" if result_of(result) == bench else None
+    for p in paths:
+        if Path(p).exists():
+            replace_or_refuse(
+                "bench output",
+                p,
+                earlier,
+                f"not a result of `workcell bench {bench}`",
+                force=force,
+                say=say,
+            )

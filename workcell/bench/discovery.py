@@ -38,7 +38,8 @@ from pathlib import Path
 
 import numpy as np
 
-from workcell.bench import environment
+from workcell.atomic import write_text
+from workcell.bench import check_bench_outputs, environment
 from workcell.errors import OneLineParser, UserError, check_output_path
 from workcell.kinematics.chain import jac_params, pack
 
@@ -379,6 +380,11 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--quick", action="store_true", help="a few cases only (smoke test)")
     ap.add_argument("--out", help="write the JSON result here too")
     ap.add_argument(
+        "--force",
+        action="store_true",
+        help="replace an existing --out file that is not an earlier result of this bench",
+    )
+    ap.add_argument(
         "--np-all",
         action="store_true",
         help="run the non-parametric residual check in every case (default: extra cases only; "
@@ -389,21 +395,23 @@ def main(argv: list[str]) -> int:
         ("--draws", a.draws, 1, 100),
         ("--pairs", a.pairs, 0, 1000),
         ("--clean", a.clean, 0, 1000),
-        ("--poses", a.poses, 20, 5000),
+        ("--poses", a.poses, 40, 5000),
     ):
         if not lo <= v <= hi:
             raise UserError(f"{opt} must be {lo}..{hi}, got {v}")
     if a.seed is not None and not 0 <= a.seed < 2**63:
         raise UserError(f"--seed must be 0..2^63-1, got {a.seed}")
-    if a.out:  # before minutes of work: never over a recording, a device or an input
-        check_output_path(a.out, "bench result")
-    master = int(np.random.SeedSequence().entropy % (2**31)) if a.seed is None else a.seed
-    rng = np.random.default_rng(master)
     log = (
         (lambda m: print(m, file=sys.stderr, flush=True))
         if a.json
         else (lambda m: print(m, flush=True))
     )
+    if a.out:  # before minutes of work: never over a recording, a device, an input or a file
+        # that is not an earlier result of this bench (unless --force)
+        check_output_path(a.out, "bench result")
+        check_bench_outputs([a.out], "discovery", a.out, force=a.force, say=log)
+    master = int(np.random.SeedSequence().entropy % (2**31)) if a.seed is None else a.seed
+    rng = np.random.default_rng(master)
     log(f"bench discovery: master seed {master}, {a.poses} poses per recording")
     singles = SINGLE_CASES * a.draws
     n_pairs, n_clean = a.pairs * a.draws, a.clean * a.draws
@@ -447,14 +455,14 @@ def main(argv: list[str]) -> int:
         res["extra"].append(
             run_case([("pedestal_tilt", None)], new_seed(), a.poses, 5.0, tmp, rng, log)
         )
-    summary = score(res)
+    summary = {"bench": "discovery", **score(res)}
     summary["master_seed"] = master
     summary["poses"] = a.poses
     summary["seconds"] = time.perf_counter() - t_all
     summary["cases"] = res
     summary["environment"] = environment()
     if a.out:
-        Path(a.out).write_text(json.dumps(summary, indent=1, default=float))
+        write_text(a.out, json.dumps(summary, indent=1, default=float))
     if a.json:
         print(json.dumps(summary, default=float))
     else:

@@ -42,7 +42,8 @@ import time
 import numpy as np
 
 from workcell._jax import jnp
-from workcell.bench import environment
+from workcell.atomic import save_figure, write_text
+from workcell.bench import check_bench_outputs, environment
 from workcell.errors import OneLineParser, UserError, check_output_path
 
 L1, L2 = 1.0, 0.5
@@ -141,7 +142,7 @@ def _heatmaps(path: str, rows: list[tuple[str, np.ndarray, np.ndarray, np.ndarra
             ax.set_ylabel("y2 [m]")
             fig.colorbar(sc, ax=ax, label="log10 |error| [m]")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
 
 
@@ -196,6 +197,12 @@ def main(argv: list[str]) -> int:
         help="directory for the heat-map PNG and the JSON file",
     )
     ap.add_argument(
+        "--force",
+        action="store_true",
+        help="replace heatmaps.png / results.json in --out that are not an earlier result of "
+        "this bench",
+    )
+    ap.add_argument(
         "--scenario",
         action="append",
         choices=list(SCENARIOS),
@@ -211,8 +218,17 @@ def main(argv: list[str]) -> int:
         if not 1 <= v <= hi:
             raise UserError(f"{opt} must be 1..{hi}, got {v}")
     check_output_path(args.out, "bench output folder", folder=True)
-    for name in ("heatmaps.png", "results.json"):  # never over a recording or a device
-        check_output_path(os.path.join(args.out, name), "bench output")
+    outs = [os.path.join(args.out, n) for n in ("heatmaps.png", "results.json")]
+    for p in outs:  # never over a recording or a device
+        check_output_path(p, "bench output")
+    # nor over files that are not an earlier run's (unless --force)
+    check_bench_outputs(
+        outs,
+        "lddmm-pendulum",
+        outs[1],
+        force=args.force,
+        say=lambda m: print(m, file=sys.stderr if args.json else sys.stdout),
+    )
     res = run_scenarios(
         args.scenario,
         sigma=args.sigma,
@@ -225,6 +241,7 @@ def main(argv: list[str]) -> int:
     _heatmaps(png, [(k, *v["_arrays"]) for k, v in res.items()])
     scen = {k: {kk: vv for kk, vv in v.items() if kk != "_arrays"} for k, v in res.items()}
     doc = {
+        "bench": "lddmm-pendulum",
         "scenarios": scen,
         "joint_ranges_rad": {"x1": list(RANGE), "x2": list(RANGE)},
         "n_train": 169,
@@ -232,8 +249,7 @@ def main(argv: list[str]) -> int:
         "heatmap_png": png,
         "environment": environment(),
     }
-    with open(os.path.join(args.out, "results.json"), "w") as f:
-        json.dump(doc, f, indent=2)
+    write_text(outs[1], json.dumps(doc, indent=2))
     if args.json:
         json.dump(doc, sys.stdout)
         sys.stdout.write("\n")

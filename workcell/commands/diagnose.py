@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from workcell import strict_json
-from workcell.atomic import write_text
+from workcell.atomic import save_figure, write_text
 from workcell.commands import prose
 from workcell.commands.options import add_tracker_mpe, parse_tracker_mpe
 from workcell.errors import UserError, check_output_path, replace_or_refuse
@@ -281,7 +281,7 @@ def write_plots(diag, outdir: Path) -> dict:
     fig.suptitle(Path(rep["recording"]).name)
     fig.tight_layout()
     out = outdir / REPORT_FILES[2]
-    fig.savefig(out, dpi=110)
+    save_figure(fig, out, dpi=110)
     plt.close(fig)
     # per-step bar chart
     fig, ax = plt.subplots(figsize=(6.5, 3.2))
@@ -298,6 +298,6 @@ def write_plots(diag, outdir: Path) -> dict:
     ax.legend(fontsize=8)
     fig.tight_layout()
     out2 = outdir / REPORT_FILES[3]
-    fig.savefig(out2, dpi=110)
+    save_figure(fig, out2, dpi=110)
     plt.close(fig)
     return {"residuals": str(out), "steps": str(out2)}
