@@ -122,13 +122,18 @@ class LddmmCalibration:
     def from_dict(cls, d: dict) -> LddmmCalibration:
         base = model_from_dict(d["base"])
         lm = LddmmModel.from_dict(d["lddmm"], _k0(base.theta, base.base_ref))
+        on = d.get("on", "dh")
+        fitted = bool(np.any(np.asarray(base.free, bool)))  # the registered nominal has none
+        want = "dh" if fitted else "nominal"
+        if on != want:  # "on" decides whether the base's covariance enters the 1-sigma
+            raise ValueError(f"on must be {want!r} (the base this file holds), got {on!r}")
         tau2 = d.get("posterior_scale_m2")
         if tau2 is not None and not (is_finite_number(tau2) and 0.0 <= tau2 < 1.0):
             raise ValueError(f"posterior_scale_m2 must be a variance in m^2 (0 to 1), got {tau2!r}")
         return cls(
             base=base,
             lddmm=lm,
-            on=d.get("on", "dh"),
+            on=on,
             info=d.get("info", {}),
             posterior_scale_m2=None if tau2 is None else float(tau2),
         )

@@ -452,19 +452,29 @@ def _check_joint_count(model, source: str, method: str) -> None:
     from workcell.kinematics.chain import N_JOINTS, joints_of
 
     g = geometric_part(model)
-    if g is None:
-        return
     try:
-        n = joints_of(np.asarray(g.theta))
+        n = None if g is None else joints_of(np.asarray(g.theta))
     except (ValueError, TypeError):
         n = None
-    if n != N_JOINTS:
+    if g is not None and n != N_JOINTS:
         raise UserError(
             f"{source}: the {method} model has {len(g.theta)} geometric parameters, not the "
             f"{5 * N_JOINTS + 9} of a {N_JOINTS}-joint arm: exports, envelopes and "
             "validation are for the 6-joint UR arms (a 7-joint chain is the design bench's "
             "only); fit a model of this arm's recording"
         )
+    for m, where in ((model, ""), (getattr(model, "base", None), "base ")):
+        nd = getattr(m, "nominal_dh", None) if m is not None else None
+        if nd is None:
+            continue
+        sizes = {k: np.asarray(getattr(nd, k)).size for k in ("a", "d", "alpha", "theta_offset")}
+        if set(sizes.values()) != {N_JOINTS}:
+            raise UserError(
+                f"{source}: the {method} model's {where}nominal_dh has "
+                + ", ".join(f"{v} {k}" for k, v in sizes.items())
+                + f", not {N_JOINTS} of each (a {N_JOINTS}-joint arm's): edited by hand? restore "
+                "the file or fit it again with `workcell fit`"
+            )
 
 
 COV_PSD_RTOL = 1e-9  # eigenvalues down to -this x the largest are rounding

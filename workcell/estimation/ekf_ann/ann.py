@@ -52,12 +52,32 @@ class AnnSpec:
                 f"network weights saved with layout {d.get('layout', 'h-major (before 2026-11-22)')!r}, "
                 f"this version reads {LAYOUT!r}: refit the ekf-ann model"
             )
-        return cls(
+        spec = cls(
             hidden=int(d["hidden"]),
             u_centre=tuple(float(x) for x in d["u_centre"]),
             u_scale=tuple(float(x) for x in d["u_scale"]),
             out_scale_m=float(d["out_scale_m"]),
         )
+        spec.check()
+        return spec
+
+    def check(self) -> None:
+        """ValueError unless the standardisation is one the fit makes: N_IN finite centres
+        (rad), N_IN scales (rad) and the output scale (m) finite and positive, hidden >= 1. A
+        scale of 0 read from a hand-edited file saturates that input's neurons: the network
+        still predicts finite positions, each off by up to the network's whole correction."""
+        if self.hidden < 1:
+            raise ValueError(f"ann.hidden must be >= 1, got {self.hidden}")
+        for name, v in (("u_centre", self.u_centre), ("u_scale", self.u_scale)):
+            a = np.asarray(v, float)
+            if a.shape != (N_IN,) or not np.all(np.isfinite(a)):
+                raise ValueError(f"ann.{name} must be {N_IN} finite numbers (rad), got {list(v)}")
+        sc = np.asarray(self.u_scale, float)
+        if np.any(sc <= 0):
+            j = int(np.argmin(sc))
+            raise ValueError(f"ann.u_scale[{j}] must be positive (rad), got {sc[j]:g}")
+        if not (np.isfinite(self.out_scale_m) and self.out_scale_m > 0):
+            raise ValueError(f"ann.out_scale_m must be positive (m), got {self.out_scale_m:g}")
 
     @classmethod
     def from_joints(cls, q: np.ndarray, hidden: int = 29, min_scale_rad: float = 0.2) -> AnnSpec:

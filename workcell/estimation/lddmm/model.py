@@ -399,6 +399,7 @@ class LddmmModel:
         if d.get("format") != _FORMAT:
             raise ValueError(f"unknown LDDMM model format {d.get('format')!r}; want {_FORMAT!r}")
         kp = KernelParams(d["sigma_v"], d["sigma_w"], d["lam_v"], d["lam_w"])
+        _check_saved_params(d)
         m = cls(
             k0,
             np.asarray(d["x_landmarks"], float),
@@ -418,6 +419,27 @@ class LddmmModel:
             d.get("eval_frozen_jacobian", False),
         )
         return m
+
+
+def _check_saved_params(d: dict[str, Any]) -> None:
+    """ValueError unless a saved model's kernel and data weights are ones a fit makes: widths
+    and sigma finite and positive, lam_v / lam_w finite, >= 0 and not both 0, n_steps a whole
+    number >= 1. A hand-edited lam_v = -1 otherwise loaded and failed inside numpy ("not
+    positive definite") at the first 1-sigma, without the file's name."""
+    for k in ("sigma_v", "sigma_w", "sigma", "lam_v", "lam_w"):
+        v = d[k]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+            raise ValueError(f"lddmm.{k} must be a finite number, got {v!r}")
+    for k in ("sigma_v", "sigma_w", "sigma"):
+        if d[k] <= 0:
+            raise ValueError(f"lddmm.{k} must be positive, got {d[k]!r}")
+    if d["lam_v"] < 0 or d["lam_w"] < 0 or d["lam_v"] + d["lam_w"] == 0:
+        raise ValueError(
+            f"lddmm.lam_v and lam_w must be >= 0 and not both 0, got {d['lam_v']!r}, {d['lam_w']!r}"
+        )
+    n = d["n_steps"]
+    if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= 10_000:
+        raise ValueError(f"lddmm.n_steps must be a whole number 1..10000, got {n!r}")
 
 
 # ---------------------------------------------------------------------------------------------
