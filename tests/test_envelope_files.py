@@ -307,7 +307,13 @@ def test_margin_from_a_fitted_model_covers_the_true_arm(tmp_path, capsys):
     small = tmp_path / "small.json"
     small.write_text(json.dumps(dataclasses.replace(env, kinematic_margin_m=0.0005).to_dict()))
     assert main(["envelope", "--check", str(small), "--model", str(model_path)]) == 1
-    assert "is below the suggested" in capsys.readouterr().out
+    out, err = capsys.readouterr()
+    assert "is below the suggested" in out
+    # the refusal is also the error line, and the header does not say "ok" (it did, with
+    # nothing on stderr and exit 1)
+    assert out.splitlines()[0].endswith(f"its margin does not cover {model_path} (below)")
+    err = err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"workcell envelope: error: {small}: margin 0.5 mm")
     written = tmp_path / "from_model.json"
     assert main(["envelope", "--out", str(written), "--model", str(model_path)]) == 0
     assert load_envelope(written, UR5E).kinematic_margin_m >= dev["suggested_margin_m"] - 1e-12

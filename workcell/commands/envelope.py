@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 
 import numpy as np
 
@@ -48,7 +49,11 @@ def run(args: argparse.Namespace) -> int:
                 "ranges keeps the arm inside its box and above its floor (with the default SMR "
                 "offset); a campaign would refuse it: widen the box or the joint ranges"
             )
-        print(describe(env, spec, f"{args.check} ({spec.model})"))
+        dev = _deviation(model, env, spec) if model is not None else None
+        short = dev is not None and env.kinematic_margin_m < dev["suggested_margin_m"]
+        # "ok" is the file's own checks; a margin the model says is too small is not ok
+        status = f"its margin does not cover {args.model} (below)" if short else "ok"
+        print(describe(env, spec, f"{args.check} ({spec.model})", status))
         print(
             f"  reach    {100 * frac:.3g} % of {n:,} random configurations in the joint ranges "
             "keep the arm inside (default SMR offset): what a random plan draws from"
@@ -60,15 +65,16 @@ def run(args: argparse.Namespace) -> int:
                 f"{np.degrees(width.max()):.3g} deg): the poses barely differ and a fit cannot "
                 "tell the parameters apart; widen them"
             )
-        if model is not None:
-            dev = _deviation(model, env, spec)
+        if dev is not None:
             print(describe_deviation(dev, args.model))
-            if env.kinematic_margin_m < dev["suggested_margin_m"]:
-                print(
-                    f"  margin {1e3 * env.kinematic_margin_m:g} mm is below the suggested "
+            if short:
+                say = (
+                    f"margin {1e3 * env.kinematic_margin_m:g} mm is below the suggested "
                     f"{1e3 * dev['suggested_margin_m']:g} mm: raise kinematic_margin_m to "
                     f"{dev['suggested_margin_m']:g}"
                 )
+                print(f"  {say}")
+                print(f"workcell envelope: error: {args.check}: {say}", file=sys.stderr)
                 return 1
             print(f"  margin {1e3 * env.kinematic_margin_m:g} mm covers it")
         return 0
@@ -165,8 +171,8 @@ def reach_fraction(env, spec, n: int = 20_000, seed: int = 0) -> tuple[float, in
     return float(np.mean(ok)), n
 
 
-def describe(env, spec, title: str) -> str:
-    lines = [f"envelope {title}: ok"]
+def describe(env, spec, title: str, status: str = "ok") -> str:
+    lines = [f"envelope {title}: {status}"]
     arm = np.asarray(spec.joint_limits_rad)
     for j, (lo, hi) in enumerate(np.asarray(env.joint_limits_rad)):
         lines.append(
