@@ -476,7 +476,13 @@ def test_a_model_replaces_only_an_earlier_model_of_the_same_recording(cell, caps
     m.write_bytes(model.read_bytes())  # a model of `rec`
     capsys.readouterr()
     assert main(["fit", str(rec), "--out", str(m)]) == 0  # a re-fit: replaced, and said so
-    assert f"replacing {m}: an earlier dh model of this recording" in capsys.readouterr().err
+    assert f"replaced {m}: an earlier dh model of this recording" in capsys.readouterr().err
+    # a refusal found after the output check (here: the bounds file) says nothing of replacing
+    one_line_refusal(
+        capsys,
+        ["fit", str(rec), "--out", str(m), "--bounds", str(tmp_path / "no.json")],
+        "not found",
+    )
     copy = tmp_path / "copy.mcap"  # the same bytes under another name: the same recording
     copy.write_bytes(rec.read_bytes())
     assert main(["fit", str(copy), "--out", str(m)]) == 0

@@ -111,9 +111,10 @@ def run(args: argparse.Namespace) -> int:
         if moved:
             print(f"{moved} (--out chooses)", file=sys.stderr)
     check_output_path(out, "model file", inputs=[args.recording, args.bounds])
-    check_model_output(
-        out, args.recording, force=args.force, say=lambda m: print(m, file=sys.stderr)
-    )
+    # said once the model is written: a refusal found later (a bounds file, the recording)
+    # followed "replacing m.json" and left m.json as it was
+    replacing: list[str] = []
+    check_model_output(out, args.recording, force=args.force, say=replacing.append)
     report = fit_recording(
         args.recording,
         method=args.method,
@@ -127,6 +128,8 @@ def run(args: argparse.Namespace) -> int:
         chain_missing=args.chain_missing,
         smr_offset_m=smr,
     )
+    for line in replacing:
+        print(line.replace("replacing ", "replaced ", 1), file=sys.stderr)
     if args.json:
         print(strict_json.dumps(report))
     else:
