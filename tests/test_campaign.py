@@ -377,10 +377,16 @@ def test_an_arm_outside_the_envelope_is_not_moved(tmp_path):
     outside = np.array([0.0, -0.2, 1.57, -1.57, -1.57, 0.0])
     assert env.violations(UR5E, outside[None], tool)[0] is not None
     robot, sink = ClockRobot(q0=outside), NullSink()
-    ex = Executor(robot, None, UR5E, env, sink, tool_m=tool)
-    with pytest.raises(ArmOutsideEnvelope, match="jog it inside"):
+    heard: list[dict] = []
+    ex = Executor(robot, None, UR5E, env, sink, tool_m=tool, on_event=heard.append)
+    with pytest.raises(ArmOutsideEnvelope, match="jog it inside, then start again"):
         ex._move_along(np.array([0.0, -1.2, 1.2, -1.5, -1.5, 0.0]), "pose 0")
     assert robot.moves == [] and [k for k, _ in sink.events] == ["envelope"]
+    # recorded, not echoed: the error itself is the one line the operator reads
+    assert heard == []
+    ex.result.measured = 4  # found outside mid-campaign (jogged during a pause): resumable
+    with pytest.raises(ArmOutsideEnvelope, match=r"then resume the campaign \(--resume\)"):
+        ex._move_along(np.array([0.0, -1.2, 1.2, -1.5, -1.5, 0.0]), "pose 5")
 
     world, srobot, tracker, cell = sim_cell("ur5e", "none", 3)
     world.clock.advance(world.command_move(outside, 0.5, 1.0))

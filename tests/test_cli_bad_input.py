@@ -1033,3 +1033,27 @@ def test_extreme_numbers_are_refused_in_one_line_without_a_warning(cell, capsys)
         with warnings.catch_warnings():
             warnings.simplefilter("error")
             one_line_refusal(capsys, argv, match)
+
+
+def test_an_arm_outside_the_envelope_at_the_start_is_one_error_line(tmp_path, capsys):
+    """The sim arm's home (SMR at x = -0.49 m) outside a box that starts at x = 0.3 m: nothing
+    moves, nothing is kept. The terminal showed the executor's event, its `stopped` event
+    ("ArmOutsideEnvelope: ...") and the error, with "--resume" advice for a campaign of which
+    nothing was kept; now the error line alone."""
+    from workcell.campaign.envelope import default_envelope
+    from workcell.kinematics.robots import robot_by_name
+
+    env = default_envelope(robot_by_name("ur5e")).to_dict()
+    env["box_min_m"][0] = 0.3
+    ef = tmp_path / "env.json"
+    ef.write_text(json.dumps(env))
+    out = tmp_path / "c.mcap"
+    capsys.readouterr()
+    argv = ["campaign", "--robot", "sim", "--tracker", "sim", "--poses", "3", "--seed", "0"]
+    rc = main([*argv, "--envelope", str(ef), "--out", str(out)])
+    err = capsys.readouterr().err
+    errors = [ln for ln in err.splitlines() if "error" in ln]
+    assert rc == 2 and len(errors) == 1, err
+    assert "outside the envelope at the start" in errors[0] and "nothing was recorded" in errors[0]
+    assert "ArmOutsideEnvelope" not in err and "--resume" not in err, err
+    assert not out.exists()

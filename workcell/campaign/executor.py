@@ -360,10 +360,12 @@ class Executor:
         e = self._elapsed0 if self._last_elapsed is None else self._last_elapsed
         return self._t_ns(e + time.monotonic() - self._last_mono)
 
-    def event(self, level: str, kind: str, message: str) -> None:
+    def event(self, level: str, kind: str, message: str, *, echo: bool = True) -> None:
+        """Record an event; `on_event` hears it too unless not `echo` (an error the caller is
+        about to report itself, which the terminal would otherwise show twice)."""
         self.result.events += 1
         self.sink.event(self._t_ns_safe(), level, kind, message)
-        if self.on_event:
+        if self.on_event and echo:
             self.on_event({"level": level, "kind": kind, "message": message})
 
     def _t_ns_safe(self) -> int:
@@ -647,11 +649,16 @@ class Executor:
             loose = self.env.with_arm_joint_ranges(self.spec)
             check_env = loose  # the box and the floor, with the arm's own joint ranges
             if loose.violations(self.spec, q_now[None], self.tool_m)[0] is not None:
+                again = (  # nothing measured: the campaign is not kept, nothing to resume
+                    "resume the campaign (--resume)"
+                    if self.result.measured or self.result.skipped
+                    else "start again"
+                )
                 msg = (
                     f"the arm is outside the envelope ({outside}); no move to {what} from there: "
-                    "jog it inside, then resume the campaign (--resume)"
+                    f"jog it inside, then {again}"
                 )
-                self.event("error", "envelope", msg)
+                self.event("error", "envelope", msg, echo=False)  # the error says it
                 raise ArmOutsideEnvelope(msg, outside)
             self.event(
                 "warning",
@@ -1010,13 +1017,16 @@ class Executor:
             # says why before it is closed; the caller reports the error
             self.result.aborted, self.result.stopped_by = True, "error"
             self._stop_robot()
+            # a user error's own words; anything else also names its type (a bug's report).
+            # Recorded, not echoed to `on_event`: the caller reports this very error, and the
+            # terminal showed it twice ("ArmOutsideEnvelope: ...", then the error line)
+            why = str(e) if isinstance(e, UserError) else f"{type(e).__name__}: {e}"
             try:
                 self.event(
                     "error",
                     "stopped",
-                    f"campaign stopped after {self.result.measured} poses: {type(e).__name__}: {e}"[
-                        :500
-                    ],
+                    f"campaign stopped after {self.result.measured} poses: {why}"[:500],
+                    echo=False,
                 )
             except Exception:  # noqa: BLE001 - the recording itself may be what failed
                 pass
