@@ -1057,3 +1057,18 @@ def test_an_arm_outside_the_envelope_at_the_start_is_one_error_line(tmp_path, ca
     assert "outside the envelope at the start" in errors[0] and "nothing was recorded" in errors[0]
     assert "ArmOutsideEnvelope" not in err and "--resume" not in err, err
     assert not out.exists()
+
+
+def test_export_recording_must_be_the_models_even_when_the_model_carries_its_chain(
+    cell, capsys, tmp_path
+):
+    """A dh model carries its nominal chain, and `export --recording` was ignored without a word
+    for it: another arm's recording, or a model file, exported exit 0. Now a recording that is
+    not the model's is refused in one line (the model's own is accepted)."""
+    _, rec, model = cell
+    out = tmp_path / "t.json"
+    base = ["export", str(model), "--format", "table", "--spacing", "0.2", "--out", str(out)]
+    for wrong in (_other_recording(tmp_path), model):
+        one_line_refusal(capsys, [*base, "--recording", str(wrong)], "is not the model's recording")
+        assert not out.exists()
+    assert main([*base, "--recording", str(rec)]) == 0 and out.is_file()

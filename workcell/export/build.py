@@ -42,7 +42,27 @@ def model_session(model) -> tuple[dict, str]:
 
 
 def nominal_for_model(model, recording: str | None = None) -> Nominal:
-    """nominal_for(model), falling back on the model's (or the given) recording."""
+    """nominal_for(model), falling back on the model's (or the given) recording. A given
+    `recording` must be the model's (same sha256), also for a model that carries its chain and
+    does not need it: one that was silently ignored (another arm's recording, a model file)."""
+    from workcell.recording.dataset import Dataset, file_sha256
+
+    sha = model_recording(model)[1]
+    if recording and sha and file_sha256(recording) != sha:
+        raise UserError(
+            f"{recording} is not the model's recording (its sha256 differs from the one the "
+            "model was fitted on); give that one"
+            + (
+                ", or leave --recording out: this model carries its nominal chain"
+                if _carries(model)
+                else ""
+            )
+        )
+    if recording and not sha and _carries(model):
+        raise UserError(
+            f"--recording {recording} would not be used: the model carries its nominal chain, "
+            "and it names no recording to check this one against; leave --recording out"
+        )
     try:
         return nominal_for(model)
     except UserError:
@@ -54,18 +74,18 @@ def nominal_for_model(model, recording: str | None = None) -> Nominal:
             ) from None
         if not rec:
             raise
-    from workcell.recording.dataset import Dataset, file_sha256
-
-    sha = model_recording(model)[1]
-    if recording and sha and file_sha256(recording) != sha:
-        raise UserError(
-            f"{recording} is not the model's recording (its sha256 differs from the one the "
-            "model was fitted on); give that one"
-        )
-
     ds = Dataset.from_recording(rec)
     train, _ = ds.holdout_split(0.25)
     return nominal_for(model, ds.subset(train))
+
+
+def _carries(model) -> bool:
+    """Whether `nominal_for` finds the model's nominal chain in the model itself."""
+    try:
+        nominal_for(model)
+    except UserError:
+        return False
+    return True
 
 
 def parse_vec(text: str, n: int, what: str) -> np.ndarray:
