@@ -189,6 +189,9 @@ class DeadTracker(Wrapped):
             return TrackerReading(np.full(3, np.nan), sigma, status="beam_broken")
         if self.mode == "nan":
             return TrackerReading(np.full(3, np.nan), sigma, status="ok")
+        if self.mode == "millimetres":  # as the serial driver refuses a reading in mm
+            why = "TMC_GetCoordinate: coordinate 2250 m from the instrument (a unit setting?)"
+            return TrackerReading(np.full(3, np.nan), sigma, status="error", extra={"message": why})
         if self.mode == "garbled":
             raise DeviceError("tracker on '/dev/ttyX': no valid reply (garbled)")
         raise DeviceUnreachable("tracker port '/dev/ttyX' cannot be opened")
@@ -198,7 +201,7 @@ class DeadTracker(Wrapped):
             raise DeviceUnreachable("tracker port '/dev/ttyX' cannot be opened")
 
 
-@pytest.mark.parametrize("mode", ["beam", "nan", "garbled", "vanished"])
+@pytest.mark.parametrize("mode", ["beam", "nan", "garbled", "vanished", "millimetres"])
 def test_a_tracker_that_stopped_measuring_stops_the_campaign(tmp_path, mode):
     """Beam lost at every reading, NaN coordinates, a garbled line, the port gone: the campaign
     went through every remaining pose, moving the arm each time ("recorded 0 poses, skipped 10",
@@ -225,6 +228,8 @@ def test_a_tracker_that_stopped_measuring_stops_the_campaign(tmp_path, mode):
     msg = str(e.value)
     assert e.value.exit_code == 3 and "\n" not in msg and msg.startswith("tracker ")
     assert f"fix the tracker, then `workcell campaign --resume {path}`" in msg
+    if mode == "millimetres":  # the last problem is the driver's why, not "status error" alone
+        assert "status error: TMC_GetCoordinate: coordinate 2250 m" in msg, msg
 
 
 def _signal_after(seconds: float, sig=signal.SIGINT) -> threading.Timer:

@@ -815,6 +815,9 @@ class Executor:
             )
             if r.status != "ok" or not np.all(np.isfinite(r.position_m)):
                 problem = f"status {r.status}" if r.status != "ok" else "non-finite coordinates"
+                said = (r.extra or {}).get("message") if isinstance(r.extra, dict) else None
+                if isinstance(said, str) and said:  # the driver's why ("2250 m ... a unit?")
+                    problem += f": {said}"
                 failures += 1
                 self.event(
                     "warning",
