@@ -80,6 +80,9 @@ def test_design_real_missing_recording_is_one_line(tmp_path, capsys):
     assert main(["--recording", str(tmp_path / "nope.mcap")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "not found" in err[0]
+    assert main(["--recording", str(tmp_path)]) == 2  # a folder was "not found"
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "is a folder, not a recording file" in err[0], err
     bad = tmp_path / "bad.mcap"
     bad.write_bytes(b"not an mcap file")
     assert main(["--recording", str(bad)]) == 2

@@ -138,8 +138,15 @@ def main(argv: list[str]) -> int:
     )
     path = Path(a.recording)
     if not path.is_file():
+        what = (
+            "is a folder, not a recording file"
+            if path.is_dir()
+            else "is not a regular file (a pipe or device)"
+            if path.exists()
+            else "not found"
+        )
         print(
-            f"workcell bench design-real: recording {path} not found "
+            f"workcell bench design-real: recording {path} {what} "
             "(give --recording PATH; the default is the UR10 series B beside the repository)",
             file=sys.stderr,
         )
