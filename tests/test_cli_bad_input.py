@@ -1072,3 +1072,23 @@ def test_export_recording_must_be_the_models_even_when_the_model_carries_its_cha
         one_line_refusal(capsys, [*base, "--recording", str(wrong)], "is not the model's recording")
         assert not out.exists()
     assert main([*base, "--recording", str(rec)]) == 0 and out.is_file()
+
+
+def test_many_damaged_chunks_are_one_warning_line():
+    """A recording with seven damaged chunks gave seven warning lines before the fit's own
+    output; more than two problems are now one line with the first and the count."""
+    from workcell.recording.dataset import READ_WARNINGS_SHOWN, read_warnings
+
+    class Read:
+        source, read_notes = "r.mcap", ()
+
+        def __init__(self, k):
+            self.read_problems = [f"damaged chunk {i} near byte {100 * i}" for i in range(k)]
+
+        def __len__(self):
+            return 40
+
+    assert len(read_warnings(Read(READ_WARNINGS_SHOWN))) == READ_WARNINGS_SHOWN
+    (line,) = read_warnings(Read(7))
+    assert line.startswith("warning: r.mcap: 7 problems reading it, the first: damaged chunk 0")
+    assert "using the 40 samples that could be read" in line and "workcell info r.mcap" in line

@@ -299,16 +299,27 @@ def _check_same_cell(rec: Recording, older: Recording) -> None:
 
 
 def read_warnings(ds: Dataset | Recording) -> list[str]:
-    """One warning line per reader problem: data may be missing and the fit would not show it."""
+    """One warning line per reader problem, up to READ_WARNINGS_SHOWN; more are one line with
+    the first and their count (a file with seven damaged chunks gave seven lines): data may be
+    missing and the fit would not show it. `workcell info` lists them all."""
     notes: tuple[str, ...] = ()
     if isinstance(ds, Recording):
         source, problems, n = ds.path, ds.problems, len(ds.samples)
     else:
         source, problems, n = ds.source, ds.read_problems, len(ds)
         notes = ds.read_notes
-    return [
-        f"warning: {source}: {p}; using the {n} samples that could be read" for p in problems
-    ] + [f"warning: {source}: {x}" for x in notes]
+    using = f"using the {n} samples that could be read"
+    if len(problems) > READ_WARNINGS_SHOWN:
+        lines = [
+            f"warning: {source}: {len(problems)} problems reading it, the first: {problems[0]}; "
+            f"{using} (`workcell info {source}` lists them all)"
+        ]
+    else:
+        lines = [f"warning: {source}: {p}; {using}" for p in problems]
+    return lines + [f"warning: {source}: {x}" for x in notes]
+
+
+READ_WARNINGS_SHOWN = 2
 
 
 DISTINCT_TOL_RAD = 1e-4  # 50x the encoders' noise (~2 urad): a pose measured again is one pose
