@@ -1092,3 +1092,28 @@ def test_many_damaged_chunks_are_one_warning_line():
     (line,) = read_warnings(Read(7))
     assert line.startswith("warning: r.mcap: 7 problems reading it, the first: damaged chunk 0")
     assert "using the 40 samples that could be read" in line and "workcell info r.mcap" in line
+
+
+def test_force_covers_the_named_output_not_a_file_written_beside_it(cell, capsys, tmp_path):
+    """`export --format table --out t.json --force` also wrote t.csv, replacing a targets CSV
+    there that nobody named (and said "replacing t.json" before a refusal). Now --force covers
+    t.json only; a file beside it is replaced only when an earlier export of its own kind."""
+    from workcell.export.files import TARGETS_CSV_MARK
+
+    _, _, model = cell
+    js, cs = tmp_path / "t.json", tmp_path / "t.csv"
+    js.write_text("{}")
+    argv = ["export", str(model), "--format", "table", "--spacing", "0.2", "--out", str(js)]
+    for beside in (f"{TARGETS_CSV_MARK}\nx,y,z\n", "my own notes\n"):
+        cs.write_text(beside)
+        capsys.readouterr()
+        rc = main([*argv, "--force"])
+        out, err = capsys.readouterr()
+        err = err.strip().splitlines()
+        assert rc == 2 and len(err) == 1 and f"(it is written beside {js})" in err[0], err
+        assert "move it away" in err[0] and "replacing" not in out
+        assert js.read_text() == "{}" and cs.read_text() == beside
+    cs.unlink()
+    assert main([*argv, "--force"]) == 0  # the named file, with --force
+    assert main(argv) == 0  # both now an earlier table: replaced without --force
+    assert f"replacing {cs}: an earlier correction table CSV" in capsys.readouterr().out

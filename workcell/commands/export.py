@@ -122,7 +122,7 @@ def run(args: argparse.Namespace) -> int:
         parse_conditions,
         parse_vec,
     )
-    from workcell.export.files import check_export_outputs, output_files
+    from workcell.export.files import check_export_outputs, output_files, output_kinds
     from workcell.export.frame import frame_lines
     from workcell.export.table import is_warning
 
@@ -140,7 +140,11 @@ def run(args: argparse.Namespace) -> int:
         output_files(args.format, out), [args.model, args.recording, args.targets_in], "output"
     )
     check_export_outputs(
-        output_files(args.format, out), args.force, (lambda m: None) if args.json else print
+        output_files(args.format, out),
+        args.force,
+        (lambda m: None) if args.json else print,
+        kinds=output_kinds(args.format),
+        named=out,
     )
     cond = parse_conditions(
         args.approach or "1,1,1,1,1,1", args.payload, args.joint_temperature, args.elapsed

@@ -36,11 +36,19 @@ def export_kind(path: Path) -> str | None:
     return None
 
 
-def check_export_outputs(outputs, force: bool, say) -> None:
+def check_export_outputs(outputs, force: bool, say, *, kinds=None, named=None) -> None:
     """Refuse, before any work, to write over an existing file that is not an earlier workcell
-    export, unless `force`; `say(line)` is told what is replaced."""
-    for o in outputs:
-        o = Path(o)
+    export, unless `force`; `say(line)` is told what is replaced.
+
+    With `kinds` (the export kind each output is: `output_kinds`), an earlier export counts only
+    when of the same kind (a table's CSV does not replace a targets CSV without a word), and
+    `force` covers only the file `--out` names (`named`; the first output when it names none of
+    them exactly): a file written beside it (a table's CSV, a script's table) that is not an
+    earlier export of its kind is refused even with `force`, since nobody asked for it by name."""
+    outputs = [Path(o) for o in outputs]
+    tell, say = say, []  # said once every output is checked: not "replacing" before a refusal
+    main = Path(named) if named is not None and Path(named) in outputs else outputs[0]
+    for i, o in enumerate(outputs):
         if o.exists() and not o.is_file():
             # a directory (or a device) where one of the files goes: refused before any work,
             # not after the first file of a pair was written
@@ -51,8 +59,34 @@ def check_export_outputs(outputs, force: bool, say) -> None:
         if not o.is_file():
             continue
         kind = export_kind(o)
-        earlier = f"an earlier {kind}" if kind else None
-        replace_or_refuse("output", o, earlier, "not a workcell export", force=force, say=say)
+        want = kinds[i] if kinds is not None else kind
+        earlier = f"an earlier {kind}" if kind is not None and kind == want else None
+        not_what = "not a workcell export" if kind is None else f"a {kind}, not a {want}"
+        if kinds is not None and o != main:
+            replace_or_refuse(
+                "output",
+                o,
+                earlier,
+                f"{not_what} (it is written beside {main})",
+                force=False,
+                say=say.append,
+                remedy="move it away, or choose another --out",
+            )
+            continue
+        replace_or_refuse("output", o, earlier, not_what, force=force, say=say.append)
+    for line in say:
+        tell(line)
+
+
+def output_kinds(fmt: str) -> list[str]:
+    """The export kind (as `export_kind` names it) of each file `output_files(fmt, ...)` lists."""
+    table = ["correction table", "correction table CSV"]
+    return {
+        "ros-yaml": ["ROS calibration YAML"],
+        "targets": ["targets CSV"],
+        "table": table,
+        "urscript": ["URScript correction", *table],
+    }[fmt]
 
 
 def output_files(fmt: str, out: Path) -> list[Path]:

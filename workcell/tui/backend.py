@@ -943,14 +943,16 @@ def export(cfg: ExportConfig, log: Callable[[str], None] | None = None) -> dict:
     if not Path(cfg.model).exists():
         raise UserError(f"model file {cfg.model} does not exist")
     from workcell.errors import refuse_overwrite
-    from workcell.export.files import check_export_outputs, output_files
+    from workcell.export.files import check_export_outputs, output_files, output_kinds
     from workcell.export.frame import frame_lines
 
     out = check_output_path(cfg.out, "output")
     outputs = output_files(cfg.format, out)
     # never over the model or a recording; over another file only if it is an earlier export
     refuse_overwrite(outputs, [cfg.model], "output")
-    check_export_outputs(outputs, False, log or (lambda m: None))
+    check_export_outputs(
+        outputs, False, log or (lambda m: None), kinds=output_kinds(cfg.format), named=out
+    )
     model = load_model(cfg.model)
     out.parent.mkdir(parents=True, exist_ok=True)
     summary: dict = {"format": cfg.format, "model": cfg.model}
