@@ -67,6 +67,13 @@ def _edited(doc: dict, edit, path):
             "a rotation block that is not a rotation",
         ),
         (
+            lambda m: [
+                m["theta"].__setitem__(i, float(np.degrees(m["theta"][i]))) for i in range(12, 18)
+            ],
+            "theta alpha1 is 90",
+        ),
+        (lambda m: m["theta"].__setitem__(22, 4.4e16), "theta theta5_offset is 4.4e+16 rad"),
+        (
             lambda m: m["info"].__setitem__("variance_factor", "1.5"),
             "number written as text (info.variance_factor = '1.5')",
         ),
@@ -88,6 +95,8 @@ def _edited(doc: dict, edit, path):
         "base_ref row 0 gone",
         "base_ref bottom row",
         "base_ref scaled rotation",
+        "alphas in degrees",
+        "theta offset 4.4e16",
         "text scalar",
         "text info figure",
     ],  # fmt: skip

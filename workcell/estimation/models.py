@@ -861,6 +861,24 @@ def _check_nominal_units(model, source: str, method: str) -> None:
                     f"{lengths[j]:.4g} m (more than {DH_LENGTH_MAX_M:g} m): "
                     f"{_length_hint(lengths[j], DH_LENGTH_MAX_M)}; {again}"
                 )
+            # angles: a fit starts at the nominal chain and corrects it by milliradians, so no
+            # fit makes one beyond a turn; alphas in degrees (90 for pi/2) loaded and moved the
+            # SMR by metres, found only by the ros-yaml export
+            angles = np.abs(th[12:30])
+            k = int(np.argmax(angles))
+            if angles[k] > 2 * np.pi:
+                from workcell.kinematics.chain import PARAM_NAMES
+
+                hint = (
+                    "it looks like degrees; the format wants radians"
+                    if angles[k] <= 400.0
+                    else "beyond any angle a fit makes (edited by hand?)"
+                )
+                raise UserError(
+                    f"{source}: the {method} model's {where}theta {PARAM_NAMES[12 + k]} is "
+                    f"{angles[k]:.4g} rad (more than 2 pi: no fit turns a joint's geometry that "
+                    f"far): {hint}; {again}"
+                )
             r = float(np.linalg.norm(th[36:39]))
             if r > SMR_OFFSET_MAX_M:
                 raise UserError(
