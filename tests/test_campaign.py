@@ -934,3 +934,27 @@ def test_a_campaign_too_short_to_fit_says_so_before_moving_and_fit_says_what_to_
     assert main(["fit", str(rec), "--holdout", "0"]) == 2  # no hold-out: 12 poses would do
     line = capsys.readouterr().err.strip()
     assert "(of 10 with 0% held out)" in line and "at least 12 poses" in line
+
+
+def test_a_tight_envelope_plans_in_the_largest_family_the_arm_can_move_between():
+    """A box that keeps the SMR at x >= 0.3 m: random poses fall into families (elbow, wrist
+    postures) with no path between them that stays inside, and the greedy order kept the family
+    of its first pose: "only 2 of 8 poses fit", and fewer again for any smaller count asked.
+    After every greedy try falls short, the plan now takes the largest family: 8 of 8, each move
+    (pose to pre-pose of the next) checked inside the envelope as the executor moves."""
+    from workcell.campaign.plans import Reach
+
+    env = default_envelope(UR5E)
+    box_min = np.array(env.box_min_m, float)
+    box_min[0] = 0.3
+    env = dataclasses.replace(env, box_min_m=box_min)
+    tool = np.array([0.0, 0.0, 0.06])
+    _, q = make_plan("random", UR5E, env, 8, seed=1, tool_m=tool)
+    assert q is not None and len(q) == 8
+    plan, _ = make_plan("random", UR5E, env, 8, seed=1, tool_m=tool)
+    targets = list(plan)
+    signs = np.array([t.approach_sign for t in targets])
+    reach = Reach(UR5E, env, tool, q, signs, 0.02)
+    for k in range(1, len(q)):
+        reach.last = q[k - 1]
+        assert reach.approach_ok(k) and reach.ok(k), k

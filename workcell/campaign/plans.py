@@ -355,6 +355,50 @@ def order_for_paths(
     return q[idx], signs[idx]
 
 
+FAMILY_MAX_CANDIDATES = (
+    400  # the pairwise check of `largest_family`: ~1.4 s for 22, minutes past this
+)
+
+
+def largest_family(
+    spec: RobotSpec,
+    env: Envelope,
+    q: np.ndarray,
+    signs: np.ndarray,
+    tool_m: np.ndarray,
+    approach_rad: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The largest set of candidate poses the arm can move between inside the envelope (a
+    strongly connected component of "reachable from", checked as the executor moves), in
+    `order_for_paths`' order. In a tight envelope the poses fall into families (elbow or wrist
+    postures) with no path between them that stays inside: the greedy order keeps whichever
+    family its first pose is in, and may keep 2 of 8 where another family holds 10. A pairwise
+    check, so only for up to FAMILY_MAX_CANDIDATES (returns `order_for_paths`' own order past
+    that)."""
+    from scipy.sparse.csgraph import connected_components
+
+    if len(q) > FAMILY_MAX_CANDIDATES:
+        return order_for_paths(spec, env, q, signs, tool_m, approach_rad)
+    reach = Reach(spec, env, tool_m, q, signs, approach_rad)
+    ok = []
+    for i in range(len(q)):
+        stop_if_interrupted()
+        if reach.approach_ok(i):
+            ok.append(i)
+    if not ok:
+        return q[:0], signs[:0]
+    A = np.zeros((len(ok), len(ok)), bool)
+    for a, i in enumerate(ok):
+        stop_if_interrupted()
+        reach.last = q[i]
+        for b, j in enumerate(ok):
+            A[a, b] = i != j and reach.first([j])[0] is not None
+    _, label = connected_components(A, directed=True, connection="strong")
+    big = int(np.argmax(np.bincount(label)))
+    members = np.array([ok[k] for k in np.flatnonzero(label == big)], int)
+    return order_for_paths(spec, env, q[members], signs[members], tool_m, approach_rad)
+
+
 def static_plan(
     q: np.ndarray, signs: np.ndarray, *, start_id: int = 0, skip_ids: set[int] | None = None
 ) -> Plan:
@@ -448,9 +492,17 @@ def make_plan(
             if kind == "grid" and len(q) > n:
                 idx = np.round(np.linspace(0, len(q) - 1, n)).astype(int)
                 q, signs = q[idx], signs[idx]
+            cand = (q, signs)
             q, signs = order_for_paths(spec, env, q, signs, tool_m, approach_rad)
             if len(q) >= n:
                 break
+        if len(q) < n:
+            # only when every try above fell short (so a plan made before this step, and the
+            # resume of its recording, is unchanged): the largest family the arm can move
+            # between, of the last try's candidates
+            fq, fs = largest_family(spec, env, *cand, tool_m, approach_rad)
+            if len(fq) > len(q):
+                q, signs = fq, fs
         if len(q) < n:
             raise ValueError(
                 f"only {len(q)} of {n} poses fit the envelope with their approach and the paths "
