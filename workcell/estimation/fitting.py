@@ -298,16 +298,25 @@ def heldout_std_check(
     except np.linalg.LinAlgError:
         return None
     s3 = np.sqrt(np.clip(np.einsum("nii->n", C), 0.0, None))
+    n = len(z2)
+    inside = int(np.sum(z2 < stats.chi2.ppf(0.95, 3)))
     return {
         "median_m": float(np.median(s3)),
         "max_m": float(s3.max()),
         "z2_mean_over_3": float(np.mean(z2) / 3),
-        "inside_95": float(np.mean(z2 < stats.chi2.ppf(0.95, 3))),
-        "poses": int(len(ds)),
+        "inside_95": inside / n,
+        # the two figures' chances if the 1-sigma and the tracker's noise held the errors:
+        # sum z2 ~ chi2(3 n), and the count inside the 95 % ellipsoid ~ Binomial(n, 0.95).
+        # Until 2026-11-29 the line passed any mean up to 1.5 and ignored the share inside, so
+        # an augmented model's 1-sigma 1.5x too small (the tracker's noise beside it) passed
+        "p_mean": float(stats.chi2.sf(float(np.sum(z2)), 3 * n)),
+        "p_inside": float(stats.binom.cdf(inside, n, 0.95)),
+        "poses": int(n),
         "basis": "3-D 1-sigma of the model's prediction (its covariance) at the held-out poses; "
         "z2_mean_over_3: mean of e^T (C + tracker sigma^2)^-1 e / 3 over them, 1 when the "
         "1-sigma and the tracker's noise hold the errors (inside_95: share inside the 95 % "
-        "ellipsoid, 0.95 then)",
+        "ellipsoid, 0.95 then); p_mean, p_inside: the chance of a mean as high (chi2 with 3 n "
+        "dof) and of as few inside (binomial) if they held them: below 0.05, they do not",
     }
 
 
