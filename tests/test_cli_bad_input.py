@@ -1110,10 +1110,35 @@ def test_force_covers_the_named_output_not_a_file_written_beside_it(cell, capsys
         rc = main([*argv, "--force"])
         out, err = capsys.readouterr()
         err = err.strip().splitlines()
-        assert rc == 2 and len(err) == 1 and f"(it is written beside {js})" in err[0], err
+        assert rc == 2 and len(err) == 1 and f"and `--out {js}` writes one there" in err[0], err
         assert "move it away" in err[0] and "replacing" not in out
         assert js.read_text() == "{}" and cs.read_text() == beside
     cs.unlink()
     assert main([*argv, "--force"]) == 0  # the named file, with --force
     assert main(argv) == 0  # both now an earlier table: replaced without --force
     assert f"replacing {cs}: an earlier correction table CSV" in capsys.readouterr().out
+
+
+def test_a_scripts_side_table_does_not_replace_a_table_exported_on_its_own(cell, capsys, tmp_path):
+    """`export --format urscript --out cell.script` replaced cell.json, a table the user had
+    exported on its own ("replacing cell.json: an earlier correction table"; real-data audit of
+    2026-11-29). A file beside the named one is an earlier run's only when the named one is."""
+    _, _, model = cell
+    grid = ["--spacing", "0.2"]
+    table = tmp_path / "cell.json"
+    assert main(["export", str(model), "--format", "table", *grid, "--out", str(table)]) == 0
+    before = digest(table)
+    script = [
+        "export",
+        str(model),
+        "--format",
+        "urscript",
+        *grid,
+        "--out",
+        str(tmp_path / "cell.script"),
+    ]
+    one_line_refusal(capsys, script, "is a correction table exported on its own")
+    assert digest(table) == before and not (tmp_path / "cell.script").exists()
+    table.unlink()
+    (tmp_path / "cell.csv").unlink()
+    assert main(script) == 0 and main(script) == 0  # its own side table: replaced the second time

@@ -48,6 +48,11 @@ def check_export_outputs(outputs, force: bool, say, *, kinds=None, named=None) -
     outputs = [Path(o) for o in outputs]
     tell, say = say, []  # said once every output is checked: not "replacing" before a refusal
     main = Path(named) if named is not None and Path(named) in outputs else outputs[0]
+    # a file beside the named one is an earlier run's only when the named one is too: a table
+    # the user exported on its own at cell.json is not the side table of `--out cell.script`
+    main_earlier = (
+        kinds is None or main.is_file() and export_kind(main) == kinds[outputs.index(main)]
+    )
     for i, o in enumerate(outputs):
         if o.exists() and not o.is_file():
             # a directory (or a device) where one of the files goes: refused before any work,
@@ -62,12 +67,14 @@ def check_export_outputs(outputs, force: bool, say, *, kinds=None, named=None) -
         want = kinds[i] if kinds is not None else kind
         earlier = f"an earlier {kind}" if kind is not None and kind == want else None
         not_what = "not a workcell export" if kind is None else f"a {kind}, not a {want}"
+        if kinds is not None and o != main and earlier and not main_earlier:
+            earlier, not_what = None, f"a {kind} exported on its own"
         if kinds is not None and o != main:
             replace_or_refuse(
                 "output",
                 o,
                 earlier,
-                f"{not_what} (it is written beside {main})",
+                f"{not_what}, and `--out {main}` writes one there",
                 force=False,
                 say=say.append,
                 remedy="move it away, or choose another --out",
