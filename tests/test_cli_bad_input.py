@@ -1142,3 +1142,23 @@ def test_a_scripts_side_table_does_not_replace_a_table_exported_on_its_own(cell,
     table.unlink()
     (tmp_path / "cell.csv").unlink()
     assert main(script) == 0 and main(script) == 0  # its own side table: replaced the second time
+
+
+def test_an_smr_declared_8_mm_off_is_named_as_the_cause_of_large_corrections(tmp_path, capsys):
+    """Series B's SMR 15.8 mm from the declared one: `export` refused its 23.5 mm corrections
+    with "check the model or raise --max-correction", and with the bound raised wrote them into
+    a table with no word of the TCP (real-data audit of 2026-11-29). The refusal now names the
+    SMR as the cause and the fit to run; with the bound raised, a WARNING line says it."""
+    rec, model = tmp_path / "smr.mcap", tmp_path / "smr.json"
+    argv = ["campaign", "--robot", "sim", "--tracker", "sim", "--poses", "30", "--seed", "4"]
+    assert main([*argv, "--smr-offset", "0,0,0.068", "--out", str(rec)]) == 0
+    assert main(["fit", str(rec), "--out", str(model)]) == 0
+    base = ["export", str(model), "--format", "table", "--spacing", "0.2"]
+    one_line_refusal(
+        capsys, [*base, "--out", str(tmp_path / "t.json")], "that is the TCP, not a correction"
+    )
+    capsys.readouterr()
+    wide = [*base, "--max-correction", "0.02", "--out", str(tmp_path / "w.json"), "--json"]
+    assert main(wide) == 0
+    warnings = json.loads(capsys.readouterr().out)["warnings"]
+    assert any("that is the TCP, not a correction" in w and "--smr-offset=" in w for w in warnings)

@@ -176,6 +176,10 @@ def run(args: argparse.Namespace) -> int:
     if not args.json:
         for line in summary["conditions"]:
             print(f"conditions: {line}")
+    from workcell.export.table import smr_hint
+
+    if cause := smr_hint(model):  # corrections of that order follow, if the bound lets them
+        log(f"  WARNING: {cause}")
     if args.format == "targets":
         return _targets(args, model, cond, summary, log, logged)
     volume = parse_vec(args.volume, 6, "--volume") if args.volume else None
@@ -420,6 +424,7 @@ def _targets(args, model, cond, summary, log, logged: list[str]) -> int:
         no_std_line,
         no_std_why,
         node_std,
+        smr_hint,
         std_is_posterior,
         undetermined_line,
         unexplained_lines,
@@ -470,7 +475,9 @@ def _targets(args, model, cond, summary, log, logged: list[str]) -> int:
             f"reach or at a singularity){f'; and {bad.sum() - 1} more' if bad.sum() > 1 else ''}"
         )
     # finite: checked above
-    check_corrections(c - P, P, args.max_correction, where="target", hint=weak_hint(model))
+    check_corrections(
+        c - P, P, args.max_correction, where="target", hint=weak_hint(model), cause=smr_hint(model)
+    )
     log("  " + _check_commanded(src, q, model, nom, lines))
     q_nom = seeds if tin.P is None else nom.ik(P, R, seeds, iters=60)[0]
     if (line := joint_swing_line(q, q_nom, np.linalg.norm(c - P, axis=1), lines)) is not None:

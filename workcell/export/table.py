@@ -690,6 +690,32 @@ def weak_hint(model) -> str:
     )
 
 
+def smr_hint(model) -> str:
+    """For an oversized correction's refusal: the fitted SMR far from the declared one (the
+    fit's own note, `fitting.smr_change`), which is the TCP to declare, not a correction; ''
+    when it is not. Without it the refusal said to raise --max-correction, and a table of
+    24 mm corrections for a TCP 15.8 mm off was one option away (series B, real-data audit
+    of 2026-11-29)."""
+    from workcell.estimation.fitting import smr_change
+    from workcell.estimation.models import geometric_part
+
+    g = geometric_part(model)
+    try:
+        smr = smr_change(g.parameters()) if g is not None else None
+    except Exception:  # noqa: BLE001 - a hint only: a model without those figures gets none
+        smr = None
+    if smr is None:
+        return ""
+    to = ",".join(f"{x:.4f}" for x in smr["suggested_m"])
+    rec = (getattr(model, "info", {}) or {}).get("recording") or "REC"
+    return (
+        f"the fitted SMR is {smr['change_m'] * 1e3:.1f} mm (std {smr['std_m'] * 1e3:.2f} mm) "
+        "from the offset the recording declares: that is the TCP, not a correction; fit again "
+        f"with it declared (`workcell fit {rec} --smr-offset={to}`) and set the controller's "
+        "TCP to it"
+    )
+
+
 def _std_limit(bound_m: float) -> tuple[float, str]:
     """The largest correction 1-sigma an export accepts: the correction bound, never more than
     the default (a bound raised to let large corrections through does not make them known),
@@ -743,9 +769,11 @@ def check_corrections(
     orientation: int = 0,
     where: str = "node",
     hint: str = "",
+    cause: str = "",
 ) -> None:
     """Refuse non-finite or oversized corrections, naming where (one clear line); `hint` (from
-    `weak_hint`) follows the advice on an oversized one."""
+    `weak_hint`) follows the advice on an oversized one; `cause` (from `smr_hint`), when given,
+    replaces that advice (raising --max-correction is then the wrong remedy)."""
     delta = delta.reshape(-1, 3)
     X = X.reshape(-1, 3)
     bad = ~np.all(np.isfinite(delta), axis=1)
@@ -762,8 +790,8 @@ def check_corrections(
         raise CorrectionRefused(
             f"refused: correction {mag[i] * 1e3:.3f} mm at {np.round(X[i], 4).tolist()} m (base), "
             f"orientation {orientation}, exceeds the bound {bound_m * 1e3:g} mm "
-            f"({(mag > bound_m).sum()} {where}(s) over); check the model or raise --max-correction"
-            + hint
+            f"({(mag > bound_m).sum()} {where}(s) over); "
+            + (cause + hint if cause else "check the model or raise --max-correction" + hint)
         )
 
 
@@ -1206,7 +1234,7 @@ def build_table(
     h = float(spacing_m) if spacing_m is not None else float(min(0.1, (hi_m - lo_m).max() / 2))
     log = log or (lambda m: None)
     exact = [None] * K
-    hint = weak_hint(corr.model)  # for a refusal's line
+    hint, cause = weak_hint(corr.model), smr_hint(corr.model)  # for a refusal's line
     while True:
         shape = _grid_shape(lo_m, hi_m, h)
         tab = CorrectionTable(
@@ -1215,13 +1243,13 @@ def build_table(
         X = tab.node_positions()
         for k in range(K):
             D, Q = _solve_grid(corr, X, Rs[k])
-            check_corrections(D, X, max_correction_m, k, hint=hint)
+            check_corrections(D, X, max_correction_m, k, hint=hint, cause=cause)
             tab.delta_m[k], tab.q_nodes[k] = D, Q
         errs = []
         for k in range(K):
             if exact[k] is None:
                 c, _, _ = corr.correct_positions(P, Rs[k], tab.seed_for(P, k))
-                check_corrections(c - P, P, max_correction_m, k, "check point", hint)
+                check_corrections(c - P, P, max_correction_m, k, "check point", hint, cause)
                 exact[k] = c - P
             errs.append(np.linalg.norm(tab.interpolate(P, k) - exact[k], axis=1))
         err = np.concatenate(errs)
