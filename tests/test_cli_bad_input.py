@@ -1162,3 +1162,23 @@ def test_an_smr_declared_8_mm_off_is_named_as_the_cause_of_large_corrections(tmp
     assert main(wide) == 0
     warnings = json.loads(capsys.readouterr().out)["warnings"]
     assert any("that is the TCP, not a correction" in w and "--smr-offset=" in w for w in warnings)
+
+
+def test_replay_prints_about_50_progress_lines_unless_asked_for_all(tmp_path, capsys):
+    """`replay` printed a line a sample: 704 on series D, 602 of them `REJECT` (the running
+    variance test, read as discarded samples; real-data audit of 2026-11-29)."""
+    from workcell.recording.reader import read_recording
+
+    rec = tmp_path / "r.mcap"
+    argv = ["campaign", "--robot", "sim", "--tracker", "sim", "--poses", "120", "--out", str(rec)]
+    assert main([*argv, "--seed", "5"]) == 0
+    n = len(read_recording(rec, streams=False).samples)
+    capsys.readouterr()
+    assert main(["replay", str(rec), "--online", "ekf-ann"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    shown = [ln for ln in out if ln.startswith("  ekf-ann ")]
+    assert n > 100 and len(shown) <= 51, (n, len(shown))
+    assert any("--every 1 for all" in ln and "not a sample discarded" in ln for ln in out)
+    assert main(["replay", str(rec), "--online", "ekf-ann", "--every", "1"]) == 0
+    shown = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("  ekf-ann ")]
+    assert len(shown) == n

@@ -33,7 +33,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="replace an existing file at --save (an earlier model of the same recording is "
         "replaced without it)",
     )
-    p.add_argument("--every", type=int, default=1, help="print every Nth progress line")
+    p.add_argument(
+        "--every",
+        type=int,
+        default=None,
+        help="print every Nth progress line (default: about 50 lines in all; 1: every sample)",
+    )
     add_chain_option(p)
 
 
@@ -218,7 +223,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(
             f"--rate must be 0 (as fast as possible) or 0.001..1e6 times real time, got {args.rate}"
         )
-    if args.every < 1:
+    if args.every is not None and args.every < 1:
         raise UserError(f"--every must be >= 1, got {args.every}")
     if args.save:
         from workcell.estimation.models import check_model_output
@@ -244,6 +249,16 @@ def run(args: argparse.Namespace) -> int:
         print(f"recording {ds.chain_line}", file=sys.stderr)
     lf = LiveFilter.from_session(rec.session)
     out = sys.stderr if args.json else sys.stdout
+    every = args.every
+    if every is None:  # a line a sample flooded the screen: 704 for series D, ~1500 for B
+        every = max(1, -(-len(rec.samples) // 50))  # at most 50, and the last
+        if every > 1:
+            print(
+                f"  (every {every}th of {len(rec.samples)} samples and the last; --every 1 for "
+                "all; s0^2 ok/REJECT: the running chi2 test of the innovations, not a sample "
+                "discarded)",
+                file=out,
+            )
     t_wall0 = time.perf_counter()
     e0 = None
     for k, smp in enumerate(rec.samples):
@@ -256,7 +271,7 @@ def run(args: argparse.Namespace) -> int:
             line = lf.update(smp)
         except ValueError as e:
             raise UserError(f"{args.recording}: {e}") from None
-        if k % args.every == 0 or k == len(rec.samples) - 1:
+        if k % every == 0 or k == len(rec.samples) - 1:
             print("  " + line, file=out, flush=True)
     dt = time.perf_counter() - t_wall0
     est = lf.estimate()
