@@ -70,6 +70,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_chain_option(p)
 
 
+# the report's `extra` keys as the text report names them ("on dh" read as a stray line)
+EXTRA_LABELS = {
+    "on": "base model",
+    "qp_iterations": "QP iterations",
+}
+
 HELDOUT_P = 0.05  # below this, the held-out errors are not what the 1-sigma and noise say
 
 
@@ -400,7 +406,7 @@ def print_report(r: dict, refit=None) -> None:
     for k, v in (r.get("extra") or {}).items():
         if k.startswith("gp_") and isinstance(v, (int, float, list)):
             continue  # the GP's hyperparameters: in the table above, with their std
-        print(f"{k:>16} {v}")
+        print(f"{EXTRA_LABELS.get(k, k):>16} {v}")
     b = r.get("bounds")
     if b:
         print(prose.fill(b["line"], width=100))
