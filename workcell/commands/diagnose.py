@@ -274,8 +274,16 @@ def write_plots(diag, outdir: Path) -> dict:
         ax = axes[1, k]
         bins = np.linspace(0, max(vmax, 1.0) * 1.2, 30)
         ax.hist(np.clip(e, 0, bins[-1]), bins=bins, color="C0" if k == 0 else "C2")
+        over = int(np.sum(e > bins[-1]))
         ax.axvline(rep["noise_floor_m"] * 1e6, color="k", ls="--", lw=1, label="noise floor RMS")
-        ax.set_xlabel("held-out error (um)")
+        ax.set_xlabel(  # the errors beyond the axis are counted in the last bar: say so
+            "held-out error (um)"
+            + (
+                f"\n{over} above {bins[-1]:.0f} um (up to {e.max():.0f}) in the last bar"
+                if over
+                else ""
+            )
+        )
         ax.set_ylabel("poses")
         ax.legend(fontsize=8)
     fig.suptitle(Path(rep["recording"]).name)
