@@ -336,11 +336,7 @@ def order_for_paths(
     (the order then goes on from the pose before it).
     Deterministic, so a resumed campaign re-plans the same pose ids."""
     reach = Reach(spec, env, tool_m, q, signs, approach_rad)
-    remaining = []
-    for i in range(len(q)):  # a path check each: minutes for thousands, so Ctrl-C is heeded
-        stop_if_interrupted()
-        if reach.approach_ok(i):
-            remaining.append(i)
+    remaining = _approachable(reach, len(q))
     order: list[int] = []
     while remaining:
         stop_if_interrupted()
@@ -355,9 +351,18 @@ def order_for_paths(
     return q[idx], signs[idx]
 
 
-FAMILY_MAX_CANDIDATES = (
-    400  # the pairwise check of `largest_family`: ~1.4 s for 22, minutes past this
-)
+def _approachable(reach: Reach, n: int) -> list[int]:
+    """The poses (of `reach`'s n) whose own approach, pre-pose -> pose, stays inside."""
+    ok = []
+    for i in range(n):  # a path check each: minutes for thousands, so Ctrl-C is heeded
+        stop_if_interrupted()
+        if reach.approach_ok(i):
+            ok.append(i)
+    return ok
+
+
+# the pairwise check of `largest_family`: ~1.4 s for 22 candidates, minutes past this
+FAMILY_MAX_CANDIDATES = 400
 
 
 def largest_family(
@@ -380,11 +385,7 @@ def largest_family(
     if len(q) > FAMILY_MAX_CANDIDATES:
         return order_for_paths(spec, env, q, signs, tool_m, approach_rad)
     reach = Reach(spec, env, tool_m, q, signs, approach_rad)
-    ok = []
-    for i in range(len(q)):
-        stop_if_interrupted()
-        if reach.approach_ok(i):
-            ok.append(i)
+    ok = _approachable(reach, len(q))
     if not ok:
         return q[:0], signs[:0]
     A = np.zeros((len(ok), len(ok)), bool)
@@ -392,7 +393,7 @@ def largest_family(
         stop_if_interrupted()
         reach.last = q[i]
         for b, j in enumerate(ok):
-            A[a, b] = i != j and reach.first([j])[0] is not None
+            A[a, b] = i != j and reach.ok(j)
     _, label = connected_components(A, directed=True, connection="strong")
     big = int(np.argmax(np.bincount(label)))
     members = np.array([ok[k] for k in np.flatnonzero(label == big)], int)

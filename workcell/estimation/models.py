@@ -452,29 +452,19 @@ def _check_joint_count(model, source: str, method: str) -> None:
     from workcell.kinematics.chain import N_JOINTS, joints_of
 
     g = geometric_part(model)
+    if g is None:
+        return
     try:
-        n = None if g is None else joints_of(np.asarray(g.theta))
+        n = joints_of(np.asarray(g.theta))
     except (ValueError, TypeError):
         n = None
-    if g is not None and n != N_JOINTS:
+    if n != N_JOINTS:
         raise UserError(
             f"{source}: the {method} model has {len(g.theta)} geometric parameters, not the "
             f"{5 * N_JOINTS + 9} of a {N_JOINTS}-joint arm: exports, envelopes and "
             "validation are for the 6-joint UR arms (a 7-joint chain is the design bench's "
             "only); fit a model of this arm's recording"
         )
-    for m, where in ((model, ""), (getattr(model, "base", None), "base ")):
-        nd = getattr(m, "nominal_dh", None) if m is not None else None
-        if nd is None:
-            continue
-        sizes = {k: np.asarray(getattr(nd, k)).size for k in ("a", "d", "alpha", "theta_offset")}
-        if set(sizes.values()) != {N_JOINTS}:
-            raise UserError(
-                f"{source}: the {method} model's {where}nominal_dh has "
-                + ", ".join(f"{v} {k}" for k, v in sizes.items())
-                + f", not {N_JOINTS} of each (a {N_JOINTS}-joint arm's): edited by hand? restore "
-                "the file or fit it again with `workcell fit`"
-            )
 
 
 COV_PSD_RTOL = 1e-9  # eigenvalues down to -this x the largest are rounding
@@ -807,6 +797,7 @@ def _check_nominal_units(model, source: str, method: str) -> None:
     limits (`recording.checks`): link lengths and the SMR offset in metres, angles in radians.
     A file in millimetres or degrees otherwise fails later as "no finite correction ... shrink
     the volume", or exports a 60 m TCP."""
+    from workcell.kinematics.chain import N_JOINTS
     from workcell.recording.checks import DH_LENGTH_MAX_M, SMR_OFFSET_MAX_M, _length_hint
 
     again = "fit it again with `workcell fit`"
@@ -816,6 +807,14 @@ def _check_nominal_units(model, source: str, method: str) -> None:
         nd = getattr(m, "nominal_dh", None)
         if nd is None:
             continue
+        sizes = {k: np.asarray(getattr(nd, k)).size for k in ("a", "d", "alpha", "theta_offset")}
+        if set(sizes.values()) != {N_JOINTS}:  # the 6-joint fit beside it reads the first six
+            raise UserError(
+                f"{source}: the {method} model's {where}nominal_dh has "
+                + ", ".join(f"{v} {k}" for k, v in sizes.items())
+                + f", not {N_JOINTS} of each (a {N_JOINTS}-joint arm's): edited by hand? restore "
+                f"the file or {again}"
+            )
         for name, lim, unit, other in (
             ("a", DH_LENGTH_MAX_M, "m", "millimetres; the format wants metres"),
             ("d", DH_LENGTH_MAX_M, "m", "millimetres; the format wants metres"),

@@ -47,6 +47,11 @@ def nominal_for_model(model, recording: str | None = None) -> Nominal:
     does not need it: one that was silently ignored (another arm's recording, a model file)."""
     from workcell.recording.dataset import Dataset, file_sha256
 
+    own: Nominal | None = None  # the chain the model carries, if it does
+    try:
+        own = nominal_for(model)
+    except UserError as e:
+        missing = e
     sha = model_recording(model)[1]
     if recording and sha and file_sha256(recording) != sha:
         raise UserError(
@@ -54,38 +59,28 @@ def nominal_for_model(model, recording: str | None = None) -> Nominal:
             "model was fitted on); give that one"
             + (
                 ", or leave --recording out: this model carries its nominal chain"
-                if _carries(model)
+                if own is not None
                 else ""
             )
         )
-    if recording and not sha and _carries(model):
+    if recording and not sha and own is not None:
         raise UserError(
             f"--recording {recording} would not be used: the model carries its nominal chain, "
             "and it names no recording to check this one against; leave --recording out"
         )
-    try:
-        return nominal_for(model)
-    except UserError:
-        rec = recording or model_recording(model)[0]
-        unusable = (getattr(model, "info", {}) or {}).get("recording_unusable")
-        if not rec and unusable:
-            raise UserError(
-                f"{unusable}; this model needs it for its nominal chain: give it with --recording"
-            ) from None
-        if not rec:
-            raise
+    if own is not None:
+        return own
+    rec = recording or model_recording(model)[0]
+    unusable = (getattr(model, "info", {}) or {}).get("recording_unusable")
+    if not rec and unusable:
+        raise UserError(
+            f"{unusable}; this model needs it for its nominal chain: give it with --recording"
+        )
+    if not rec:
+        raise missing  # no chain in the model and no recording to register one on
     ds = Dataset.from_recording(rec)
     train, _ = ds.holdout_split(0.25)
     return nominal_for(model, ds.subset(train))
-
-
-def _carries(model) -> bool:
-    """Whether `nominal_for` finds the model's nominal chain in the model itself."""
-    try:
-        nominal_for(model)
-    except UserError:
-        return False
-    return True
 
 
 def parse_vec(text: str, n: int, what: str) -> np.ndarray:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from workcell.errors import UserError, replace_or_refuse
+from workcell.errors import REPLACE_REMEDY, UserError, replace_or_refuse
 
 # the targets CSV's first line (`export --format targets`; before 2026-11-26 it had no comment
 # lines and columns without units: x,y,z,...)
@@ -67,20 +67,18 @@ def check_export_outputs(outputs, force: bool, say, *, kinds=None, named=None) -
         want = kinds[i] if kinds is not None else kind
         earlier = f"an earlier {kind}" if kind is not None and kind == want else None
         not_what = "not a workcell export" if kind is None else f"a {kind}, not a {want}"
-        if kinds is not None and o != main and earlier and not main_earlier:
+        side = kinds is not None and o != main  # written beside the named file: no --force
+        if side and earlier and not main_earlier:
             earlier, not_what = None, f"a {kind} exported on its own"
-        if kinds is not None and o != main:
-            replace_or_refuse(
-                "output",
-                o,
-                earlier,
-                f"{not_what}, and `--out {main}` writes one there",
-                force=False,
-                say=say.append,
-                remedy="move it away, or choose another --out",
-            )
-            continue
-        replace_or_refuse("output", o, earlier, not_what, force=force, say=say.append)
+        replace_or_refuse(
+            "output",
+            o,
+            earlier,
+            f"{not_what}, and `--out {main}` writes one there" if side else not_what,
+            force=force and not side,
+            say=say.append,
+            remedy="move it away, or choose another --out" if side else REPLACE_REMEDY,
+        )
     for line in say:
         tell(line)
 
