@@ -13,8 +13,6 @@ in the client's process. Three ways to start it:
   (so it never outlives a parent that talks to it) unless `--no-stdin` is given; SIGTERM / SIGINT
   stop it too.
 - `SimProcess(...)` (below): starts that command as a child and talks to it (tests, `workcell sim`).
-- multiprocessing (spawn): `run_controller_process(host, seed, effects, time_scale, faults, ready)`
-  with `ready` a multiprocessing queue (gets the JSON dict) or a writable file descriptor.
 """
 
 from __future__ import annotations
@@ -186,22 +184,6 @@ def run_sim(
         if tracker is not None:
             tracker.stop()
         ctrl.stop()
-
-
-def run_controller_process(
-    host, seed, effects, time_scale, faults, ready=None, with_tracker: bool = False
-) -> None:
-    """multiprocessing target (spawn): `ready` is a queue (gets the info dict) or an fd."""
-
-    def announce(info: dict) -> None:
-        if ready is None:
-            print(json.dumps(info), flush=True)
-        elif isinstance(ready, int):
-            os.write(ready, (json.dumps(info) + "\n").encode())
-        else:
-            ready.put(info)
-
-    run_sim(host, seed, effects, time_scale, faults, with_tracker, ready=announce)
 
 
 # ------------------------------------------------------------------ parent side

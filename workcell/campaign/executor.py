@@ -1149,7 +1149,7 @@ def preview_adaptive_plan(
     with no reachable pose (`PlanStuck`) ends the preview with that as a problem."""
     from workcell.campaign.identification import nominal_smr_in_tracker
     from workcell.campaign.plans import make_plan
-    from workcell.estimation.dh import tracker_spec_sigma
+    from workcell.recording.tracker_spec import tracker_spec_sigma
 
     if kind not in PREVIEW_KINDS:
         raise ValueError(f"no preview for plan {kind!r}; {', '.join(PREVIEW_KINDS)} have one")

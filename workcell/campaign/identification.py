@@ -10,8 +10,8 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from workcell.campaign.envelope import Envelope
-from workcell.estimation.dh import TRACKER_MPE_M, tracker_spec_sigma
 from workcell.kinematics.robots import RobotSpec
+from workcell.recording.tracker_spec import TRACKER_MPE_M, tracker_spec_sigma
 
 REFERENCE_POSES = 60  # random poses inside the envelope: what well-spread poses identify
 HOLDOUT = 0.25  # the fits' default held-out share

@@ -338,12 +338,6 @@ def encode_string(value: str) -> str:
     return "".join(out)
 
 
-def encode_byte(value: int) -> str:
-    if not 0 <= int(value) <= 0xFF:
-        raise ValueError(f"byte value out of range 0..255: {value!r}")
-    return f"'{int(value):02X}'"
-
-
 def decode_long(text: str) -> int:
     t = text.strip()
     if not _LONG_RE.fullmatch(t):

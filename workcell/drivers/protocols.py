@@ -10,6 +10,10 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+# the farthest a laser tracker measures (longest-range ones reach ~160 m): a coordinate beyond it
+# is not a measurement (the serial driver's readings and the recording checks use it)
+TRACKER_RANGE_M = 200.0
+
 
 class DeviceError(RuntimeError):
     """A device failed in a way the campaign's fault policy may handle (retry, reconnect)."""
@@ -26,10 +30,6 @@ class OtherInstrument(DeviceError):
 
 class ProtectiveStop(DeviceError):
     """The robot controller entered a protective stop."""
-
-
-class BeamBroken(DeviceError):
-    """The tracker lost the beam / has no distance (angle ok, no distance)."""
 
 
 @dataclass(frozen=True)

@@ -57,12 +57,12 @@ import serial
 
 from workcell.drivers import geocom as gc
 from workcell.drivers.protocols import (
+    TRACKER_RANGE_M,
     DeviceError,
     DeviceUnreachable,
     OtherInstrument,
     TrackerReading,
 )
-from workcell.recording.checks import TRACKER_RANGE_M
 
 try:  # pyserial's POSIX backend lets termios.error (not an OSError) escape from flush()
     import termios
@@ -142,7 +142,6 @@ class SerialTracker:
         self.precision: int = 15
         self.fault_log: list[tuple[str, str]] = []
         self.fault_counts: Counter[str] = Counter()
-        self.requests_sent = 0
         # what came back that was not the awaited reply (told apart from silence in errors)
         self._rx = Counter()  # bytes, stale (other transaction id), junk lines, unterminated
         self._rx_tail = b""
@@ -508,7 +507,6 @@ class SerialTracker:
         for _attempt in range(self.retries + 1):
             trid = self._next_trid()
             self._write(gc.format_request(gc.Rpc.COM_NullProc, trid=trid, use_crc=self.use_crc))
-            self.requests_sent += 1
             try:
                 rep = self._read_reply(trid, self._clock() + self.timeout_s, skip_garbage=True)
             except _Timeout:
@@ -542,7 +540,6 @@ class SerialTracker:
                 rpc, params, trid=trid, use_crc=self.use_crc, precision=self.precision
             )
             self._write(req)
-            self.requests_sent += 1
             deadline = self._clock() + self.timeout_s + extra_timeout_s
             try:
                 rep = self._read_reply(trid, deadline, skip_garbage=False)

@@ -478,12 +478,6 @@ def _iterate_qp(ds, keep, w, theta, base_ref, free, lo, hi, max_iter, xtol):
     return theta, max_iter, False
 
 
-def fit_method(ds: Dataset, *, bounds=None, progress=None, **_) -> tuple[DHModel, dict]:
-    """FIT_METHODS-style entry: (model, extra)."""
-    m = fit_dh_bounded(ds, bounds="default" if bounds is None else bounds)
-    return m, {"qp_iterations": m.info["qp_iterations"], "converged": m.info["converged"]}
-
-
 __all__ = [
     "default_bounds",
     "fit_dh_bounded",

@@ -27,7 +27,6 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from workcell.estimation.identifiability import (
-    Identifiability,
     fit_identifiability,
     group_representatives,
 )
@@ -46,7 +45,7 @@ from workcell.kinematics.chain import (
     tracker_T_base,
     unpack_dh,
 )
-from workcell.kinematics.frames import apply_transform, kabsch
+from workcell.kinematics.frames import kabsch
 from workcell.kinematics.robots import DH, robot_by_name, robot_from_session
 from workcell.recording.dataset import Dataset
 from workcell.recording.tracker_spec import TRACKER_MPE_M, tracker_spec_sigma
@@ -82,12 +81,6 @@ class DHModel:
     def predict(self, q: np.ndarray, **aux) -> np.ndarray:
         q = np.atleast_2d(np.asarray(q, dtype=float))
         return np.asarray(p_tracker(self.theta, self.base_ref, q))
-
-    def predict_nominal(self, q: np.ndarray) -> np.ndarray:
-        """What the controller's nominal kinematics predicts, in the same registered base."""
-        th = pack(self.nominal_dh, tool=self.info.get("nominal_tool_m", self.theta[-3:]))
-        q = np.atleast_2d(np.asarray(q, dtype=float))
-        return np.asarray(p_tracker(th, self.base_ref, q))
 
     @property
     def std(self) -> np.ndarray:
@@ -331,20 +324,3 @@ def nominal_registered(ds_train: Dataset) -> tuple[np.ndarray, np.ndarray]:
     """Nominal chain with the base registered on the training poses: (theta, base_ref)."""
     th = nominal_theta(ds_train)
     return th, register_base(ds_train, th)
-
-
-def evaluate(model, ds: Dataset) -> dict:
-    from workcell.estimation.models import aux_from_dataset
-
-    return error_stats(model.predict(ds.q, **aux_from_dataset(ds)), ds.p_tracker)
-
-
-def ident_summary(ident: Identifiability) -> str:
-    g = "; ".join("{" + ", ".join(x) + "}" for x in ident.groups)
-    return (
-        f"rank {ident.rank}/{len(ident.names)}, condition {ident.condition:.3g}; fixed groups: {g}"
-    )
-
-
-def transform_points(T: np.ndarray, p: np.ndarray) -> np.ndarray:
-    return apply_transform(T, p)

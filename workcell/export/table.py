@@ -1086,7 +1086,6 @@ def undetermined_line(s3: np.ndarray, mags: np.ndarray, what: str = "nodes") -> 
 
 
 NO_STD_WHY = "the model carries no covariance of its prediction"
-NO_STD_LINE = f"correction 1-sigma: not given ({NO_STD_WHY})"
 # an ekf-ann model keeps its geometric states' covariance (the ROS YAML's +-) but not its
 # network weights' covariance with them: its prediction's covariance cannot be propagated
 EKF_NO_STD_WHY = (

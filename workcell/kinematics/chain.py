@@ -77,7 +77,6 @@ def param_index(n: int = N_JOINTS) -> dict[str, int]:
     return {p: i for i, p in enumerate(param_names(n))}
 
 
-DH_NAMES = dh_names(N_JOINTS)
 PARAM_NAMES: list[str] = param_names(N_JOINTS)
 N_PARAMS = len(PARAM_NAMES)
 
@@ -87,7 +86,6 @@ def param_unit(name: str) -> str:
 
 
 PARAM_UNITS = {n: param_unit(n) for n in PARAM_NAMES}
-I_BASE = base_slice(N_JOINTS)
 I_TOOL = tool_slice(N_JOINTS)
 IDX = param_index(N_JOINTS)
 
@@ -114,11 +112,6 @@ def pack(
 def parallel_beta_names(dh: DH, tol: float = 1e-6) -> list[str]:
     """beta_i worth estimating: link i whose next joint axis is nominally parallel (alpha_i = 0)."""
     return [f"beta{i + 1}" for i in range(len(dh.a) - 1) if abs(np.sin(dh.alpha[i])) < tol]
-
-
-def unpack_beta(theta: np.ndarray) -> np.ndarray:
-    n = joints_of(theta)
-    return np.asarray(theta, dtype=float)[4 * n : 5 * n]
 
 
 def unpack_dh(theta: np.ndarray) -> DH:

@@ -114,11 +114,6 @@ def transform_from(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return T
 
 
-def invert_transform(T: np.ndarray) -> np.ndarray:
-    R, t = T[:3, :3], T[:3, 3]
-    return transform_from(R.T, -R.T @ t)
-
-
 def apply_transform(T: np.ndarray, p: np.ndarray) -> np.ndarray:
     """Apply a (4, 4) transform to points (N, 3)."""
     return p @ T[:3, :3].T + T[:3, 3]

@@ -19,10 +19,10 @@ from collections.abc import Iterable, Sequence
 
 import numpy as np
 
+from workcell.drivers.protocols import TRACKER_RANGE_M
 from workcell.kinematics.robots import DH, RobotSpec, robot_from_session
 
 JOINT_LIMIT_MARGIN_RAD = 0.1  # measured joints may pass a limit by noise and overshoot only
-TRACKER_RANGE_M = 200.0  # longest-range laser trackers measure to ~160 m
 SMR_OFFSET_MAX_M = 1.0  # an SMR mounted a metre from the flange is not a calibration tool
 # standard deviation of a mean of tracker readings: micrometres. One pose may have a large one (two
 # readings, one disturbed), so the unit check is on the file's median; a single sigma above

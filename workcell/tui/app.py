@@ -124,8 +124,6 @@ class WorkcellApp(App):
         self.campaign_idle = threading.Event()
         self.campaign_idle.set()
         self.campaign_running = False
-        self.last_recording: str | None = None
-        self.last_model: str | None = None
         self.last_fit: dict | None = None
         self.last_diagnosis: dict | None = None
         self.last_export: dict | None = None
@@ -678,7 +676,6 @@ class WorkcellApp(App):
         for line in rec.get("repeats") or []:  # the reference pose, over the whole recording
             scr.add_event({"level": "info", "kind": "reference", "message": line})
         if rec.get("samples"):
-            self.last_recording = rec["path"]
             self.views["fit"].set_recording(rec["path"])
             self.views["diagnose"].set_recording(rec["path"])
         if state != "failed":
@@ -723,7 +720,6 @@ class WorkcellApp(App):
         self.views["fit"].show_report(msg.report)
         self._read_warnings(msg.report, "Fit")
         if msg.report.get("model"):
-            self.last_model = msg.report["model"]
             self.views["export"].set_model(msg.report["model"])
         self.notify(
             fit_headline(msg.report),  # "train RMS ..." when no pose was held out, as the CLI

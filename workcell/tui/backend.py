@@ -705,9 +705,6 @@ def check_recording(path: str | Path) -> dict:
 
 
 # ----------------------------------------------------------------------------- fit
-FIT_CHOICES = ("dh", "lddmm", "gp", "ekf-ann")
-
-
 def fit(
     recording: str | Path,
     method: str,

@@ -25,7 +25,7 @@ any chunking (live: one sample at a time) gives the same estimate.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from functools import partial
 
 import numpy as np
@@ -420,9 +420,6 @@ class EkfAnnFilter:
             return
         self.x[: self.n_weights] = w
         self.ann_accepted += 1
-
-    def copy_config(self, **kw) -> FilterConfig:
-        return replace(self.cfg, **kw)
 
 
 def prefit_weights(
