@@ -26,6 +26,7 @@ from workcell.estimation.models import interval_um
 from workcell.tui import backend
 from workcell.tui import messages as m
 from workcell.tui.backend import DeviceConfig, PlanConfig
+from workcell.tui.jobs import campaign_job
 from workcell.tui.screens import (
     CampaignScreen,
     DevicesScreen,
@@ -34,6 +35,7 @@ from workcell.tui.screens import (
     FitScreen,
     PlanScreen,
 )
+from workcell.tui.screens.campaign import campaign_outcome
 from workcell.tui.screens.devices import config_changes
 from workcell.tui.screens.fit import headline as fit_headline
 from workcell.tui.widgets import ConfirmScreen
@@ -456,99 +458,18 @@ class WorkcellApp(App):
         self._awaiting_recovery = False
         self.views["campaign"].set_state("starting")
 
+        online = self.online
+
         def work() -> None:
-            path = None
-            out = plan.out  # the recording (a resume's new file, once worked out)
             try:
-                if not msg.resume_from:
-                    chk = backend.dry_run(plan, dev, preview=False)
-                    self.post_message(m.PlanChecked(plan, chk))
-                    if not chk["ok"]:
-                        raise UserError(
-                            f"dry run found {len(chk['problems'])} problem(s); nothing moved"
-                        )
-                live = backend.LiveResidual(dev.cell)
-                est = None
-                note = "EKF-ANN off"
-                if self.online and not control.abort.is_set():  # aborted: no time for it
-                    est = backend.LiveEstimator(
-                        dev.cell,
-                        on_result=lambda i, e: self.post_message(m.EstimateUpdated(i, e)),
-                    )
-                    note = "" if est.available else "EKF-ANN unavailable"
-                from workcell.recording.repeats import RepeatWatch, repeat_event_line
-
-                if msg.resume_from:
-                    from workcell.campaign.plans import reference_repeats
-                    from workcell.campaign.resume import (
-                        default_out,
-                        recorded_reference_every,
-                        resume_plan,
-                    )
-
-                    info = resume_plan(msg.resume_from)
-                    left = int(info["campaign"]["poses"]) - len(info["done"])
-                    every = recorded_reference_every(info["campaign"], msg.resume_from)
-                    refs = reference_repeats(left, every)
-                    total = left + refs
-                    old = Path(msg.resume_from)
-                    if not out or Path(out) == old or Path(out).exists():
-                        out = str(default_out(old))
-                    plan_run = PlanConfig(**{**plan.__dict__, "out": out})
-                    repeats = RepeatWatch(info["history"])
-                else:
-                    total = plan.measurements()
-                    refs = total - plan.poses
-                    plan_run = plan
-                    repeats = RepeatWatch()
-                self.post_message(m.CampaignStarted(total, out, note, refs))
-                if est is not None and not est.available:
-                    self.post_message(
-                        m.CampaignEvent({"level": "info", "kind": "ekf-ann", "message": est.reason})
-                    )
-
-                def on_sample(s: dict) -> None:
-                    self.post_message(m.SampleRecorded(s, live.update(s), None))
-                    if (r := repeats.update(s)) is not None:  # the reference measured again
-                        line = repeat_event_line(r)
-                        self.post_message(
-                            m.CampaignEvent({"level": "info", "kind": "reference", "message": line})
-                        )
-                    if est is not None:
-                        est.submit(s)
-
-                def on_event(e: dict) -> None:
-                    self.post_message(m.CampaignEvent(e))
-
-                try:
-                    path, result = backend.start_campaign(
-                        dev,
-                        plan_run,
-                        control=control,
-                        on_sample=on_sample,
-                        on_event=on_event,
-                        resume_from=msg.resume_from,
-                    )
-                finally:
-                    if est is not None:
-                        est.close()
-                self.post_message(
-                    m.CampaignFinished(str(path), result, backend.check_recording(path))
+                campaign_job(
+                    self.post_message,
+                    dev,
+                    plan,
+                    control,
+                    resume_from=msg.resume_from,
+                    online=online,
                 )
-            except BaseException as e:
-                rec = None
-                # an error after the recording was opened (a device fault beyond the retries):
-                # the engine stopped the campaign, the recording keeps what it measured
-                stop = backend.error_stop_report(e, out)
-                p = Path(out) if out else None
-                if path is None and p is not None and p.exists():
-                    try:
-                        rec = backend.check_recording(p)
-                    except Exception:  # noqa: BLE001
-                        rec = None
-                self.post_message(m.CampaignFinished(None, None, rec, stop))
-                if stop is None:
-                    raise
             finally:  # the recording is closed (or was never opened): the worker is done
                 self.campaign_idle.set()
 
@@ -649,29 +570,7 @@ class WorkcellApp(App):
         stop = msg.stop
         if stop is None and res is not None:
             stop = backend.stop_report(res, msg.path, self.campaign_log)
-        ok = "closed cleanly" if rec.get("closed_cleanly") else "NOT closed cleanly"
-        # why the engine ended it by itself, what the recording keeps, how to resume (the
-        # event's kind and the notice's title say "stopped")
-        why = f"{stop['reason']}; {stop['recording']}; " if stop else ""
-        if res is None and not stop:
-            state = "failed"
-            summary = (
-                f"campaign failed; recording {rec.get('path', '-')} holds "
-                f"{rec.get('samples', 0)} samples"
-                if rec
-                else "campaign failed before recording"
-            )
-        elif res is None:
-            state = "stopped"
-            summary = (
-                f"{why}{Path(rec.get('path', '-')).name}: {rec.get('samples', '?')} samples, {ok}"
-            )
-        else:
-            state = "stopped" if stop else "aborted" if res.aborted else "finished"
-            summary = (
-                f"{why}{res.measured} measured, {res.skipped} skipped, {res.events} events; "
-                f"{Path(msg.path).name}: {rec.get('samples', '?')} samples, {ok}"
-            )
+        state, summary = campaign_outcome(res, rec, stop, msg.path)
         scr.finish(state, summary, stop)
         for line in rec.get("repeats") or []:  # the reference pose, over the whole recording
             scr.add_event({"level": "info", "kind": "reference", "message": line})

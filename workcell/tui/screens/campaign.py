@@ -44,6 +44,35 @@ def smr_name(smr_m) -> str:
 ACTIVE = ("running", "paused", "starting", "protective stop")
 
 
+def campaign_outcome(res, rec: dict, stop: dict | None, path: str | None) -> tuple[str, str]:
+    """The finished campaign's state ("finished", "aborted", "stopped" or "failed") and its
+    one-line summary, from the engine's result `res` (None after an error), the recording's
+    check `rec` and the stop report `stop` (why the engine ended it by itself, what the
+    recording keeps, how to resume)."""
+    ok = "closed cleanly" if rec.get("closed_cleanly") else "NOT closed cleanly"
+    # why the engine ended it by itself, what the recording keeps, how to resume (the
+    # event's kind and the notice's title say "stopped")
+    why = f"{stop['reason']}; {stop['recording']}; " if stop else ""
+    if res is None and not stop:
+        state = "failed"
+        summary = (
+            f"campaign failed; recording {rec.get('path', '-')} holds "
+            f"{rec.get('samples', 0)} samples"
+            if rec
+            else "campaign failed before recording"
+        )
+    elif res is None:
+        state = "stopped"
+        summary = f"{why}{Path(rec.get('path', '-')).name}: {rec.get('samples', '?')} samples, {ok}"
+    else:
+        state = "stopped" if stop else "aborted" if res.aborted else "finished"
+        summary = (
+            f"{why}{res.measured} measured, {res.skipped} skipped, {res.events} events; "
+            f"{Path(path).name}: {rec.get('samples', '?')} samples, {ok}"
+        )
+    return state, summary
+
+
 class CampaignScreen(WorkcellScreen):
     TITLE_TEXT = "Campaign"
     DEFAULT_CSS = """
