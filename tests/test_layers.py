@@ -39,7 +39,12 @@ ALLOWED_UP = {
     ("workcell.campaign.adaptive", "estimation"),
     ("workcell.campaign.identification", "estimation"),
 }
-ALLOWED_BACK = {"workcell.export.validate", "workcell.export.demo_step", "workcell.export.build"}
+ALLOWED_BACK = {
+    "workcell.export.validate",
+    "workcell.export.demo_step",
+    "workcell.export.build",
+    "workcell.export.margin",
+}
 
 
 def _module_name(path: Path) -> str:

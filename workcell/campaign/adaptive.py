@@ -67,6 +67,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -90,6 +91,9 @@ from workcell.kinematics.chain import (
 )
 from workcell.kinematics.robots import RobotSpec
 from workcell.recording.dataset import Dataset
+
+if TYPE_CHECKING:
+    from workcell.estimation.design.gp import BetaSchedule
 
 # ---------------------------------------------------------------------------- candidates
 
@@ -262,7 +266,7 @@ def make_adaptive_plan(
     n_candidates: int = 1000,
     n_seed: int | None = None,
     index: str = "o1",
-    beta_schedule="srinivas",
+    beta_schedule: BetaSchedule = "srinivas",
     negate_objective: bool = True,
     relinearise_every: int = 5,
     refit_bounds: str | None = "default",
@@ -348,7 +352,7 @@ def plan_over_candidates(
     seed: int,
     n_seed: int | None = None,
     index: str = "o1",
-    beta_schedule="srinivas",
+    beta_schedule: BetaSchedule = "srinivas",
     negate_objective: bool = True,
     relinearise_every: int = 5,
     refit_bounds: str | None = "default",

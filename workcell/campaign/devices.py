@@ -3,17 +3,23 @@
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from workcell.campaign.envelope import default_envelope, load_envelope
+from workcell.campaign.envelope import Envelope, default_envelope, load_envelope
 from workcell.campaign.run import CellSetup
 from workcell.errors import UserError
-from workcell.kinematics.robots import robot_by_name
+from workcell.kinematics.robots import RobotSpec, robot_by_name
 from workcell.recording.checks import SMR_OFFSET_MAX_M
 
+if TYPE_CHECKING:
+    import argparse
 
-def envelope_from_args(args, spec):
+    from workcell.drivers.protocols import Robot, Tracker
+
+
+def envelope_from_args(args: argparse.Namespace, spec: RobotSpec) -> Envelope:
     """`--envelope FILE` (checked for this arm) or the arm's default envelope."""
     path = getattr(args, "envelope", None)
     if path in (None, "", "default"):
@@ -24,7 +30,7 @@ def envelope_from_args(args, spec):
 DEFAULT_SMR_OFFSET_M = (0.0, 0.0, 0.06)
 
 
-def parse_smr_offset(text, what: str = "--smr-offset") -> np.ndarray:
+def parse_smr_offset(text: str | None, what: str = "--smr-offset") -> np.ndarray:
     """'X,Y,Z' in metres on the flange -> (3,); None or '' -> the default. Refuses a length
     over `SMR_OFFSET_MAX_M` (millimetres typed as metres) and anything not three finite
     numbers."""
@@ -58,7 +64,7 @@ def check_time_scale_range(scale: float, opt: str = "--time-scale") -> None:
 PAYLOAD_COM_MAX_M = 0.5  # a centre of mass further from the flange is millimetres typed
 
 
-def parse_payload(text, spec, what: str = "--payload") -> tuple[float, tuple]:
+def parse_payload(text: str, spec: RobotSpec, what: str = "--payload") -> tuple[float, tuple]:
     """'KG' or 'KG,CX,CY,CZ' (mass in kilograms, centre of mass in metres on the flange, as set
     on the teach pendant) -> (mass_kg, com_m). Refuses a negative or non-finite mass, one above
     the arm's rated payload (grams typed as kilograms), a centre of mass beyond
@@ -98,7 +104,7 @@ def check_device_pair(robot: str, tracker: str) -> None:
         )
 
 
-def open_cell(args):
+def open_cell(args: argparse.Namespace) -> tuple[CellSetup, Robot, Tracker, Envelope]:
     """-> (CellSetup, robot, tracker, envelope) from parsed CLI args (`envelope`: optional
     FILE; default: the arm's default envelope; `smr_offset`: optional 'X,Y,Z' m, the SMR on the
     flange as the operator declares it; a simulated cell keeps its own true SMR)."""

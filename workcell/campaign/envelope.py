@@ -8,6 +8,7 @@ from __future__ import annotations
 import difflib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -15,6 +16,9 @@ from workcell import strict_json
 from workcell.errors import UserError
 from workcell.kinematics.chain import base_T_frames, pack
 from workcell.kinematics.robots import RobotSpec
+
+if TYPE_CHECKING:
+    import os
 
 # Ceilings of an envelope's caps, whatever the arm: the UR controller's own joint limits (ur_rtde
 # refuses a moveJ above 3.14 rad/s or 40 rad/s^2); the simulated 7-joint arm is slower.
@@ -423,7 +427,7 @@ def check_envelope_for(env: Envelope, spec: RobotSpec, source: str = "envelope")
     return env
 
 
-def load_envelope(path, spec: RobotSpec) -> Envelope:
+def load_envelope(path: str | os.PathLike, spec: RobotSpec) -> Envelope:
     """An envelope JSON file (the `Envelope.to_dict` layout, SI) checked for `spec`; every
     problem is one `UserError` naming the file."""
     p = Path(path)

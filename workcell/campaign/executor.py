@@ -42,7 +42,7 @@ from __future__ import annotations
 import signal
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
@@ -202,7 +202,7 @@ class CampaignControl:
             raise KeyboardInterrupt
         return old
 
-    def on_sigint(self, signum: int = signal.SIGINT, *_) -> None:
+    def on_sigint(self, signum: int = signal.SIGINT, *_: object) -> None:
         """Abort-signal handler for a command line: abort at once before the campaign starts (a
         plan of many poses takes minutes), cleanly (robot stopped, recording closed) once it
         runs; inside an `interruptible` call (a tracker reading) at once, cleanly too."""
@@ -214,7 +214,7 @@ class CampaignControl:
             raise KeyboardInterrupt
 
     @contextmanager
-    def interruptible(self):
+    def interruptible(self) -> Iterator[None]:
         """A block that an abort signal may cut short with KeyboardInterrupt (it records
         nothing and commands no motion: a tracker reading, a wait). Only in the main thread,
         where signal handlers run; elsewhere (a UI's worker) the block runs as it is."""

@@ -287,7 +287,9 @@ def too_few_to_fit_notes(poses: int) -> list[dict]:
     ]
 
 
-def pose_count_warnings(spec, env, tool_m, poses: int) -> list[str]:
+def pose_count_warnings(
+    spec: RobotSpec, env: Envelope, tool_m: np.ndarray, poses: int
+) -> list[str]:
     """The dry run's warnings that need only the number of poses (a plan whose poses cannot be
     listed before the campaign, bo): too few for a point tracker to identify what well-spread
     poses do (3 equations a pose), and too few to fit (`too_few_to_fit`)."""

@@ -8,6 +8,11 @@ connection is up and reconciles it with what the operator declared."""
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from workcell.campaign.run import CellSetup
+    from workcell.drivers.protocols import Robot
 
 PAYLOAD_MASS_TOL_KG = 0.01  # the teach pendant shows the mass to 0.01 kg
 PAYLOAD_COM_TOL_M = 0.001  # and the centre of mass to the millimetre
@@ -41,7 +46,7 @@ def _payload_text(kg: float, com) -> str:
     return f"{kg:.3g} kg at ({c}) mm"
 
 
-def settle_payload(cell, robot, how: str = CLI_HOW) -> list[dict]:
+def settle_payload(cell: CellSetup, robot: Robot, how: str = CLI_HOW) -> list[dict]:
     """Ask a robot that reports its controller's payload setting (`payload_setting()`, the
     `PayloadReadable` Protocol) for it, once its connection is up, and reconcile it with the
     cell's: nobody stated the payload -> the controller's setting is recorded (an info note);

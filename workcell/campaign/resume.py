@@ -21,12 +21,14 @@ import copy
 import dataclasses
 import re
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from workcell.campaign.devices import open_cell
-from workcell.campaign.envelope import envelope_of_session
+from workcell.campaign.envelope import Envelope, envelope_of_session
 from workcell.campaign.executor import CampaignConfig, CampaignControl
 from workcell.campaign.run import (
     abort_note,
@@ -42,6 +44,9 @@ from workcell.recording import checks
 from workcell.recording.chain import file_sha256, follow_chain
 from workcell.recording.reader import read_recording
 from workcell.recording.repeats import RepeatWatch
+
+if TYPE_CHECKING:
+    from workcell.kinematics.robots import RobotSpec
 
 
 def _read_for_resume(old: str):
@@ -310,7 +315,9 @@ def recorded_config(camp: dict, payload_kg: float, defaults: CampaignConfig) -> 
     )
 
 
-def check_same_plan(info: dict, spec, env, tool_m, source: str) -> None:
+def check_same_plan(
+    info: dict, spec: RobotSpec, env: Envelope, tool_m: np.ndarray, source: str
+) -> None:
     """A grid or random plan is resumed by pose id, so the re-created plan must put every
     recorded pose id at the configuration that was commanded for it; else (a recording made by
     a version that planned differently, another tool, an edited session) poses would be measured
@@ -347,7 +354,13 @@ def check_same_plan(info: dict, spec, env, tool_m, source: str) -> None:
             )
 
 
-def recorded_envelope(camp: dict, spec, source: str, default, say=None):
+def recorded_envelope(
+    camp: dict,
+    spec: RobotSpec,
+    source: str,
+    default: Envelope,
+    say: Callable[[str], None] | None = None,
+) -> Envelope:
     """The envelope the old campaign ran in: its poses were planned inside it and every motion of
     the continuation must stay inside it. A recording without one gets `default`, and `say`
     (default: stderr) is told so."""
@@ -426,7 +439,7 @@ def check_same_cell(camp: dict, source: str, *, robot_url: str, tracker_url: str
             )
 
 
-def new_serial_port(recorded, given) -> bool:
+def new_serial_port(recorded: object, given: object) -> bool:
     """Both addresses name a serial port, and not the same one: the tracker may have been
     re-plugged (`run.check_same_tracker` decides once it is connected)."""
     return (

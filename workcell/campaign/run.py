@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -29,7 +29,7 @@ from workcell.campaign.plans import (
     with_reference,
 )
 from workcell.campaign.watch import MarginWatch
-from workcell.drivers.protocols import DeviceError, close_quietly
+from workcell.drivers.protocols import DeviceError, Robot, Tracker, close_quietly
 from workcell.errors import INTERRUPTED, UserError
 from workcell.kinematics.robots import RobotSpec
 from workcell.recording.writer import RecordingWriter
@@ -102,7 +102,7 @@ def _first_target(plan, cell, env, poses, seed, cfg, plan_kwargs) -> PoseTarget:
         gen.close()
 
 
-def tracker_identity(tracker) -> dict:
+def tracker_identity(tracker: Tracker) -> dict:
     """What the connected tracker says it is, recorded in the session's `tracker` block and
     compared by a resume (`check_same_tracker`): `instrument_name` and `serial_number` of a GeoCOM
     instrument (CSV_GetInstrumentName, CSV_GetInstrumentNo); {} for a tracker that does not say
@@ -197,8 +197,8 @@ def _start_clock(clock: dict | None, elapsed0_s: float) -> tuple[int, float]:
 
 
 def run_campaign(
-    robot,
-    tracker,
+    robot: Robot,
+    tracker: Tracker,
     cell: CellSetup,
     out: str | Path,
     *,
@@ -433,7 +433,7 @@ def campaign_stop(res: CampaignResult, path: str | Path) -> None:
 
 
 @contextmanager
-def device_errors_say_resume():
+def device_errors_say_resume() -> Iterator[None]:
     """A device error that ended a campaign whose recording was open (`run_campaign` notes it
     on the error) says which file keeps the poses and how to continue it (one line, exit 3)."""
     try:
@@ -455,14 +455,14 @@ def summary(line: str, control: CampaignControl) -> None:
             raise
 
 
-def abort_note(res, path: str | Path) -> None:
+def abort_note(res: CampaignResult, path: str | Path) -> None:
     """After an operator's abort (Ctrl-C, SIGTERM, SIGHUP, the TUI's abort): one line on stderr
     saying what the recording keeps and how to continue it, as the other stops say."""
     if res.stopped_by == "operator":
         progress(f"aborted: {resume_hint(path, res.measured)}")
 
 
-def exit_code(res, control: CampaignControl) -> int:
+def exit_code(res: CampaignResult, control: CampaignControl) -> int:
     """0, or for an aborted campaign 128 + the signal that stopped it (130 Ctrl-C, 143
     SIGTERM, 129 SIGHUP; 130 for an abort without a signal), what a shell reports for a
     process a signal ended."""

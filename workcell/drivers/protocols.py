@@ -102,7 +102,7 @@ class Tracker(Protocol):
         ...
 
 
-def close_quietly(*devices) -> None:
+def close_quietly(*devices: Robot | Tracker) -> None:
     """Close each device, best effort: a device that fails to close (already gone, connection
     dropped) does not stop the others from closing."""
     for dev in devices:

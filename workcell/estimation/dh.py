@@ -21,7 +21,9 @@ Steps (all on the training poses):
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -46,12 +48,12 @@ from workcell.kinematics.chain import (
     unpack_dh,
 )
 from workcell.kinematics.frames import kabsch
-from workcell.kinematics.robots import DH, robot_by_name, robot_from_session
+from workcell.kinematics.robots import DH, RobotSpec, robot_by_name, robot_from_session
 from workcell.recording.dataset import Dataset
 from workcell.recording.tracker_spec import TRACKER_MPE_M, tracker_spec_sigma
 
 
-def free_mask(v, n: int) -> np.ndarray:
+def free_mask(v: object, n: int) -> np.ndarray:
     """A model file's `free` (which parameters the fit estimated): n true/false values (1/0
     accepted); anything else (text, NaN, another length) is a ValueError, not a mask that
     `np.asarray(v, bool)` would make of it."""
@@ -78,7 +80,7 @@ class DHModel:
     info: dict = field(default_factory=dict)
     method: str = "dh"
 
-    def predict(self, q: np.ndarray, **aux) -> np.ndarray:
+    def predict(self, q: np.ndarray, **aux: Any) -> np.ndarray:
         q = np.atleast_2d(np.asarray(q, dtype=float))
         return np.asarray(p_tracker(self.theta, self.base_ref, q))
 
@@ -90,7 +92,7 @@ class DHModel:
         """Covariance (39, 39) of `theta`; zero rows/columns for fixed parameters."""
         return self.cov
 
-    def prediction_cov(self, q: np.ndarray, **aux) -> np.ndarray:
+    def prediction_cov(self, q: np.ndarray, **aux: Any) -> np.ndarray:
         """Covariance (N, 3, 3) of `predict(q)` (tracker frame) from the parameter covariance,
         to first order: J cov J^T with J = d p / d theta."""
         q = np.atleast_2d(np.asarray(q, dtype=float))
@@ -159,7 +161,7 @@ class DHModel:
             info=d.get("info", {}),
         )
 
-    def robot_spec(self):
+    def robot_spec(self) -> RobotSpec:
         try:
             return robot_by_name(self.robot_model).with_dh(self.nominal_dh)
         except ValueError:
@@ -243,7 +245,15 @@ def fit_dh(
     )
 
 
-def robust_solve(solve, ds, theta, base_ref, w, outlier_k: float, passes: int = 2):
+def robust_solve(
+    solve: Callable[[np.ndarray, np.ndarray], np.ndarray],
+    ds: Dataset,
+    theta: np.ndarray,
+    base_ref: np.ndarray,
+    w: np.ndarray,
+    outlier_k: float,
+    passes: int = 2,
+) -> tuple[np.ndarray, np.ndarray]:
     """`solve(keep, theta) -> theta` on all poses, then up to `passes` robust passes
     (`robust_keep`), each followed by a solve on the poses it keeps, so that the result is the
     fit of the poses returned. Returns (theta, keep). Shared by the fits (dh, bounded)."""
@@ -258,7 +268,14 @@ def robust_solve(solve, ds, theta, base_ref, w, outlier_k: float, passes: int = 
     return theta, keep
 
 
-def robust_keep(ds, theta, base_ref, w, keep, outlier_k: float) -> np.ndarray | None:
+def robust_keep(
+    ds: Dataset,
+    theta: np.ndarray,
+    base_ref: np.ndarray,
+    w: np.ndarray,
+    keep: np.ndarray,
+    outlier_k: float,
+) -> np.ndarray | None:
     """The robust pass shared by the fits: poses whose weighted residual lies beyond
     `3 * outlier_k` robust sigmas (MAD) of the kept ones are set aside. Returns the new mask, or
     None when nothing changes or more than 20 % of the poses would go."""
@@ -272,7 +289,15 @@ def robust_keep(ds, theta, base_ref, w, keep, outlier_k: float) -> np.ndarray | 
     return new_keep
 
 
-def weighted_covariance(ds, theta, base_ref, w, keep, est, n_free: int):
+def weighted_covariance(
+    ds: Dataset,
+    theta: np.ndarray,
+    base_ref: np.ndarray,
+    w: np.ndarray,
+    keep: np.ndarray,
+    est: np.ndarray,
+    n_free: int,
+) -> tuple[np.ndarray, float]:
     """Cov = s0^2 (J^T W J)^-1 over the parameters `est` (mask), s0^2 = chi2 / (3N - n_free).
     Returns (cov (P, P) with zeros elsewhere, P = len(theta), s0^2)."""
     qk = ds.q[keep]

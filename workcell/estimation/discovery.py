@@ -1187,7 +1187,9 @@ def _drift(dfit: Dataset, res_tr, dte: Dataset, res_te, cfg: DiagnoseConfig, gp)
     return {**d, "text": text}
 
 
-def noise_floor_m(dh: DHModel, dtr: Dataset, dte: Dataset, sig_tr, sig_te) -> float:
+def noise_floor_m(
+    dh: DHModel, dtr: Dataset, dte: Dataset, sig_tr: np.ndarray, sig_te: np.ndarray
+) -> float:
     """Expected held-out RMS from noise alone: sqrt(mean(3 sigma^2 + tr(J Cov J^T)))."""
     from workcell.kinematics.chain import jac_params
 

@@ -32,10 +32,13 @@ optional non-parametric residual model), saved and replayed like any other model
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from workcell._jax import jax, jnp
 from workcell.kinematics.chain import (
@@ -200,7 +203,7 @@ def _tr(x, y, z):
     return jnp.eye(4).at[0, 3].set(x).at[1, 3].set(y).at[2, 3].set(z)
 
 
-def p_aug_single(theta, eff, base_ref, q, x):
+def p_aug_single(theta: Any, eff: Any, base_ref: Any, q: Any, x: Any) -> Any:
     """SMR in the tracker frame for one pose: geometry theta (39,), effects eff (N_EFF,),
     joints q (6,), per-pose features x (N_FEAT,) = tau, approach sign, dT per link, link loads."""
     tau, sgn, dT, load = x[0:6], x[6:12], x[12:18], x[18:20]
@@ -245,7 +248,7 @@ _MIN_BUCKET = [64]
 
 
 @contextmanager
-def batch_bucket(n: int):
+def batch_bucket(n: int) -> Iterator[None]:
     """Within this context every padded call uses at least the bucket of n poses, so one
     diagnosis compiles each jitted function once (train and held-out sets share a shape)."""
     old = _MIN_BUCKET[0]
@@ -261,7 +264,7 @@ def _pad(n: int) -> int:
     return max(_MIN_BUCKET[0], 1 << int(np.ceil(np.log2(max(n, 1)))))
 
 
-def padded_call(fn, q: np.ndarray, *args, **kw) -> np.ndarray:
+def padded_call(fn: Callable[..., Any], q: np.ndarray, *args: Any, **kw: Any) -> np.ndarray:
     """fn(q_padded, ...) sliced back to len(q): for jitted per-pose functions of the foundation."""
     q = np.atleast_2d(np.asarray(q, float))
     n = len(q)
@@ -281,7 +284,13 @@ def _padded(q: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     )
 
 
-def p_aug(theta, eff, base_ref, q, x) -> np.ndarray:
+def p_aug(
+    theta: npt.ArrayLike,
+    eff: npt.ArrayLike,
+    base_ref: npt.ArrayLike,
+    q: np.ndarray,
+    x: npt.ArrayLike,
+) -> np.ndarray:
     """(N, 3) SMR positions in the tracker frame (padded internally to limit recompilations)."""
     n = len(q)
     qp, xp = _padded(np.asarray(q, float), np.asarray(x, float))
@@ -290,7 +299,13 @@ def p_aug(theta, eff, base_ref, q, x) -> np.ndarray:
     ]
 
 
-def jac_aug(theta, eff, base_ref, q, x) -> tuple[np.ndarray, np.ndarray]:
+def jac_aug(
+    theta: npt.ArrayLike,
+    eff: npt.ArrayLike,
+    base_ref: npt.ArrayLike,
+    q: np.ndarray,
+    x: npt.ArrayLike,
+) -> tuple[np.ndarray, np.ndarray]:
     """(d p / d theta (N, 3, 39), d p / d eff (N, 3, N_EFF))."""
     n = len(q)
     qp, xp = _padded(np.asarray(q, float), np.asarray(x, float))
@@ -317,7 +332,13 @@ def thermal_source(temps: np.ndarray, ambient: np.ndarray, elapsed: np.ndarray) 
     return "none"
 
 
-def thermal_signal(source: str, temps, ambient, elapsed, n: int) -> np.ndarray:
+def thermal_signal(
+    source: str,
+    temps: npt.ArrayLike | None,
+    ambient: npt.ArrayLike | None,
+    elapsed: npt.ArrayLike | None,
+    n: int,
+) -> np.ndarray:
     """(N, 6) per-link signal (K, or hours for 'time') before subtracting the reference."""
     if source == "joint":
         t = np.asarray(temps, float)
@@ -342,7 +363,7 @@ class FeatureSpec:
     thermal_ref: np.ndarray = field(default_factory=lambda: np.zeros(6))
     payload_kg_default: float = 0.0
 
-    def features(self, theta: np.ndarray, q: np.ndarray, **aux) -> np.ndarray:
+    def features(self, theta: np.ndarray, q: np.ndarray, **aux: Any) -> np.ndarray:
         q = np.atleast_2d(np.asarray(q, float))
         n = len(q)
         pay = aux.get("payload_kg")
@@ -416,14 +437,14 @@ class AugmentedModel:
         idx = sorted({i for c in self.accepted for i in c.idx})
         return np.asarray(idx, int)
 
-    def features(self, q: np.ndarray, **aux) -> np.ndarray:
+    def features(self, q: np.ndarray, **aux: Any) -> np.ndarray:
         return self.features_spec.features(self.theta, q, **aux)
 
-    def predict_parametric(self, q: np.ndarray, **aux) -> np.ndarray:
+    def predict_parametric(self, q: np.ndarray, **aux: Any) -> np.ndarray:
         q = np.atleast_2d(np.asarray(q, float))
         return p_aug(self.theta, self.eff, self.base_ref, q, self.features(q, **aux))
 
-    def predict(self, q: np.ndarray, **aux) -> np.ndarray:
+    def predict(self, q: np.ndarray, **aux: Any) -> np.ndarray:
         p = self.predict_parametric(q, **aux)
         if self.residual is not None:
             from workcell.estimation.discovery_np import ResidualGP
@@ -444,14 +465,14 @@ class AugmentedModel:
         out[np.ix_(idx, idx)] = self.cov[: len(idx), : len(idx)]
         return out
 
-    def prediction_jacobian(self, q: np.ndarray, **aux) -> np.ndarray:
+    def prediction_jacobian(self, q: np.ndarray, **aux: Any) -> np.ndarray:
         """Jacobian (N, 3, P) of the parametric `predict(q, **aux)` (tracker frame) with respect
         to the estimated parameters, in `cov`'s order (free geometry, then accepted effects)."""
         q = np.atleast_2d(np.asarray(q, float))
         Jt, Je = jac_aug(self.theta, self.eff, self.base_ref, q, self.features(q, **aux))
         return np.concatenate([Jt[:, :, self.free], Je[:, :, self.active]], axis=2)
 
-    def prediction_cov(self, q: np.ndarray, **aux) -> np.ndarray | None:
+    def prediction_cov(self, q: np.ndarray, **aux: Any) -> np.ndarray | None:
         """Covariance (N, 3, 3) of `predict(q, **aux)` (tracker frame) from the covariance of the
         geometry and the accepted effects, to first order (features held at their values). With
         a residual GP, plus its posterior variance per axis, added as if independent of the

@@ -10,8 +10,10 @@ import importlib
 import time
 from collections.abc import Callable
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import numpy as np
+import numpy.typing as npt
 
 from workcell.errors import UserError
 from workcell.estimation.dh import (
@@ -24,6 +26,7 @@ from workcell.estimation.dh import (
 )
 from workcell.estimation.models import (
     RMS_INTERVAL_BASIS,
+    FittedModel,
     aux_from_dataset,
     error_stats,
     note_joint_range,
@@ -38,6 +41,9 @@ from workcell.kinematics.chain import (
     param_unit,
 )
 from workcell.recording.dataset import HOLDOUT_SEED, Dataset, distinct_poses, read_warnings
+
+if TYPE_CHECKING:
+    import os
 
 MIN_TRAIN_POSES = 12  # a fit refuses fewer training poses (or distinct configurations)
 
@@ -125,7 +131,9 @@ def tracker_noise_floor(ds: Dataset, mpe: tuple[float, float] = TRACKER_MPE_M) -
 HELDOUT_OUTLIER_SIGMAS = 15.0  # robust sigmas, the band of the fits' robust pass (3 x 5)
 
 
-def heldout_outliers(p_pred: np.ndarray, ev: Dataset, tracker_mpe=TRACKER_MPE_M) -> dict | None:
+def heldout_outliers(
+    p_pred: np.ndarray, ev: Dataset, tracker_mpe: tuple[float, float] = TRACKER_MPE_M
+) -> dict | None:
     """Held-out poses `ev` whose error (model prediction `p_pred` (N, 3) against the measured
     point) lies beyond 15 robust sigmas (MAD) of the held-out errors.
     One outlier reading there inflates the held-out RMS and what it says the model leaves
@@ -168,7 +176,7 @@ def fit_dataset(
     bounds: str | None = None,
     tracker_mpe: tuple[float, float] = TRACKER_MPE_M,
     progress: Callable[[str], None] | None = None,
-) -> tuple[object, dict]:
+) -> tuple[FittedModel, dict]:
     if method not in FIT_METHODS:
         raise UserError(f"unknown method {method!r}; choose from {', '.join(FIT_METHODS)}")
     train, test = ds.holdout_split(holdout)
@@ -272,7 +280,11 @@ def fit_dataset(
 
 
 def heldout_std_check(
-    model, ds: Dataset, tracker_mpe=TRACKER_MPE_M, *, pred: np.ndarray | None = None
+    model: FittedModel,
+    ds: Dataset,
+    tracker_mpe: tuple[float, float] = TRACKER_MPE_M,
+    *,
+    pred: np.ndarray | None = None,
 ) -> dict | None:
     """The model's stated 1-sigma of its prediction at held-out poses `ds`, and how it holds
     their errors: e^T (C + s^2 I)^-1 e / 3 per pose, C the model's prediction covariance and s
@@ -320,7 +332,7 @@ def heldout_std_check(
     }
 
 
-def combined_base(model) -> dict | None:
+def combined_base(model: FittedModel) -> dict | None:
     """The model's tracker_T_base (its base_ref registration with the fitted base offsets) with
     the 1-sigma of its translation and rotation (`chain.base_pose_with_std`), from the geometric
     part of the model; None for a model without one. Two fits of one cell differ in how they
@@ -332,7 +344,14 @@ def combined_base(model) -> dict | None:
     return None if g is None else base_pose_with_std(g.theta, g.base_ref, geometric_cov(g))
 
 
-def bounds_summary(model, bounds, heldout_rms_m: float, dtr, ev, tracker_mpe) -> dict:
+def bounds_summary(
+    model: DHModel,
+    bounds: str | dict,
+    heldout_rms_m: float,
+    dtr: Dataset,
+    ev: Dataset,
+    tracker_mpe: tuple[float, float],
+) -> dict:
     """What the bounds of a bounded DH fit (`--bounds`) did: the estimated parameters held at
     a bound (`at_bound`: name, side (lower, upper, or fixed: a bound [v, v] fixes it at v),
     value, bound, unit), the bounds on parameters the fit does not estimate (`not_estimated`, no
@@ -418,18 +437,18 @@ def bounds_line(b: dict) -> str:
 
 
 def fit_recording(
-    path,
+    path: str | os.PathLike,
     *,
-    method="dh",
-    holdout=0.25,
-    out=None,
-    on="auto",
-    bounds=None,
-    tracker_mpe=TRACKER_MPE_M,
-    progress=None,
+    method: str = "dh",
+    holdout: float = 0.25,
+    out: str | os.PathLike | None = None,
+    on: str = "auto",
+    bounds: str | None = None,
+    tracker_mpe: tuple[float, float] = TRACKER_MPE_M,
+    progress: Callable[[str], None] | None = None,
     warn=None,
-    chain_missing="refuse",
-    smr_offset_m=None,
+    chain_missing: str = "refuse",
+    smr_offset_m: npt.ArrayLike | None = None,
 ) -> dict:
     """`warn(line)` hears what the reader could not read (damaged chunk, cut-off end) before
     the fit starts; the report lists it as `recording_problems`. A resumed recording is fitted
@@ -515,7 +534,7 @@ def smr_change(params: dict) -> dict | None:
     }
 
 
-def keep_in_model(model, ds: Dataset, report: dict) -> None:
+def keep_in_model(model: FittedModel, ds: Dataset, report: dict) -> None:
     """Put what the model file should carry into the model's `info`: its recording (path and
     sha256) and the held-out figures of `report` (RMS, its interval, what it leaves unexplained,
     and the same without named held-out outliers), which `export` states beside a table's

@@ -14,12 +14,19 @@ uncertainty and is reported as `at_bound` without a std.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from workcell.estimation.dh import TRACKER_MPE_M, DHModel, fit_dh
 from workcell.estimation.models import model_from_dict
+
+if TYPE_CHECKING:
+    from sklearn.gaussian_process import GaussianProcessRegressor
+
+    from workcell.recording.dataset import Dataset
 
 
 @dataclass
@@ -39,7 +46,7 @@ class GPResidualModel:
     method: str = "gp"
 
     @property
-    def unidentifiable(self):
+    def unidentifiable(self) -> list[list[str]]:
         return self.base.unidentifiable
 
     def _k(self, A: np.ndarray, B: np.ndarray) -> np.ndarray:
@@ -55,7 +62,7 @@ class GPResidualModel:
             out[s : s + 4096] = self._k(q[s : s + 4096], self.X) @ self.alpha + self.y_mean
         return out
 
-    def predict(self, q: np.ndarray, **aux) -> np.ndarray:
+    def predict(self, q: np.ndarray, **aux: Any) -> np.ndarray:
         return self.base.predict(q) + self.residual(q)
 
     def predict_std(self, q: np.ndarray) -> np.ndarray:
@@ -71,7 +78,7 @@ class GPResidualModel:
         var = self.signal_var - np.einsum("ij,ji->i", Ks, v)
         return np.sqrt(np.clip(var, 0.0, None))
 
-    def prediction_cov(self, q: np.ndarray, **aux) -> np.ndarray:
+    def prediction_cov(self, q: np.ndarray, **aux: Any) -> np.ndarray:
         """Covariance (N, 3, 3) of `predict(q)` (tracker frame): the geometry's from its parameter
         covariance plus the GP's posterior variance of the residual on each axis. The two are
         added as if independent (the GP was fitted to that geometry's residuals, so their errors
@@ -233,7 +240,7 @@ def _at_bound(gpr, rel_bound: float = 1e-2) -> np.ndarray:
     return ~((theta - bounds[:, 0] > rel_bound) & (bounds[:, 1] - theta > rel_bound))
 
 
-def laplace_log_std(gpr, rel_bound: float = 1e-2) -> np.ndarray:
+def laplace_log_std(gpr: GaussianProcessRegressor, rel_bound: float = 1e-2) -> np.ndarray:
     """Laplace standard deviations of a fitted scikit-learn GP's log-hyperparameters.
 
     The Hessian of the negative log marginal likelihood comes from central differences of its
@@ -264,7 +271,12 @@ def laplace_log_std(gpr, rel_bound: float = 1e-2) -> np.ndarray:
 
 
 def fit_method(
-    ds, *, on: str = "auto", progress=None, tracker_mpe=TRACKER_MPE_M, **_
+    ds: Dataset,
+    *,
+    on: str = "auto",
+    progress: Callable[[str], None] | None = None,
+    tracker_mpe: tuple[float, float] = TRACKER_MPE_M,
+    **_: Any,
 ) -> tuple[GPResidualModel, dict]:
     """`workcell fit --method gp`: DH fit, then a GP on its residual (training poses only)."""
     if on == "nominal":

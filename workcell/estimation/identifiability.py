@@ -27,11 +27,17 @@ when the caller weights it) is analysed:
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
+import numpy.typing as npt
 
 from workcell.kinematics.chain import N_JOINTS, joints_of, param_names
+
+if TYPE_CHECKING:
+    from workcell.kinematics.robots import DH
 
 
 def priority_for(n: int) -> list[str]:
@@ -57,7 +63,7 @@ def priority_for(n: int) -> list[str]:
 PRIORITY = priority_for(6)
 
 
-def candidates_for(dh, fixed=()) -> list[str]:
+def candidates_for(dh: DH, fixed: Iterable[str] | None = ()) -> list[str]:
     """The parameters a fit may estimate for the chain `dh`: all 5 n + 9 but the Hayati tilts of
     links whose next axis is not nominally parallel, and those in `fixed`."""
     from workcell.kinematics.chain import parallel_beta_names
@@ -85,7 +91,7 @@ OBSERVABILITY_BASIS = (
 )
 
 
-def parameter_units(names, angle_length_m: float = ANGLE_LENGTH_M) -> np.ndarray:
+def parameter_units(names: Iterable[str], angle_length_m: float = ANGLE_LENGTH_M) -> np.ndarray:
     """The fixed column scaling of the observability indices: the step of each parameter that
     counts as one unit, (P,). Lengths 1 m; angles (alpha*, beta*, theta*, base_r*) 1 m /
     `angle_length_m` rad, the angle that moves a point `angle_length_m` away by 1 m; any other
@@ -99,7 +105,9 @@ STRUCTURAL_POSES = 60  # generic configurations that reveal the chain's structur
 _STRUCTURAL: dict[tuple, list[str]] = {}
 
 
-def structural_identifiable(dh, tool_m, fixed=()) -> list[str]:
+def structural_identifiable(
+    dh: DH, tool_m: npt.ArrayLike, fixed: Iterable[str] | None = ()
+) -> list[str]:
     """The parameters of the chain `dh` (SMR at `tool_m` on the flange) that a point tracker can
     identify at all, in `analyse`'s priority order: the rank analysis of `candidates_for(dh,
     fixed)` at `STRUCTURAL_POSES` seeded configurations uniform over every joint's full turn
@@ -323,7 +331,11 @@ def analyse(
 
 
 def fit_identifiability(
-    J_weighted: np.ndarray, w: np.ndarray, dh, tool_m, fixed=()
+    J_weighted: np.ndarray,
+    w: np.ndarray,
+    dh: DH,
+    tool_m: npt.ArrayLike,
+    fixed: Iterable[str] | None = (),
 ) -> Identifiability:
     """A fit's identifiability: the rank analysis of its weighted Jacobian `J_weighted` (N, 3, P;
     pose i's rows times `w[i]`, 1 / sigma) over `candidates_for(dh, fixed)`, with the
@@ -398,9 +410,9 @@ def weak_directions(cov: np.ndarray, names: list[str], inflation: float = 100.0)
 
 
 def pose_set_report(
-    dh,
+    dh: DH,
     q: np.ndarray,
-    tool_m,
+    tool_m: npt.ArrayLike,
     reference_q: np.ndarray | None = None,
     *,
     sigma_m: np.ndarray | None = None,
@@ -517,7 +529,9 @@ def expected_prediction_sigma(
     }
 
 
-def group_representatives(groups, estimated) -> dict[str, list[str]]:
+def group_representatives(
+    groups: Iterable[Sequence[str]], estimated: Iterable[str]
+) -> dict[str, list[str]]:
     """{parameter: its group} for each dependent group (`Identifiability.unidentifiable`) of
     which exactly one member is estimated: that member carries the whole group's effect (its
     value and std are the group's; `workcell fit` and `replay` mark it with *, `GROUP_STAR_NOTE`)."""

@@ -12,7 +12,9 @@ deviation from the reference evaluation.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -27,6 +29,9 @@ from workcell.estimation.models import (
 )
 from workcell.kinematics.chain import p_tracker_and_jacobian_single, p_tracker_single
 from workcell.recording.checks import is_finite_number
+
+if TYPE_CHECKING:
+    from workcell.recording.dataset import Dataset
 
 
 class _ChainK0:
@@ -70,13 +75,13 @@ class LddmmCalibration:
     posterior_scale_m2: float | None = None
 
     @property
-    def unidentifiable(self):
+    def unidentifiable(self) -> list[list[str]]:
         return self.base.unidentifiable if self.on == "dh" else []
 
-    def predict(self, q: np.ndarray, **aux) -> np.ndarray:
+    def predict(self, q: np.ndarray, **aux: Any) -> np.ndarray:
         return self.lddmm.predict(np.atleast_2d(np.asarray(q, float)))
 
-    def prediction_cov(self, q: np.ndarray, **aux) -> np.ndarray | None:
+    def prediction_cov(self, q: np.ndarray, **aux: Any) -> np.ndarray | None:
         """Covariance (N, 3, 3) of `predict(q)` (tracker frame): the base's (a DH fit's, from its
         parameter covariance; none for the registered nominal chain) plus the deformation's
         linearised Gaussian-process posterior (`LddmmModel.linear_posterior_cov`, scale tau^2
@@ -161,11 +166,11 @@ EVAL_TOL_M = 1e-8  # a cheaper evaluation is used only within 10 nm of the refer
 N_CHECK = 256  # extra random configurations (in the training box) for that check
 
 
-def fit_lddmm_on(base: DHModel, ds, **kw) -> LddmmModel:
+def fit_lddmm_on(base: DHModel, ds: Dataset, **kw: Any) -> LddmmModel:
     return fit_lddmm(_k0(base.theta, base.base_ref), ds.q, ds.p_tracker, **kw)
 
 
-def cv_scores_on(base: DHModel, ds, *, k_folds: int = 5, seed: int = 0) -> dict:
+def cv_scores_on(base: DHModel, ds: Dataset, *, k_folds: int = 5, seed: int = 0) -> dict:
     """Linearised k-fold CV RMS of the deformation of `base` over the (sigma_v, sigma_w, sigma)
     grid (coordinate search: widths, then sigma, then widths again if sigma moved), on the
     poses of ds only (the training poses)."""
@@ -181,7 +186,7 @@ def cv_scores_on(base: DHModel, ds, *, k_folds: int = 5, seed: int = 0) -> dict:
     )
 
 
-def cv_errors_on(base: DHModel, ds, sv: float, sw: float, sigma: float) -> np.ndarray:
+def cv_errors_on(base: DHModel, ds: Dataset, sv: float, sw: float, sigma: float) -> np.ndarray:
     """Per-pose error norms (N,) of `cv_scores_on`'s CV at one configuration (same folds)."""
     return linear_cv_errors(
         _k0(base.theta, base.base_ref), ds.q, ds.p_tracker, sigma_v=sv, sigma_w=sw, sigma=sigma
@@ -189,7 +194,12 @@ def cv_errors_on(base: DHModel, ds, sv: float, sw: float, sigma: float) -> np.nd
 
 
 def fit_method(
-    ds, *, on: str = "auto", progress=None, tracker_mpe=TRACKER_MPE_M, **_
+    ds: Dataset,
+    *,
+    on: str = "auto",
+    progress: Callable[[str], None] | None = None,
+    tracker_mpe: tuple[float, float] = TRACKER_MPE_M,
+    **_: Any,
 ) -> tuple[LddmmCalibration, dict]:
     """`workcell fit --method lddmm [--on dh|nominal|auto]` on the training poses.
 

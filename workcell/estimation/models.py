@@ -11,13 +11,17 @@ import json
 import math
 import os
 import warnings
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import numpy as np
 
 from workcell import strict_json
 from workcell.errors import REPLACE_REMEDY, UserError, folder_problem, replace_or_refuse
+
+if TYPE_CHECKING:
+    from workcell.recording.dataset import Dataset
 
 MODEL_FORMAT = "workcell-model/1"
 
@@ -50,7 +54,7 @@ class FittedModel(Protocol):
     def to_dict(self) -> dict: ...
 
 
-def aux_from_dataset(ds) -> dict:
+def aux_from_dataset(ds: Dataset) -> dict:
     """A dataset's operating conditions as the models' `predict(q, **aux)` takes them (an
     augmented model's thermal term reads the joint or the ambient temperature, or the time)."""
     return {
@@ -89,7 +93,7 @@ def check_model_output(
     recording: str | os.PathLike,
     *,
     force: bool = False,
-    say=None,
+    say: Callable[[str], None] | None = None,
     remedy: str = REPLACE_REMEDY,
 ) -> None:
     """Refuse, before any work, to write a model over an existing file, except an earlier model
@@ -415,7 +419,7 @@ def info_problem(info: dict) -> str | None:
 GEOMETRY_ATTRS = (None, "base", "base_model", "dh_model", "geometric")
 
 
-def geometric_part(model):
+def geometric_part(model: FittedModel) -> Any:
     """The object holding a model's geometry: `theta` (5 n + 9,) with the base parameters and
     `base_ref` (4x4): the model itself or the geometric model it wraps (`GEOMETRY_ATTRS`); None
     for a model without one."""
@@ -429,7 +433,7 @@ def geometric_part(model):
     return None
 
 
-def geometric_cov(g) -> np.ndarray | None:
+def geometric_cov(g: Any) -> np.ndarray | None:
     """`g.theta_cov()` of a `geometric_part` as a finite (P, P) array, P = len(g.theta); None
     when it has none (or one of another shape, or not finite)."""
     get = getattr(g, "theta_cov", None)
@@ -674,7 +678,7 @@ def mean_ratio_interval(
     return _paired_interval(a, b, ratio, level, seed)
 
 
-def interval_um(ci, label: bool = True) -> str:
+def interval_um(ci: Sequence[float] | np.ndarray | None, label: bool = True) -> str:
     """'95 % CI 88.2-115.3 um' (or without the label '88.2-115.3 um') for an interval [low,
     high] in metres; '' when there is none (an older report, too few poses)."""
     if ci is None or len(ci) != 2 or not all(np.isfinite(ci)):
@@ -690,7 +694,9 @@ UNEXPLAINED_BASIS = (
 )
 
 
-def unexplained_error(rms_m: float, rms_ci95_m, floor_m: float) -> dict | None:
+def unexplained_error(
+    rms_m: float, rms_ci95_m: Sequence[float] | np.ndarray | None, floor_m: float
+) -> dict | None:
     """What a model leaves unexplained beyond the noise floor, from its held-out RMS:
     `{"rms_m", "upper_m", "floor_m", "basis"}` (metres; `upper_m` from the upper end of the
     RMS's 95 % interval, None without one), or None when the figures are missing or not finite.
@@ -887,7 +893,7 @@ def _check_nominal_units(model, source: str, method: str) -> None:
                 )
 
 
-def evaluated_figure(report: dict, name: str):
+def evaluated_figure(report: dict, name: str) -> Any:
     """A fit report's figure `name` ("rms_m", "rms_ci95_m", "max_m", "median_m") on the poses it
     was evaluated on: the held-out ones, or the training ones for a fit without a hold-out."""
     held_out = bool(report.get("heldout_poses", 1))

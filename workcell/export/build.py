@@ -3,6 +3,9 @@ corrector and table with its metadata."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from workcell.errors import UserError
@@ -17,15 +20,19 @@ from workcell.export.table import (
 )
 from workcell.kinematics.robots import robot_by_name
 
+if TYPE_CHECKING:
+    from workcell.campaign.envelope import Envelope
+    from workcell.estimation.models import FittedModel
+
 DEFAULT_ORIENTATION = (0.0, np.pi, 0.0)  # tool pointing down (flange z = -z of base)
 
 
-def model_recording(model) -> tuple[str | None, str | None]:
+def model_recording(model: FittedModel) -> tuple[str | None, str | None]:
     info = getattr(model, "info", {}) or {}
     return info.get("recording"), info.get("recording_sha256")
 
 
-def model_session(model) -> tuple[dict, str]:
+def model_session(model: FittedModel) -> tuple[dict, str]:
     """The session of the recording the model was fitted on -> (session, why not): {} and a
     reason when the model names none or it cannot be read (the recording is optional to
     `validate`: it gives the simulated truth and the cell's envelope)."""
@@ -41,7 +48,7 @@ def model_session(model) -> tuple[dict, str]:
         return {}, f"the model's recording {rec} is unreadable: {e}"[:300]
 
 
-def nominal_for_model(model, recording: str | None = None) -> Nominal:
+def nominal_for_model(model: FittedModel, recording: str | None = None) -> Nominal:
     """nominal_for(model), falling back on the model's (or the given) recording. A given
     `recording` must be the model's (same sha256), also for a model that carries its chain and
     does not need it: one that was silently ignored (another arm's recording, a model file)."""
@@ -140,7 +147,7 @@ def parse_conditions(
     return cond
 
 
-def residual_drift_note(model) -> str | None:
+def residual_drift_note(model: FittedModel) -> str | None:
     """A line when the model's non-parametric residual (a GP over the joints) may be a drift
     during the recording: `diagnose` found the joints and the recording order not told apart,
     or the order predicting better (`residual_drift_check` in the model file)."""
@@ -162,7 +169,7 @@ def residual_drift_note(model) -> str | None:
     )
 
 
-def conditions_note(model, cond: Conditions, strict: bool = False) -> list[str]:
+def conditions_note(model: FittedModel, cond: Conditions, strict: bool = False) -> list[str]:
     """What the table assumes about the conditions the model's accepted effects depend on, one
     line each; `strict` (a user's options): refuses a given condition that does not drive the
     model's thermal drift."""
@@ -241,7 +248,7 @@ def conditions_note(model, cond: Conditions, strict: bool = False) -> list[str]:
 
 
 def make_table(
-    model,
+    model: FittedModel,
     *,
     model_path: str = "",
     volume: np.ndarray | None = None,
@@ -254,7 +261,7 @@ def make_table(
     envelope: tuple | None = None,
     check_envelope: bool = True,
     nominal: Nominal | None = None,
-    log=None,
+    log: Callable[[str], None] | None = None,
 ) -> tuple[CorrectionTable, Corrector]:
     """The table of `model` over `volume` (default: `default_volume`). A table for a controller
     (`check_envelope`) is refused when its volume reaches outside the envelope
@@ -307,7 +314,7 @@ def make_table(
     return tab, corr
 
 
-def table_envelope(model, nominal: Nominal):
+def table_envelope(model: FittedModel, nominal: Nominal) -> tuple[Envelope | None, str]:
     """The envelope a table's commanded positions must lie in -> (Envelope or None, what it is):
     the one the model's recording ran in (the cell's configured one), as `export --format
     targets` checks its commanded joints; None (with why) when the recording records none or
@@ -326,7 +333,9 @@ def table_envelope(model, nominal: Nominal):
     return env, f"the envelope the model's recording {rec} ran in"
 
 
-def check_volume_box(lo, hi, env, env_what: str, what: str) -> None:
+def check_volume_box(
+    lo: np.ndarray, hi: np.ndarray, env: Envelope | None, env_what: str, what: str
+) -> None:
     """Refuse a table volume (SMR positions, base) reaching outside the envelope's workspace box
     less its kinematic margin: the controller would be handed corrections for places the arm
     must not go (one line, before any IK)."""
@@ -345,7 +354,9 @@ def check_volume_box(lo, hi, env, env_what: str, what: str) -> None:
         )
 
 
-def check_table_envelope(tab: CorrectionTable, nominal: Nominal, env, env_what, what) -> str:
+def check_table_envelope(
+    tab: CorrectionTable, nominal: Nominal, env: Envelope | None, env_what: str, what: str
+) -> str:
     """Refuse a table one of whose nodes' corrected joints (what the controller is sent there)
     leaves the envelope (`Envelope.violations`: joint ranges, the workspace box, the floor under
     the link frames), or, without an envelope, the arm's joint ranges. -> the line saying what
@@ -378,7 +389,7 @@ def check_table_envelope(tab: CorrectionTable, nominal: Nominal, env, env_what, 
     return said
 
 
-def note_unexplained(model, meta: dict, log=None) -> None:
+def note_unexplained(model, meta: dict, log: Callable[[str], None] | None = None) -> None:
     """Put the model file's figure of what it leaves unexplained on its held-out poses (not in
     the correction's 1-sigma) in `meta` (`model_unexplained`, and `..._without_outliers` when
     `fit` named held-out outliers) and tell `log` (the lines `export` prints)."""
@@ -410,7 +421,7 @@ def note_unexplained(model, meta: dict, log=None) -> None:
             )
 
 
-def model_unexplained(model, *, without_outliers: bool = False) -> dict | None:
+def model_unexplained(model: FittedModel, *, without_outliers: bool = False) -> dict | None:
     """The model file's held-out figure of what it leaves unexplained (`fit` and `diagnose`
     store it), recomputed from the stored RMS, interval and floor so a hand-edited entry cannot
     put a wrong figure in a table; None when the model has none or it does not parse.

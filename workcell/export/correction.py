@@ -22,11 +22,16 @@ Nominal IK is damped Gauss-Newton with the geometric Jacobian (numpy, vectorised
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from workcell.errors import UserError
 from workcell.kinematics.chain import pack
+
+if TYPE_CHECKING:
+    from workcell.estimation.models import FittedModel
+    from workcell.recording.dataset import Dataset
 
 # Reference configuration (elbow up, wrist down) from which grid IK starts, per robot.
 Q_REF = np.array([np.pi / 2, -2.0, 2.0, -np.pi / 2, -np.pi / 2, 0.0])
@@ -200,7 +205,7 @@ def pad_batch(x: np.ndarray) -> np.ndarray:
     return x
 
 
-def nominal_for(model, ds=None) -> Nominal:
+def nominal_for(model: FittedModel, ds: Dataset | None = None) -> Nominal:
     """The controller's kinematics for a fitted model: its nominal chain and registered base.
 
     DH-based models carry them (`nominal_dh`, `base_ref`, `info.nominal_tool_m`); other models may

@@ -3,17 +3,32 @@ on the simulated robot (truth = the simulated physics)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from workcell.export.correction import Conditions
 from workcell.export.validate import run_validation, sim_measure
 
+if TYPE_CHECKING:
+    import os
+
+    from workcell.campaign.run import CellSetup
+    from workcell.estimation.models import FittedModel
+
 N_TARGETS = 50
 
 
-def correction_step(world, cell, model, method: str, out_dir, log) -> dict:
+def correction_step(
+    world: Any,  # the simulated world (sim_devices), which export does not import
+    cell: CellSetup,
+    model: FittedModel,
+    method: str,
+    out_dir: str | os.PathLike,
+    log: Callable[[str], None],
+) -> dict:
     from workcell.campaign.envelope import Guard, default_envelope
     from workcell.export.build import make_table
     from workcell.export.urscript import write_urscript

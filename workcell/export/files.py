@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from workcell.errors import REPLACE_REMEDY, UserError, replace_or_refuse
+
+if TYPE_CHECKING:
+    import os
 
 # the targets CSV's first line (`export --format targets`; before 2026-11-26 it had no comment
 # lines and columns without units: x,y,z,...)
@@ -36,7 +40,14 @@ def export_kind(path: Path) -> str | None:
     return None
 
 
-def check_export_outputs(outputs, force: bool, say, *, kinds=None, named=None) -> None:
+def check_export_outputs(
+    outputs: list[Path],
+    force: bool,
+    say,
+    *,
+    kinds: list[str] | None = None,
+    named: str | os.PathLike | None = None,
+) -> None:
     """Refuse, before any work, to write over an existing file that is not an earlier workcell
     export, unless `force`; `say(line)` is told what is replaced.
 

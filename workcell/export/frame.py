@@ -11,7 +11,13 @@ differs from `base_ref` by that much, and the correction does not remove that di
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
+import numpy.typing as npt
+
+if TYPE_CHECKING:
+    from workcell.estimation.models import FittedModel
 
 FRAME_TEXT = (
     "base_ref, the model's rigid registration of its nominal chain to the tracker (p_tracker = "
@@ -61,7 +67,7 @@ def _rotvec_matrix(r: np.ndarray) -> np.ndarray:
     return Rotation.from_rotvec(np.asarray(r, float)).as_matrix()
 
 
-def base_correction(model, points: np.ndarray | None = None) -> dict:
+def base_correction(model: FittedModel, points: np.ndarray | None = None) -> dict:
     """The model's fitted base correction relative to its base_ref (`BASE_BASIS`), with
     `max_shift_m` over `points` (N, 3, base_ref) when given; {"basis": NO_BASE_BASIS} for a
     model without base parameters."""
@@ -99,7 +105,7 @@ def base_correction(model, points: np.ndarray | None = None) -> dict:
     return out
 
 
-def frame_meta(model, base_ref: np.ndarray, points: np.ndarray | None = None) -> dict:
+def frame_meta(model: FittedModel, base_ref: np.ndarray, points: np.ndarray | None = None) -> dict:
     """The frame keys an export's metadata carries: `frame`, `base_ref` (tracker_T_base, 4x4,
     m) and `base_correction`."""
     return {
@@ -109,7 +115,7 @@ def frame_meta(model, base_ref: np.ndarray, points: np.ndarray | None = None) ->
     }
 
 
-def base_ref_line(base_ref) -> str:
+def base_ref_line(base_ref: npt.ArrayLike) -> str:
     """tracker_T_base's 16 values, row-major, SI."""
     M = np.asarray(base_ref, float).reshape(4, 4)
     rows = "; ".join(", ".join(repr(float(x)) for x in row) for row in M)

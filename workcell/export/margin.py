@@ -10,8 +10,14 @@ the envelope allows and suggests a margin that covers both.
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from workcell.campaign.envelope import Envelope
+    from workcell.estimation.models import FittedModel
+    from workcell.kinematics.robots import RobotSpec
 
 SAMPLES = 4000
 # the largest deviation is taken over samples; between them it can be larger: this factor on top
@@ -20,7 +26,9 @@ SAFETY_FACTOR = 1.25
 UNEXPLAINED_SIGMAS = 3.0
 
 
-def model_deviation(model, env, spec, *, samples: int = SAMPLES, seed: int = 0) -> dict:
+def model_deviation(
+    model: FittedModel, env: Envelope, spec: RobotSpec, *, samples: int = SAMPLES, seed: int = 0
+) -> dict:
     """The model's SMR minus the nominal chain's SMR over `samples` joint configurations drawn
     uniformly inside the envelope's joint ranges and kept when the nominal checks pass (where the
     margin matters).

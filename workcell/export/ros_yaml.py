@@ -38,6 +38,7 @@ import hashlib
 import math
 import re
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -45,6 +46,11 @@ from workcell.atomic import write_text
 from workcell.errors import UserError
 from workcell.export.frame import base_correction, base_correction_line, base_ref_line
 from workcell.recording.checks import SMR_OFFSET_MAX_M as TCP_MAX_M  # the recordings' limit
+
+if TYPE_CHECKING:
+    import os
+
+    from workcell.estimation.models import FittedModel
 
 LINKS = ("shoulder", "upper_arm", "forearm", "wrist_1", "wrist_2", "wrist_3")
 KEYS = ("x", "y", "z", "roll", "pitch", "yaw")
@@ -254,7 +260,7 @@ def _geometric_part(model) -> tuple[object, str | None]:
     )
 
 
-def model_geometry(model) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
+def model_geometry(model: FittedModel) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
     """(theta (39,), base offset (4x4, registered base -> calibrated base), base_ref, note) of the
     geometric part of a model; refuses models without one."""
     from workcell.kinematics.chain import tracker_T_base
@@ -271,7 +277,7 @@ def _flat(kin: dict) -> np.ndarray:
     return np.array([kin[n][k] for n in LINKS for k in KEYS], float)
 
 
-def kinematics_std(model, step: float = 1e-7) -> dict | None:
+def kinematics_std(model: FittedModel, step: float = 1e-7) -> dict | None:
     """1-sigma of every YAML value ({link: {key: std}}), the geometric part's parameter
     covariance propagated to first order (central differences, angles wrapped); None when the
     model carries no covariance."""
@@ -299,7 +305,9 @@ def tcp_in_tool0(th: np.ndarray, B: np.ndarray) -> np.ndarray:
     return segments(th, B)[6] @ _T(np.eye(3), th[36:39])
 
 
-def tcp_std_m(model, th: np.ndarray, B: np.ndarray, step: float = 1e-7) -> np.ndarray | None:
+def tcp_std_m(
+    model: FittedModel, th: np.ndarray, B: np.ndarray, step: float = 1e-7
+) -> np.ndarray | None:
     """1-sigma (3,) of tcp_in_tool0's translation, the parameter covariance propagated to first
     order (central differences); None without a covariance."""
     cov = _geometry_cov(model, th)
@@ -363,7 +371,7 @@ def _at_bound(g) -> set[str]:
     return set((info or {}).get("active_bounds") or ()) if isinstance(info, dict) else set()
 
 
-def fixed_values(model) -> tuple[dict | None, list[str]]:
+def fixed_values(model: FittedModel) -> tuple[dict | None, list[str]]:
     """The YAML values the model did not estimate -> ({link: {key: [parameter names]}}, the
     fixed parameters named): a value is fixed when it moves one for one (|derivative| >= 0.5)
     with a parameter held at its nominal value (unidentifiable, or left out of the fit) and
@@ -404,7 +412,7 @@ LINK_MOVE_MAX_M = 0.02
 ANGLE_MOVE_MAX_RAD = 0.05
 
 
-def check_nominal_distance(model) -> None:
+def check_nominal_distance(model: FittedModel) -> None:
     """Refuse (one line) a geometry whose link lengths moved more than `LINK_MOVE_MAX_M` or
     whose angles (alpha, joint offsets, tilts) moved more than `ANGLE_MOVE_MAX_RAD` from the
     nominal chain of the arm the model names: a controller would take it as given (the table
@@ -451,7 +459,7 @@ UR_ARMS = frozenset(
 )
 
 
-def check_ur_arm(model) -> None:
+def check_ur_arm(model: FittedModel) -> None:
     """The UR ROS driver's calibration file is for a Universal Robots arm: refuse a model whose
     robot field names another (a hand-edited "kuka" over a UR chain was written as one)."""
     g, _ = _geometric_part(model)
@@ -466,7 +474,7 @@ def check_ur_arm(model) -> None:
     )
 
 
-def check_std(model, std: dict | None, tcp_sd: np.ndarray | None) -> None:
+def check_std(model: FittedModel, std: dict | None, tcp_sd: np.ndarray | None) -> None:
     """Refuse a geometry whose values the measured poses do not determine: a position (of a
     link or the TCP) whose 1-sigma exceeds the default correction bound (5 mm), which a
     controller would take as given (series D's DH model, {base_ty, tool_z} weakly identified,
@@ -512,7 +520,9 @@ def check_units(th: np.ndarray, tcp: np.ndarray, method: str) -> None:
         )
 
 
-def dropped_part(model, th: np.ndarray, base_ref: np.ndarray) -> tuple[dict | None, str]:
+def dropped_part(
+    model: FittedModel, th: np.ndarray, base_ref: np.ndarray
+) -> tuple[dict | None, str]:
     """Size of what the YAML does not carry: the model's prediction minus its geometric part's
     (`p_tracker(th, base_ref, q)`, which the YAML reproduces), over the poses of the recording
     the model was fitted on, at their recorded conditions (approach, temperatures, payload,
@@ -557,7 +567,9 @@ def _dropped_line(model, th: np.ndarray, base_ref: np.ndarray) -> tuple[str, dic
     )
 
 
-def export_ros_yaml(model, path, meta: dict | None = None) -> tuple[Path, dict]:
+def export_ros_yaml(
+    model: FittedModel, path: str | os.PathLike, meta: dict | None = None
+) -> tuple[Path, dict]:
     from workcell.export.correction import matrix_to_rotvec
 
     th, B, base_ref, note = model_geometry(model)

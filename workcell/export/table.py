@@ -13,8 +13,10 @@ import json
 import math
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -33,6 +35,10 @@ from workcell.export.correction import (
 )
 from workcell.export.frame import frame_lines, frame_meta
 from workcell.recording.checks import DH_LENGTH_MAX_M, is_finite_number
+
+if TYPE_CHECKING:
+    from workcell.estimation.models import FittedModel
+    from workcell.kinematics.robots import RobotSpec
 
 TABLE_FORMAT = "workcell-correction-table/1"
 DEFAULT_MAX_CORRECTION_M = 5e-3
@@ -59,7 +65,7 @@ class CorrectionRefused(UserError):
     """The model's correction is non-finite or too large somewhere in the declared volume."""
 
 
-def default_volume(robot_spec) -> tuple[np.ndarray, np.ndarray]:
+def default_volume(robot_spec: RobotSpec) -> tuple[np.ndarray, np.ndarray]:
     """A working box in front of the robot, scaled by its arm length (SMR positions, base)."""
     arm = float(abs(robot_spec.dh.a[1]) + abs(robot_spec.dh.a[2]))
     lo = np.array([-0.3, -0.67, 0.2]) * arm
@@ -661,7 +667,7 @@ def _solve_grid(corr: Corrector, X: np.ndarray, R: np.ndarray) -> tuple[np.ndarr
     return D, Q
 
 
-def weak_groups(model) -> list[list[str]]:
+def weak_groups(model: FittedModel) -> list[list[str]]:
     """The parameter groups the model's fit found weakly identified (`fit` prints them), from
     its own info or its geometric base's; [] when it names none."""
     for m in (model, getattr(model, "base", None)):
@@ -677,7 +683,7 @@ def weak_groups(model) -> list[list[str]]:
     return []
 
 
-def weak_hint(model) -> str:
+def weak_hint(model: FittedModel) -> str:
     """'; the fit left {a, b} weakly identified ...' for a refusal's line, or ''."""
     groups = weak_groups(model)
     if not groups:
@@ -690,7 +696,7 @@ def weak_hint(model) -> str:
     )
 
 
-def smr_hint(model) -> str:
+def smr_hint(model: FittedModel) -> str:
     """For an oversized correction's refusal: the fitted SMR far from the declared one (the
     fit's own note, `fitting.smr_change`), which is the TCP to declare, not a correction; ''
     when it is not. Without it the refusal said to raise --max-correction, and a table of
@@ -729,7 +735,9 @@ def _std_limit(bound_m: float) -> tuple[float, str]:
     return lim, f"more than {lim * 1e3:g} mm ({said})"
 
 
-def check_std_bound(s3: np.ndarray, bound_m: float, model, where: str = "node") -> None:
+def check_std_bound(
+    s3: np.ndarray, bound_m: float, model: FittedModel, where: str = "node"
+) -> None:
     """Refuse corrections whose median 1-sigma (3-D, `s3`) exceeds the correction bound, or the
     default bound when a larger one is given (a bound raised to let large corrections through
     does not make them known): the measured poses do not determine them, and a controller would
@@ -745,7 +753,9 @@ def check_std_bound(s3: np.ndarray, bound_m: float, model, where: str = "node") 
         )
 
 
-def check_target_std(s3: np.ndarray, bound_m: float, model, src: object, lines: list[int]) -> None:
+def check_target_std(
+    s3: np.ndarray, bound_m: float, model: FittedModel, src: object, lines: list[int]
+) -> None:
     """Refuse targets whose correction 1-sigma (3-D, `s3`) exceeds the correction bound (at most
     the default): each target is commanded on its own, so one undetermined target is refused by
     its CSV line as an oversized correction is, where a table's grid is judged by its median."""
@@ -1101,7 +1111,7 @@ POSTERIOR_STD_NOTE = (
 )
 
 
-def std_is_posterior(model) -> bool:
+def std_is_posterior(model: FittedModel) -> bool:
     """Whether a model's prediction covariance holds a Gaussian-process posterior (gp, lddmm,
     an augmented model with a residual GP): part of what it leaves unexplained on held-out
     poses is then in its 1-sigma, not all outside it as for a parametric model's."""
@@ -1115,7 +1125,7 @@ LDDMM_OLD_NO_STD_WHY = (
 )
 
 
-def no_std_why(model) -> str:
+def no_std_why(model: FittedModel) -> str:
     """Why a model's correction has no 1-sigma (`node_std` gave None)."""
     if getattr(model, "method", None) == "ekf-ann" and _has_theta_cov(model):
         return EKF_NO_STD_WHY
@@ -1127,7 +1137,7 @@ def no_std_why(model) -> str:
     return NO_STD_WHY
 
 
-def no_std_line(model) -> str:
+def no_std_line(model: FittedModel) -> str:
     return f"correction 1-sigma: not given ({no_std_why(model)})"
 
 
@@ -1176,7 +1186,7 @@ def build_table(
     max_nodes: int = 4000,
     seed: int = 0,
     meta: dict | None = None,
-    log=None,
+    log: Callable[[str], None] | None = None,
 ) -> CorrectionTable:
     """Build the table, refining the spacing until the measured interpolation error is below
     `target_error_m` (or `max_nodes` per orientation is reached, which is reported)."""

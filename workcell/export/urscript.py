@@ -19,11 +19,16 @@ import ast
 import math
 import re
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+import numpy.typing as npt
 
 from workcell.atomic import write_text
 from workcell.export.table import OUTSIDE_TOL_M, CorrectionTable, header_lines
+
+if TYPE_CHECKING:
+    import os
 
 
 def _num(x: float) -> str:
@@ -157,7 +162,9 @@ def _configuration_globals(table: CorrectionTable) -> list[str]:
     ]
 
 
-def write_urscript(table: CorrectionTable, path, name: str = "wc_correct") -> Path:
+def write_urscript(
+    table: CorrectionTable, path: str | os.PathLike, name: str = "wc_correct"
+) -> Path:
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     write_text(p, generate_urscript(table, name))
@@ -306,7 +313,7 @@ def _check_names(src: str) -> None:
             raise ValueError(f"translated script uses an unknown name {node.id!r}")
 
 
-def run_urscript(text: str, actual_joints=None) -> dict:
+def run_urscript(text: str, actual_joints: npt.ArrayLike | None = None) -> dict:
     """Execute the emitted script's definitions; returns its namespace (functions and globals).
     `actual_joints` (6, rad): what `get_actual_joint_positions()` returns in it."""
     ns: dict = {"__builtins__": {}, **_BUILTINS, "_Halt": URScriptHalt, "_last_popup": [""]}

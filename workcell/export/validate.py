@@ -22,8 +22,10 @@ the after figure carries that drift, and a warning says so.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import numpy.typing as npt
 
 from workcell.campaign.envelope import Guard
 from workcell.errors import UserError
@@ -35,6 +37,12 @@ from workcell.estimation.models import (
 )
 from workcell.export.correction import Q_REF, Nominal, rotvec_to_matrix
 from workcell.export.table import CorrectionTable
+
+if TYPE_CHECKING:
+    from workcell.campaign.envelope import Envelope
+    from workcell.drivers.protocols import Robot, Tracker
+    from workcell.estimation.models import FittedModel
+    from workcell.kinematics.robots import RobotSpec
 
 
 def random_targets(
@@ -69,7 +77,9 @@ def accuracy_stats(err_vec: np.ndarray) -> dict:
     }
 
 
-def error_vectors_base(nominal: Nominal, reached_tracker, goal_tracker) -> np.ndarray:
+def error_vectors_base(
+    nominal: Nominal, reached_tracker: npt.ArrayLike, goal_tracker: npt.ArrayLike
+) -> np.ndarray:
     """Reached minus desired SMR positions (N, 3), both measured in the tracker frame, as vectors
     in base_ref axes (the table's frame): rotated by tracker_T_base's rotation, not translated.
     Their lengths are those of the tracker-frame errors."""
@@ -463,7 +473,7 @@ class _TruthMeasure:
         return np.asarray(self.world.true_smr_tracker(), float)
 
 
-def sim_measure(world) -> Callable[[], np.ndarray]:
+def sim_measure(world: Any) -> Callable[[], np.ndarray]:
     """Simulated truth: the true SMR position at the robot's current joints and approach."""
     return _TruthMeasure(world)
 
@@ -506,13 +516,17 @@ class _TrackerMeasure:
         return P.mean(axis=0)
 
 
-def tracker_measure(tracker, readings: int = 5, max_failures: int = 10) -> Callable[[], np.ndarray]:
+def tracker_measure(
+    tracker: Tracker, readings: int = 5, max_failures: int = 10
+) -> Callable[[], np.ndarray]:
     """The tracker's mean of `readings` good readings at a target (UserError after more than
     `max_failures` failed ones)."""
     return _TrackerMeasure(tracker, readings, max_failures)
 
 
-def robot_mover(robot, speed: float = 0.5, accel: float = 1.0, settle_s: float = 0.5):
+def robot_mover(
+    robot: Robot, speed: float = 0.5, accel: float = 1.0, settle_s: float = 0.5
+) -> Callable[[np.ndarray], None]:
     def move(q: np.ndarray) -> None:
         robot.move_joints(np.asarray(q, float), speed, accel)
         robot.sleep(settle_s)
@@ -528,7 +542,7 @@ def table_model_mismatch(
     nominal: Nominal,
     recording_sha256: str | None = None,
     *,
-    model=None,
+    model: FittedModel | None = None,
     ui: bool = False,
 ) -> str | None:
     """One line when a given table was not built from the model being validated, else None.
@@ -597,7 +611,9 @@ def table_model_mismatch(
 THERMAL_MISMATCH_K = 2.0
 
 
-def thermal_mismatch(model, table, temps_c, *, ui: bool = False) -> str | None:
+def thermal_mismatch(
+    model: FittedModel, table: CorrectionTable, temps_c: npt.ArrayLike | None, *, ui: bool = False
+) -> str | None:
     """One line when a given table was built for another thermal state than the arm's now (a
     model whose thermal drift follows the joint temperatures), else None. The remedy is said
     for the command line, or with `ui` for the terminal UI (whose Export screen builds tables
@@ -663,7 +679,7 @@ def table_median_std(meta: dict | None) -> float | None:
     return float(std) if ok else None
 
 
-def fitted_range_configurations(model, n: int = 64) -> np.ndarray | None:
+def fitted_range_configurations(model: FittedModel, n: int = 64) -> np.ndarray | None:
     """(n, 6) seeded joint configurations drawn uniformly in the model's fitted joint range
     (`info.joint_range_rad`); None when the model records none usable."""
     jr = (getattr(model, "info", {}) or {}).get("joint_range_rad")
@@ -676,7 +692,9 @@ def fitted_range_configurations(model, n: int = 64) -> np.ndarray | None:
     return np.random.default_rng(0).uniform(jr[:, 0], jr[:, 1], size=(n, 6))
 
 
-def thermal_shift_rms_m(model, t_table_c, t_now_c, n: int = 64) -> float | None:
+def thermal_shift_rms_m(
+    model, t_table_c: npt.ArrayLike | None, t_now_c: npt.ArrayLike, n: int = 64
+) -> float | None:
     """RMS over `n` seeded configurations in the model's fitted joint range of how far its
     prediction moves between joint temperatures `t_table_c` (None: the recording's mean, the
     model's reference) and `t_now_c` (m); None without a recorded joint range."""
@@ -697,7 +715,9 @@ def thermal_shift_rms_m(model, t_table_c, t_now_c, n: int = 64) -> float | None:
 PAYLOAD_MATCH_KG = 1e-3  # payloads this close are the same setting
 
 
-def payload_mismatch(model, table, payload_kg, *, ui: bool = False) -> str | None:
+def payload_mismatch(
+    model: FittedModel, table: CorrectionTable, payload_kg: float | None, *, ui: bool = False
+) -> str | None:
     """One line when a given table was built for another payload than the arm carries now (a
     model with payload-dependent terms: joint compliance, link deflection), else None. A
     payload whose compliance shift over the model's fitted joint range is within the table's
@@ -758,7 +778,13 @@ PAYLOAD_ORIGIN = {
 
 
 def payload_check(
-    model, table, payload_kg, *, simulated: bool, ui: bool = False, source: str = "declared"
+    model: FittedModel,
+    table: CorrectionTable,
+    payload_kg: float | None,
+    *,
+    simulated: bool,
+    ui: bool = False,
+    source: str = "declared",
 ) -> str | None:
     """`payload_mismatch` as `validate` acts on it: on a simulated arm (its payload known) a
     UserError naming the table's problem; on a controller the warning line to give, saying where
@@ -775,7 +801,7 @@ def payload_check(
     return f"{why} ({origin}; if the arm carries the table's, disregard this)"
 
 
-def payload_shift_rms_m(model, kg_a: float, kg_b: float, n: int = 64) -> float | None:
+def payload_shift_rms_m(model: FittedModel, kg_a: float, kg_b: float, n: int = 64) -> float | None:
     """RMS over `n` seeded configurations in the model's fitted joint range of how far its
     prediction moves between payloads `kg_a` and `kg_b` (m); None without a recorded joint
     range or a finite prediction."""
@@ -807,7 +833,13 @@ def real_cell(session: dict) -> str | None:
     return None
 
 
-def validation_envelope(given, session: dict, spec, source: str, default=None):
+def validation_envelope(
+    given: Envelope | None,
+    session: dict,
+    spec: RobotSpec,
+    source: str,
+    default: Envelope | None = None,
+) -> tuple[Envelope, str]:
     """The envelope a closed-loop validation moves in -> (envelope, what it is): the one
     `given` (chosen by the user), else the one the model's campaign recorded (the cell's, as
     it was calibrated in), else `default` (the arm's default envelope), said so."""

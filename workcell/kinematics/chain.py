@@ -19,7 +19,10 @@ the shape of the joint vectors (static under jit), so one code path serves 6- an
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
+import numpy.typing as npt
 
 from workcell._jax import jax, jnp
 from workcell.kinematics.robots import DH
@@ -56,7 +59,7 @@ def param_names(n: int = N_JOINTS) -> list[str]:
     return dh_names(n) + BASE_NAMES + TOOL_NAMES
 
 
-def joints_of(theta) -> int:
+def joints_of(theta: Any) -> int:
     """Joint count n of a parameter vector (5 n + 9,); ValueError for any other length."""
     m = int(np.shape(theta)[0])
     n, rem = divmod(m - 9, 5)
@@ -91,7 +94,11 @@ IDX = param_index(N_JOINTS)
 
 
 def pack(
-    dh: DH, base_t=(0.0, 0.0, 0.0), base_r=(0.0, 0.0, 0.0), tool=(0.0, 0.0, 0.0), beta=None
+    dh: DH,
+    base_t: npt.ArrayLike = (0.0, 0.0, 0.0),
+    base_r: npt.ArrayLike = (0.0, 0.0, 0.0),
+    tool: npt.ArrayLike = (0.0, 0.0, 0.0),
+    beta: npt.ArrayLike | None = None,
 ) -> np.ndarray:
     """Parameter vector from a DH chain, base offsets and tool (SMR) offset."""
     beta = np.zeros(len(dh.a)) if beta is None else np.asarray(beta, float)
@@ -155,7 +162,7 @@ def _link(theta, i, qi, n):
     return _dh_matrix(theta[i], theta[n + i], theta[2 * n + i], qi + theta[3 * n + i], beta)
 
 
-def base_T_flange_single(theta, q):
+def base_T_flange_single(theta: Any, q: Any) -> Any:
     """Flange pose in base for one joint vector q (n,). theta (>= 4 n,) holds the DH part."""
     n = q.shape[0]
     T = jnp.eye(4)
@@ -164,7 +171,7 @@ def base_T_flange_single(theta, q):
     return T
 
 
-def base_T_frames_single(theta, q):
+def base_T_frames_single(theta: Any, q: Any) -> Any:
     """All DH frames 0..n in base for one q (n,): (n + 1, 4, 4)."""
     n = q.shape[0]
     Ts = [jnp.eye(4)]
@@ -173,7 +180,7 @@ def base_T_frames_single(theta, q):
     return jnp.stack(Ts)
 
 
-def tracker_T_base(theta, base_ref):
+def tracker_T_base(theta: Any, base_ref: Any) -> Any:
     b = base_slice(joints_of(theta)).start
     t = theta[b : b + 3]
     R = _rotvec_to_matrix(theta[b + 3 : b + 6])
@@ -181,7 +188,9 @@ def tracker_T_base(theta, base_ref):
     return base_ref @ off
 
 
-def base_pose_with_std(theta, base_ref, cov=None) -> dict:
+def base_pose_with_std(
+    theta: npt.ArrayLike, base_ref: npt.ArrayLike, cov: npt.ArrayLike | None = None
+) -> dict[str, Any]:
     """tracker_T_base (the base_ref registration with the fitted base offsets) as a translation
     (m) and a quaternion (w, x, y, z); with a parameter covariance `cov` (P, P) also the 1-sigma
     of its translation and of a small rotation about the tracker's axes (rad), first order."""
@@ -208,14 +217,14 @@ def base_pose_with_std(theta, base_ref, cov=None) -> dict:
     return out
 
 
-def p_tracker_single(theta, base_ref, q):
+def p_tracker_single(theta: Any, base_ref: Any, q: Any) -> Any:
     """SMR position in the tracker frame for one q (n,); theta (5 n + 9,)."""
     T = tracker_T_base(theta, base_ref) @ base_T_flange_single(theta, q)
     tool = theta[tool_slice(q.shape[0])]
     return T[:3, :3] @ tool + T[:3, 3]
 
 
-def p_tracker_and_jacobian_single(theta, base_ref, q):
+def p_tracker_and_jacobian_single(theta: Any, base_ref: Any, q: Any) -> tuple[Any, Any]:
     """(p (3,), dp/dq (3, n)): SMR position in the tracker frame and its Jacobian w.r.t. the
     joint angles for one q (n,), analytic: joint i turns about z of frame i-1 (q_i enters link
     i only through its first factor Rz), so column i is R_tb (z_{i-1} x (p_base - o_{i-1})).

@@ -10,9 +10,11 @@ on an arm a tracker can calibrate).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 
 from workcell.kinematics.frames import (
     check_points,
@@ -40,9 +42,13 @@ def smr_registration_problem(
     R_flange: np.ndarray,
     t_flange: np.ndarray,
     p_tracker: np.ndarray,
-    p_flange_smr_m,
+    p_flange_smr_m: npt.ArrayLike,
     prior_weight: float = TOOL_PRIOR_WEIGHT,
-):
+) -> tuple[
+    Callable[[np.ndarray, np.ndarray], np.ndarray],
+    Callable[[np.ndarray, np.ndarray], np.ndarray],
+    np.ndarray,
+]:
     """The least-squares problem behind every registration with the SMR offset free: flange
     rotations `R_flange` (N, 3, 3) and positions `t_flange` (N, 3) in base, measured SMR
     positions `p_tracker` (N, 3), nominal offset `p_flange_smr_m` (3,). Returns
@@ -78,7 +84,11 @@ def smr_registration_problem(
 
 
 def register_nominal(
-    base_T_flange: np.ndarray, p_tracker: np.ndarray, p_flange_smr_m, *, robust_m: float = 5e-3
+    base_T_flange: np.ndarray,
+    p_tracker: np.ndarray,
+    p_flange_smr_m: npt.ArrayLike,
+    *,
+    robust_m: float = 5e-3,
 ) -> Registration:
     """Register nominal flange poses `base_T_flange` (N, 4, 4) with SMR offset `p_flange_smr_m`
     (3,) to measured SMR positions `p_tracker` (N, 3), N >= 3. `robust_m`: the Cauchy loss's

@@ -14,9 +14,13 @@ import hashlib
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from workcell.errors import UserError
 from workcell.recording.reader import Recording, RecordingError, read_recording
+
+if TYPE_CHECKING:
+    import argparse
 
 MAX_CHAIN = 1000  # links followed back; a longer chain is refused (a loop made by hand?)
 CHAIN_OPTION = "--chain-missing"
@@ -185,7 +189,7 @@ def load_chain(rec: Recording | str | os.PathLike, *, missing: str = "refuse") -
     return Chain(recs, sha, notes)
 
 
-def add_chain_option(p) -> None:
+def add_chain_option(p: argparse.ArgumentParser) -> None:
     """The option of the commands that estimate from a recording (fit, diagnose, replay)."""
     p.add_argument(
         CHAIN_OPTION,

@@ -15,7 +15,7 @@ a mean is micrometres, a joint motor is not at 300 degC.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 
 import numpy as np
 
@@ -36,7 +36,7 @@ QUAT_NORM_TOL = 1e-3
 DH_LENGTH_MAX_M = 10.0  # the longest serial arms reach ~4 m; a 10 m link is millimetres
 
 
-def is_finite_number(x) -> bool:
+def is_finite_number(x: object) -> bool:
     """A finite JSON number (an integer too large for a float is not: OverflowError)."""
     if not isinstance(x, (int, float)) or isinstance(x, bool):
         return False
@@ -46,7 +46,7 @@ def is_finite_number(x) -> bool:
         return False
 
 
-def is_finite_list(v, n: int) -> bool:
+def is_finite_list(v: object, n: int) -> bool:
     return isinstance(v, list) and len(v) == n and all(is_finite_number(x) for x in v)
 
 
@@ -160,7 +160,11 @@ def _payload_problem(what: str, m: float, robot: RobotSpec | None) -> list[str]:
 
 
 def joint_range_problem(
-    where: str, key: str, v: Sequence[float], robot: RobotSpec, label=None
+    where: str,
+    key: str,
+    v: Sequence[float],
+    robot: RobotSpec,
+    label: Callable[[int], str] | None = None,
 ) -> list[str]:
     """A joint vector outside the arm's ranges (plus a small margin), with a unit hint.
     `label(j)` names element j (default `key[j]`, 0-based as in the JSON array)."""
@@ -289,7 +293,9 @@ def reach_m(dh: DH, smr_offset_m: Sequence[float]) -> float:
     return float(np.sum(np.hypot(dh.a, dh.d)) + _norm(smr_offset_m))
 
 
-def scale_problems(p_tracker: np.ndarray, robot: RobotSpec, smr_offset_m) -> list[str]:
+def scale_problems(
+    p_tracker: np.ndarray, robot: RobotSpec, smr_offset_m: Sequence[float]
+) -> list[str]:
     """Measured positions must fit in the ball the arm can reach (diameter 2 x reach)."""
     p = np.asarray(p_tracker, dtype=float)
     if len(p) < 2:

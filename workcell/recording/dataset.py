@@ -10,6 +10,7 @@ import os
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+import numpy.typing as npt
 
 from workcell.kinematics.frames import matrix_from_quat_wxyz, transform_from
 from workcell.kinematics.robots import RobotSpec
@@ -118,7 +119,7 @@ class Dataset:
     def __len__(self) -> int:
         return len(self.q)
 
-    def subset(self, idx) -> Dataset:
+    def subset(self, idx: npt.ArrayLike) -> Dataset:
         idx = np.asarray(idx)
         arrays = {}
         for k in (

@@ -5,13 +5,19 @@ tracker, the set-up) shows here directly, without any model."""
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
+import numpy.typing as npt
 
 from workcell.recording.dataset import Dataset
 from workcell.recording.tracker_spec import tracker_spec_sigma
 
+if TYPE_CHECKING:
+    from workcell.recording.reader import Recording
 
-def reading_sigma(sigma_m, p_tracker) -> np.ndarray:
+
+def reading_sigma(sigma_m: npt.ArrayLike, p_tracker: np.ndarray) -> np.ndarray:
     """Per-axis sigma of recorded means (N, 3) or (3,) at `p_tracker`: at least the tracker's
     stated MPE / 4 (an unknown, NaN, sigma is that floor), as the fits weight them."""
     s = np.asarray(sigma_m, float)
@@ -70,7 +76,7 @@ def repeat_beyond_noise(r: dict, level: float = 0.99) -> bool:
     return bool(r["rms_m"] ** 2 > noise**2 * chi2.ppf(level, 3 * m) / (3 * m))
 
 
-def repeats_of(rec) -> list[dict]:
+def repeats_of(rec: Recording) -> list[dict]:
     """`repeat_drift` of a read recording, with the files it continues (a resumed campaign's
     reference pose is compared with its first reading, in the first file); none when its
     samples do not make a dataset (a damaged or foreign file: its problems are reported

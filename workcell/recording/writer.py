@@ -11,12 +11,17 @@ import json
 import math
 import os
 import time
+from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from mcap.writer import CompressionType, Writer
 
 from workcell.recording import schema as S
 from workcell.strict_json import finite
+
+if TYPE_CHECKING:
+    import numpy as np
 
 
 def _now_ns() -> int:
@@ -100,7 +105,14 @@ class RecordingWriter:
         self._f.flush()
         os.fsync(self._f.fileno())
 
-    def joint_state(self, t_ns: int, q_rad, qd_rad_s, torque_nm=None, temperature_c=None) -> None:
+    def joint_state(
+        self,
+        t_ns: int,
+        q_rad: np.ndarray | Sequence[float],
+        qd_rad_s: np.ndarray | Sequence[float],
+        torque_nm: np.ndarray | Sequence[float] | None = None,
+        temperature_c: np.ndarray | Sequence[float] | None = None,
+    ) -> None:
         self._write(
             S.JOINT_STATE,
             {
@@ -115,8 +127,8 @@ class RecordingWriter:
     def tracker_measurement(
         self,
         t_ns: int,
-        position_m,
-        sigma_m,
+        position_m: np.ndarray | Sequence[float | None],
+        sigma_m: np.ndarray | Sequence[float | None],
         status: str,
         instrument_time_s: float | None = None,
     ) -> None:
@@ -126,7 +138,7 @@ class RecordingWriter:
         CoordTime, seconds on the instrument's clock, not the epoch), when it gives one."""
         if status != "ok":
             position_m = sigma_m = [None, None, None]
-        msg = {"position_m": position_m, "sigma_m": sigma_m, "status": status}
+        msg: dict[str, Any] = {"position_m": position_m, "sigma_m": sigma_m, "status": status}
         if instrument_time_s is not None and math.isfinite(instrument_time_s):
             msg["instrument_time_s"] = float(instrument_time_s)
         self._write(S.TRACKER, msg, t_ns)

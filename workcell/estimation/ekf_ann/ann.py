@@ -95,7 +95,9 @@ def n_weights(hidden: int) -> int:
     return hidden * N_IN + hidden + N_OUT * hidden + N_OUT
 
 
-def unpack(w: jnp.ndarray, hidden: int):
+def unpack(
+    w: jnp.ndarray, hidden: int
+) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray, jnp.ndarray]:
     H = hidden
     i = 0
     W1 = w[i : i + H * N_IN].reshape(N_IN, H).T
@@ -121,7 +123,9 @@ def _layer(w: jnp.ndarray, u: jnp.ndarray, hidden: int):
     return W2, b2, a, W2 * (1.0 - a * a)[None, :]
 
 
-def apply_raw_and_jac(w: jnp.ndarray, u: jnp.ndarray, hidden: int):
+def apply_raw_and_jac(
+    w: jnp.ndarray, u: jnp.ndarray, hidden: int
+) -> tuple[jnp.ndarray, jnp.ndarray]:
     """Output (3,) and its Jacobian (3, K) with respect to the weights, written out by hand
     (what jax.jacrev computes, without the reverse pass: the filter calls it every sample).
 
@@ -141,7 +145,9 @@ def apply_raw_and_jac(w: jnp.ndarray, u: jnp.ndarray, hidden: int):
     return W2 @ a + b2, J
 
 
-def jac_context(M: jnp.ndarray, U: jnp.ndarray, hidden: int):
+def jac_context(
+    M: jnp.ndarray, U: jnp.ndarray, hidden: int
+) -> tuple[jnp.ndarray, tuple[jnp.ndarray, jnp.ndarray]]:
     """Precomputation for products J(w, u) @ M with many inputs u and one matrix M (K, k) whose
     rows follow the weight layout (the filter's covariance): the W1 and b1 blocks of J are
     C (x) [u, 1] and its W2 block is I (x) a (see `apply_raw_and_jac`), so with
@@ -160,7 +166,13 @@ def jac_context(M: jnp.ndarray, U: jnp.ndarray, hidden: int):
     return V, (M_W2, M[i3 : i3 + N_OUT])
 
 
-def jac_times(w: jnp.ndarray, u: jnp.ndarray, hidden: int, V_i, shared) -> jnp.ndarray:
+def jac_times(
+    w: jnp.ndarray,
+    u: jnp.ndarray,
+    hidden: int,
+    V_i: jnp.ndarray,
+    shared: tuple[jnp.ndarray, jnp.ndarray],
+) -> jnp.ndarray:
     """J(w, u) @ M (3, k) from the context of `jac_context` (V_i: the row of V for this u)."""
     _, _, a, C = _layer(w, u, hidden)
     M_W2, M_b2 = shared

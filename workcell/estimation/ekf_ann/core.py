@@ -18,7 +18,8 @@ filterpy run sample by sample).
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 from workcell._jax import jax, jnp
 
@@ -100,17 +101,17 @@ class Step(NamedTuple):
 
 
 def blocked_scan(
-    model,
-    x,
-    P,
-    z,
-    xs,
+    model: Callable[[jnp.ndarray, Any, tuple[Any, Any]], Step],
+    x: jnp.ndarray,
+    P: jnp.ndarray,
+    z: jnp.ndarray,
+    xs: Any,
     *,
     block: int,
     blk_off: int = 0,
     blk_dim: int = 0,
-    prep=None,
-):
+    prep: Callable[[jnp.ndarray, Any], tuple[Any, Any]] | None = None,
+) -> tuple[jnp.ndarray, jnp.ndarray, tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray, Any]]:
     """EKF over a sequence with delayed (blocked) covariance updates; same result as the
     sample-by-sample rank-m filter (`update`) with an additive prediction P <- P + Q_i.
 

@@ -32,6 +32,7 @@ declared SMR offset as `info.nominal_tool_m`, the TCP an export commands with.
 from __future__ import annotations
 
 from collections import deque
+from typing import Any
 
 import numpy as np
 from scipy.stats import chi2
@@ -184,12 +185,12 @@ class LiveFilter:
         self.identification: Identifiability | None = None
 
     @classmethod
-    def for_cell(cls, cell, **kw) -> LiveFilter:
-        """From a campaign CellSetup (spec, tool_m)."""
+    def for_cell(cls, cell: Any, **kw: Any) -> LiveFilter:
+        """From a campaign's cell setup (anything with `spec` and `tool_m`)."""
         return cls(cell.spec, np.asarray(cell.tool_m, float), **kw)
 
     @classmethod
-    def from_session(cls, session: dict, **kw) -> LiveFilter:
+    def from_session(cls, session: dict, **kw: Any) -> LiveFilter:
         """From a recording's session message (replay)."""
         spec = robot_from_session(session["robot"])
         return cls(spec, np.asarray(session["tool"]["smr_offset_m"], float), **kw)

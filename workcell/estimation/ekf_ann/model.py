@@ -8,12 +8,16 @@ offset (zero in the adaptive mode) and the network in the base frame.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from workcell.estimation.ekf_ann import ann as A
 from workcell.kinematics.chain import PARAM_NAMES, PARAM_UNITS, p_tracker, tracker_T_base
 from workcell.kinematics.robots import DH
+
+if TYPE_CHECKING:
+    from workcell.estimation.ekf_ann.filter import EkfAnnFilter
 
 
 @dataclass
@@ -78,7 +82,7 @@ class EkfAnnModel:
         R = np.asarray(tracker_T_base(self.theta, self.base_ref))[:3, :3]
         return A.predict_base_m(self.w, np.atleast_2d(np.asarray(q, float)), self.spec) @ R.T
 
-    def predict(self, q: np.ndarray, **aux) -> np.ndarray:
+    def predict(self, q: np.ndarray, **aux: Any) -> np.ndarray:
         q = np.atleast_2d(np.asarray(q, dtype=float))
         geo = np.asarray(p_tracker(self.theta, self.base_ref, q)) + self.offset_m
         return geo + self.non_geometric(q)
@@ -143,7 +147,9 @@ class EkfAnnModel:
         )
 
     @classmethod
-    def from_filter(cls, f, robot_model: str, nominal_dh: DH, info: dict | None = None):
+    def from_filter(
+        cls, f: EkfAnnFilter, robot_model: str, nominal_dh: DH, info: dict | None = None
+    ) -> EkfAnnModel:
         K = f.n_weights
         return cls(
             robot_model=robot_model,

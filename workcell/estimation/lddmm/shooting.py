@@ -37,6 +37,7 @@ gradients of the cost (27) w.r.t. P0 come from reverse-mode autodiff through the
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import NamedTuple
 
 from workcell._jax import jax, jnp
@@ -118,7 +119,9 @@ def _kouter(k: jnp.ndarray, a: jnp.ndarray, c: jnp.ndarray) -> jnp.ndarray:
     return (k @ (a[:, :, None] * c[:, None, :]).reshape(N, p * r)).reshape(k.shape[0], p, r)
 
 
-def fields_at_landmarks(state: State, x: jnp.ndarray, kv: jnp.ndarray, kp: KernelParams):
+def fields_at_landmarks(
+    state: State, x: jnp.ndarray, kv: jnp.ndarray, kp: KernelParams
+) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray, jnp.ndarray, jnp.ndarray, jnp.ndarray]:
     """Closed-form w, Dw at q_i and v, Dv at x_i (Gaussian kernel gradients)."""
     q, J, P = state
     kw = gauss(q, q, kp.sigma_w)
@@ -336,7 +339,7 @@ def _evolve_frozen(kvx, k0_xi, k0c, dk0, sq, sa, sb, sw, n_steps):
     return k0_xi + u1.astype(k0_xi.dtype)
 
 
-def flow_psi(y0: jnp.ndarray, sd: StageData, kp: KernelParams):
+def flow_psi(y0: jnp.ndarray, sd: StageData, kp: KernelParams) -> tuple[jnp.ndarray, jnp.ndarray]:
     """psi_1 and det D psi_1 at points y0 (B, m): flow of w_t on Y (Lagrangian)."""
     n_steps = sd.q.shape[0]
     m = y0.shape[1]
@@ -356,7 +359,9 @@ def flow_psi(y0: jnp.ndarray, sd: StageData, kp: KernelParams):
     return y1, jnp.linalg.det(D1)
 
 
-def flow_phi(x0: jnp.ndarray, x: jnp.ndarray, sd: StageData, kp: KernelParams):
+def flow_phi(
+    x0: jnp.ndarray, x: jnp.ndarray, sd: StageData, kp: KernelParams
+) -> tuple[jnp.ndarray, jnp.ndarray]:
     """phi_1 and det D phi_1 at points x0 (B, n): flow of v_t on X (Lagrangian)."""
     n_steps = sd.q.shape[0]
     n = x0.shape[1]
@@ -376,7 +381,17 @@ def flow_phi(x0: jnp.ndarray, x: jnp.ndarray, sd: StageData, kp: KernelParams):
     return z1, jnp.linalg.det(D1)
 
 
-def data_cost(P0, q0, J0, x, y, kp: KernelParams, sigma: float, n_steps: int, div_term=False):
+def data_cost(
+    P0: jnp.ndarray,
+    q0: jnp.ndarray,
+    J0: jnp.ndarray,
+    x: jnp.ndarray,
+    y: jnp.ndarray,
+    kp: KernelParams,
+    sigma: float,
+    n_steps: int,
+    div_term: bool = False,
+) -> jnp.ndarray:
     """Cost (27): H(P0) + 1/(2 sigma^2) sum_i |k_1(x_i) - y_i|^2."""
     s0 = State(q0, J0, P0)
     final = shoot(s0, x, kp, n_steps, div_term=div_term)
@@ -386,7 +401,7 @@ def data_cost(P0, q0, J0, x, y, kp: KernelParams, sigma: float, n_steps: int, di
 
 def evaluate_lagrangian(
     xi: jnp.ndarray,
-    k0_batch,
+    k0_batch: Callable[[jnp.ndarray], jnp.ndarray],
     x: jnp.ndarray,
     sd: StageData,
     kp: KernelParams,
