@@ -958,3 +958,26 @@ def test_a_tight_envelope_plans_in_the_largest_family_the_arm_can_move_between()
     for k in range(1, len(q)):
         reach.last = q[k - 1]
         assert reach.approach_ok(k) and reach.ok(k), k
+
+
+def test_a_plan_with_no_approach_inside_says_so_before_the_arm_has_a_position():
+    """`Reach.stuck` at a plan's first pose, where the arm's position is not known yet: only
+    the poses' own approaches were checked, and the line names the limit they cross. It
+    formatted the unknown position as joints and raised a TypeError instead."""
+    from workcell.campaign.plans import PlanStuck, Reach
+
+    env = default_envelope(UR5E)
+    tool = np.array([0.0, 0.0, 0.06])
+    _, q = make_plan("random", UR5E, env, 4, seed=1, tool_m=tool)
+    q = np.array(q, float)
+    q[:, 0] = env.joint_limits_rad[0, 1] - 0.005  # joint 1 just inside its upper limit
+    signs = -np.ones_like(q)  # approached from above: the pre-poses lie beyond the limit
+    reach = Reach(UR5E, env, tool, q, signs, 0.02)
+    assert reach.where() is None
+    i, passed = reach.first(range(len(q)))
+    assert i is None and passed == len(q)
+    stuck = reach.stuck(range(len(q)), "dopt")
+    assert isinstance(stuck, PlanStuck)
+    msg = str(stuck)
+    assert "own approach stays inside the envelope" in msg, msg
+    assert "joint 1" in msg, msg

@@ -12,10 +12,12 @@ every joint is varied on purpose: each pose is approached from a pre-pose offset
 
 from __future__ import annotations
 
-from collections.abc import Generator
+from collections.abc import Generator, Iterable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from workcell.campaign.envelope import Envelope, Guard, upright
 from workcell.errors import stop_if_interrupted
@@ -230,7 +232,7 @@ class Reach:
             return True
         return self.route_ok(q_from, self.pre[i])
 
-    def first(self, order, scan: int | None = None) -> tuple[int | None, int]:
+    def first(self, order: Iterable[int], scan: int | None = None) -> tuple[int | None, int]:
         """(the first pose of `order` the arm may go to, or None if none of the first `scan`
         (all: None) may; how many were passed over)."""
         order = list(order)[:scan]
@@ -239,13 +241,19 @@ class Reach:
                 return int(i), k
         return None, len(order)
 
-    def stuck(self, order, kind: str, shown: int = 12) -> PlanStuck:
+    def stuck(self, order: Iterable[int], kind: str, shown: int = 12) -> PlanStuck:
         """The `PlanStuck` for a plan none of whose poses `order` (best first) the arm may reach
         from where it is: which limit the paths to the best `shown` of them cross first."""
         env, spec, tool = self.guard.env, self.guard.spec, self.guard.tool_m
         q_from = self.where()
         order = [int(i) for i in order]
-        names = [path_limit(env, spec, tool, q_from, self.pre[i]) for i in order[:shown]]
+        # no position yet (a plan's first pose): only the poses' own approaches were checked
+        names = [
+            path_limit(env, spec, tool, q_from, self.pre[i])
+            if q_from is not None
+            else path_limit(env, spec, tool, self.pre[i], self.q[i])
+            for i in order[:shown]
+        ]
         suggest = None
         if order:
             clear = env.clearance(spec, self.q[order], tool)
@@ -255,11 +263,15 @@ class Reach:
             f"(q = {fmt_q(q_from)} rad): the paths to all {len(order)} of its remaining poses "
             f"leave the envelope, also via the upright posture; those to the best "
             f"{min(shown, len(order))} first cross {limits_summary(names)}"
+            if q_from is not None
+            else f"the {kind} plan has no pose whose own approach stays inside the envelope: "
+            f"the approaches of the best {min(shown, len(order))} of its {len(order)} poses "
+            f"first cross {limits_summary(names)}"
         )
         return PlanStuck(msg, suggest)
 
 
-def fmt_q(q) -> str:
+def fmt_q(q: npt.ArrayLike) -> str:
     return "[" + ", ".join(f"{x:+.3f}" for x in np.asarray(q, float)) + "]"
 
 
@@ -474,7 +486,7 @@ def make_plan(
     tool_m: np.ndarray,
     skip_ids: set[int] | None = None,
     approach_rad: float = 0.02,
-    **kw,
+    **kw: Any,
 ) -> tuple[Plan, np.ndarray | None]:
     """Build a plan by name. Returns (generator, the planned configurations if known ahead)."""
     if n <= 0:
