@@ -1184,3 +1184,37 @@ def test_replay_prints_about_50_progress_lines_unless_asked_for_all(tmp_path, ca
     assert main(["replay", str(rec), "--online", "ekf-ann", "--every", "1"]) == 0
     shown = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("  ekf-ann ")]
     assert len(shown) == n
+
+
+@pytest.mark.parametrize(
+    "argv, prog",
+    [
+        (["fit", "r.mcap", "--method", "dh", "--bogus"], "workcell fit"),
+        (["info", "r.mcap", "--json", "--frobnicate=3"], "workcell info"),
+        (["--bogus"], "workcell"),
+    ],
+)
+def test_an_unknown_option_is_named_by_its_command(argv, prog, capsys):
+    """An option the command does not have: one line from that command's parser, pointing at
+    its own help (it said "workcell: error: ... (see `workcell --help`)", whose help does not
+    list the command's options)."""
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"{prog}: error: unrecognized arguments: "), err
+    assert f"(see `{prog} --help`)" in err and len(err.splitlines()) == 1, err
+
+
+def test_workcell_debug_shows_the_traceback_of_a_user_error(tmp_path, capsys, monkeypatch):
+    """WORKCELL_DEBUG=1 shows the traceback behind a user error, then its one line, as the
+    README says (it showed none: only ValueError and OSError were raised again)."""
+    missing = str(tmp_path / "missing.mcap")
+    assert main(["info", missing]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    monkeypatch.setenv("WORKCELL_DEBUG", "1")
+    assert main(["info", missing]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback (most recent call last)" in err, err
+    assert err.strip().splitlines()[-1].startswith("workcell info: error: "), err

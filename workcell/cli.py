@@ -145,6 +145,14 @@ def main(argv: list[str] | None = None) -> int:
         return 130
 
 
+def _debug_traceback() -> None:
+    """With WORKCELL_DEBUG set, the traceback of the error being handled, before its one line."""
+    if os.environ.get("WORKCELL_DEBUG"):
+        import traceback
+
+        traceback.print_exc()
+
+
 def _main(argv: list[str] | None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser, sub = build_parser()
@@ -159,7 +167,12 @@ def _main(argv: list[str] | None) -> int:
                 return 2
             mod.add_arguments(p)
             p.set_defaults(_run=mod.run)
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra:  # said by the command's own parser: its name, and the help that lists its options
+        command = getattr(args, "command", None)
+        (sub.choices[command] if command in sub.choices else parser).error(
+            f"unrecognized arguments: {' '.join(extra)}"
+        )
     global _RAISE
     _RAISE = True  # modules loaded: from here a Ctrl-C raises where it lands
     if INTERRUPTED.is_set():
@@ -177,9 +190,11 @@ def _main(argv: list[str] | None) -> int:
                 warnings.filterwarnings("ignore", category=RuntimeWarning, message=FP_NOTES)
             return int(args._run(args) or 0)
     except UserError as e:
+        _debug_traceback()
         print(f"workcell {args.command}: error: {e}", file=sys.stderr)
         return e.exit_code
     except DeviceError as e:
+        _debug_traceback()
         print(f"workcell {args.command}: error: {e}", file=sys.stderr)
         return 3
     except BrokenPipeError:
