@@ -104,6 +104,9 @@ def test_design_real_json_keys(sim_recording, capsys):
         out["poses_to_target"]["dopt"]["mean"] / out["poses_to_target"]["random"]["mean"]
     )
     assert out["ratios_to_random"] == {"dopt": out["ratio_best_to_random"]}
+    # the seeds are orders of one recording's poses: the interval is not over simulated cells
+    assert "simulated cell" not in out["ratio_ci_basis"]
+    assert "this recording's poses" in out["ratio_ci_basis"]
     # what the figures were measured with: the libraries that move numerics, the commit
     from importlib import metadata
 
