@@ -381,3 +381,11 @@ def test_an_unreachable_robot_is_said_when_it_changes_not_at_every_poll(tmp_path
         "robot reachable again",
         "robot unreachable: connection refused",
     ], said
+
+
+def test_campaign_finished_keeps_textuals_stop():
+    """The message's stop report has its own name: as `stop` it hid Textual's `Message.stop()`,
+    which bubbling calls ("'dict' object is not callable"; found by a type check)."""
+    msg = m.CampaignFinished("x.mcap", None, {}, {"reason": "r", "recording": "kept"})
+    assert msg.stop_report == {"reason": "r", "recording": "kept"}
+    assert msg.stop() is msg and msg._stop_propagation

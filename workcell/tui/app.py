@@ -567,7 +567,7 @@ class WorkcellApp(App):
         self.finished.append(msg)
         scr = self.views["campaign"]
         res, rec = msg.result, msg.recording or {}
-        stop = msg.stop
+        stop = msg.stop_report
         if stop is None and res is not None:
             stop = backend.stop_report(res, msg.path, self.campaign_log)
         state, summary = campaign_outcome(res, rec, stop, msg.path)

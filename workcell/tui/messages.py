@@ -122,15 +122,16 @@ class CampaignEvent(Message):
 
 
 class CampaignFinished(Message):
-    """`stop`: why the campaign engine ended it by itself (`backend.stop_report`); for a
-    result the app works it out itself, for an error the worker gives it."""
+    """`stop_report`: why the campaign engine ended it by itself (`backend.stop_report`); for a
+    result the app works it out itself, for an error the worker gives it. (Not `stop`: that is
+    Textual's `Message.stop()`, which bubbling calls.)"""
 
     def __init__(
-        self, path: str | None, result, recording: dict | None, stop: dict | None = None
+        self, path: str | None, result, recording: dict | None, stop_report: dict | None = None
     ) -> None:
         super().__init__()
         self.path, self.result, self.recording = path, result, recording
-        self.stop = stop
+        self.stop_report = stop_report
 
 
 class JobProgress(Message):
