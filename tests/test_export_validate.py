@@ -464,3 +464,116 @@ def test_a_later_target_off_does_not_discard_the_validation():
         measure_one_off, n=8, seed=1,
     )  # fmt: skip
     assert res["targets"] == 8 and res["before"]["max_m"] > 0.029
+
+
+def test_an_arm_moved_between_validation_moves_goes_on_only_along_checked_paths():
+    """Someone jogs the arm (inside the envelope) while it stands between two validation moves,
+    to a posture from which the straight path to the next commanded posture leaves the
+    envelope. The validation reads the arm's posture again before every move, as a campaign
+    does: it goes on from where the arm is along a checked path, or sends nothing and says so.
+    It planned each path from where it had sent the arm last, and drove it 124 mm below the
+    floor (a safety audit, 2026-11-29)."""
+    _, cell, table, corr = _cell_and_table()
+    env = default_envelope(cell.spec)
+    guard = Guard(env, cell.spec, cell.tool_m)
+
+    def run(jog_after: int | None = None, q_jog=None):
+        """Validate on a fresh copy of the cell; after move `jog_after` someone moves the arm
+        to q_jog. (the moves sent, (where the arm was, where it was sent) each, lines, error)"""
+        world = sim_cell("ur5e", "none", 3)[0]
+        sent, segments, lines = [], [], []
+
+        def where():
+            return np.asarray(world.joint_state()[0], float)
+
+        def move(q):
+            q = np.asarray(q, float)
+            segments.append((where(), q))
+            sent.append(q)
+            world.clock.advance(world.command_move(q, 0.5, 1.0))
+            if len(sent) == jog_after:
+                world.clock.advance(world.command_move(q_jog, 1.0, 2.0))  # someone else
+
+        try:
+            run_validation(corr.nominal, table, move, sim_measure(world), n=6, seed=2,
+                           guard=guard, q_start=where, log=lines.append)  # fmt: skip
+        except UserError as e:
+            return sent, segments, lines, str(e)
+        return sent, segments, lines, None
+
+    planned, _, _, err = run()
+    assert err is None and len(planned) > 8
+    k = 5  # the jog comes after the 5th move, aimed at the 6th
+    lim = env.joint_limits_rad
+    cands = np.random.default_rng(0).uniform(lim[:, 0], lim[:, 1], (4000, 6))
+    q_jog = next(
+        c
+        for c in cands
+        if guard.pose(c) is None and guard.direct(c, planned[k]) is not None
+        and guard.route(c, planned[k])[1] is None
+    )  # fmt: skip
+    _, segments, lines, err = run(jog_after=k, q_jog=q_jog)
+    bad = [(a, b) for a, b in segments if env.path_violation(cell.spec, a, b, cell.tool_m)]
+    assert not bad, f"{len(bad)} move(s) left the envelope, the first from {bad[0][0]}"
+    assert err is not None or any("was moved during the validation" in x for x in lines)
+
+
+def test_an_arm_moved_where_no_checked_path_leads_on_is_not_moved():
+    """The last line of defence itself: an arm found outside the box (moved there since the last
+    move) is not sent anywhere; one line says why and what to do."""
+    from workcell.export.validate import _from_where_the_arm_is
+
+    world, cell, _, _ = _cell_and_table()
+    env = default_envelope(cell.spec)
+    guard = Guard(env, cell.spec, cell.tool_m)
+    q0 = np.asarray(world.joint_state()[0], float)
+    q_out = q0.copy()
+    q_out[1] = -0.2  # shoulder down: the forearm below the table
+    assert guard.pose(q_out) is not None
+    sent = []
+    move = _from_where_the_arm_is(sent.append, lambda: q_out, guard, q0, lambda _: None)
+    with pytest.raises(UserError, match="moved during the validation.*nothing sent"):
+        move(q0)
+    assert sent == []
+    # where it was sent (within encoder noise): the move goes as planned
+    move = _from_where_the_arm_is(sent.append, lambda: q0 + 2e-4, guard, q0, lambda _: None)
+    move(q0)
+    assert len(sent) == 1
+
+
+def test_an_interrupted_validation_move_stops_the_arm():
+    """Ctrl-C, SIGTERM or SIGHUP during a validation move: the arm is stopped before the
+    interrupt goes on (it was left to finish its move; a safety audit, 2026-11-29), and the
+    command turns SIGTERM and SIGHUP into that interrupt (they ended the process at once)."""
+    import os
+    import signal
+
+    from workcell.commands.validate import _interrupt_on_abort_signals
+    from workcell.export.validate import robot_mover
+
+    class Arm:
+        stopped = 0
+
+        def move_joints(self, q, speed, accel):
+            raise KeyboardInterrupt
+
+        def stop(self):
+            self.stopped += 1
+
+        def sleep(self, s):
+            pass
+
+    arm = Arm()
+    with pytest.raises(KeyboardInterrupt):
+        robot_mover(arm)(np.zeros(6))
+    assert arm.stopped == 1
+
+    old = _interrupt_on_abort_signals()
+    try:
+        assert set(old) >= {signal.SIGTERM}
+        with pytest.raises(KeyboardInterrupt):
+            os.kill(os.getpid(), signal.SIGTERM)  # the handler runs as kill returns
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+    assert signal.getsignal(signal.SIGTERM) is old[signal.SIGTERM]

@@ -4,6 +4,8 @@ of the exported correction table (before/after position accuracy on random targe
 from __future__ import annotations
 
 import argparse
+import signal
+import threading
 
 import numpy as np
 
@@ -159,6 +161,21 @@ def recorded_end_s(rec: str | None) -> float | None:
     return max(e) if e else None
 
 
+def _interrupt_on_abort_signals() -> dict:
+    """SIGTERM and SIGHUP (`kill`, `timeout`, a closed terminal) interrupt the validation as
+    Ctrl-C does: the move under way is stopped (`robot_mover`) and the devices closed; by
+    default they ended the process with the arm still moving. Main thread only (signals are
+    delivered there); returns the handlers replaced, by signal."""
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+
+    def interrupt(signum: int, _frame: object) -> None:
+        raise KeyboardInterrupt
+
+    sigs = [getattr(signal, n) for n in ("SIGTERM", "SIGHUP") if hasattr(signal, n)]
+    return {sig: signal.signal(sig, interrupt) for sig in sigs}
+
+
 def run(args: argparse.Namespace) -> int:
     from workcell.campaign.devices import envelope_from_args
     from workcell.campaign.envelope import Guard
@@ -287,6 +304,7 @@ def run(args: argparse.Namespace) -> int:
         robot.connect()
     except DeviceError as e:
         raise wrong_arm(e, args, nominal.robot) from None
+    old_handlers = _interrupt_on_abort_signals()  # the arm is stopped before the process ends
     try:
         tracker.connect()
         if not simulated:  # the controller's payload setting against --payload
@@ -339,6 +357,8 @@ def run(args: argparse.Namespace) -> int:
         )
     finally:
         close_quietly(robot, tracker)
+        for sig, handler in old_handlers.items():
+            signal.signal(sig, handler)
     res["truth"] = "simulated robot" if args.robot == "sim" else "tracker"
     res["envelope"] = env_what
     res["warnings"] = warnings + validation_warnings(res)

@@ -65,7 +65,7 @@ def correction_step(
         n=N_TARGETS,
         seed=12345,
         guard=Guard(env, cell.spec, cell.tool_m),
-        q_start=world.joint_state()[0],
+        q_start=lambda: np.asarray(world.joint_state()[0], float),  # read before every move
         log=log,
         clock=world.clock.now,
     )

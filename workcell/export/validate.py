@@ -134,7 +134,11 @@ def run_validation(
     at first) to the pre-pose, direct or via the upright posture. A target any of whose four
     moves would leave the envelope is skipped, with the reason, before its first motion.
     `q_start` may be a callable: it is then read after the targets are solved, just before the
-    first move is checked (the arm may have been jogged while they were).
+    first move is checked (the arm may have been jogged while they were), and again before
+    every move, as a campaign does: an arm not where it was last sent (moved by someone since,
+    beyond `ARM_MOVED_TOL_RAD`) goes on from where it is, along a path checked from there
+    (direct or via the upright posture), or, when none stays inside, nothing is sent and
+    `UserError` says so.
 
     `clock()` (s; the controller's time) dates the closure measurement (module docstring);
     `measure` may carry `sigma_m` (per-axis 1-sigma of its last result) and `exact` (truth)."""
@@ -147,6 +151,7 @@ def run_validation(
     )
     q_u = commanded_joints(nominal, table, P, k, corrected=False)
     q_c = commanded_joints(nominal, table, P, k, corrected=True)
+    where = q_start if callable(q_start) else None
     if callable(q_start):
         q_start = q_start()
     start_outside = False  # beyond the joint ranges: the first transit comes back in
@@ -176,6 +181,8 @@ def run_validation(
                     break
     if not keep.any():
         raise UserError("no target could be reached inside the envelope; check the volume")
+    if guard is not None and where is not None:
+        move = _from_where_the_arm_is(move, where, guard, q_start, log)
     meas = {"before": [], "after": []}
     t_after = []  # when each corrected target was measured (s; visit order without a clock)
     q_at = None if q_start is None else np.asarray(q_start, float)
@@ -277,6 +284,56 @@ def run_validation(
             f"{(table.meta.get('max_interp_error_m') or float('nan')) * 1e6:.1f} um"
         )
     return out
+
+
+# a reading this close to where the arm was last sent is that posture (encoder noise), as in the
+# campaign (`Executor._where`); farther, the arm was moved since and the checked path no longer holds
+ARM_MOVED_TOL_RAD = 1e-3
+
+
+def _from_where_the_arm_is(
+    move: Callable[[np.ndarray], None],
+    where: Callable[[], np.ndarray],
+    guard: Guard,
+    q_start: np.ndarray,
+    log: Callable[[str], None],
+) -> Callable[[np.ndarray], None]:
+    """`move`, with the arm's posture read again before each move: the last line of defence.
+    `run_validation` checks each path from where it sent the arm last; an arm moved since (a jog
+    on the pendant between two moves) would follow a path nobody checked. Then the move goes
+    from where the arm is, direct or via the upright posture, each leg checked; when neither
+    stays inside, nothing is sent (`UserError`)."""
+    from workcell.campaign.plans import fmt_q
+
+    sent = {"q": np.asarray(q_start, float)}
+
+    def guarded(q: np.ndarray) -> None:
+        q = np.asarray(q, float)
+        q_now = np.asarray(where(), float)
+        last = sent["q"]
+        if not (np.all(np.isfinite(q_now)) and np.max(np.abs(q_now - last)) < ARM_MOVED_TOL_RAD):
+            legs, why = guard.route(q_now, q)
+            if why is not None:
+                raise UserError(
+                    f"the arm was moved during the validation (it is at q = {fmt_q(q_now)} rad, "
+                    f"not where it was sent) and the path from there {why}, also via the "
+                    "upright posture; nothing sent: jog it back inside the envelope, then run "
+                    "again"
+                )
+            log(
+                f"  the arm was moved during the validation (q = {fmt_q(q_now)} rad): the next "
+                "move goes from where it is"
+                + (", via the upright posture" if len(legs) > 1 else "")
+            )
+            if len(legs) > 1:  # to the upright posture, then on from where the arm is then
+                move(legs[0])
+                sent["q"] = np.asarray(legs[0], float)
+                guarded(q)
+                return
+        move(q)
+        sent["q"] = q
+
+    return guarded
 
 
 # an uncorrected target misses by about the table's correction there (the errors the model
@@ -528,7 +585,14 @@ def robot_mover(
     robot: Robot, speed: float = 0.5, accel: float = 1.0, settle_s: float = 0.5
 ) -> Callable[[np.ndarray], None]:
     def move(q: np.ndarray) -> None:
-        robot.move_joints(np.asarray(q, float), speed, accel)
+        try:
+            robot.move_joints(np.asarray(q, float), speed, accel)
+        except BaseException:  # Ctrl-C, SIGTERM, a fault: the arm is stopped before it is said
+            try:
+                robot.stop()
+            except Exception:  # noqa: BLE001 - a lost connection stops the controller's program
+                pass
+            raise
         robot.sleep(settle_s)
 
     return move
