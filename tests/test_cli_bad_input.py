@@ -123,6 +123,9 @@ def test_export_volume_in_millimetres(cell, capsys):
         ({"floor_z_m": 20.0}, "above the box's top"),
         ({"max_speed_rad_s": True}, "must be a number"),
         ({"kinematic_margin_m": "0.01"}, "must be a number"),
+        # a cap near zero: the move's duration overflowed the time stamps (a traceback)
+        ({"max_speed_rad_s": 1e-300}, "below 0.001"),
+        ({"max_accel_rad_s2": 1e-5}, "below 0.001"),
     ],
 )  # fmt: skip
 def test_envelope_file_mistakes(tmp_path, capsys, change, match):

@@ -24,6 +24,9 @@ if TYPE_CHECKING:
 # refuses a moveJ above 3.14 rad/s or 40 rad/s^2); the simulated 7-joint arm is slower.
 SPEED_CEILING_RAD_S = float(np.pi)
 ACCEL_CEILING_RAD_S2 = 40.0
+# the slowest cap accepted (rad/s, rad/s^2): a move of a radian at it takes 17 min; a cap near
+# zero (1e-300) made the move's duration overflow the recording's time stamps
+CAP_FLOOR = 1e-3
 
 # How far the real arm may be from where the nominal kinematics put it, which is what every check
 # here computes with. Measured on the real UR10 of ../shared/data/ur10-leica (series B, nominal
@@ -140,6 +143,11 @@ class Envelope:
                 raise ValueError(
                     f"envelope {name} {v:g} is above every supported arm's joint {what}, "
                     f"{ceiling:.4g}; give radians"
+                )
+            if v < CAP_FLOOR:
+                raise ValueError(
+                    f"envelope {name} {v:g} is below {CAP_FLOOR:g}, at which a move of one "
+                    f"radian takes over a quarter of an hour; give the {what}"
                 )
         self.joint_limits_rad, self.box_min_m, self.box_max_m = lim, lo_box, hi_box
         self.floor_z_m, self.max_speed_rad_s, self.max_accel_rad_s2 = caps[:3]
