@@ -340,13 +340,15 @@ def test_a_planned_campaign_has_no_move_that_leaves_the_envelope():
 
 def test_encoder_noise_at_the_envelope_edge_does_not_switch_the_path_check_off():
     """An arm sent to a target on a joint limit reads a hair beyond it; the next move is still
-    path-checked from the target it was sent to (not taken for an arm outside the envelope)."""
+    path-checked from the target it was sent to (not taken for an arm outside the envelope).
+    The hair: 1.5e-4 rad, beyond the UR driver's arrival tolerance (1e-4) and inside
+    `AT_SENT_TOL_RAD` (2e-4 since 2026-11-29; this test read 5e-4 beyond under 1e-3)."""
 
     class NoisyRobot(ClockRobot):
         def state(self):
             st = super().state()
             return type(st)(
-                t_s=st.t_s, q_rad=st.q_rad + np.array([5e-4, 0, 0, 0, 0, 0]), qd_rad_s=st.qd_rad_s
+                t_s=st.t_s, q_rad=st.q_rad + np.array([1.5e-4, 0, 0, 0, 0, 0]), qd_rad_s=st.qd_rad_s
             )
 
     env = default_envelope(UR5E)
@@ -355,15 +357,29 @@ def test_encoder_noise_at_the_envelope_edge_does_not_switch_the_path_check_off()
     at_limit = home.copy()
     at_limit[0] = env.joint_limits_rad[0, 1]
     assert (
-        env.violations(UR5E, np.array([at_limit, at_limit + [5e-4, 0, 0, 0, 0, 0]]), tool)[0]
+        env.violations(UR5E, np.array([at_limit, at_limit + [1.5e-4, 0, 0, 0, 0, 0]]), tool)[0]
         is None
     )
-    assert env.violations(UR5E, (at_limit + [5e-4, 0, 0, 0, 0, 0])[None], tool)[0] is not None
+    assert env.violations(UR5E, (at_limit + [1.5e-4, 0, 0, 0, 0, 0])[None], tool)[0] is not None
     robot, sink = NoisyRobot(q0=home), NullSink()
     ex = Executor(robot, None, UR5E, env, sink, tool_m=tool)
     assert ex._move_along(at_limit, "edge") and ex._move_along(home, "back")
     assert [k for k, _ in sink.events if k == "envelope"] == []
     assert len(robot.moves) == 2
+
+    # 5e-4 rad beyond: not noise but an arm moved since; it is where it reads, outside the joint
+    # range, and comes back along a path checked from there (it was taken for the limit posture)
+    class MovedRobot(ClockRobot):
+        def state(self):
+            st = super().state()
+            return type(st)(
+                t_s=st.t_s, q_rad=st.q_rad + np.array([5e-4, 0, 0, 0, 0, 0]), qd_rad_s=st.qd_rad_s
+            )
+
+    robot, sink = MovedRobot(q0=home), NullSink()
+    ex = Executor(robot, None, UR5E, env, sink, tool_m=tool)
+    assert ex._move_along(at_limit, "edge") and ex._move_along(home, "back")
+    assert [k for k, _ in sink.events if k == "envelope"] == ["envelope"]
 
 
 def test_an_arm_outside_the_envelope_is_not_moved(tmp_path):

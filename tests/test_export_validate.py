@@ -536,7 +536,7 @@ def test_an_arm_moved_where_no_checked_path_leads_on_is_not_moved():
         move(q0)
     assert sent == []
     # where it was sent (within encoder noise): the move goes as planned
-    move = _from_where_the_arm_is(sent.append, lambda: q0 + 2e-4, guard, q0, lambda _: None)
+    move = _from_where_the_arm_is(sent.append, lambda: q0 + 5e-5, guard, q0, lambda _: None)
     move(q0)
     assert len(sent) == 1
 

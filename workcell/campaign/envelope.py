@@ -27,6 +27,11 @@ ACCEL_CEILING_RAD_S2 = 40.0
 # the slowest cap accepted (rad/s, rad/s^2): a move of a radian at it takes 17 min; a cap near
 # zero (1e-300) made the move's duration overflow the recording's time stamps
 CAP_FLOOR = 1e-3
+# A reading of the arm this close to where it was last sent (each joint, rad) is that posture,
+# whose paths were checked: encoder noise (~2 urad) and the UR driver's arrival tolerance (1e-4
+# rad). Farther, the arm was moved since. 1e-3 until 2026-11-29: up to ~4 mm of an SMR's path
+# unchecked, which only the kinematic margin covered (a safety audit).
+AT_SENT_TOL_RAD = 2e-4
 
 # How far the real arm may be from where the nominal kinematics put it, which is what every check
 # here computes with. Measured on the real UR10 of ../shared/data/ur10-leica (series B, nominal

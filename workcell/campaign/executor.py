@@ -48,7 +48,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from workcell.campaign.envelope import Envelope, route, route_back_in
+from workcell.campaign.envelope import AT_SENT_TOL_RAD, Envelope, route, route_back_in
 from workcell.campaign.plans import (
     ArmPosture,
     Plan,
@@ -619,7 +619,7 @@ class Executor:
         if (
             outside is not None
             and last is not None
-            and np.max(np.abs(q_now - last)) < 1e-3
+            and np.max(np.abs(q_now - last)) < AT_SENT_TOL_RAD
             and self.env.violations(self.spec, last[None], self.tool_m)[0] is None
         ):
             q_now, outside = last, None

@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import numpy.typing as npt
 
-from workcell.campaign.envelope import Guard
+from workcell.campaign.envelope import AT_SENT_TOL_RAD, Guard
 from workcell.errors import UserError
 from workcell.estimation.models import (
     interval_um,
@@ -136,7 +136,7 @@ def run_validation(
     `q_start` may be a callable: it is then read after the targets are solved, just before the
     first move is checked (the arm may have been jogged while they were), and again before
     every move, as a campaign does: an arm not where it was last sent (moved by someone since,
-    beyond `ARM_MOVED_TOL_RAD`) goes on from where it is, along a path checked from there
+    beyond `AT_SENT_TOL_RAD`) goes on from where it is, along a path checked from there
     (direct or via the upright posture), or, when none stays inside, nothing is sent and
     `UserError` says so.
 
@@ -286,11 +286,6 @@ def run_validation(
     return out
 
 
-# a reading this close to where the arm was last sent is that posture (encoder noise), as in the
-# campaign (`Executor._where`); farther, the arm was moved since and the checked path no longer holds
-ARM_MOVED_TOL_RAD = 1e-3
-
-
 def _from_where_the_arm_is(
     move: Callable[[np.ndarray], None],
     where: Callable[[], np.ndarray],
@@ -311,7 +306,7 @@ def _from_where_the_arm_is(
         q = np.asarray(q, float)
         q_now = np.asarray(where(), float)
         last = sent["q"]
-        if not (np.all(np.isfinite(q_now)) and np.max(np.abs(q_now - last)) < ARM_MOVED_TOL_RAD):
+        if not (np.all(np.isfinite(q_now)) and np.max(np.abs(q_now - last)) < AT_SENT_TOL_RAD):
             legs, why = guard.route(q_now, q)
             if why is not None:
                 raise UserError(
