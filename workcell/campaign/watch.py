@@ -19,6 +19,13 @@ while the campaign runs, from the samples themselves:
   prediction means the arm is not where its nominal model says (a wrong robot model, a large
   kinematic error). Two such poses are needed (one may be a bumped SMR).
 
+- **before that fit** (3 to `MIN_POSES` - 1 poses): the distance between two measured points is
+  the distance between the real SMR positions (the tracker's frame is rigid), so it differs from
+  the nominal distance (nominal chain, declared offset) by at most the two poses' errors: more
+  than twice the margin (plus `DISTANCE_SLACK_M`) means one of them is beyond it. Pairs that do
+  not all share one pose (one may be bumped) stop the campaign: a declared SMR offset 0.2 m off
+  took the real SMR 159 mm outside the box before the fit could start (a safety audit).
+
 Either stops the campaign (robot stopped, recording closed, `margin` event). When neither does,
 one `margin` info event says how well the margin was verified; the offset is unobservable in
 the directions the flange orientation hardly changes (along the axis it only turns about, at an
@@ -36,6 +43,8 @@ from dataclasses import dataclass
 import numpy as np
 
 MIN_POSES = 6  # 18 coordinates for 9 parameters: 9 degrees of freedom
+MIN_POSES_DISTANCES = 3  # the distance check: pairs that need not share one (maybe bumped) pose
+DISTANCE_SLACK_M = 1e-3  # the tracker's and the encoders' share of a distance, generously
 BAD_POSES_TO_STOP = 2
 # a weak prior that keeps the fitted offset near the declared one when the data cannot place it
 # (a flange at one orientation): 1 m of offset costs as much as a 10 mm residual on one coordinate
@@ -122,12 +131,60 @@ class MarginWatch:
         if not self._add(sample):
             return None
         n = len(self.p)
+        if MIN_POSES_DISTANCES <= n < MIN_POSES:
+            verdict = self._distance_verdict()
+            if verdict is not None:
+                self.last = verdict
+            return verdict
         if n < MIN_POSES or (n > EVERY_POSE_UP_TO and n % (n // EVERY_POSE_UP_TO) != 0):
             return None
         verdict = self._verdict()
         if verdict is not None:
             self.last = verdict
         return verdict
+
+    def _distance_verdict(self) -> MarginVerdict | None:
+        """Before the fit: a stop when measured distances between poses differ from the nominal
+        ones by more than twice the margin, in pairs that do not all share one pose (module
+        docstring); else None."""
+        P = np.array(self.p)
+        S = np.array(self.t) + np.einsum("nij,j->ni", np.array(self.R), self.tool_m)
+        i, j = np.triu_indices(len(P), 1)
+        gap = np.abs(np.linalg.norm(P[i] - P[j], axis=1) - np.linalg.norm(S[i] - S[j], axis=1))
+        bad = np.flatnonzero(gap > 2 * self.margin_m + DISTANCE_SLACK_M)
+        if not len(bad):
+            return None
+        for k in set(i[bad]) | set(j[bad]):
+            if all(k in (i[b], j[b]) for b in bad):
+                return None  # one pose in every pair that disagrees: a bumped SMR, maybe
+        w = bad[int(np.argmax(gap[bad]))]
+        a, b = self.ids[int(i[w])], self.ids[int(j[w])]
+        stop = (
+            f"poses {a} and {b} are {1e3 * np.linalg.norm(P[i[w]] - P[j[w]]):.1f} mm apart as the "
+            f"tracker measured them, {1e3 * np.linalg.norm(S[i[w]] - S[j[w]]):.1f} mm as the "
+            f"nominal {self.spec.model} chain with the declared smr_offset_m "
+            f"[{', '.join(f'{1e3 * v:.1f}' for v in self.tool_m)}] mm puts them: more than twice the "
+            f"envelope's {1e3 * self.margin_m:g} mm kinematic margin, so the SMR is more than "
+            f"the margin from where the envelope check puts it ({len(bad)} of {len(gap)} pairs "
+            f"of the first {len(P)} poses disagree, not all through one pose): is the robot "
+            "model right, and the declared SMR offset (--smr-offset: the SMR nest and "
+            "extension)?"
+        )
+        n = len(P)
+        return MarginVerdict(
+            n=n,
+            offset_m=np.full(3, np.nan),
+            offset_sigma_m=float("inf"),
+            offset_sigma_max_m=float("inf"),
+            resolved_directions=0,
+            offset_resolved_m=float("nan"),
+            offset_resolved_sigma_m=float("inf"),
+            k=float("nan"),
+            residual_max_m=float("nan"),
+            bad_poses=[],
+            bad_dist_m=[],
+            stop=stop,
+        )
 
     def _verdict(self) -> MarginVerdict | None:
         from scipy.optimize import least_squares
