@@ -88,7 +88,8 @@ class MarginVerdict:
 
 class MarginWatch:
     """Feed it each recorded sample (`update`); it returns a `MarginVerdict` once it has
-    `MIN_POSES` samples, with `stop` set when the margin demonstrably does not hold."""
+    `MIN_POSES` samples, with `stop` set when the margin demonstrably does not hold, and before
+    that, from `MIN_POSES_DISTANCES` samples, one only when the distance check stops."""
 
     def __init__(self, spec, tool_m, margin_m: float) -> None:
         from workcell.kinematics.chain import pack
