@@ -247,26 +247,25 @@ class Reach:
         env, spec, tool = self.guard.env, self.guard.spec, self.guard.tool_m
         q_from = self.where()
         order = [int(i) for i in order]
-        # no position yet (a plan's first pose): only the poses' own approaches were checked
-        names = [
-            path_limit(env, spec, tool, q_from, self.pre[i])
-            if q_from is not None
-            else path_limit(env, spec, tool, self.pre[i], self.q[i])
-            for i in order[:shown]
-        ]
+        best = order[:shown]
         suggest = None
         if order:
             clear = env.clearance(spec, self.q[order], tool)
             suggest = self.q[order[int(np.argmax(clear))]].copy()
+        if q_from is None:  # no position yet (a plan's first pose): only approaches were checked
+            names = [path_limit(env, spec, tool, self.pre[i], self.q[i]) for i in best]
+            msg = (
+                f"the {kind} plan has no pose whose own approach stays inside the envelope: the "
+                f"approaches of the best {len(best)} of its {len(order)} poses first cross "
+                f"{limits_summary(names)}"
+            )
+            return PlanStuck(msg, suggest)
+        names = [path_limit(env, spec, tool, q_from, self.pre[i]) for i in best]
         msg = (
             f"the {kind} plan has no pose left that the arm may move to from where it is "
             f"(q = {fmt_q(q_from)} rad): the paths to all {len(order)} of its remaining poses "
             f"leave the envelope, also via the upright posture; those to the best "
-            f"{min(shown, len(order))} first cross {limits_summary(names)}"
-            if q_from is not None
-            else f"the {kind} plan has no pose whose own approach stays inside the envelope: "
-            f"the approaches of the best {min(shown, len(order))} of its {len(order)} poses "
-            f"first cross {limits_summary(names)}"
+            f"{len(best)} first cross {limits_summary(names)}"
         )
         return PlanStuck(msg, suggest)
 

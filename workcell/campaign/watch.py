@@ -149,8 +149,9 @@ class MarginWatch:
         ones by more than twice the margin, in pairs that do not all share one pose (module
         docstring); else None."""
         P = np.array(self.p)
+        n = len(P)
         S = np.array(self.t) + np.einsum("nij,j->ni", np.array(self.R), self.tool_m)
-        i, j = np.triu_indices(len(P), 1)
+        i, j = np.triu_indices(n, 1)
         gap = np.abs(np.linalg.norm(P[i] - P[j], axis=1) - np.linalg.norm(S[i] - S[j], axis=1))
         bad = np.flatnonzero(gap > 2 * self.margin_m + DISTANCE_SLACK_M)
         if not len(bad):
@@ -167,11 +168,10 @@ class MarginWatch:
             f"[{', '.join(f'{1e3 * v:.1f}' for v in self.tool_m)}] mm puts them: more than twice the "
             f"envelope's {1e3 * self.margin_m:g} mm kinematic margin, so the SMR is more than "
             f"the margin from where the envelope check puts it ({len(bad)} of {len(gap)} pairs "
-            f"of the first {len(P)} poses disagree, not all through one pose): is the robot "
+            f"of the first {n} poses disagree, not all through one pose): is the robot "
             "model right, and the declared SMR offset (--smr-offset: the SMR nest and "
             "extension)?"
         )
-        n = len(P)
         return MarginVerdict(
             n=n,
             offset_m=np.full(3, np.nan),

@@ -172,7 +172,10 @@ def _interrupt_on_abort_signals() -> dict:
     def interrupt(signum: int, _frame: object) -> None:
         raise KeyboardInterrupt
 
-    sigs = [getattr(signal, n) for n in ("SIGTERM", "SIGHUP") if hasattr(signal, n)]
+    from workcell.campaign.executor import ABORT_SIGNALS
+
+    # the campaign's abort signals; SIGINT is Ctrl-C's own KeyboardInterrupt already (cli.py)
+    sigs = [sig for sig in ABORT_SIGNALS if sig != signal.SIGINT]
     return {sig: signal.signal(sig, interrupt) for sig in sigs}
 
 
