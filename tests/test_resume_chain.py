@@ -370,3 +370,54 @@ def test_a_resume_prints_a_line_per_pose_as_a_first_run_does(chain, capsys):
     lines = [x for x in err.splitlines() if re.match(r"pose +\d+ +\d+/\d+ more", x)]
     left = POSES - len(_pose_ids(chain / "x.mcap")) - len(_pose_ids(chain / "x.resumed1.mcap"))
     assert len(lines) == left and lines[-1].split()[2] == f"{left}/{left}", err[-1500:]
+
+
+def test_resuming_a_file_already_continued_is_refused_in_one_line(chain, capsys):
+    """After a resume that was itself interrupted, the operator's first command typed again
+    (`--resume x.mcap`) forked the chain: x.resumed2.mcap continued x.mcap, measured
+    x.resumed1.mcap's poses again and left that file out of every later chain (crash audit)."""
+    first, second = chain / "x.mcap", chain / "x.resumed1.mcap"
+    before = {p.name: _sha(p) for p in chain.iterdir()}
+    capsys.readouterr()
+    assert _resume(first) == 2
+    err = capsys.readouterr().err
+    errors = _error_lines(err)
+    assert len(errors) == 1 and "Traceback" not in err, err
+    assert f"{second} already continues {first} (3 poses measured there)" in errors[0]
+    assert f"--resume {second}" in errors[0]
+    assert {p.name: _sha(p) for p in chain.iterdir()} == before  # nothing written
+    # a continuation with no pose (stopped at its start) loses nothing: not refused
+    (chain / "x.resumed2.mcap").write_bytes(b"")
+    shutil.move(second, chain.parent / "away.mcap")
+    assert _resume(first, "--out", str(chain / "y.mcap")) == 0
+    assert set(_pose_ids(chain / "y.mcap")) == set(range(3, POSES))
+
+
+def test_an_empty_resume_file_points_at_the_file_it_was_to_continue(chain, capsys):
+    """A resume killed right after creating its file left it empty; resuming that file said
+    "delete it and start the campaign again", which throws away x.mcap's poses."""
+    empty = chain / "x.resumed2.mcap"
+    empty.write_bytes(b"")
+    capsys.readouterr()
+    assert _resume(empty) == 2
+    line = _error_lines(capsys.readouterr().err)[0]
+    assert "start the campaign again" not in line, line
+    assert f"delete {empty}" in line and f"--resume {chain / 'x.resumed1.mcap'}" in line, line
+
+
+def test_a_recording_still_being_written_is_not_resumed(chain, capsys):
+    """A resume of a file another campaign still writes measured the same poses twice, in two
+    files (crash audit: 7 of 7 accepted). The writer's lock tells it."""
+    from workcell.recording.writer import RecordingWriter, being_written
+
+    live = chain / "live.mcap"
+    w = RecordingWriter(live, read_recording(chain / "x.mcap").session)
+    try:
+        assert being_written(live)
+        capsys.readouterr()
+        assert _resume(live) == 2
+        line = _error_lines(capsys.readouterr().err)[0]
+        assert "is still being written by a running campaign" in line, line
+    finally:
+        w.close()
+    assert not being_written(live) and not being_written(chain / "x.mcap")

@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import copy
 import dataclasses
+import glob
 import re
 import sys
 from collections.abc import Callable
@@ -41,9 +42,10 @@ from workcell.campaign.run import (
 from workcell.drivers.protocols import DeviceUnreachable
 from workcell.errors import UserError, check_output_path
 from workcell.recording import checks
-from workcell.recording.chain import file_sha256, follow_chain
-from workcell.recording.reader import read_recording
+from workcell.recording.chain import file_sha256, follow_chain, link_candidates
+from workcell.recording.reader import RecordingError, read_recording
 from workcell.recording.repeats import RepeatWatch
+from workcell.recording.writer import being_written
 
 if TYPE_CHECKING:
     from workcell.kinematics.robots import RobotSpec
@@ -57,11 +59,18 @@ def _read_for_resume(old: str):
     from workcell.recording import schema as S
     from workcell.recording.reader import RecordingError
 
+    p = Path(old)
+    earlier = _earlier_in_series(p)
+    again = (
+        f"delete {old} and resume the file its resume continued again (`workcell campaign "
+        f"--resume {earlier[-1]}` if it was that one)"
+        if earlier
+        else f"delete {old} and start the campaign again"
+    )
     nothing = (
         "a campaign that stopped before recording anything (a full disk, a crash at its "
-        f"start?); there is nothing to resume: delete {old} and start the campaign again"
+        f"start?); there is nothing to resume in it: {again}"
     )
-    p = Path(old)
     if p.is_file() and p.stat().st_size == 0:
         raise UserError(f"{old} is empty (0 bytes): {nothing}")
     try:
@@ -90,7 +99,15 @@ def read_chain(old: str, *, remeasure_missing: bool = False) -> tuple[list, list
     changed is refused in one line (its poses would be measured twice, or a changed file's
     counted as this campaign's), unless `remeasure_missing`: the chain then stops there, the
     poses it held are measured again and a warning says so."""
-    chain, why, _ = follow_chain(_read_for_resume(old))
+    if being_written(old):
+        raise UserError(
+            f"{old} is still being written by a running campaign (a `workcell campaign` or a "
+            "TUI on this computer has it open); a resume now would measure the same poses "
+            "again: let that campaign end, or stop it (Ctrl-C), then resume"
+        )
+    newest = _read_for_resume(old)
+    _refuse_continued(Path(old))
+    chain, why, _ = follow_chain(newest)
     notes = []
     if why:
         if not remeasure_missing:
@@ -451,11 +468,54 @@ def new_serial_port(recorded: object, given: object) -> bool:
     )
 
 
+def _series(old: Path) -> tuple[str, int]:
+    """(X, k) for X.resumedk.mcap, (X, 0) for X.mcap: the names `default_out` gives."""
+    m = re.fullmatch(r"(.+)\.resumed(\d+)", old.stem)
+    return (m.group(1), int(m.group(2))) if m else (old.stem, 0)
+
+
+def _earlier_in_series(old: Path) -> list[Path]:
+    """The files beside `old` that a resume could have continued into `old`'s name: X.mcap,
+    X.resumed1.mcap, ... below `old`'s number, those that exist (none for X.mcap itself)."""
+    base, k = _series(old)
+    names = [f"{base}{old.suffix}"] + [f"{base}.resumed{j}{old.suffix}" for j in range(1, k)]
+    return [old.with_name(n) for n in names if k > 0 and old.with_name(n).is_file()]
+
+
+def _refuse_continued(old: Path) -> None:
+    """Refuse a resume of `old` when a file beside it, named as a resume of it would be
+    (X.resumedk.mcap), already continues it with poses measured: resuming `old` again would
+    measure those poses again in another file and leave that one out of every later chain (an
+    operator typing the same command after a resume that was itself interrupted). A
+    continuation with no pose (stopped at its start) is no loss and does not refuse."""
+    base, _ = _series(old)
+    me = old.resolve()
+    pattern = re.compile(re.escape(base) + r"\.resumed\d+" + re.escape(old.suffix))
+    for p in sorted(old.parent.glob(f"{glob.escape(base)}.resumed*{old.suffix}")):
+        if not pattern.fullmatch(p.name) or p.resolve() == me or not p.is_file():
+            continue
+        try:
+            rec = read_recording(p, streams=False)
+        except (RecordingError, OSError):
+            continue  # not a readable recording: it holds no pose a resume would lose
+        link = rec.session.get("chained_from")
+        if not rec.samples or not isinstance(link, dict) or not isinstance(link.get("path"), str):
+            continue
+        if any(c.exists() and c.resolve() == me for c in link_candidates(link["path"], p)):
+            n = len(rec.samples)
+            raise UserError(
+                f"{p} already continues {old} ({n} pose{'' if n == 1 else 's'} measured there): "
+                f"resume that file instead (`workcell campaign --resume {p}`); resuming {old} "
+                f"again would measure them again and leave {p.name} out of the campaign (to do "
+                f"that on purpose, move {p.name} out of this folder)"
+            )
+
+
 def default_out(old: Path) -> Path:
     """Beside `old`: X.resumed1.mcap for X.mcap, X.resumed2.mcap for X.resumed1.mcap, ... (the
     first free number after `old`'s)."""
-    m = re.fullmatch(r"(.+)\.resumed(\d+)", old.stem)
-    base, k = (m.group(1), int(m.group(2)) + 1) if m else (old.stem, 1)
+    base, k = _series(old)
+    k += 1
     while True:
         p = old.with_name(f"{base}.resumed{k}{old.suffix}")
         if not p.exists():

@@ -2,6 +2,11 @@
 
 Each `sample()` closes the current chunk and fsyncs, so a kill -9 loses at most the pose in
 progress (its joint states and tracker readings, written before its sample).
+
+While it writes, the writer holds an exclusive advisory lock (`flock`) on its file; the
+operating system releases it when the file is closed or the process ends, however it ends.
+`being_written` tells a resume that a file is still some campaign's (a resume of it would
+measure the same poses again in another file).
 """
 
 from __future__ import annotations
@@ -28,6 +33,39 @@ def _now_ns() -> int:
     return time.time_ns()
 
 
+try:
+    import fcntl
+except ImportError:  # not POSIX: no lock; a resume cannot tell a file still being written
+    fcntl = None  # type: ignore[assignment]
+
+
+def _lock(f) -> None:
+    if fcntl is not None:
+        try:
+            fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:  # a file system without locks (some network mounts): write unlocked
+            pass
+
+
+def being_written(path: str | os.PathLike) -> bool:
+    """Whether a running campaign (this process or another on this machine) holds `path` open
+    for writing (its `RecordingWriter` lock). False where locks are not available."""
+    if fcntl is None:
+        return False
+    try:
+        with open(path, "rb") as f:
+            try:
+                fcntl.flock(f.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
+            except BlockingIOError:
+                return True
+            except OSError:
+                return False
+            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+    except OSError:
+        return False
+    return False
+
+
 class RecordingWriter:
     """Write a campaign recording. Use as a context manager; `close()` writes the summary."""
 
@@ -46,6 +84,7 @@ class RecordingWriter:
             raise FileExistsError(f"{self.path} already exists; refusing to overwrite a recording")
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._f = open(self.path, "xb")  # never over a file that appeared meanwhile
+        _lock(self._f)  # released by close(), or by the end of the process
         try:
             self._start(session, compression, session_t_ns)
         except BaseException:
@@ -161,11 +200,13 @@ class RecordingWriter:
     def close(self) -> None:
         if self.closed:
             return
-        self._w.finish()
-        self._f.flush()
-        os.fsync(self._f.fileno())
-        self._f.close()
-        self.closed = True
+        try:
+            self._w.finish()
+            self._f.flush()
+            os.fsync(self._f.fileno())
+        finally:  # a failed summary (a full disk) still releases the file and its lock
+            self._f.close()
+            self.closed = True
 
     def __enter__(self) -> RecordingWriter:
         return self
