@@ -55,7 +55,11 @@ every move command the emulated script executes):
     restart_at_move          list of move numbers: restart half-way through that move
     restart_down_s           how long a restart keeps the ports closed (default 2.0)
     restart_power_off        after a restart the robot is POWER_OFF (default False)
-`inject(kind, **kw)` triggers one now: kinds `rtde_drop`, `protective_stop`, `restart` (down_s=).
+`inject(kind, **kw)` triggers one now: kinds `rtde_drop`, `protective_stop`, `restart` (down_s=),
+`safeguard_stop` and `emergency_stop` (down_s=: the arm halts, the program pauses, the safety mode
+and its status bit are set, and the stop clears by itself after down_s of simulated time, as a
+light curtain's safeguard input or an e-stop released at the cell would; the program stays
+paused).
 """
 
 from __future__ import annotations
@@ -126,6 +130,13 @@ SAFETY_MODES = {
     9: "FAULT",
 }
 SAFETY_NORMAL, SAFETY_PROTECTIVE_STOP = 1, 3
+SAFETY_SAFEGUARD_STOP, SAFETY_ROBOT_EMERGENCY_STOP = 5, 7
+# safety_status_bits of RTDE for each stopped safety mode (bit 10: stopped due to safety)
+SAFETY_BITS = {
+    SAFETY_PROTECTIVE_STOP: (1 << 2) | (1 << 10),
+    SAFETY_SAFEGUARD_STOP: (1 << 4) | (1 << 10),
+    SAFETY_ROBOT_EMERGENCY_STOP: (1 << 6) | (1 << 7) | (1 << 10),
+}
 # runtime_state
 RT_STOPPED, RT_PLAYING, RT_PAUSED = 1, 2, 4
 RUNTIME_NAMES = {
@@ -539,6 +550,7 @@ class UrControllerSim:
 
         self._stop = threading.Event()
         self._down_until: float | None = None  # sim time the restart ends
+        self._safety_until: float | None = None  # sim time an injected safety stop clears
         self._listeners: dict[int, socket.socket] = {}
         self._conns: set[_Conn] = set()
         self._script_owner: _Conn | None = None
@@ -666,9 +678,26 @@ class UrControllerSim:
             if not (np.isfinite(down) and down >= 0):  # NaN: the controller never came back
                 raise ValueError(f"restart down_s must be a finite time >= 0 s, got {down}")
             self._restart(down)
+        elif kind in ("safeguard_stop", "emergency_stop"):
+            down = float(kw.get("down_s", 1.0))
+            if not (np.isfinite(down) and down >= 0):
+                raise ValueError(f"{kind} down_s must be a finite time >= 0 s, got {down}")
+            mode = (
+                SAFETY_SAFEGUARD_STOP if kind == "safeguard_stop" else SAFETY_ROBOT_EMERGENCY_STOP
+            )
+            with self.lock:
+                self.world.stop()
+                self._pending_done = None
+                self._async_running = False
+                if self.runtime_state == RT_PLAYING:
+                    self.runtime_state = RT_PAUSED
+                self.safety_mode = mode
+                self._safety_until = self.clock.now() + down
+            self._event(f"fault: {kind.replace('_', ' ')} ({down:.2f} s)")
         else:
             raise ValueError(
-                f"unknown fault kind {kind!r}; known: rtde_drop, protective_stop, restart"
+                f"unknown fault kind {kind!r}; known: rtde_drop, protective_stop, restart, "
+                "safeguard_stop, emergency_stop"
             )
 
     def _rtde_drop(self) -> None:
@@ -737,6 +766,11 @@ class UrControllerSim:
                     self._event(f"restart: {e}")
                     self._down_until = now + 0.5
             return
+        with self.lock:
+            if self._safety_until is not None and now >= self._safety_until:
+                self._safety_until = None
+                self.safety_mode = SAFETY_NORMAL
+                self._event("safety stop cleared at the cell")
         todo = []
         while self._time_faults and self._time_faults[0][0] <= now:
             todo.append(self._time_faults.pop(0))
@@ -908,8 +942,7 @@ class UrControllerSim:
             pose, accel = self._fk
             h = 1e-3
             tcp_speed = (self.chain.pose(q + h * qd) - pose) / h if np.any(qd) else np.zeros(6)
-            pstop = self.safety_mode == SAFETY_PROTECTIVE_STOP
-            safety_bits = (1 << 2) | (1 << 10) if pstop else 1
+            safety_bits = SAFETY_BITS.get(self.safety_mode, 1)
             playing = self.runtime_state == RT_PLAYING
             powered = self.robot_mode in (4, 5, 6, 7)
             status_bits = (1 if powered else 0) | (2 if playing else 0)

@@ -688,3 +688,43 @@ def test_log_times_are_when_things_happen_on_a_real_time_controller():
     time.sleep(0.5)  # a plan's first step
     ex.event("info", "x", "now")
     assert abs(sink.ns[-1] - time.time_ns()) < 0.15e9, (sink.ns[-1] - time.time_ns()) * 1e-9
+
+
+class SafetyStopsAt(Wrapped):
+    """A robot whose move command `at` meets a safeguard stop; counts reconnects and moves."""
+
+    def __init__(self, inner, at: int):
+        super().__init__(inner)
+        self.at, self.n, self.reconnects = at, 0, 0
+
+    def move_joints(self, q, speed, accel):
+        from workcell.drivers.protocols import SafetyStop
+
+        self.n += 1
+        if self.n >= self.at:
+            raise SafetyStop("UR sim: safeguard stop during a move")
+        return self.inner.move_joints(q, speed, accel)
+
+    def reconnect(self):
+        self.reconnects += 1
+
+
+def test_a_safety_stop_ends_the_campaign_without_a_reconnect_or_another_move(tmp_path):
+    """A safeguard or emergency stop went to the reconnect policy as a lost connection, and the
+    pose started over: the arm moved again by itself once the stop was cleared at the cell (a
+    protocol audit: 25 of 25 poses after a 4 s safeguard stop, exit 0). Now the campaign stops:
+    no reconnect, no further move, a `stopped` event, one line naming the stop, exit 3."""
+    _, robot, tracker, cell = sim_cell("ur5e", "none", seed=1, beam_break_prob=0.0)
+    wrapped = SafetyStopsAt(robot, at=3)
+    out = tmp_path / "sg.mcap"
+    path, res = run_campaign(wrapped, tracker, cell, out, poses=6, seed=1, config=FAST,
+                             control=CampaignControl())  # fmt: skip
+    assert res.aborted and res.stopped_by == "safety_stop", res
+    assert wrapped.reconnects == 0 and wrapped.n == 3
+    rec = read_recording(out)
+    assert rec.closed_cleanly and len(rec.samples) == res.measured >= 1
+    assert "stopped" in [e["kind"] for e in rec.events]
+    with pytest.raises(UserError, match="safeguard stop") as e:
+        campaign_stop(res, path)
+    msg = str(e.value)
+    assert e.value.exit_code == 3 and "\n" not in msg and f"--resume {path}" in msg, msg

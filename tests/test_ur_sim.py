@@ -496,3 +496,26 @@ def test_a_control_script_with_a_register_offset_past_the_registers_is_refused()
     assert not ctrl.program_loaded or ctrl.reg_offset != 48
     ctrl._program_uploaded("rtde_control", prog.replace(b"48", b"24"))
     assert ctrl.reg_offset == 24
+
+
+@pytest.mark.parametrize(
+    ("kind", "named"), [("safeguard_stop", "safeguard stop"), ("emergency_stop", "emergency stop")]
+)
+def test_a_safeguard_or_emergency_stop_is_a_safety_stop_not_a_lost_connection(
+    robot_factory, kind, named
+):
+    """A safeguard stop surfaced as "control program stopped during a move" and an emergency
+    stop as a plain device error: the campaign reconnected and moved the arm again by itself,
+    once the stop was cleared (a protocol audit). Both are now `SafetyStop`, which names them."""
+    from workcell.drivers.protocols import SafetyStop
+
+    with SimProcess("127.0.0.98", seed=5, time_scale=TS) as sp:
+        r = robot_factory("127.0.0.98")
+        r.connect()
+        r.move_joints(QA, 1.0, 2.0)
+        threading.Timer(0.1, lambda: sp.inject(kind, down_s=30.0)).start()
+        with pytest.raises(SafetyStop, match=named):
+            r.move_joints(QB, 0.2, 0.5)  # ~3 s of robot time: stopped on the way
+        assert np.max(np.abs(r.state().q_rad - QB)) > 0.01  # did not arrive
+        with pytest.raises(SafetyStop, match=named):
+            r.move_joints(QB, 1.0, 2.0)  # refused while the stop lasts

@@ -65,6 +65,7 @@ from workcell.drivers.protocols import (
     OtherInstrument,
     ProtectiveStop,
     Robot,
+    SafetyStop,
     Tracker,
 )
 from workcell.errors import INTERRUPTED, UserError, stop_if_interrupted
@@ -247,7 +248,7 @@ class CampaignResult:
     skipped_ids: list[int] = field(default_factory=list)
     # "operator" (abort, Ctrl-C, SIGTERM, SIGHUP), "margin" (the margin watch),
     # "unacknowledged" (a protective stop nobody acknowledged), "protective_stop" (too many in a
-    # row), "tracker" (no tracker readings at too many poses in a row), "refused" (poses refused
+    # row), "safety_stop" (a safeguard or emergency stop, a safety violation or fault), "tracker" (no tracker readings at too many poses in a row), "refused" (poses refused
     # again and again, or an adaptive plan with no reachable pose left) or "error"
     stopped_by: str = ""
     stop_message: str = ""  # for the last four: one line on why
@@ -403,8 +404,8 @@ class Executor:
         while True:
             try:
                 return fn()
-            except ProtectiveStop:
-                raise
+            except (ProtectiveStop, SafetyStop):
+                raise  # its own policy (a protective stop), or the campaign stops (SafetyStop)
             except DeviceError as e:
                 if self.control.abort.is_set():
                     raise KeyboardInterrupt from None  # the move stopped for the abort, or failed
@@ -503,6 +504,14 @@ class Executor:
         speed, accel = self.env.cap(self.cfg.speed_rad_s, self.cfg.accel_rad_s2)
         try:
             self._robot_call(lambda: self.robot.move_joints(q, speed, accel), repeat=False)
+        except SafetyStop as e:
+            msg = (
+                f"{e}: the controller stopped the arm for safety; a campaign never moves it "
+                "again by itself after such a stop: find out why, clear it at the cell (teach "
+                "pendant)"
+            )
+            self.event("error", "stopped", msg)
+            raise _CampaignStop("safety_stop", msg) from None
         except ProtectiveStop as e:
             self.event("error", "protective_stop", f"protective stop: {e}")
             self._pstops_in_a_row += 1

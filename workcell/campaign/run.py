@@ -394,7 +394,7 @@ def stop_aftermath(res: CampaignResult, path: str | Path) -> str | None:
         )
     if res.stopped_by == "refused":
         return f"the arm is stopped and {kept}: `workcell campaign --resume {path}` continues it"
-    if res.stopped_by == "protective_stop":
+    if res.stopped_by in ("protective_stop", "safety_stop"):
         return f"{resume_hint(path, res.measured)} once it is fixed"
     if res.stopped_by == "unacknowledged":
         return f"the arm is left stopped; {resume_hint(path, res.measured)}"

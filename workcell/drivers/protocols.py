@@ -32,6 +32,12 @@ class ProtectiveStop(DeviceError):
     """The robot controller entered a protective stop."""
 
 
+class SafetyStop(DeviceError):
+    """The controller stopped the arm for safety other than a protective stop: a safeguard
+    stop, an emergency stop, a safety violation or fault. Someone at the cell clears it; a
+    campaign never moves the arm again by itself after one (no reconnect, no retry)."""
+
+
 @dataclass(frozen=True)
 class RobotState:
     """One snapshot of the arm as the controller reports it."""

@@ -82,6 +82,7 @@ from workcell.drivers.protocols import (
     PayloadUnavailable,
     ProtectiveStop,
     RobotState,
+    SafetyStop,
 )
 
 RTDE_PORT = 30004
@@ -132,7 +133,16 @@ RTDE_PROTOCOL_VERSION = 2
 TIME_SCALE_TOLERANCE = 0.2  # relative: measuring over ~0.2 s is good to a few per cent
 TIME_SCALE_SLACK = 0.05  # absolute, in x real time: scheduling jitter near 1x
 BIT_PROTECTIVE_STOP = 1 << 2
-BIT_EMERGENCY_STOP = 1 << 7
+# the other stops of RTDE's safety_status_bits (bit 10, "stopped due to safety", comes with any
+# of them and with a protective stop): cleared at the cell, never by the client
+SAFETY_STOP_BITS = {
+    4: "safeguard stop",
+    5: "system emergency stop",
+    6: "robot emergency stop",
+    7: "emergency stop",
+    8: "safety violation",
+    9: "safety fault",
+}
 RUNTIME_PLAYING = 2
 MAX_JOINT_SPEED = 3.14  # rad/s, ur_rtde's accepted range
 MAX_JOINT_ACCEL = 40.0  # rad/s^2
@@ -993,8 +1003,9 @@ class UrRobot:
         bits = int(rr.getSafetyStatusBits())
         if bits & BIT_PROTECTIVE_STOP:
             raise ProtectiveStop(f"UR {self.host}: protective stop {when}")
-        if bits & BIT_EMERGENCY_STOP:
-            raise DeviceError(f"UR {self.host}: emergency stop {when}")
+        stops = [name for bit, name in SAFETY_STOP_BITS.items() if bits & (1 << bit)]
+        if stops:
+            raise SafetyStop(f"UR {self.host}: {', '.join(stops)} {when}")
 
     def _raise_if_stopped_soon(self, rr, when: str, within_s: float = 0.2) -> None:
         """`_raise_if_stopped`, re-read for `within_s`: a stop's safety bits can arrive a packet
