@@ -577,3 +577,42 @@ def test_an_interrupted_validation_move_stops_the_arm():
         for sig, handler in old.items():
             signal.signal(sig, handler)
     assert signal.getsignal(signal.SIGTERM) is old[signal.SIGTERM]
+
+
+def test_the_tui_closed_loop_check_stops_on_the_operators_abort(tmp_path, monkeypatch):
+    """The TUI's closed-loop check had no abort: once started (50 targets, minutes at real
+    speed) only quitting the app stopped the arm (TUI audit). `abort` set during the check:
+    no further move is sent, the arm is stopped, one line says so."""
+    import threading
+
+    from workcell.cli import main
+    from workcell.tui import backend
+
+    monkeypatch.chdir(tmp_path)
+    argv = ["campaign", "--effects", "none", "--seed", "3", "--poses", "16", "--readings", "2"]
+    assert main([*argv, "--out", "c.mcap"]) == 0
+    assert main(["fit", "c.mcap", "--holdout", "0", "--out", "m.json"]) == 0
+    backend.export(backend.ExportConfig(model="m.json", out="t", spacing_m=0.15))
+    dev = backend.open_devices(backend.DeviceConfig(effects="none", seed=3))
+    abort = threading.Event()
+    moves, stops = [], []
+    inner_move, inner_stop = dev.robot.move_joints, dev.robot.stop
+
+    def move_joints(q, speed, accel):
+        moves.append(np.array(q, float))
+        inner_move(q, speed, accel)
+        if len(moves) == 3:
+            abort.set()  # the operator's ctrl+b, during the third move
+
+    def stop():
+        stops.append(1)
+        inner_stop()
+
+    monkeypatch.setattr(dev.robot, "move_joints", move_joints)
+    monkeypatch.setattr(dev.robot, "stop", stop)
+    try:
+        with pytest.raises(UserError, match="closed-loop check aborted: the arm is stopped"):
+            backend.closed_loop("m.json", "t.json", dev, 10, abort=abort)
+    finally:
+        dev.close()
+    assert len(moves) == 3 and stops, (len(moves), len(stops))

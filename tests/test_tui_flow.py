@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from tuipilot import connect, set_input, until
+from tuipilot import connect, screen_is, set_input, until
 
 from workcell.recording.reader import read_recording
 from workcell.tui import backend
@@ -140,7 +140,12 @@ def test_whole_flow(tmp_path, monkeypatch):
             assert s["validation"]["max_interp_error_m"] > 0
             # closed loop on the connected (simulated) cell: the tracker measures both visits
             await set_input(pilot, ex, "targets", "6")
-            await pilot.press("ctrl+t")
+            q0 = app.devices.robot.state().q_rad
+            await pilot.press("ctrl+o", "n")  # asked first: the arm moves; no, nothing moves
+            await pilot.pause()
+            assert not ex.validating and app.last_validation is None
+            assert np.max(np.abs(app.devices.robot.state().q_rad - q0)) < 1e-4  # encoder noise
+            await pilot.press("ctrl+o", "y")
             await until(pilot, lambda: not ex.validating, 240, "closed-loop check")
             v = app.last_validation
             assert v is not None, app.notices[-3:]
@@ -186,11 +191,11 @@ def test_abort_leaves_valid_recording_then_resume(tmp_path, monkeypatch):
             assert 3 <= len(done) < 60
             assert any(e["kind"] == "abort" for e in rec.events)
             assert scr.state == "aborted"
-            # resume the interrupted recording into a chained file
+            # resume the interrupted recording into a chained file: the prompt offers it (it
+            # offered the Plan screen's next free name, run-2.mcap, and accepting that failed)
             await pilot.press("r")
-            await pilot.press("ctrl+u")
-            for ch in "run.mcap":
-                await pilot.press(ch)
+            await until(pilot, lambda: screen_is(app, "PathPrompt"), 10, "resume prompt")
+            assert app.screen.query_one("#path").value == "run.mcap"
             await pilot.press("enter")
             await pilot.press("y")
             await until(pilot, lambda: len(app.finished) >= 2, 60, "resume")
@@ -214,10 +219,14 @@ def test_bad_plan_input_is_a_notice_not_a_crash(tmp_path, monkeypatch, bad):
     async def flow():
         async with app.run_test(size=SIZE) as pilot:
             await pilot.press("f2")
-            await set_input(pilot, app.views["plan"], "poses", bad)
+            plan = app.views["plan"]
+            plan.show_result("dry run OK: 10 poses inside the envelope")  # an earlier check's
+            await set_input(pilot, plan, "poses", bad)
             await pilot.press("ctrl+r")
             await pilot.pause()
             assert app.notices and app.notices[-1][0] == "error"
+            # the refusal replaces it (it stayed on screen under the notice: TUI audit)
+            assert plan.result_text.startswith("[red]not checked[/red]: "), plan.result_text
             # starting a campaign without devices is refused
             await pilot.press("f3", "s")
             assert app.notices[-1][0] == "error" and not app.campaign_running

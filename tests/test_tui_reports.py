@@ -389,3 +389,56 @@ def test_campaign_finished_keeps_textuals_stop():
     msg = m.CampaignFinished("x.mcap", None, {}, {"reason": "r", "recording": "kept"})
     assert msg.stop_report == {"reason": "r", "recording": "kept"}
     assert msg.stop() is msg and msg._stop_propagation
+
+
+@pytest.mark.parametrize("size", [(80, 24), (200, 60)])
+def test_the_diagnose_tables_held_out_gain_is_on_screen(size):
+    """The held-out gain and its interval (with a NOT confirmed flag) were the last column of a
+    table 78 columns wide holding 103: off-screen at 80x24 and at 200x60 (TUI audit)."""
+    ev_in = {"heldout_gain_m": 4.1e-5, "heldout_gain_ci95_m": [2.2e-5, 6.3e-5]}
+    ev_out = {"heldout_gain_m": 2e-6, "heldout_gain_ci95_m": [-1e-6, 5e-6],
+              "heldout_confirms": False}  # fmt: skip
+    rep = {
+        "summary": "two effects",
+        "effects": [
+            {
+                "key": "c2",
+                "description": "joint 2 compliance under gravity torque",
+                "joint": 2,
+                "explained_fraction": 0.61,
+                "evidence": ev_in,
+            },
+            {
+                "key": "h3",
+                "description": "joint 3 transmission error, 1st harmonic",
+                "joint": 3,
+                "explained_fraction": 0.05,
+                "evidence": ev_out,
+            },
+        ],  # fmt: skip
+        "steps": [{"after": "c2", "heldout_rms_m": 4e-5}, {"after": "h3", "heldout_rms_m": 3.9e-5}],
+        "rms_before_m": 8.2e-5,
+        "rms_after_m": 3.9e-5,
+        "noise_floor_m": 2e-5,
+    }
+    app = app_for(2)
+
+    async def flow():
+        async with app.run_test(size=size) as pilot:
+            await pilot.press("f5")
+            view = app.views["diagnose"]
+            view.show_report(rep)
+            await pilot.pause()
+            t = view.query_one("#effects", DataTable)
+            labels = [str(c.label) for c in t.columns.values()]
+            k = labels.index("held-out gain um (95 %)")
+            # where the gain column ends on the screen (each cell padded by 1 on each side)
+            right = t.region.x + sum(
+                c.get_render_width(t) for c in list(t.columns.values())[: k + 1]
+            )
+            cells = [str(t.get_row(r)[k]) for r in t.rows]
+            return right, t.region, cells
+
+    right, region, cells = asyncio.run(flow())
+    assert right <= region.x + region.width, (right, region)
+    assert "41 (22..63)" in cells and "2.0 (-1.0..5.0) NOT confirmed" in cells, cells

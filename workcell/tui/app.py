@@ -702,6 +702,7 @@ class WorkcellApp(App):
             self.notify_error(why, title="Validate")
             return
         self.validating = True
+        self._validate_abort = abort = threading.Event()
         # the Plan form's envelope as it stands now (not the last dry run's)
         envelope = self.views["plan"].envelope_file()
 
@@ -716,10 +717,19 @@ class WorkcellApp(App):
                 msg.targets,
                 log=log,
                 envelope_file=envelope,
+                abort=abort,
             )
             self.post_message(m.ValidateFinished(res))
 
         self._thread(work, "validate")
+
+    @guarded
+    def on_validate_abort_requested(self, msg: m.ValidateAbortRequested) -> None:
+        abort = getattr(self, "_validate_abort", None)
+        if self.validating and abort is not None:
+            # the check's thread stops a move under way (the driver's abort_requested) and
+            # sends no other; not stopped from here, where a driver call could block the UI
+            abort.set()
 
     @guarded
     def on_validate_finished(self, msg: m.ValidateFinished) -> None:

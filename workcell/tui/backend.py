@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -1026,13 +1027,15 @@ def closed_loop(
     readings: int | None = None,
     log: Callable[[str], None] | None = None,
     envelope_file: str = "default",
+    abort: threading.Event | None = None,
 ) -> dict:
     """`workcell validate` on the connected cell: random targets in the table's volume, each
     measured by the tracker uncorrected and corrected through the table; every motion checked
     against the cell's envelope first: the Plan screen's envelope file when one is set, else the
     one recorded with the model's campaign, else the arm's default (`validation_envelope`).
     Measured by the tracker, as on a real cell (in simulation too: the simulated tracker's noise
-    is in the numbers)."""
+    is in the numbers). `abort` (set by the operator) stops a move under way (a driver with
+    `abort_requested`) and any later one: the arm is stopped and `UserError` says so."""
     from workcell.campaign.envelope import Guard
     from workcell.estimation.models import load_model
     from workcell.export.build import model_recording, model_session, nominal_for_model
@@ -1095,6 +1098,19 @@ def closed_loop(
         )
     dev.robot.connect()  # as a campaign does; it closes them when it ends (`Held`: the app's
     dev.tracker.connect()  # stay open for its status poll)
+    abort = abort or threading.Event()
+    mover = robot_mover(dev.robot, *env.cap(0.5, 1.0))
+
+    def move(q: np.ndarray) -> None:
+        if abort.is_set():
+            raise KeyboardInterrupt
+        mover(q)
+        if abort.is_set():  # stopped on the way, or arrived as the abort came
+            raise KeyboardInterrupt
+
+    hands_flag = hasattr(dev.robot, "abort_requested")
+    if hands_flag:
+        dev.robot.abort_requested = abort.is_set
     try:
         # the arm's joint temperatures now (None if the controller does not report them)
         if w := thermal_mismatch(model, table, dev.robot.state().temperature_c, ui=True):
@@ -1104,7 +1120,7 @@ def closed_loop(
         res = run_validation(
             nominal,
             table,
-            robot_mover(dev.robot, *env.cap(0.5, 1.0)),
+            move,
             tracker_measure(dev.tracker, readings),
             n=targets,
             seed=12345,
@@ -1113,7 +1129,20 @@ def closed_loop(
             log=log,
             clock=lambda: float(dev.robot.state().t_s),  # the controller's time
         )
+    except BaseException:
+        if not abort.is_set():
+            raise
+        try:  # stopped already if a move was under way (robot_mover); said to the arm anyway
+            dev.robot.stop()
+        except Exception:  # noqa: BLE001 - a lost connection stops the controller's program
+            pass
+        raise UserError(
+            "closed-loop check aborted: the arm is stopped where it was; no result (run it "
+            "again for one)"
+        ) from None
     finally:
+        if hands_flag:
+            dev.robot.abort_requested = None
         close_quietly(dev.robot, dev.tracker)
     res["warnings"] = warnings + validation_warnings(res)
     res["envelope"] = env_what

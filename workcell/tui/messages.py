@@ -71,6 +71,10 @@ class ValidateRequested(Message):
         self.model, self.table, self.targets = model, table, targets
 
 
+class ValidateAbortRequested(Message):
+    """Stop the running closed-loop check: the arm stops where it is, no result."""
+
+
 # ----------------------------------------------------------------------------- results (worker -> app)
 class DevicesOpened(Message):
     def __init__(self, devices, status: dict) -> None:

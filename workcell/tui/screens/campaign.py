@@ -224,7 +224,10 @@ class CampaignScreen(WorkcellScreen):
                 answer,
             )
 
-        self.app.push_screen(PathPrompt("Interrupted recording to resume:", plan.out), got)
+        # the recording of the campaign that just ended on this screen (the Plan screen has
+        # moved on to a new path by then), else the Plan screen's
+        last = self.recording if self.state in ("aborted", "stopped", "failed") else None
+        self.app.push_screen(PathPrompt("Interrupted recording to resume:", last or plan.out), got)
 
     # ---------------------------------------------------------------- attributes down
     def set_context(self, plan, connected: bool) -> None:

@@ -24,8 +24,8 @@ class DiagnoseScreen(WorkcellScreen):
     DiagnoseScreen #status { height: 1; padding: 0 1; }
     DiagnoseScreen #summary-box { height: 1fr; border: round $primary; padding: 0 1; }
     DiagnoseScreen #lower { height: 1fr; }
-    DiagnoseScreen DataTable { width: 78; height: 1fr; }
-    DiagnoseScreen SeriesPlot { width: 1fr; }
+    DiagnoseScreen DataTable { width: 3fr; height: 1fr; }
+    DiagnoseScreen SeriesPlot { width: 2fr; }
     DiagnoseScreen.narrow DataTable { width: 1fr; }
     DiagnoseScreen.narrow SeriesPlot { display: none; }
     """
@@ -55,11 +55,13 @@ class DiagnoseScreen(WorkcellScreen):
 
     def on_mount(self) -> None:
         self.query_one("#effects", DataTable).add_columns(
+            # the held-out gain (the evidence) second: it shows at 80 columns, where the table
+            # is wider than the screen (it was last, off-screen at 80x24 and 200x60: TUI audit)
             "model / effect",
+            "held-out gain um (95 %)",
             "joint",
             "train CV share",
             "held-out RMS, cumulative",
-            "held-out gain um (95 %)",
         )
         super().on_mount()
 
@@ -112,19 +114,19 @@ class DiagnoseScreen(WorkcellScreen):
         self.query_one("#summary", Static).update(text)
         t = self.query_one("#effects", DataTable)
         t.clear()
-        t.add_row("geometry only (DH+base+SMR)", "", "", um(r.get("rms_before_m")), "")
+        t.add_row("geometry only (DH+base+SMR)", "", "", "", um(r.get("rms_before_m")))
         step_rms = {s["after"]: s["heldout_rms_m"] for s in r.get("steps", [])}
         for e in r.get("effects", []):
             t.add_row(
-                str(e.get("description", e.get("key")))[:40],
+                str(e.get("description", e.get("key")))[:34],
+                gain_cell(e.get("evidence", {}))
+                + ("" if e.get("evidence", {}).get("heldout_confirms", True) else " NOT confirmed"),
                 str(e.get("joint") if e.get("joint") is not None else "-"),
                 f"{100 * float(e.get('explained_fraction', 0.0)):.0f} %",
                 um(step_rms.get(e.get("key"))) if e.get("key") in step_rms else "",
-                gain_cell(e.get("evidence", {}))
-                + ("" if e.get("evidence", {}).get("heldout_confirms", True) else " NOT confirmed"),
             )
-        t.add_row("final (all effects)", "", "", um(r.get("rms_after_m")), "")
-        t.add_row("noise floor (expected)", "", "", um(r.get("noise_floor_m")), "")
+        t.add_row("final (all effects)", "", "", "", um(r.get("rms_after_m")))
+        t.add_row("noise floor (expected)", "", "", "", um(r.get("noise_floor_m")))
         steps = [r.get("rms_before_m")] + [s["heldout_rms_m"] for s in r.get("steps", [])]
         steps.append(r.get("rms_after_m"))
         ys = [float(v) * 1e6 for v in steps if v is not None]

@@ -17,9 +17,9 @@ from workcell.estimation.models import interval_um, unexplained_text
 from workcell.export.table import coverage_line
 from workcell.export.validate import DEFAULT_TARGETS, MAX_TARGETS, closure_line
 from workcell.tui.backend import ExportConfig
-from workcell.tui.messages import ExportRequested, ValidateRequested
+from workcell.tui.messages import ExportRequested, ValidateAbortRequested, ValidateRequested
 from workcell.tui.screens.base import WorkcellScreen, um
-from workcell.tui.widgets import KeyValue
+from workcell.tui.widgets import ConfirmScreen, KeyValue
 
 FORMATS = [
     ("table (JSON + CSV correction grid)", "table"),
@@ -42,7 +42,9 @@ class ExportScreen(WorkcellScreen):
     """
     BINDINGS = [
         Binding("ctrl+r", "export", "Export"),
-        Binding("ctrl+t", "validate", "Validate on the cell"),
+        # not ctrl+t: the Devices screen's Disconnect; ctrl+o and ctrl+b are free in an Input
+        Binding("ctrl+o", "validate", "Closed-loop check (moves the arm)"),
+        Binding("ctrl+b", "abort_check", "Abort the check"),
     ]
 
     def __init__(self, model: str = "", out: str = "correction") -> None:
@@ -109,6 +111,7 @@ class ExportScreen(WorkcellScreen):
                 raise UserError("choose a fitted model (Fit screen saves one)")
         except UserError as e:
             self.notify(str(e), severity="error", title="Export")
+            self.refused(str(e))  # not an earlier export's line left under the refusal
             return
         self.running = True
         self.status = f"exporting {cfg.format} ..."
@@ -131,10 +134,33 @@ class ExportScreen(WorkcellScreen):
         except UserError as e:
             self.notify(str(e), severity="error", title="Validate")
             return
-        self.validating = True
-        self.status = f"closed-loop check on {n} targets: the arm moves ..."
+        q = (
+            f"Run the closed-loop check? The robot will MOVE.\n\n{n} random targets inside "
+            "the envelope, each visited uncorrected and then corrected through the table, the "
+            "tracker measuring both.\n\nCheck the cell is clear. ctrl+b stops the arm during "
+            "the check."
+        )
+        model = (self.summary or {}).get("model", "")
+
+        def answer(ok: bool | None) -> None:
+            if not ok or self.running or self.validating:
+                return
+            self.validating = True
+            self.status = f"closed-loop check on {n} targets: the arm moves (ctrl+b stops it) ..."
+            self.update_view()
+            self.post_message(ValidateRequested(model, table, n))
+
+        self.app.push_screen(ConfirmScreen(q, yes="Move"), answer)
+
+    def action_abort_check(self) -> None:
+        """Stop the closed-loop check: the arm stops where it is (no confirmation: stopping is
+        always allowed)."""
+        if not self.validating:
+            self.notify("no closed-loop check is running", severity="warning")
+            return
+        self.status = "stopping the closed-loop check ..."
         self.update_view()
-        self.post_message(ValidateRequested(self.summary.get("model", ""), table, n))
+        self.post_message(ValidateAbortRequested())
 
     def on_button_pressed(self, event: Button.Pressed) -> None:
         if event.button.id == "validate":

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from rich.markup import escape
 from textual.app import ComposeResult
 from textual.binding import Binding
 from textual.containers import Horizontal, Vertical
@@ -111,6 +112,7 @@ class FitScreen(WorkcellScreen):
                 raise UserError(f"held-out fraction must be in [0, 0.9), got {hold}")
         except UserError as e:
             self.notify(str(e), severity="error", title="Fit")
+            self.set_running(False, f"not fitted: {escape(str(e))}")  # not an earlier line
             return
         method = str(self.query_one("#method", Select).value)
         self.set_running(True, f"fitting {method} on {Path(rec).name} ...")

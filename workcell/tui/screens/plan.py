@@ -116,6 +116,8 @@ class PlanScreen(WorkcellScreen):
             p = self.read_plan()
         except UserError as e:
             self.notify(str(e), severity="error", title="Plan")
+            # not an earlier check's result left on screen under the refusal (TUI audit)
+            self.show_result(f"[red]not checked[/red]: {escape(str(e))}")
             return
         self.show_result(f"checking {p.poses} {p.kind} poses ...")
         self.post_message(DryRunRequested(p))
