@@ -39,9 +39,13 @@ Semantics chosen where a real controller's behaviour is not pinned down by the c
   `unlock protective stop` clears it once `pstop_unlock_delay_s` (5 s like PolyScope) of simulated
   time have passed (earlier -> the PolyScope refusal message). The program must then be restarted
   (`play`, or a new upload, e.g. RTDEControlInterface.reuploadScript()).
-- Losing the RTDE connection that carries the control script's input registers stops the program
-  (runtime_state 1) and the arm, like the script's watchdog would: a controller never keeps moving
-  for a client that has gone.
+- The control script's RTDE watchdog (command 35, ur_rtde's setWatchdog: the minimum input
+  frequency in input double register 0) stops the program and the arm when the watched input
+  register gets no update for 1/frequency s of wall time (the link's time, not the scaled
+  clock). Losing the RTDE connection that carries the script's inputs stops them at once when a
+  watchdog is set; without one the program goes on and a move under way runs to its end, as on a
+  controller (since 2026-11-29: the simulator stopped the arm on any lost client, which the
+  driver, setting no watchdog, would not have had on hardware).
 - A restart closes every socket and listener, stops the arm and the program, and listens again
   after `restart_down_s` of simulated time (robot mode kept unless `restart_power_off`).
 
@@ -152,6 +156,7 @@ JOINT_RUNNING, JOINT_POWER_OFF, JOINT_IDLE = 253, 239, 255
 # control-script command ids (ur_rtde RobotCommand::Type)
 CMD_NO_CMD, CMD_MOVEJ, CMD_MOVEJ_IK, CMD_MOVEL, CMD_MOVEL_FK = 0, 1, 2, 3, 4
 CMD_PROTECTIVE_STOP, CMD_STOPL, CMD_STOPJ, CMD_STOP_SCRIPT = 31, 33, 34, 255
+CMD_SET_WATCHDOG = 35  # rtde_set_watchdog(input_int_register_<offset>, freq, "stop")
 RT_CMDS = frozenset({24, 11, 9, 10, 6, 25, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71})
 
 K_T_NM_PER_A = np.array([13.3, 13.3, 13.3, 9.3, 9.3, 9.3])
@@ -535,6 +540,7 @@ class UrControllerSim:
             "moves": 0,
             "rtde_drops": 0,
             "protective_stops": 0,
+            "watchdog_stops": 0,
             "restarts": 0,
         }
 
@@ -551,6 +557,9 @@ class UrControllerSim:
         self._stop = threading.Event()
         self._down_until: float | None = None  # sim time the restart ends
         self._safety_until: float | None = None  # sim time an injected safety stop clears
+        # the control script's RTDE watchdog (ur_rtde setWatchdog): wall time, as the link's
+        self._watchdog_hz: float | None = None
+        self._watchdog_last = time.monotonic()
         self._listeners: dict[int, socket.socket] = {}
         self._conns: set[_Conn] = set()
         self._script_owner: _Conn | None = None
@@ -738,11 +747,17 @@ class UrControllerSim:
         self._event(f"protective stop: {reason}")
 
     def _control_client_lost(self) -> None:
-        """Caller holds self.lock: the RTDE client feeding the control script went away."""
-        if self.runtime_state in (RT_PLAYING, RT_PAUSED):
+        """Caller holds self.lock: the RTDE client feeding the control script went away. With
+        a watchdog set its inputs stop, so it stops the program (here at once; on a controller
+        within 1/min_frequency); without one, as on a controller, the program goes on and a
+        move under way runs to its end."""
+        if self.runtime_state in (RT_PLAYING, RT_PAUSED) and self._watchdog_hz:
+            self.stats["watchdog_stops"] += 1
             self.world.stop()
             self._end_program()
-            self._event("control client lost: program stopped")
+            self._event("control client lost: the watchdog stopped the program")
+        elif self.runtime_state in (RT_PLAYING, RT_PAUSED):
+            self._event("control client lost: no watchdog set, the program goes on")
 
     # ================================================================== control loop
     def _control_loop(self) -> None:
@@ -767,6 +782,13 @@ class UrControllerSim:
                     self._down_until = now + 0.5
             return
         with self.lock:
+            hz = self._watchdog_hz
+            if hz and self.runtime_state == RT_PLAYING:
+                quiet = time.monotonic() - self._watchdog_last
+                if quiet > 1.0 / hz:
+                    self.stats["watchdog_stops"] += 1
+                    self._event(f"watchdog: no input for {quiet:.2f} s: program stopped")
+                    self._end_program()
             if self._safety_until is not None and now >= self._safety_until:
                 self._safety_until = None
                 self.safety_mode = SAFETY_NORMAL
@@ -849,6 +871,12 @@ class UrControllerSim:
                 self._write_async_progress(-1)
         elif cmd == CMD_PROTECTIVE_STOP:
             self._protective_stop("protective_stop() requested by the client")
+        elif cmd == CMD_SET_WATCHDOG:
+            hz = float(self.in_dbl[o + 0])  # read_input_float_reg(0)
+            if np.isfinite(hz) and hz > 0:
+                self._watchdog_hz = hz
+                self._watchdog_last = time.monotonic()
+                self._event(f"script: watchdog set ({hz:g} Hz)")
         # anything else: acknowledged without effect
 
     def _start_move(self, q_target: np.ndarray, speed: float, accel: float, is_async: bool) -> None:
@@ -911,6 +939,7 @@ class UrControllerSim:
         if self.runtime_state != RT_STOPPED:
             self.world.stop()
         self.runtime_state = RT_STOPPED
+        self._watchdog_hz = None  # the program's setting
         self._executing = False
         self._pending_done = None
         self._async_running = False
@@ -1128,7 +1157,10 @@ class UrControllerSim:
                 v = vals[i : i + width]
                 i += width
                 if n.startswith("input_int_register_"):
-                    self.in_int[int(n.rsplit("_", 1)[1])] = int(v[0])
+                    k = int(n.rsplit("_", 1)[1])
+                    self.in_int[k] = int(v[0])
+                    if k == self.reg_offset:  # the register the watchdog watches
+                        self._watchdog_last = time.monotonic()
                 elif n.startswith("input_double_register_"):
                     self.in_dbl[int(n.rsplit("_", 1)[1])] = float(v[0])
             # let the script react at once (the real loop runs at 500 Hz)

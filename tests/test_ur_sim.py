@@ -519,3 +519,42 @@ def test_a_safeguard_or_emergency_stop_is_a_safety_stop_not_a_lost_connection(
         assert np.max(np.abs(r.state().q_rad - QB)) > 0.01  # did not arrive
         with pytest.raises(SafetyStop, match=named):
             r.move_joints(QB, 1.0, 2.0)  # refused while the stop lasts
+
+
+def test_the_control_worker_sets_the_rtde_watchdog_so_a_dead_client_stops_the_arm(robot_factory):
+    """ur_rtde's control script stops the arm for a client that has gone only when the client
+    set its watchdog; the driver set none, so on a real controller a campaign killed mid-move
+    left the arm running to its target (the simulator stopped it anyway: a protocol audit).
+    The worker now sets it; the simulator stops the program only when one is set."""
+    import subprocess
+    import sys
+
+    with SimProcess("127.0.0.99", seed=5, time_scale=TS) as sp:
+        r = robot_factory("127.0.0.99")
+        r.connect()
+        r.move_joints(QA, 1.0, 2.0)
+        # the driver's worker starts a slow asynchronous move (~3 s of robot time), then dies
+        r._rc.call("moveJ", QB.tolist(), 0.2, 0.5, True)
+        time.sleep(0.05)
+        r._rc.kill()
+        time.sleep(1.0)  # 10 s of robot time: the move would have ended long ago
+        q = np.array(sp.state()["q_rad"])
+        assert np.max(np.abs(q - QB)) > 0.01, "the arm ran on to its target"
+        assert sp.state()["stats"]["watchdog_stops"] >= 1
+        r.close()
+
+    with SimProcess("127.0.0.99", seed=5, time_scale=TS) as sp:
+        # a client that sets no watchdog: its program goes on when it has gone, as on hardware
+        code = (
+            "import os, rtde_control\n"
+            "rc = rtde_control.RTDEControlInterface('127.0.0.99')\n"
+            f"rc.moveJ({QA.tolist()}, 1.0, 2.0)\n"
+            f"rc.moveJ({QB.tolist()}, 0.2, 0.5, True)\n"
+            "os._exit(0)\n"
+        )
+        subprocess.run([sys.executable, "-c", code], check=True, timeout=60)
+        t_end = time.monotonic() + 5.0
+        while np.max(np.abs(np.array(sp.state()["q_rad"]) - QB)) > 1e-4:
+            assert time.monotonic() < t_end, "the move did not run on without a watchdog"
+            time.sleep(0.05)
+        assert sp.state()["stats"]["watchdog_stops"] == 0

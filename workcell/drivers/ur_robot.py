@@ -144,6 +144,11 @@ SAFETY_STOP_BITS = {
     9: "safety fault",
 }
 RUNTIME_PLAYING = 2
+# the RTDE watchdog the control worker sets (ur_rtde setWatchdog): the controller stops the
+# program when no input arrives for 1/WATCHDOG_MIN_HZ s of wall time; the worker kicks it
+# WATCHDOG_KICKS_PER_PERIOD times as often (slack for a loaded machine's scheduling)
+WATCHDOG_MIN_HZ = 2.0
+WATCHDOG_KICKS_PER_PERIOD = 10
 MAX_JOINT_SPEED = 3.14  # rad/s, ur_rtde's accepted range
 MAX_JOINT_ACCEL = 40.0  # rad/s^2
 
@@ -344,22 +349,48 @@ def _control_worker_main(host: str, frequency: float) -> int:
         import rtde_control
 
         rc = rtde_control.RTDEControlInterface(host, frequency)
+        # the control script stops the program (and the arm) when this worker stops kicking:
+        # a campaign killed, a worker gone, a cable pulled mid-move. Without it a real
+        # controller runs an asynchronous move to its end with nobody watching
+        rc.setWatchdog(WATCHDOG_MIN_HZ)
     except Exception as e:
         answer("error", _one_line(e))
         os._exit(1)
     answer("ok", True)
-    for line in sys.stdin:
-        try:
-            name, args = json.loads(line)
-            if name not in allowed:
-                raise RuntimeError(f"method {name!r} not available")
-            answer("ok", getattr(rc, name)(*args))
-            if name == "disconnect":
-                break
-        except ValueError as e:
-            answer("value_error", _one_line(e))
-        except Exception as e:
-            answer("error", _one_line(e))
+    kick_every = 1.0 / (WATCHDOG_MIN_HZ * WATCHDOG_KICKS_PER_PERIOD)
+    buf = b""
+    while True:
+        r, _, _ = select.select([0], [], [], kick_every)
+        if not r:
+            try:
+                rc.kickWatchdog()
+            except Exception:  # noqa: BLE001 - a lost connection is the next request's answer
+                pass
+            continue
+        chunk = os.read(0, 65536)
+        if not chunk:
+            break  # the driver's process has gone: no more kicks, the watchdog stops the arm
+        buf += chunk
+        stop = False
+        while b"\n" in buf:
+            line, buf = buf.split(b"\n", 1)
+            try:
+                name, args = json.loads(line)
+                if name not in allowed:
+                    raise RuntimeError(f"method {name!r} not available")
+                value = getattr(rc, name)(*args)
+                if name == "reuploadScript":  # a new program: its watchdog set again
+                    rc.setWatchdog(WATCHDOG_MIN_HZ)
+                answer("ok", value)
+                if name == "disconnect":
+                    stop = True
+                    break
+            except ValueError as e:
+                answer("value_error", _one_line(e))
+            except Exception as e:
+                answer("error", _one_line(e))
+        if stop:
+            break
     os._exit(0)  # skip the destructor: it joins threads that a broken reconnect left behind
 
 
