@@ -15,8 +15,13 @@ PYTEST_PAR := -n $(TEST_WORKERS) --dist loadfile
 
 install: $(STAMP)
 
+ifneq ($(words $(VENV)),1)
+$(error VENV must be a path without spaces (make cannot name a target with one), got "$(VENV)")
+endif
+
+# a venv left without pip (an interrupted first run, a Python without ensurepip) is made again
 $(STAMP): pyproject.toml
-	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip --version >/dev/null 2>&1 || $(PYTHON) -m venv --clear $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -e '.[dev]'
 	touch $(STAMP)

@@ -98,3 +98,25 @@ def test_a_long_name_is_written_and_a_too_long_one_refused_before_the_work(tmp_p
     assert p.read_text() == "{}" and [q.name for q in tmp_path.iterdir()] == [p.name]
     with pytest.raises(UserError, match=r"is 305 bytes long, and the file system takes at most"):
         check_output_path(tmp_path / ("m" * 300 + ".json"), "model file")
+
+
+def test_bench_all_takes_no_options_and_skips_a_missing_default_recording(
+    tmp_path, monkeypatch, capsys
+):
+    """`bench all --repeats 1` ran dh with it, then failed at the next benchmark (its help was
+    dh's); `bench all` from an installed package failed at design-real, whose default recording
+    is ../shared beside a source checkout (packaging audit)."""
+    import workcell.bench.design_real as dr
+    import workcell.commands.bench as cb
+    from workcell.cli import main
+
+    assert main(["bench", "all", "--repeats", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "takes no options (got --repeats 1)" in err and "Traceback" not in err
+    assert main(["bench", "all", "--help"]) == 0
+    assert "each has its own options" in capsys.readouterr().out
+    monkeypatch.setattr(cb, "BENCHES", {"design-real": "workcell.bench.design_real"})
+    monkeypatch.setattr(dr, "DEFAULT_RECORDING", tmp_path / "not-here.mcap")
+    assert main(["bench", "all"]) == 0
+    out = capsys.readouterr().out
+    assert "[bench design-real] skipped: its default recording" in out, out

@@ -41,17 +41,20 @@ def environment() -> dict:
             versions[dist] = metadata.version(dist)
         except metadata.PackageNotFoundError:
             versions[dist] = None
+    commit = None
+    here = Path(__file__).resolve().parent
     try:
-        commit = (
-            subprocess.run(
-                ["git", "describe", "--always", "--dirty", "--abbrev=7"],
-                cwd=Path(__file__).resolve().parent,
-                capture_output=True,
-                text=True,
-                timeout=5,
+
+        def git(*cmd: str) -> str:
+            return subprocess.run(
+                ["git", *cmd], cwd=here, capture_output=True, text=True, timeout=5
             ).stdout.strip()
-            or None
-        )
+
+        # workcell's own checkout only: an installed package inside some other repository
+        # (a venv in a project folder) would report that repository's commit
+        top = git("rev-parse", "--show-toplevel")
+        if top and Path(top).resolve() == here.parents[1]:
+            commit = git("describe", "--always", "--dirty", "--abbrev=7") or None
     except (OSError, subprocess.SubprocessError):
         commit = None
     try:

@@ -124,7 +124,12 @@ def one_run(plan: str, seed: int, pool, test, n_min: int, target_m: float, max_p
 
 def main(argv: list[str]) -> int:
     ap = OneLineParser(prog="workcell bench design-real", description=__doc__.split("\n")[0])
-    ap.add_argument("--recording", default=str(DEFAULT_RECORDING), help="real recording (.mcap)")
+    ap.add_argument(
+        "--recording",
+        default=str(DEFAULT_RECORDING),
+        help="real recording (.mcap); default: the UR10 series B in ../shared beside a source "
+        f"checkout ({DEFAULT_RECORDING})",
+    )
     ap.add_argument("--seeds", type=int, default=10, help="random orders / plan seeds (>= 1)")
     ap.add_argument("--max-poses", type=int, default=150, help="poses per run at most")
     ap.add_argument("--tolerance", type=float, default=0.10, help="target: <= (1 + this) R_pool")
@@ -156,7 +161,8 @@ def main(argv: list[str]) -> int:
         )
         print(
             f"workcell bench design-real: recording {path} {what} "
-            "(give --recording PATH; the default is the UR10 series B beside the repository)",
+            "(give --recording PATH; the default is the UR10 series B in ../shared beside a "
+            "source checkout, which an installed package does not have)",
             file=sys.stderr,
         )
         return 2
