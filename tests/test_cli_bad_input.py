@@ -896,7 +896,42 @@ def test_a_full_disk_says_what_to_do(monkeypatch, capsys):
     monkeypatch.setattr(info, "run", full)
     capsys.readouterr()
     main(["info", "x.mcap"])
-    assert "campaign --resume REC" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    # not a campaign: no resume hint (every command printed one: a crash audit)
+    assert "earlier outputs are left as they were" in err and "--resume" not in err, err
+
+
+@pytest.mark.parametrize("code", ["ENOSPC", "EFBIG"])
+def test_a_campaign_out_of_room_names_its_recording_or_says_none_was_left(
+    tmp_path, monkeypatch, capsys, code
+):
+    """A campaign on a full disk said "the recording keeps every pose" when none was left
+    (full before the first sample), and a file-size limit (EFBIG) got no hint at all."""
+    import errno
+
+    import workcell.commands.campaign as camp
+
+    rec = tmp_path / "run.mcap"
+    rec.write_bytes(b"kept")
+    err_no = getattr(errno, code)
+
+    def after_poses(args):
+        e = OSError(err_no, os.strerror(err_no), str(rec))
+        e.recording = (rec, 7)  # what run_campaign notes on an error once its recording is open
+        raise e
+
+    def before_any(args):
+        raise OSError(err_no, os.strerror(err_no), str(tmp_path / "gone.mcap"))
+
+    monkeypatch.setattr(camp, "run", after_poses)
+    assert main(["campaign", "--out", str(rec)]) == 2
+    line = capsys.readouterr().err.strip()
+    assert "\n" not in line and f"{rec} is closed and keeps 7 poses" in line, line
+    assert f"--resume {rec}" in line
+    monkeypatch.setattr(camp, "run", before_any)
+    assert main(["campaign", "--out", str(tmp_path / "gone.mcap")]) == 2
+    line = capsys.readouterr().err.strip()
+    assert "no recording was left" in line and "--resume" not in line, line
 
 
 def test_demo_interrupted_stops_instead_of_fitting_a_partial_campaign(
@@ -1221,3 +1256,22 @@ def test_workcell_debug_shows_the_traceback_of_a_user_error(tmp_path, capsys, mo
     err = capsys.readouterr().err
     assert "Traceback (most recent call last)" in err, err
     assert err.strip().splitlines()[-1].startswith("workcell info: error: "), err
+
+
+def test_odd_output_paths_say_what_they_are(tmp_path, monkeypatch, capsys):
+    """A dangling symbolic link as --out, or as its folder, said "cannot use link.mcap: File
+    exists"; a folder as a campaign's --out said "choose a new file or use --resume" (a crash
+    audit)."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "link.mcap").symlink_to(tmp_path / "nowhere" / "x.mcap")
+    (tmp_path / "ldir").symlink_to(tmp_path / "no-folder")
+    (tmp_path / "adir").mkdir()
+    for out, said in [
+        ("link.mcap", "link.mcap is a symbolic link to"),
+        ("ldir/x.mcap", "ldir is a symbolic link to"),
+        ("adir", "adir is a folder; give the recording's file name"),
+    ]:
+        assert main(["campaign", "--poses", "16", "--out", out]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "\n" not in err and said in err and "--resume" not in err, err
+    assert not (tmp_path / "nowhere").exists() and not (tmp_path / "no-folder").exists()

@@ -41,6 +41,7 @@ if console_command() or __name__ == "__main__":
 
 import argparse  # noqa: E402
 import importlib  # noqa: E402
+from pathlib import Path  # noqa: E402
 
 from workcell.drivers.protocols import DeviceError  # noqa: E402
 from workcell.errors import OneLineParser, UserError, hard_exit  # noqa: E402
@@ -145,6 +146,29 @@ def main(argv: list[str] | None = None) -> int:
         return 130
 
 
+# a write that found no room, and what to do (file-size limits: `ulimit -f`, FAT's 4 GiB)
+NO_ROOM = {
+    errno.ENOSPC: "the disk is full",
+    errno.EDQUOT: "the disk quota is used up",
+    errno.EFBIG: "the file grew beyond what this system allows (a file-size limit, `ulimit -f`?)",
+}
+
+
+def _after_no_room(command: str, e: OSError) -> str:
+    """What the user does after a write that found no room: a campaign's recording keeps what
+    was measured (`run_campaign` notes it on the error) and is resumed; a campaign that
+    recorded nothing left no file; any other command's earlier outputs are as they were (each
+    is replaced whole or not at all)."""
+    rec = getattr(e, "recording", None)
+    if rec is not None and Path(rec[0]).is_file():
+        from workcell.campaign.run import resume_hint
+
+        return f"make room and continue: {resume_hint(*rec)}"
+    if command in ("campaign", "demo"):
+        return "make room and run it again (nothing was measured, no recording was left)"
+    return "make room and run it again (earlier outputs are left as they were)"
+
+
 def _debug_traceback() -> None:
     """With WORKCELL_DEBUG set, the traceback of the error being handled, before its one line."""
     if os.environ.get("WORKCELL_DEBUG"):
@@ -211,11 +235,8 @@ def _main(argv: list[str] | None) -> int:
         msg = str(e)
         if isinstance(e, OSError) and e.filename and e.strerror:
             msg = f"cannot use {e.filename}: {e.strerror}"
-        if isinstance(e, OSError) and e.errno == errno.ENOSPC:
-            msg += (
-                "; the disk is full: free some space and run again (a campaign's recording "
-                "keeps every pose measured so far: `workcell campaign --resume REC` continues it)"
-            )
+        if isinstance(e, OSError) and e.errno in NO_ROOM:
+            msg += f"; {NO_ROOM[e.errno]}: {_after_no_room(args.command, e)}"
         print(f"workcell {args.command}: error: {msg}", file=sys.stderr)
         return 2
     except RecursionError:

@@ -148,6 +148,12 @@ def check_output_path(path, what: str = "output", *, folder: bool = False, input
                 f"cannot write {what}: the name {part[:40]}... is {len(os.fsencode(part))} bytes "
                 f"long, and the file system takes at most {name_max}; choose a shorter name"
             )
+    for q in (p, *p.parents):  # open() and mkdir() say only "File exists" for these
+        if q.is_symlink() and not q.exists():
+            raise UserError(
+                f"cannot write {what} {p}: {q} is a symbolic link to {os.readlink(q)}, which "
+                "does not exist; give another path, or make the link's target first"
+            )
     if not folder:
         refuse_overwrite([p], inputs, what)
     if folder and p.exists() and not p.is_dir():

@@ -335,7 +335,7 @@ def run_campaign(
             for note in notes:
                 ex.event(note["level"], note["kind"], note["message"])
             result = ex.run(gen)
-    except DeviceError as e:
+    except (DeviceError, OSError) as e:
         if ex is not None:  # the recording was opened, is closed now and keeps what it has
             e.recording = (Path(out), ex.result.measured)
         raise

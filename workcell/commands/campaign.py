@@ -257,6 +257,8 @@ def run(args: argparse.Namespace) -> int:
                 f"{args.out} already exists and is empty (0 bytes: a campaign that stopped "
                 "before recording anything, on a full disk?); delete it or choose a new file"
             )
+        if Path(args.out).is_dir():
+            raise UserError(f"{args.out} is a folder; give the recording's file name (REC.mcap)")
         raise UserError(f"{args.out} already exists; choose a new file or use --resume")
     check_output_path(args.out, "recording")
     from workcell.campaign.identification import too_few_to_fit_notes

@@ -70,6 +70,7 @@ def _np_path(model_path: Path) -> Path:
 def run(args: argparse.Namespace) -> int:
     from workcell.estimation.discovery import DiagnoseConfig, diagnose
     from workcell.estimation.models import check_model_output, save_model
+    from workcell.recording.chain import file_sha256
     from workcell.recording.dataset import Dataset, read_warnings
 
     if not 0.1 <= args.holdout <= 0.5:
@@ -92,14 +93,17 @@ def run(args: argparse.Namespace) -> int:
     )
     # every file this run writes: never the recording, never any MCAP (even with --force); a
     # model only over an earlier model of this recording (or with --force)
+    # "replaced ..." is said once the files are written (it said "replacing" before the work,
+    # and a failure or kill then left them as they were: a crash audit)
+    replacing: list[str] = []
     if model_path:
         for p in (model_path, _np_path(model_path)):
             check_output_path(p, "model file", inputs=[args.recording])
-            check_model_output(p, args.recording, force=args.force, say=log)
+            check_model_output(p, args.recording, force=args.force, say=replacing.append)
     for name in REPORT_FILES if outdir else ():
         check_output_path(outdir / name, "report file", inputs=[args.recording])
     if outdir:
-        check_report_folder(outdir, force=args.force, say=log)
+        check_report_folder(outdir, force=args.force, say=replacing.append)
     diag = diagnose(ds, cfg, progress=log)
     rep = diag.report
     rep["recording_problems"] = list(ds.read_problems)
@@ -107,6 +111,9 @@ def run(args: argparse.Namespace) -> int:
         outdir.mkdir(parents=True, exist_ok=True)
     if model_path:
         rep["model"] = str(save_model(diag.model, model_path))
+        # the report names the model file by content too: the files are replaced one by one,
+        # so after a crash between them report.json can be told from another run's model
+        rep["model_sha256"] = file_sha256(model_path)
         if diag.model_np is not None:
             p_np = _np_path(model_path)
             rep["unexplained"].setdefault("np_model", {})["model"] = str(
@@ -116,6 +123,8 @@ def run(args: argparse.Namespace) -> int:
         rep["plots"] = write_plots(diag, outdir)
         write_text(outdir / REPORT_FILES[0], rep["summary"] + "\n")
         write_text(outdir / REPORT_FILES[1], strict_json.dumps(rep, indent=1))
+    for line in replacing:
+        log(line.replace("replacing ", "replaced ", 1))
     if args.json:
         print(strict_json.dumps(rep))
     else:
