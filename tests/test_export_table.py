@@ -630,3 +630,39 @@ def test_corrections_whose_1_sigma_exceeds_the_bound_are_refused_with_the_weak_g
     m.cov[38, 38] = 0.004**2  # 4 mm: within the bound, built (and flagged as undetermined)
     tab = build_table(corr, LO, HI, [DOWN], spacing_m=0.1)
     assert tab.meta["nodes_std_exceeds_correction"] == tab.delta_m[..., 0].size
+
+
+def test_a_crash_between_the_pairs_renames_is_refused_not_read_as_one_table(tmp_path, monkeypatch):
+    """The JSON and CSV are renamed one after the other; a kill between the two renames left
+    the new grid's JSON beside the earlier grid's CSV, and nothing noticed (crash audit). The
+    CSV is renamed first and the JSON records its sha256: the earlier JSON beside the new CSV
+    is refused in one line; a whole pair loads."""
+    import os as os_mod
+
+    import workcell.atomic as atomic_mod
+    from workcell.errors import UserError
+    from workcell.export.table import load_table
+
+    m = make_model(3)
+    corr = Corrector(m, nominal_for(m))
+    coarse = build_table(corr, LO, HI, [DOWN], spacing_m=0.2, n_check=20)
+    fine = build_table(corr, LO, HI, [DOWN], spacing_m=0.12, n_check=20)
+    coarse.save(tmp_path / "t")
+    assert load_table(tmp_path / "t").shape == coarse.shape
+    renames, real_replace = [], os_mod.replace
+
+    def replace_then_die(src, dst):
+        if renames:
+            raise KeyboardInterrupt  # the process killed before the second rename
+        renames.append(dst)
+        real_replace(src, dst)
+
+    monkeypatch.setattr(atomic_mod.os, "replace", replace_then_die)
+    with pytest.raises(KeyboardInterrupt):
+        fine.save(tmp_path / "t")
+    monkeypatch.undo()
+    assert [os_mod.path.basename(p) for p in renames] == ["t.csv"]
+    with pytest.raises(UserError, match=r"t.csv is not the CSV written with t.json"):
+        load_table(tmp_path / "t.json")
+    fine.save(tmp_path / "t")
+    assert load_table(tmp_path / "t").shape == fine.shape

@@ -9,6 +9,8 @@ is written into the URScript export (`urscript.py`); `interpolate` here is its r
 from __future__ import annotations
 
 import csv
+import hashlib
+import io
 import json
 import math
 import os
@@ -354,45 +356,58 @@ class CorrectionTable:
                 f"{unit}; {again}"
             )
 
-    def save(self, path: str | os.PathLike) -> tuple[Path, Path]:
-        """Write PATH.json (everything) and PATH.csv (one row per node). Returns both paths."""
-        pj, pc = table_files(path)
-        text = json.dumps(self.to_dict(), indent=1, allow_nan=False)
+    def csv_text(self) -> str:
+        """The table's CSV: one row per node, header lines starting with '#'."""
         X = self.node_positions()
-        # both files whole or neither replaced: a failure (full disk) keeps an earlier pair
-        with atomic_files(pj, pc, newline="") as (fj, f):
-            fj.write(text)
-            f.write(f"# grid: lo {self.lo_m.tolist()} hi {self.hi_m.tolist()} shape {self.shape}\n")
-            f.write(f"# max_interp_error_m: {self.meta.get('max_interp_error_m')}\n")
-            for line in header_lines(self):
-                f.write(f"# {' '.join(line.split())}\n")
-            w = csv.writer(f)
-            if self.std_m is not None and "std_basis" in self.meta:
-                f.write(f"# sx_m, sy_m, sz_m: {self.meta['std_basis']}\n")
-            f.write(
-                "# columns: orientation index and its rotation vector rx, ry, rz (rad), grid "
-                "index i, j, k, node position x_m, y_m, z_m (base_ref), correction dx_m, dy_m, "
-                "dz_m (commanded = desired + delta)\n"
-            )
-            w.writerow(
-                ["orientation", "rx", "ry", "rz", "i", "j", "k", "x_m", "y_m", "z_m"]
-                + ["dx_m", "dy_m", "dz_m"]
-                + ([] if self.std_m is None else ["sx_m", "sy_m", "sz_m"])
-            )
-            for o, rv in enumerate(self.orientations_rotvec):
-                for i in range(self.shape[0]):
-                    for j in range(self.shape[1]):
-                        for k in range(self.shape[2]):
-                            w.writerow(
-                                [o, *(repr(float(v)) for v in rv), i, j, k]
-                                + [repr(float(v)) for v in X[i, j, k]]
-                                + [repr(float(v)) for v in self.delta_m[o, i, j, k]]
-                                + (
-                                    []
-                                    if self.std_m is None
-                                    else [repr(float(v)) for v in self.std_m[o, i, j, k]]
-                                )
+        f = io.StringIO(newline="")
+        f.write(f"# grid: lo {self.lo_m.tolist()} hi {self.hi_m.tolist()} shape {self.shape}\n")
+        f.write(f"# max_interp_error_m: {self.meta.get('max_interp_error_m')}\n")
+        for line in header_lines(self):
+            f.write(f"# {' '.join(line.split())}\n")
+        w = csv.writer(f)
+        if self.std_m is not None and "std_basis" in self.meta:
+            f.write(f"# sx_m, sy_m, sz_m: {self.meta['std_basis']}\n")
+        f.write(
+            "# columns: orientation index and its rotation vector rx, ry, rz (rad), grid "
+            "index i, j, k, node position x_m, y_m, z_m (base_ref), correction dx_m, dy_m, "
+            "dz_m (commanded = desired + delta)\n"
+        )
+        w.writerow(
+            ["orientation", "rx", "ry", "rz", "i", "j", "k", "x_m", "y_m", "z_m"]
+            + ["dx_m", "dy_m", "dz_m"]
+            + ([] if self.std_m is None else ["sx_m", "sy_m", "sz_m"])
+        )
+        for o, rv in enumerate(self.orientations_rotvec):
+            for i in range(self.shape[0]):
+                for j in range(self.shape[1]):
+                    for k in range(self.shape[2]):
+                        w.writerow(
+                            [o, *(repr(float(v)) for v in rv), i, j, k]
+                            + [repr(float(v)) for v in X[i, j, k]]
+                            + [repr(float(v)) for v in self.delta_m[o, i, j, k]]
+                            + (
+                                []
+                                if self.std_m is None
+                                else [repr(float(v)) for v in self.std_m[o, i, j, k]]
                             )
+                        )
+        return f.getvalue()
+
+    def save(self, path: str | os.PathLike) -> tuple[Path, Path]:
+        """Write PATH.json (everything) and PATH.csv (one row per node). Returns both paths.
+
+        Each file is whole or not replaced (a full disk keeps an earlier pair); the two are
+        renamed one after the other, the CSV first, and the JSON records the CSV's sha256, so a
+        crash between the renames (a new CSV beside the earlier JSON) is refused by `load_table`
+        instead of passing as one table."""
+        pj, pc = table_files(path)
+        csv_text = self.csv_text()
+        d = self.to_dict()
+        d["csv_sha256"] = hashlib.sha256(csv_text.encode("utf-8")).hexdigest()
+        text = json.dumps(d, indent=1, allow_nan=False)
+        with atomic_files(pc, pj, newline="") as (fc, fj):
+            fc.write(csv_text)
+            fj.write(text)
         return pj, pc
 
 
@@ -621,11 +636,31 @@ def load_table(path: str | os.PathLike) -> CorrectionTable:
         d = strict_json.loads_numbers(p.read_text(encoding="utf-8-sig"))
         if not isinstance(d, dict):
             raise ValueError("not a JSON object")
-        return CorrectionTable.from_dict(d)
+        tab = CorrectionTable.from_dict(d)
     except UserError as e:
         raise UserError(f"{p}: {e}") from None
     except (ValueError, KeyError, TypeError, AttributeError, IndexError, OverflowError) as e:
         raise UserError(f"{p}: unreadable correction table ({type(e).__name__}: {e})") from None
+    _check_csv_beside(p, d.get("csv_sha256"))
+    return tab
+
+
+def _check_csv_beside(pj: Path, want: object) -> None:
+    """The CSV beside a table's JSON is the one written with it (`CorrectionTable.save` records
+    its sha256): a controller reads the CSV, workcell the JSON, and the two must be one table.
+    A JSON without the record (written before 2026-11-29) or without a CSV beside passes."""
+    pc = table_files(pj)[1]
+    if not isinstance(want, str) or not pc.is_file():
+        return
+    h = hashlib.sha256()
+    with open(pc, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    if h.hexdigest() != want.lower():
+        raise UserError(
+            f"{pc} is not the CSV written with {pj.name} (its sha256 differs: an export "
+            "interrupted between the two files, or a CSV edited since); export the table again"
+        )
 
 
 # ---------------------------------------------------------------------- building
