@@ -1275,3 +1275,29 @@ def test_odd_output_paths_say_what_they_are(tmp_path, monkeypatch, capsys):
         err = capsys.readouterr().err.strip()
         assert "\n" not in err and said in err and "--resume" not in err, err
     assert not (tmp_path / "nowhere").exists() and not (tmp_path / "no-folder").exists()
+
+
+def test_the_tracker_url_takes_the_links_settings():
+    """The serial link ran at 115200 baud with a 2 s reply time-out and a 1 s distance wait,
+    whatever the instrument needed (GeoCOM instruments often run at 9600 baud; a protocol
+    audit): `serial://PORT?baud=9600&timeout=15&edm_wait=5&crc=1` sets them, anything else is
+    refused in one line."""
+    import re
+
+    from workcell.campaign.devices import parse_tracker_url
+    from workcell.errors import UserError
+
+    assert parse_tracker_url("serial:///dev/ttyUSB0") == ("/dev/ttyUSB0", {})
+    port, kw = parse_tracker_url("serial:///dev/ttyUSB0?baud=9600&timeout=15&edm_wait=5&crc=1")
+    assert port == "/dev/ttyUSB0"
+    assert kw == {"baudrate": 9600, "timeout_s": 15.0, "measure_wait_s": 5.0, "use_crc": True}
+    for bad, said in [
+        ("serial:///dev/ttyUSB0?speed=9600", "unknown option 'speed'"),
+        ("serial:///dev/ttyUSB0?baud=fast", "baud must be a whole number in [300, 921600]"),
+        ("serial:///dev/ttyUSB0?timeout=nan", "timeout must be a number in [0.1, 120] s"),
+        ("serial:///dev/ttyUSB0?edm_wait=-1", "edm_wait must be a number in [0, 60] s"),
+        ("serial:///dev/ttyUSB0?baud", "baud must be a whole number"),
+        ("serial://?baud=9600", "no serial port"),
+    ]:
+        with pytest.raises(UserError, match=re.escape(said)):
+            parse_tracker_url(bad)

@@ -147,7 +147,8 @@ def open_cell(args: argparse.Namespace) -> tuple[CellSetup, Robot, Tracker, Enve
     robot = UrRobot(
         host, time_scale=1.0 if time_scale is None else float(time_scale), model=spec.model
     )
-    tracker = SerialTracker(args.tracker[len("serial://") :])
+    port, link = parse_tracker_url(args.tracker)
+    tracker = SerialTracker(port, **link)
     cell = CellSetup(
         spec=spec,
         tool_m=tool_m,
@@ -157,6 +158,47 @@ def open_cell(args: argparse.Namespace) -> tuple[CellSetup, Robot, Tracker, Enve
     )
     _declare_payload(cell, args)
     return cell, robot, tracker, env
+
+
+# serial://PORT?baud=9600&timeout=15&edm_wait=5&crc=1: the link settings an instrument needs
+# (SerialTracker's defaults: 115200 baud, 2 s a reply, 1 s for the distance, no CRC)
+TRACKER_URL_OPTIONS = {
+    "baud": ("baudrate", int, 300, 921_600, "baud"),
+    "timeout": ("timeout_s", float, 0.1, 120.0, "s"),
+    "edm_wait": ("measure_wait_s", float, 0.0, 60.0, "s"),
+    "crc": ("use_crc", int, 0, 1, ""),
+}
+
+
+def parse_tracker_url(url: str) -> tuple[str, dict]:
+    """The serial port and `SerialTracker` keyword arguments of `serial://PORT[?opt=v&...]`
+    (`TRACKER_URL_OPTIONS`); anything else is refused in one line."""
+    from urllib.parse import unquote
+
+    rest = url[len("serial://") :]
+    port, _, query = rest.partition("?")
+    if not port:
+        raise UserError(f"--tracker {url!r}: no serial port (serial:///dev/ttyUSB0)")
+    kw: dict = {}
+    pairs = [item.partition("=")[::2] for item in query.split("&")] if query else []
+    for key, value in ((unquote(k), unquote(v)) for k, v in pairs):
+        if key not in TRACKER_URL_OPTIONS:
+            raise UserError(
+                f"--tracker {url!r}: unknown option {key!r}; known: "
+                f"{', '.join(TRACKER_URL_OPTIONS)} (serial:///dev/ttyUSB0?baud=9600&timeout=15)"
+            )
+        name, kind, lo, hi, unit = TRACKER_URL_OPTIONS[key]
+        try:
+            v = kind(value)
+        except ValueError:
+            v = None
+        if v is None or not (lo <= v <= hi) or (kind is float and not math.isfinite(v)):
+            raise UserError(
+                f"--tracker {url!r}: {key} must be a {'whole ' if kind is int else ''}number "
+                f"in [{lo:g}, {hi:g}]{' ' + unit if unit else ''}, got {value!r}"
+            )
+        kw[name] = bool(v) if key == "crc" else v
+    return port, kw
 
 
 def _declare_payload(cell: CellSetup, args) -> None:
