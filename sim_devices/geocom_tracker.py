@@ -4,8 +4,10 @@ The server owns the master side of a pty (raw mode, so CR/LF pass untouched) and
 ASCII requests in a background thread; a client opens `.port` (`/dev/pts/N`) like a real serial
 port. Served RPCs: COM_NullProc (0), COM_SetDoublePrecision (107), COM_GetDoublePrecision (108),
 COM_GetSWVersion (110), TMC_DoMeasure (2008), TMC_GetCoordinate (2082), CSV_GetInstrumentNo
-(5003), CSV_GetInstrumentName (5004), CSV_GetSWVersion (5034); any other RPC gets
-COM_PROC_UNAVAIL. A request carrying a CRC is checked (bad -> COM_SRVR_RX_CHECKSUM_ERROR) and
+(5003), CSV_GetInstrumentName (5004), CSV_GetSWVersion (5034), the setup queries TMC_GetStation
+(2009: at the origin), TMC_GetPrismCorr (2023) and TMC_GetAtmPpm (2151) (both 0), and the target
+lock: AUS_SetUserAtrState (18005), AUS_SetUserLockState (18007), AUT_FineAdjust (9037),
+AUT_LockIn (9013), MOT_ReadLockStatus (6021); any other RPC gets COM_PROC_UNAVAIL. A request carrying a CRC is checked (bad -> COM_SRVR_RX_CHECKSUM_ERROR) and
 answered with a CRC; a request without one is answered without.
 
 The world is `measure_fn() -> (p_tracker (3,) metres, status)`, called once per TMC_DoMeasure;
@@ -29,7 +31,8 @@ given) for deterministic tests; kinds:
 `beam_break`, `slow`, `garbage`, `garbage_before`, `garbage_instead`, `drop`, `vanish`, and
 `stale` (a TMC_DoMeasure answers GRC_OK but measures nothing: the next TMC_GetCoordinate returns
 the previous measurement with its CoordTime, as an instrument that did not refresh its
-coordinate would).
+coordinate would), and `lock_lost` (give rpc=6021 to lose the lock at the next status read, or
+rpc=9037 to make the next fine adjustment find no target).
 
 time_scale: simulated time runs `time_scale` times faster than the wall clock (as
 `sim_devices.world.ScaledClock`): a simulated delay d (slow replies, `measure_time_s`) takes
@@ -78,8 +81,10 @@ INJECT_KINDS = frozenset(
         "drop",
         "vanish",
         "stale",
+        "lock_lost",
     }
 )
+AUT_NO_TARGET = 8710  # GRC_AUT_NO_TARGET: no ATR target in the search window
 _MEASURE_PRGS = {
     gc.TmcMeasurePrg.TMC_DEF_DIST,
     gc.TmcMeasurePrg.TMC_TRK_DIST,
@@ -179,6 +184,11 @@ class SimGeoComTracker:
         self.geocom_version = (1, 50, 0)
         self.firmware_version = (7, 0, 0)
         self.stats: Counter[str] = Counter()
+        # ATR/LOCK (AUS_SetUserLockState, AUT_FineAdjust, AUT_LockIn, MOT_ReadLockStatus): the
+        # simulated instrument measures the SMR wherever it is, locked or not; the state is
+        # what the driver must handle (`inject("lock_lost")`: the lock is lost at the next
+        # status read and the next fine adjustment finds no target)
+        self._lock_mode = self._fine_adjusted = self._locked = False
         self.errors: list[str] = []  # measure_fn exceptions etc., for tests/diagnosis
         self._rng = np.random.default_rng(seed)
         self._forced: Counter[tuple[str, int | None]] = Counter()
@@ -418,6 +428,32 @@ class SimGeoComTracker:
                 return 0, gc.Grc.OK, (self.instrument_name,)
             if rpc == gc.Rpc.CSV_GetSWVersion:
                 return 0, gc.Grc.OK, self.firmware_version
+            if rpc == gc.Rpc.TMC_GetStation:  # the station at the tracker frame's origin
+                return 0, gc.Grc.OK, (0.0, 0.0, 0.0, 0.0)
+            if rpc in (gc.Rpc.TMC_GetPrismCorr, gc.Rpc.TMC_GetAtmPpm):
+                return 0, gc.Grc.OK, (0.0,)  # the world's SMR and air: no correction applied
+            if rpc in (gc.Rpc.AUS_SetUserAtrState, gc.Rpc.AUS_SetUserLockState):
+                (on,) = (gc.decode_long(p) for p in req.params)
+                if rpc == gc.Rpc.AUS_SetUserLockState:
+                    self._lock_mode = bool(on)
+                    self._locked = self._locked and self._lock_mode
+                return 0, gc.Grc.OK, ()
+            if rpc == gc.Rpc.AUT_FineAdjust:
+                if self._take("lock_lost", 0.0, req.rpc):  # the SMR is not in the window
+                    self.stats["lock_lost"] += 1
+                    return 0, AUT_NO_TARGET, ()
+                self._fine_adjusted = True
+                return 0, gc.Grc.OK, ()
+            if rpc == gc.Rpc.AUT_LockIn:
+                if not (self._lock_mode and self._fine_adjusted):
+                    return 0, gc.Grc.FATAL, ()
+                self._locked = True
+                return 0, gc.Grc.OK, ()
+            if rpc == gc.Rpc.MOT_ReadLockStatus:
+                if self._locked and self._take("lock_lost", 0.0, req.rpc):
+                    self.stats["lock_lost"] += 1
+                    self._locked = self._fine_adjusted = False
+                return 0, gc.Grc.OK, (int(self._locked),)
             if rpc == gc.Rpc.TMC_DoMeasure:
                 return self._do_measure(req)
             if rpc == gc.Rpc.TMC_GetCoordinate:

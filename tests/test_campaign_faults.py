@@ -555,6 +555,10 @@ def test_a_stale_tracker_reading_is_recorded_as_refused_and_measured_again(tmp_p
         sim.stop()
     assert not res.aborted and res.measured == 4 and sim.stats["stale"] == 1
     rec = read_recording(out)
+    # the instrument's setup and its target lock, as the driver read them at connect
+    trk = rec.session["tracker"]
+    assert trk["lock"] == "locked" and trk["setup"]["prism_constant_m"] == 0.0, trk
+    assert "tracker_lock" not in [e["kind"] for e in rec.events]
     raw = rec.tracker_measurements
     refused = [m for m in raw if m["status"] != "ok"]
     assert len(refused) == 1 and refused[0]["position_m"] == [None, None, None]

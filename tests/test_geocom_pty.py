@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from sim_devices.geocom_tracker import SimGeoComTracker
+from workcell.drivers import geocom as gc
 from workcell.drivers.protocols import DeviceError, DeviceUnreachable, OtherInstrument, Tracker
 from workcell.drivers.serial_tracker import SerialTracker
 
@@ -237,7 +238,8 @@ def test_silent_instrument_gives_device_error(
 ) -> None:
     sim.inject("drop", 1000)
     t0 = time.monotonic()
-    with pytest.raises(DeviceError, match="is silent: no reply to TMC_DoMeasure") as ei:
+    # a measurement asks first whether the instrument follows the target
+    with pytest.raises(DeviceError, match="is silent: no reply to MOT_ReadLockStatus") as ei:
         tracker.measure()
     assert not isinstance(ei.value, DeviceUnreachable)
     # one time-out on the request, then retries + 1 = 3 COM_NullProc tries
@@ -277,9 +279,10 @@ def test_vanish_gives_device_unreachable_with_clear_message(
 
 
 def test_vanish_after_n_requests(world: World) -> None:
-    # connect = 4 requests (NullProc, GetDoublePrecision, GetInstrumentName, GetInstrumentNo),
-    # a measure = 2
-    with SimGeoComTracker(world, faults={"vanish_after": 9}) as s:
+    # connect = 11 requests (NullProc, GetDoublePrecision, GetInstrumentName, GetInstrumentNo,
+    # the 3 setup queries, ATR and LOCK modes, FineAdjust, LockIn), a measure = 3 (the lock
+    # status, DoMeasure, GetCoordinate)
+    with SimGeoComTracker(world, faults={"vanish_after": 18}) as s:
         t = SerialTracker(s.port, timeout_s=TIMEOUT_S)
         t.connect()
         _assert_reading_is_latest(t.measure(), world)
@@ -595,4 +598,49 @@ def test_an_instrument_without_coordtime_still_gives_new_readings(world: World) 
             assert r.extra["instrument_time_ms"] == 0
         s.inject("stale")
         assert t.measure().extra["rc_name"] == "stale_reading"
+        t.close()
+
+
+def test_the_driver_reads_the_setup_and_locks_onto_the_target(
+    sim: SimGeoComTracker, tracker: SerialTracker, world: World
+) -> None:
+    """Nothing aimed or locked the instrument onto the SMR (a GeoCOM instrument measures where
+    it points: on hardware every pose after a move would have been a beam break), and the
+    corrections it applies (prism constant, ppm) were neither read nor recorded (a protocol
+    audit). Now connect turns ATR and LOCK on and locks in, every measurement checks the lock
+    and locks in again once when it was lost, and the setup is read."""
+    assert tracker.lock == "locked" and tracker.lock_mode
+    assert tracker.setup == {
+        "station_enh_m": [0.0, 0.0, 0.0],
+        "instrument_height_m": 0.0,
+        "prism_constant_m": 0.0,
+        "atm_ppm": 0.0,
+    }
+    sim.inject("lock_lost", rpc=gc.Rpc.MOT_ReadLockStatus)  # lost, found again at once
+    _assert_reading_is_latest(tracker.measure(), world)
+    assert sim.stats["lock_lost"] == 1
+    sim.inject("lock_lost", rpc=gc.Rpc.MOT_ReadLockStatus)
+    sim.inject("lock_lost", rpc=gc.Rpc.AUT_FineAdjust)  # ... and not found: no measurement
+    r = tracker.measure()
+    assert r.status == "beam_broken" and r.extra["rc_name"] == "not_locked"
+    assert np.all(np.isnan(r.position_m))
+    _assert_reading_is_latest(tracker.measure(), world)  # found at the next try
+    assert not [k for k, _ in tracker.pop_faults() if k == "com_error"]
+
+
+def test_an_instrument_without_atr_measures_where_it_points_as_before(world: World) -> None:
+    """An instrument refusing the lock RPCs (no ATR) is said once and measured as before."""
+    with SimGeoComTracker(world) as s:
+        real = s._dispatch
+
+        def no_atr(req):
+            if req.rpc in (gc.Rpc.AUS_SetUserAtrState, gc.Rpc.AUS_SetUserLockState):
+                return gc.Grc.COM_PROC_UNAVAIL, 0, ()
+            return real(req)
+
+        s._dispatch = no_atr
+        t = SerialTracker(s.port, timeout_s=TIMEOUT_S)
+        t.connect()
+        assert not t.lock_mode and t.lock.startswith("no target lock")
+        _assert_reading_is_latest(t.measure(), world)
         t.close()

@@ -266,6 +266,19 @@ def test_another_tracker_is_refused_on_a_new_port_too(geocom_cell, monkeypatch, 
         ({}, {"serial_number": 7}, "serial:///dev/ttyUSB1", "does not record the tracker's"),
         # an instrument that does not say: the same port only
         ({"serial_number": 7}, {}, "serial:///dev/ttyUSB1", "does not give its serial number"),
+        # its corrections changed since (a protocol audit: they were not recorded): refused;
+        # another station (absorbed by the fitted base) or an unknown setup is not
+        ({"serial_number": 7, "setup": {"prism_constant_m": 0.0}},
+         {"serial_number": 7, "setup": {"prism_constant_m": -0.0344}}, "serial:///dev/ttyUSB0",
+         "its prism constant is -34.4 mm now, 0 mm when recorded"),
+        ({"serial_number": 7, "setup": {"atm_ppm": 0.0}},
+         {"serial_number": 7, "setup": {"atm_ppm": 12.5}}, "serial:///dev/ttyUSB0",
+         "its atmospheric ppm is 12.5 ppm now"),
+        ({"serial_number": 7, "setup": {"station_enh_m": [0, 0, 0], "atm_ppm": 1.0}},
+         {"serial_number": 7, "setup": {"station_enh_m": [5, 0, 0], "atm_ppm": 1.0}},
+         "serial:///dev/ttyUSB0", None),
+        ({"serial_number": 7}, {"serial_number": 7, "setup": {"atm_ppm": 3.0}},
+         "serial:///dev/ttyUSB0", None),
     ],
 )  # fmt: skip
 def test_check_same_tracker(recorded, connected, url, said):

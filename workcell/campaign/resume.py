@@ -308,6 +308,7 @@ def continuation(info: dict, old: str | Path) -> dict:
             "simulated": camp.get("effects") is not None,
             "serial_number": tracker.get("serial_number"),
             "instrument_name": tracker.get("instrument_name"),
+            "setup": tracker.get("setup"),
         },
         "notes": list(info.get("notes") or []),
     }

@@ -115,7 +115,32 @@ def tracker_identity(tracker: Tracker) -> dict:
     sn = getattr(tracker, "serial_number", None)
     if isinstance(sn, int) and not isinstance(sn, bool):
         ident["serial_number"] = sn
+    setup = getattr(tracker, "setup", None)  # station, prism constant, ppm (GeoCOM driver)
+    if isinstance(setup, dict) and setup:
+        ident["setup"] = dict(setup)
+    lock = getattr(tracker, "lock", None)  # the target lock at connect
+    if isinstance(lock, str) and lock:
+        ident["lock"] = lock
     return ident
+
+
+# a resume refuses an instrument whose corrections changed since the recording: the prism
+# constant offsets every distance, the atmospheric ppm scales them (the station is absorbed by
+# the fitted tracker_T_base, so it may differ)
+SETUP_TOLERANCES = {"prism_constant_m": (1e-6, 1e3, "mm"), "atm_ppm": (0.05, 1.0, "ppm")}
+
+
+def setup_changed(recorded: object, now: object) -> str | None:
+    """Which correction of the instrument differs between the recorded `setup` and the
+    connected one's (`SETUP_TOLERANCES`), in words; None when none does or either is unknown."""
+    if not isinstance(recorded, dict) or not isinstance(now, dict):
+        return None
+    for key, (tol, scale, unit) in SETUP_TOLERANCES.items():
+        a, b = recorded.get(key), now.get(key)
+        if isinstance(a, (int, float)) and isinstance(b, (int, float)) and abs(a - b) > tol:
+            name = key.rsplit("_", 1)[0].replace("_", " ") if unit == "mm" else "atmospheric ppm"
+            return f"its {name} is {b * scale:g} {unit} now, {a * scale:g} {unit} when recorded"
+    return None
 
 
 def _describe_tracker(ident: dict) -> str:
@@ -151,6 +176,12 @@ def check_same_tracker(same: dict, ident: dict, url: str | None) -> str | None:
                 f"connected at {url} is {_describe_tracker(ident)}: a resume continues with the "
                 "same instrument; connect that tracker, or start a new campaign"
             )
+    if (changed := setup_changed(same.get("setup"), ident.get("setup"))) is not None:
+        raise UserError(
+            f"the tracker's setup changed since {source} was recorded: {changed} (it corrects "
+            "every distance, and the fit would take the two parts for one campaign); set it "
+            "back on the instrument, or start a new campaign"
+        )
     if not moved:
         return None
     if rec.get("serial_number") is None:
@@ -305,6 +336,11 @@ def run_campaign(
     cfg = replace(cfg, payload_kg=cell.payload_kg)
     if port_note:
         notes.append({"level": "info", "kind": "tracker_port", "message": port_note})
+    if ident.get("lock", "locked") != "locked":  # a GeoCOM instrument not following the SMR
+        notes.append({
+            "level": "warning", "kind": "tracker_lock",
+            "message": f"tracker: {ident['lock']}; a pose it cannot see is a beam break",
+        })  # fmt: skip
     t_wall0_ns, elapsed0_s = _start_clock(clock, elapsed0_s)
     ex = None
     try:

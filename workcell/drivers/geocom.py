@@ -59,10 +59,21 @@ class Rpc(IntEnum):
     COM_GetDoublePrecision = 108
     COM_GetSWVersion = 110
     TMC_DoMeasure = 2008
+    TMC_GetStation = 2009  # E0, N0, H0 (m), instrument height (m)
+    TMC_GetPrismCorr = 2023  # prism constant (m)
     TMC_GetCoordinate = 2082
+    TMC_GetAtmPpm = 2151  # atmospheric correction (ppm)
     CSV_GetInstrumentNo = 5003
     CSV_GetInstrumentName = 5004
     CSV_GetSWVersion = 5034
+    MOT_ReadLockStatus = 6021  # 0 not locked, 1 locked onto the target, 2 predicting
+    AUT_LockIn = 9013
+    AUT_FineAdjust = 9037  # search window width, height (rad), 0
+    AUS_SetUserAtrState = 18005
+    AUS_SetUserLockState = 18007
+
+
+MOT_LOCKED_IN = 1  # MOT_ReadLockStatus: following the target
 
 
 def rpc_name(rpc: int) -> str:

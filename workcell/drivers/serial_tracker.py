@@ -78,6 +78,9 @@ except ImportError:  # pragma: no cover - Windows
 BEAM_BROKEN_CODES: frozenset[int] = gc.ANGLE_ONLY_CODES | {gc.Grc.TMC_DIST_ERROR}
 
 
+LOCK_SEARCH_RAD = 0.02  # AUT_FineAdjust's search window (width and height) to find the SMR
+
+
 class _Timeout(Exception):
     pass
 
@@ -139,6 +142,9 @@ class SerialTracker:
         self._lock = threading.RLock()
         self.instrument_name: str | None = None
         self.serial_number: int | None = None  # CSV_GetInstrumentNo, read on connect
+        self.setup: dict = {}  # station, prism constant, ppm as the instrument answers them
+        self.lock = ""  # the target lock at connect: "locked", or why not
+        self.lock_mode = False  # ATR/LOCK on: each measurement checks the lock first
         self.precision: int = 15
         self.fault_log: list[tuple[str, str]] = []
         self.fault_counts: Counter[str] = Counter()
@@ -209,6 +215,8 @@ class SerialTracker:
                     gc.Rpc.CSV_GetInstrumentName, gc.decode_string
                 )
                 self.serial_number = self._serial_number()
+                self.setup = self._instrument_setup()
+                self.lock = self._lock_on()
                 self._lost = False
             except BaseException:
                 self.close()
@@ -225,6 +233,73 @@ class SerialTracker:
             raise
         except (DeviceError, ValueError):
             return None
+
+    def _optional(self, rpc: int, params: tuple = (), n: int = 0) -> tuple[float, ...] | None:
+        """`n` doubles an RPC returns (none for n = 0), or None when the instrument does not
+        answer it (an RPC it has not, a procedure code): the setup and lock queries are not
+        every GeoCOM instrument's, and their refusals are not faults of the link."""
+        before = len(self.fault_log)
+        try:
+            rep = self._call(rpc, params)
+            if rep.rc != gc.Grc.OK or len(rep.values) < n:
+                return None
+            return tuple(gc.decode_double(v) for v in rep.values[:n])
+        except DeviceUnreachable:
+            raise
+        except (DeviceError, ValueError):
+            for kind, _ in self.fault_log[before:]:
+                self.fault_counts[kind] -= 1
+            del self.fault_log[before:]
+            return None
+
+    def _instrument_setup(self) -> dict:
+        """What the instrument applies to its coordinates, as it answers: its station (E0, N0,
+        H0 and instrument height: the `tracker` frame's origin), the prism constant (an offset
+        along every line of sight) and the atmospheric correction (a scale). Recorded in the
+        session: the station is absorbed by the fitted tracker_T_base, the prism constant and
+        the ppm are not, so a resume refuses an instrument whose setup changed."""
+        setup: dict = {}
+        if (st := self._optional(gc.Rpc.TMC_GetStation, n=4)) is not None:
+            setup["station_enh_m"] = list(st[:3])
+            setup["instrument_height_m"] = st[3]
+        if (pc := self._optional(gc.Rpc.TMC_GetPrismCorr, n=1)) is not None:
+            setup["prism_constant_m"] = pc[0]
+        if (ppm := self._optional(gc.Rpc.TMC_GetAtmPpm, n=1)) is not None:
+            setup["atm_ppm"] = ppm[0]
+        return setup
+
+    def _lock_on(self) -> str:
+        """ATR and LOCK modes on, then lock onto the target (AUS_SetUserAtrState,
+        AUS_SetUserLockState, AUT_LockIn), so that the instrument follows the SMR as the arm
+        moves it (a GeoCOM instrument measures where it points: without a lock every pose after
+        a move is a beam break). "locked", or why not; an instrument without ATR (NOT_IMPL)
+        measures where it points, as before, and `measure` then does not check the lock."""
+        self.lock_mode = False
+        for rpc in (gc.Rpc.AUS_SetUserAtrState, gc.Rpc.AUS_SetUserLockState):
+            if self._optional(rpc, (1,)) is None:
+                return f"no target lock: the instrument refuses {gc.rpc_name(rpc)} (no ATR?)"
+        self.lock_mode = True
+        if not self._lock_in():
+            return "lock mode on, not locked onto the target yet (the first measurement tries)"
+        return "locked"
+
+    def _lock_in(self) -> bool:
+        """Find the target in a small window and lock onto it (AUT_FineAdjust, AUT_LockIn)."""
+        if self._optional(gc.Rpc.AUT_FineAdjust, (LOCK_SEARCH_RAD, LOCK_SEARCH_RAD, 0)) is None:
+            return False
+        return self._optional(gc.Rpc.AUT_LockIn) is not None
+
+    def _locked(self) -> bool:
+        """MOT_ReadLockStatus says the instrument follows the target; else one try to lock in
+        again (the beam was broken: a cable, an arm link between)."""
+        rep = self._call(gc.Rpc.MOT_ReadLockStatus)
+        try:
+            locked = rep.rc == gc.Grc.OK and gc.decode_single(rep, gc.decode_long) == (
+                gc.MOT_LOCKED_IN
+            )
+        except ValueError:
+            locked = False
+        return locked or self._lock_in()
 
     def reconnect(self) -> None:
         """Close and connect again (after `DeviceUnreachable`, e.g. a USB adapter re-plugged).
@@ -261,6 +336,22 @@ class SerialTracker:
         """TMC_DoMeasure + TMC_GetCoordinate -> one reading (status ok/beam_broken/error)."""
         with self._lock:
             faults_before = len(self.fault_log)
+            if self.lock_mode and not self._locked():
+                t_s = self._wall_clock()
+                nan3 = np.full(3, np.nan)
+                return TrackerReading(
+                    position_m=nan3,
+                    sigma_m=nan3.copy(),
+                    status="beam_broken",
+                    t_s=t_s,
+                    extra={
+                        "rc": int(gc.Grc.OK),
+                        "rc_name": "not_locked",
+                        "message": "the instrument is not locked onto the target and could "
+                        "not lock in again (the beam broken, the SMR out of the search window)",
+                        "faults": len(self.fault_log) - faults_before,
+                    },
+                )
             rep = self._call(
                 gc.Rpc.TMC_DoMeasure,
                 (int(gc.TmcMeasurePrg.TMC_DEF_DIST), int(gc.TmcInclinePrg.TMC_AUTO_INC)),
