@@ -211,7 +211,11 @@ def test_campaign_time_scale_on_a_real_time_controller_is_refused_in_one_line(tm
     # the measured rate: 1x, or 0.99x on a loaded machine (CI, 2026-11-27); a 50x claim is 50
     rate = re.search(r"runs at ([0-9.]+)x real time", line[0])
     assert rate and 0.8 <= float(rate.group(1)) <= 1.2, line[0]
-    assert "--time-scale 50" in line[0] and "20 ms" in line[0]
+    assert "--time-scale 50" in line[0], line
+    # the settle figure comes from the measured clock rate (21 ms when the 1x clock measured
+    # 1.05x on a loaded machine)
+    settle = re.search(r"a 1 s settle to ([0-9.]+) ms", line[0])
+    assert settle and 17.0 <= float(settle.group(1)) <= 24.0, line
     assert "give --time-scale 1 " in line[0]
     assert time.monotonic() - t0 < 30
 

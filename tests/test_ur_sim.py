@@ -558,3 +558,23 @@ def test_the_control_worker_sets_the_rtde_watchdog_so_a_dead_client_stops_the_ar
             assert time.monotonic() < t_end, "the move did not run on without a watchdog"
             time.sleep(0.05)
         assert sp.state()["stats"]["watchdog_stops"] == 0
+
+
+def test_a_second_client_does_not_take_the_arm_from_the_first(robot_factory):
+    """A second campaign on a controller another one drives uploaded its own control script:
+    it ended the first's program mid-campaign and failed itself (crash audit). A program
+    running at a driver's first connect is another client's: refused in one line, the first
+    campaign goes on; once it has closed, the second connects."""
+    with SimProcess("127.0.0.95", seed=5, time_scale=TS) as sp:
+        first, second = robot_factory("127.0.0.95"), robot_factory("127.0.0.95")
+        first.connect()
+        first.move_joints(QA, 1.0, 2.0)
+        with pytest.raises(DeviceError, match="a program is running on the controller"):
+            second.connect()
+        first.move_joints(QB, 1.0, 2.0)  # undisturbed
+        assert np.max(np.abs(first.state().q_rad - QB)) < 1e-4
+        assert sp.state()["stats"]["script_uploads"] == 1
+        first.close()
+        second.connect()
+        second.move_joints(QA, 1.0, 2.0)
+        assert np.max(np.abs(second.state().q_rad - QA)) < 1e-4

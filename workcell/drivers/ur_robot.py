@@ -487,6 +487,10 @@ class UrRobot:
         self.state_during_move_every_s = 0.04
         self._rr = None
         self._rc = None
+        # this driver has run a control program on the controller: a program found running at
+        # a reconnect is taken to be the one its earlier worker left (ur_rtde re-uploads its
+        # script by itself on a lost connection), not another client's
+        self._had_control = False
         self._db = None
         self._graveyard: list = []  # disconnected client objects (their destructors sleep)
         self._lock = threading.RLock()
@@ -1071,6 +1075,21 @@ class UrRobot:
             time.sleep(0.005)
         return False
 
+    def _refuse_another_client(self, rr) -> None:
+        """A program already running on the controller is another client's (a second campaign
+        or TUI on the same arm, the teach pendant): uploading ours would take the arm from it
+        mid-move (a crash audit: the second campaign stopped the first's program). A program
+        of ours whose worker has just gone stops within the watchdog's period: waited for."""
+        t_end = time.monotonic() + 3.0 / WATCHDOG_MIN_HZ  # wall time, as the watchdog's
+        while int(rr.getRuntimeState()) == RUNTIME_PLAYING:
+            if time.monotonic() > t_end or not rr.isConnected():
+                raise DeviceError(
+                    f"UR {self.host}: a program is running on the controller (another "
+                    "client's: a campaign or TUI on this arm, or the teach pendant); a campaign "
+                    "does not take the arm from it: stop that program first, then connect again"
+                )
+            time.sleep(0.02)
+
     def _ensure_program(self) -> _ControlWorker:
         """A live control interface whose control program is PLAYING."""
         rr = self._receiver()
@@ -1079,11 +1098,22 @@ class UrRobot:
             self._kill_control()
             rc = None
         if rc is None:
+            if not self._had_control:  # later: a program left by our own earlier worker
+                self._refuse_another_client(rr)
             try:
                 rc = _ControlWorker(self.host, self.frequency)
             except RuntimeError as e:
-                raise self._conn_error("RTDE control", e) from None
+                if "Failed to execute: stop" not in str(e):
+                    raise self._conn_error("RTDE control", e) from None
+                # ur_rtde saw a program running and asked the dashboard to stop it, which had
+                # stopped by itself meanwhile (an earlier worker's, its watchdog): once more
+                time.sleep(3.0 / WATCHDOG_MIN_HZ)
+                try:
+                    rc = _ControlWorker(self.host, self.frequency)
+                except RuntimeError as e2:
+                    raise self._conn_error("RTDE control", e2) from None
             self._rc = rc
+            self._had_control = True
         if self._wait_playing(rr, rc, 0.1):
             return rc
         try:
