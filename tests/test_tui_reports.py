@@ -442,3 +442,19 @@ def test_the_diagnose_tables_held_out_gain_is_on_screen(size):
     right, region, cells = asyncio.run(flow())
     assert right <= region.x + region.width, (right, region)
     assert "41 (22..63)" in cells and "2.0 (-1.0..5.0) NOT confirmed" in cells, cells
+
+
+def test_the_ctrl_c_hint_is_plain_text():
+    """Textual's own Ctrl-C hint went through the app's plain-text notices and showed its
+    markup: "Press [b]ctrl+q[/b] to quit the app" (TUI audit)."""
+    app = app_for(2)
+
+    async def flow():
+        async with app.run_test(size=SIZE) as pilot:
+            await pilot.press("f3")  # no input focused: ctrl+c is not a copy there
+            await pilot.press("ctrl+c")
+            await pilot.pause()
+
+    asyncio.run(flow())
+    hints = [n for n in app.notices if n[1] == "Do you want to quit?"]
+    assert hints and hints[-1][2] == "Press ctrl+q to quit the app", app.notices

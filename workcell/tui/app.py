@@ -185,6 +185,14 @@ class WorkcellApp(App):
             **kw,
         )
 
+    def action_help_quit(self) -> None:
+        """Textual's answer to Ctrl-C, in plain text: notices here are not markup, and its own
+        showed "Press [b]ctrl+q[/b] to quit the app" (a TUI audit)."""
+        for key, active in self.active_bindings.items():
+            if active.binding.action in ("quit", "app.quit"):
+                self.notify(f"Press {key} to quit the app", title="Do you want to quit?")
+                return
+
     def notify_error(self, text: str, title: str = "") -> None:
         self.notify(text, title=title, severity="error", timeout=1.5 * self.notify_timeout_s)
 
