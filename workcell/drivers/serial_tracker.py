@@ -337,14 +337,9 @@ class SerialTracker:
         with self._lock:
             faults_before = len(self.fault_log)
             if self.lock_mode and not self._locked():
-                t_s = self._wall_clock()
-                nan3 = np.full(3, np.nan)
-                return TrackerReading(
-                    position_m=nan3,
-                    sigma_m=nan3.copy(),
-                    status="beam_broken",
-                    t_s=t_s,
-                    extra={
+                return self._no_position(
+                    "beam_broken",
+                    {
                         "rc": int(gc.Grc.OK),
                         "rc_name": "not_locked",
                         "message": "the instrument is not locked onto the target and could "
@@ -384,19 +379,16 @@ class SerialTracker:
                     self._last_coord = this
             if bad is not None:
                 self._fault(kind, f"tracker on {self.port!r}: {bad}; reading refused")
-                nan3 = np.full(3, np.nan)
-                return TrackerReading(
-                    position_m=nan3,
-                    sigma_m=nan3.copy(),
-                    status="error",
-                    t_s=t_s,
-                    extra={
+                return self._no_position(
+                    "error",
+                    {
                         "rc": int(rep.rc),
                         "rc_name": kind,
                         "instrument_time_ms": coord.time_ms,
                         "message": f"TMC_GetCoordinate: {bad}",
                         "faults": len(self.fault_log) - faults_before,
                     },
+                    t_s,
                 )
             extra: dict[str, Any] = {
                 "rc": int(rep.rc),
@@ -455,19 +447,25 @@ class SerialTracker:
     def _reading_without_coordinate(
         self, rc: int, where: str, faults_before: int
     ) -> TrackerReading:
-        status = "beam_broken" if rc in BEAM_BROKEN_CODES else "error"
-        nan3 = np.full(3, np.nan)
-        return TrackerReading(
-            position_m=nan3,
-            sigma_m=nan3.copy(),
-            status=status,
-            t_s=self._wall_clock(),
-            extra={
+        return self._no_position(
+            "beam_broken" if rc in BEAM_BROKEN_CODES else "error",
+            {
                 "rc": int(rc),
                 "rc_name": gc.return_code_name(rc),
                 "message": f"{where}: {gc.describe_return_code(rc)}",
                 "faults": len(self.fault_log) - faults_before,
             },
+        )
+
+    def _no_position(self, status: str, extra: dict, t_s: float | None = None) -> TrackerReading:
+        """A reading without a position (status beam_broken or error): position and sigma nan."""
+        nan3 = np.full(3, np.nan)
+        return TrackerReading(
+            position_m=nan3,
+            sigma_m=nan3.copy(),
+            status=status,
+            t_s=self._wall_clock() if t_s is None else t_s,
+            extra=extra,
         )
 
     def _rx_summary(self, rx0: Counter) -> str:
