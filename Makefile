@@ -19,9 +19,12 @@ ifneq ($(words $(VENV)),1)
 $(error VENV must be a path without spaces (make cannot name a target with one), got "$(VENV)")
 endif
 
-# a venv left without pip (an interrupted first run, a Python without ensurepip) is made again
+# a venv left without pip (an interrupted first run, a Python without ensurepip) is made again;
+# --clear only for a folder that is a venv (VENV=some/other/folder is never emptied)
 $(STAMP): pyproject.toml
-	$(PY) -m pip --version >/dev/null 2>&1 || $(PYTHON) -m venv --clear $(VENV)
+	$(PY) -m pip --version >/dev/null 2>&1 || \
+	  if [ -f $(VENV)/pyvenv.cfg ]; then $(PYTHON) -m venv --clear $(VENV); \
+	  else $(PYTHON) -m venv $(VENV); fi
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -e '.[dev]'
 	touch $(STAMP)

@@ -271,9 +271,9 @@ def test_another_tracker_is_refused_on_a_new_port_too(geocom_cell, monkeypatch, 
         ({"serial_number": 7, "setup": {"prism_constant_m": 0.0}},
          {"serial_number": 7, "setup": {"prism_constant_m": -0.0344}}, "serial:///dev/ttyUSB0",
          "its prism constant is -34.4 mm now, 0 mm when recorded"),
+        # the ppm follows the air: a warning at the campaign's start (setup_changed), not this
         ({"serial_number": 7, "setup": {"atm_ppm": 0.0}},
-         {"serial_number": 7, "setup": {"atm_ppm": 12.5}}, "serial:///dev/ttyUSB0",
-         "its atmospheric ppm is 12.5 ppm now"),
+         {"serial_number": 7, "setup": {"atm_ppm": 12.5}}, "serial:///dev/ttyUSB0", None),
         ({"serial_number": 7, "setup": {"station_enh_m": [0, 0, 0], "atm_ppm": 1.0}},
          {"serial_number": 7, "setup": {"station_enh_m": [5, 0, 0], "atm_ppm": 1.0}},
          "serial:///dev/ttyUSB0", None),
@@ -434,3 +434,32 @@ def test_a_recording_still_being_written_is_not_resumed(chain, capsys):
     finally:
         w.close()
     assert not being_written(live) and not being_written(chain / "x.mcap")
+
+
+def test_a_resume_on_a_replugged_port_keeps_the_recorded_link_settings():
+    """Typed as the refusal suggests (`--tracker serial:///dev/ttyUSB1`), a resume dropped the
+    recorded `?baud=9600&timeout=15`, and the instrument stayed silent at 115200 baud (a
+    review)."""
+    from workcell.campaign.resume import with_recorded_link
+
+    rec = "serial:///dev/ttyUSB0?baud=9600&timeout=15"
+    assert with_recorded_link(rec, "serial:///dev/ttyUSB1") == (
+        "serial:///dev/ttyUSB1?baud=9600&timeout=15"
+    )
+    assert with_recorded_link(rec, "serial:///dev/ttyUSB1?baud=19200") == (
+        "serial:///dev/ttyUSB1?baud=19200"
+    )
+    assert with_recorded_link("serial:///dev/ttyUSB0", "serial:///dev/ttyUSB1") == (
+        "serial:///dev/ttyUSB1"
+    )
+
+
+def test_setup_changed_says_which_correction_moved():
+    from workcell.campaign.run import setup_changed
+
+    rec, now = {"atm_ppm": 0.0, "prism_constant_m": 0.0}, {"atm_ppm": 12.5, "prism_constant_m": 0.0}
+    assert setup_changed(rec, now, "atm_ppm") == (
+        "its atmospheric correction is 12.5 ppm now, 0 ppm when recorded"
+    )
+    assert setup_changed(rec, now, "prism_constant_m") is None
+    assert setup_changed(None, now, "atm_ppm") is None

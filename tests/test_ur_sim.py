@@ -578,3 +578,25 @@ def test_a_second_client_does_not_take_the_arm_from_the_first(robot_factory):
         second.connect()
         second.move_joints(QA, 1.0, 2.0)
         assert np.max(np.abs(second.state().q_rad - QA)) < 1e-4
+
+
+def test_a_reconnect_does_not_take_the_arm_from_a_client_moving_it(robot_factory):
+    """A driver's reconnect uploaded its script whatever ran, so a campaign whose link had
+    dropped took the arm from another client mid-move (a review). A program moving the arm
+    at a reconnect is refused; the other client's move arrives."""
+    with SimProcess("127.0.0.94", seed=5, time_scale=TS) as sp:
+        a, b = robot_factory("127.0.0.94"), robot_factory("127.0.0.94")
+        a.connect()
+        a.move_joints(QA, 1.0, 2.0)
+        a._kill_control()  # its worker gone: its program stops (watchdog)
+        b.connect()
+        moved = []
+        # ~30 s of robot time (3 s of wall time): still moving after the 1.5 s wait
+        t = threading.Thread(target=lambda: moved.append(b.move_joints(QB, 0.02, 0.1)))
+        t.start()
+        time.sleep(0.1)
+        with pytest.raises(DeviceError, match="a program is running on the controller and moving"):
+            a.reconnect()
+        t.join(30.0)
+        assert moved == [None], "the other client's move did not arrive"
+        assert np.max(np.abs(np.array(sp.state()["q_rad"]) - QB)) < 1e-4

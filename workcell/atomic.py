@@ -16,8 +16,8 @@ from pathlib import Path
 def atomic_files(
     *paths: str | os.PathLike, newline: str | None = None, binary: bool = False
 ) -> Iterator[list]:
-    """Open a temporary file (text, or bytes when `binary`) beside each of `paths`; yields the
-    open files. When the block ends without an error, every file is flushed and synced, then all
+    """Open a temporary file (UTF-8 text whatever the locale, or bytes when `binary`) beside
+    each of `paths`; yields the open files. When the block ends without an error, every file is flushed and synced, then all
     are renamed into place (in the order given); otherwise the temporaries are removed and
     nothing is replaced."""
     targets = [Path(p) for p in paths]
@@ -30,7 +30,11 @@ def atomic_files(
             # gets a temporary one within it
             fd, tmp = tempfile.mkstemp(prefix=f".{p.name[:48]}.", suffix=".tmp", dir=p.parent)
             tmps.append(tmp)
-            files.append(os.fdopen(fd, "wb") if binary else os.fdopen(fd, "w", newline=newline))
+            files.append(
+                os.fdopen(fd, "wb")
+                if binary
+                else os.fdopen(fd, "w", encoding="utf-8", newline=newline)
+            )
         yield files
         umask = os.umask(0)
         os.umask(umask)

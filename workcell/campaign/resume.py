@@ -458,7 +458,7 @@ def check_same_cell(camp: dict, source: str, *, robot_url: str, tracker_url: str
 
 
 def new_serial_port(recorded: object, given: object) -> bool:
-    """Both addresses name a serial port, and not the same one: the tracker may have been
+    """Both addresses name a serial port, and not the same address: the tracker may have been
     re-plugged (`run.check_same_tracker` decides once it is connected)."""
     return (
         isinstance(recorded, str)
@@ -467,6 +467,14 @@ def new_serial_port(recorded: object, given: object) -> bool:
         and given.startswith("serial://")
         and recorded != given
     )
+
+
+def with_recorded_link(recorded: str, given: str) -> str:
+    """The tracker address a resume on a re-plugged port connects to: the port given, with the
+    recorded link settings (`?baud=...`) when the given address names none (typed as the
+    refusal suggests, it dropped them, and the instrument stayed silent at the defaults)."""
+    query = recorded.partition("?")[2]
+    return given if "?" in given or not query else f"{given}?{query}"
 
 
 def _series(old: Path) -> tuple[str, int]:
@@ -567,7 +575,7 @@ def resume_campaign(args: argparse.Namespace, control: CampaignControl) -> int:
         given, recorded = getattr(args, opt), camp.get(f"{opt}_url")
         if opt == "tracker" and new_serial_port(recorded, given):
             # a re-plugged adapter: `run.check_same_tracker` compares the serial numbers
-            setattr(ns, opt, given)
+            setattr(ns, opt, with_recorded_link(recorded, given))
             continue
         if given is not None and recorded is not None and given != recorded:
             raise UserError(
@@ -660,7 +668,8 @@ def resume_campaign(args: argparse.Namespace, control: CampaignControl) -> int:
             raise
         raise UserError(
             f"{e}; a re-plugged USB adapter may have another name: give it with --tracker "
-            "serial:///dev/ttyUSBn (the resume checks it is the same tracker by its serial number)",
+            "serial:///dev/ttyUSBn (the resume checks it is the same tracker by its serial "
+            "number, and keeps the recorded link settings)",
             exit_code=3,
         ) from None
     again = f" (and the reference {repeats[0]} more times)" if repeats[0] else ""

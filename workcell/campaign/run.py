@@ -124,22 +124,21 @@ def tracker_identity(tracker: Tracker) -> dict:
     return ident
 
 
-# a resume refuses an instrument whose corrections changed since the recording: the prism
-# constant offsets every distance, the atmospheric ppm scales them (the station is absorbed by
-# the fitted tracker_T_base, so it may differ)
+# the instrument's corrections a resume compares with the recording's (the station is absorbed
+# by the fitted tracker_T_base, so it may differ): (tolerance, scale to the unit said, unit)
 SETUP_TOLERANCES = {"prism_constant_m": (1e-6, 1e3, "mm"), "atm_ppm": (0.05, 1.0, "ppm")}
 
 
-def setup_changed(recorded: object, now: object) -> str | None:
-    """Which correction of the instrument differs between the recorded `setup` and the
-    connected one's (`SETUP_TOLERANCES`), in words; None when none does or either is unknown."""
+def setup_changed(recorded: object, now: object, key: str) -> str | None:
+    """How one correction of the instrument (`SETUP_TOLERANCES`) differs between the recorded
+    `setup` and the connected one's, in words; None when it does not or either is unknown."""
     if not isinstance(recorded, dict) or not isinstance(now, dict):
         return None
-    for key, (tol, scale, unit) in SETUP_TOLERANCES.items():
-        a, b = recorded.get(key), now.get(key)
-        if isinstance(a, (int, float)) and isinstance(b, (int, float)) and abs(a - b) > tol:
-            name = key.rsplit("_", 1)[0].replace("_", " ") if unit == "mm" else "atmospheric ppm"
-            return f"its {name} is {b * scale:g} {unit} now, {a * scale:g} {unit} when recorded"
+    tol, scale, unit = SETUP_TOLERANCES[key]
+    a, b = recorded.get(key), now.get(key)
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)) and abs(a - b) > tol:
+        name = "prism constant" if key == "prism_constant_m" else "atmospheric correction"
+        return f"its {name} is {b * scale:g} {unit} now, {a * scale:g} {unit} when recorded"
     return None
 
 
@@ -176,11 +175,12 @@ def check_same_tracker(same: dict, ident: dict, url: str | None) -> str | None:
                 f"connected at {url} is {_describe_tracker(ident)}: a resume continues with the "
                 "same instrument; connect that tracker, or start a new campaign"
             )
-    if (changed := setup_changed(same.get("setup"), ident.get("setup"))) is not None:
+    changed = setup_changed(same.get("setup"), ident.get("setup"), "prism_constant_m")
+    if changed is not None:  # the target's own offset: the same SMR measures alike
         raise UserError(
-            f"the tracker's setup changed since {source} was recorded: {changed} (it corrects "
-            "every distance, and the fit would take the two parts for one campaign); set it "
-            "back on the instrument, or start a new campaign"
+            f"the tracker's setup changed since {source} was recorded: {changed} (it offsets "
+            "every distance, and the fit would take the two parts for one campaign); set the "
+            "SMR's constant back on the instrument, or start a new campaign"
         )
     if not moved:
         return None
@@ -336,6 +336,15 @@ def run_campaign(
     cfg = replace(cfg, payload_kg=cell.payload_kg)
     if port_note:
         notes.append({"level": "info", "kind": "tracker_port", "message": port_note})
+    if same_tracker is not None and (
+        ppm := setup_changed(same_tracker.get("setup"), ident.get("setup"), "atm_ppm")
+    ):  # right when the air changed since, a scale error when it did not: said, not refused
+        notes.append({
+            "level": "warning", "kind": "tracker_setup",
+            "message": f"the tracker's {ppm.removeprefix('its ')}: right if the air changed "
+            "since (temperature, pressure), else a scale error of the difference between the "
+            "two parts of the campaign",
+        })  # fmt: skip
     if ident.get("lock", "locked") != "locked":  # a GeoCOM instrument not following the SMR
         notes.append({
             "level": "warning", "kind": "tracker_lock",

@@ -95,15 +95,19 @@ def run(args: argparse.Namespace) -> int:
     # model only over an earlier model of this recording (or with --force)
     # "replaced ..." is said once the files are written (it said "replacing" before the work,
     # and a failure or kill then left them as they were: a crash audit)
-    replacing: list[str] = []
+    replacing: dict[str, list[str]] = {}  # what is said once written: per model file, report
+
+    def will_replace(key: str):
+        return lambda line: replacing.setdefault(key, []).append(line)
+
     if model_path:
         for p in (model_path, _np_path(model_path)):
             check_output_path(p, "model file", inputs=[args.recording])
-            check_model_output(p, args.recording, force=args.force, say=replacing.append)
+            check_model_output(p, args.recording, force=args.force, say=will_replace(str(p)))
     for name in REPORT_FILES if outdir else ():
         check_output_path(outdir / name, "report file", inputs=[args.recording])
     if outdir:
-        check_report_folder(outdir, force=args.force, say=replacing.append)
+        check_report_folder(outdir, force=args.force, say=will_replace("report"))
     diag = diagnose(ds, cfg, progress=log)
     rep = diag.report
     rep["recording_problems"] = list(ds.read_problems)
@@ -123,8 +127,12 @@ def run(args: argparse.Namespace) -> int:
         rep["plots"] = write_plots(diag, outdir)
         write_text(outdir / REPORT_FILES[0], rep["summary"] + "\n")
         write_text(outdir / REPORT_FILES[1], strict_json.dumps(rep, indent=1))
-    for line in replacing:
-        log(line.replace("replacing ", "replaced ", 1))
+    written = [str(model_path)] if model_path else []
+    if model_path and diag.model_np is not None:  # none without the residual check (--no-np)
+        written.append(str(_np_path(model_path)))
+    for key in [*written, *(["report"] if outdir else [])]:
+        for line in replacing.get(key, []):
+            log(line.replace("replacing ", "replaced ", 1))
     if args.json:
         print(strict_json.dumps(rep))
     else:

@@ -1075,18 +1075,28 @@ class UrRobot:
             time.sleep(0.005)
         return False
 
-    def _refuse_another_client(self, rr) -> None:
+    def _refuse_another_client(self, rr, *, moving_only: bool = False) -> None:
         """A program already running on the controller is another client's (a second campaign
         or TUI on the same arm, the teach pendant): uploading ours would take the arm from it
-        mid-move (a crash audit: the second campaign stopped the first's program). A program
-        of ours whose worker has just gone stops within the watchdog's period: waited for."""
+        (a crash audit: the second campaign stopped the first's program). A program of ours
+        whose worker has just gone stops within the watchdog's period: waited for. At a
+        reconnect (`moving_only`) a program still running may be one ur_rtde re-uploaded by
+        itself for our dead worker (without a watchdog): refused only while the arm moves,
+        which ours does not once its worker is gone."""
         t_end = time.monotonic() + 3.0 / WATCHDOG_MIN_HZ  # wall time, as the watchdog's
         while int(rr.getRuntimeState()) == RUNTIME_PLAYING:
-            if time.monotonic() > t_end or not rr.isConnected():
+            if not rr.isConnected():
+                raise DeviceError(f"UR {self.host}: RTDE connection lost (connecting)")
+            if time.monotonic() > t_end:
+                moving = float(np.max(np.abs(rr.getActualQd()))) > self.settle_speed_rad_s
+                if moving_only and not moving:
+                    return
                 raise DeviceError(
-                    f"UR {self.host}: a program is running on the controller (another "
-                    "client's: a campaign or TUI on this arm, or the teach pendant); a campaign "
-                    "does not take the arm from it: stop that program first, then connect again"
+                    f"UR {self.host}: a program is running on the controller"
+                    + (" and moving the arm" if moving else "")
+                    + " (another client's: a campaign or TUI on this arm, or the teach "
+                    "pendant); a campaign does not take the arm from it: stop that program "
+                    "first, then connect again"
                 )
             time.sleep(0.02)
 
@@ -1098,8 +1108,7 @@ class UrRobot:
             self._kill_control()
             rc = None
         if rc is None:
-            if not self._had_control:  # later: a program left by our own earlier worker
-                self._refuse_another_client(rr)
+            self._refuse_another_client(rr, moving_only=self._had_control)
             try:
                 rc = _ControlWorker(self.host, self.frequency)
             except RuntimeError as e:
@@ -1113,7 +1122,7 @@ class UrRobot:
                 except RuntimeError as e2:
                     raise self._conn_error("RTDE control", e2) from None
             self._rc = rc
-            self._had_control = True
+            self._had_control = True  # a program running at a later reconnect may be ours
         if self._wait_playing(rr, rc, 0.1):
             return rc
         try:

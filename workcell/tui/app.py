@@ -275,6 +275,9 @@ class WorkcellApp(App):
 
     def _quit_now(self, return_code: int = 0) -> None:
         if self.validating and self.devices is not None:
+            abort = getattr(self, "_validate_abort", None)
+            if abort is not None:  # the check's move stops at once (the driver's abort flag)
+                abort.set()
             try:  # the closed-loop check has no pause: stop the arm where it is
                 self.devices.robot.stop()
             except Exception:  # noqa: BLE001 - stopping is best effort while quitting
