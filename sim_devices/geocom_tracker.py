@@ -7,7 +7,8 @@ COM_GetSWVersion (110), TMC_DoMeasure (2008), TMC_GetCoordinate (2082), CSV_GetI
 (5003), CSV_GetInstrumentName (5004), CSV_GetSWVersion (5034), the setup queries TMC_GetStation
 (2009: at the origin), TMC_GetPrismCorr (2023) and TMC_GetAtmPpm (2151) (both 0), and the target
 lock: AUS_SetUserAtrState (18005), AUS_SetUserLockState (18007), AUT_FineAdjust (9037),
-AUT_LockIn (9013), MOT_ReadLockStatus (6021); any other RPC gets COM_PROC_UNAVAIL. A request carrying a CRC is checked (bad -> COM_SRVR_RX_CHECKSUM_ERROR) and
+AUT_LockIn (9013), MOT_ReadLockStatus (6021); any other RPC gets COM_PROC_UNAVAIL. A request
+carrying a CRC is checked (bad -> COM_SRVR_RX_CHECKSUM_ERROR) and
 answered with a CRC; a request without one is answered without.
 
 The world is `measure_fn() -> (p_tracker (3,) metres, status)`, called once per TMC_DoMeasure;

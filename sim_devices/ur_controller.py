@@ -696,11 +696,7 @@ class UrControllerSim:
                 SAFETY_SAFEGUARD_STOP if kind == "safeguard_stop" else SAFETY_ROBOT_EMERGENCY_STOP
             )
             with self.lock:
-                self.world.stop()
-                self._pending_done = None
-                self._async_running = False
-                if self.runtime_state == RT_PLAYING:
-                    self.runtime_state = RT_PAUSED
+                self._halt_and_pause()
                 self.safety_mode = mode
                 self._safety_until = self.clock.now() + down
             self._event(f"fault: {kind.replace('_', ' ')} ({down:.2f} s)")
@@ -736,16 +732,21 @@ class UrControllerSim:
         if self.safety_mode == SAFETY_PROTECTIVE_STOP:
             return
         self.stats["protective_stops"] += 1
-        self.world.stop(at=at)
+        self._halt_and_pause(at)
         self.world.protective_stop = True
         self.safety_mode = SAFETY_PROTECTIVE_STOP
         self.pstop_time = self.clock.now()
         self.pstop_reason = reason
+        self._event(f"protective stop: {reason}")
+
+    def _halt_and_pause(self, at: float | None = None) -> None:
+        """Caller holds self.lock: a safety stop halts the arm (where it was at sim time `at`,
+        default now) and pauses the program; a move under way is not completed."""
+        self.world.stop(at=at)
         self._pending_done = None
         self._async_running = False
         if self.runtime_state == RT_PLAYING:
             self.runtime_state = RT_PAUSED
-        self._event(f"protective stop: {reason}")
 
     def _control_client_lost(self) -> None:
         """Caller holds self.lock: the RTDE client feeding the control script went away. With

@@ -459,7 +459,7 @@ def test_setup_changed_says_which_correction_moved():
 
     rec, now = {"atm_ppm": 0.0, "prism_constant_m": 0.0}, {"atm_ppm": 12.5, "prism_constant_m": 0.0}
     assert setup_changed(rec, now, "atm_ppm") == (
-        "its atmospheric correction is 12.5 ppm now, 0 ppm when recorded"
+        "atmospheric correction is 12.5 ppm now, 0 ppm when recorded"
     )
     assert setup_changed(rec, now, "prism_constant_m") is None
     assert setup_changed(None, now, "atm_ppm") is None

@@ -67,6 +67,7 @@ from workcell.drivers.protocols import (
     Robot,
     SafetyStop,
     Tracker,
+    driver_hooks,
 )
 from workcell.errors import INTERRUPTED, UserError, stop_if_interrupted
 from workcell.kinematics.robots import RobotSpec
@@ -248,7 +249,8 @@ class CampaignResult:
     skipped_ids: list[int] = field(default_factory=list)
     # "operator" (abort, Ctrl-C, SIGTERM, SIGHUP), "margin" (the margin watch),
     # "unacknowledged" (a protective stop nobody acknowledged), "protective_stop" (too many in a
-    # row), "safety_stop" (a safeguard or emergency stop, a safety violation or fault), "tracker" (no tracker readings at too many poses in a row), "refused" (poses refused
+    # row), "safety_stop" (a safeguard or emergency stop, a safety violation or fault),
+    # "tracker" (no tracker readings at too many poses in a row), "refused" (poses refused
     # again and again, or an adaptive plan with no reachable pose left) or "error"
     stopped_by: str = ""
     stop_message: str = ""  # for the last four: one line on why
@@ -966,19 +968,12 @@ class Executor:
         for the campaign only: a move after it (a TUI's validation on the same robot after an
         aborted campaign) is not refused by this campaign's abort. A driver that reports the
         arm's state while it moves (`state_during_move`) has those states recorded too."""
-        hands_flag = hasattr(self.robot, "abort_requested")
-        if hands_flag:
-            self.robot.abort_requested = self.control.abort.is_set
-        streams = hasattr(self.robot, "state_during_move")
-        if streams:
-            self.robot.state_during_move = self._state_during_move
-        try:
+        with driver_hooks(
+            self.robot,
+            abort_requested=self.control.abort.is_set,
+            state_during_move=self._state_during_move,
+        ):
             return self._run(plan)
-        finally:
-            if hands_flag:
-                self.robot.abort_requested = None
-            if streams:
-                self.robot.state_during_move = None
 
     def _run(self, plan: Plan) -> CampaignResult:
         sample = None

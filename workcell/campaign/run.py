@@ -138,7 +138,7 @@ def setup_changed(recorded: object, now: object, key: str) -> str | None:
     a, b = recorded.get(key), now.get(key)
     if isinstance(a, (int, float)) and isinstance(b, (int, float)) and abs(a - b) > tol:
         name = "prism constant" if key == "prism_constant_m" else "atmospheric correction"
-        return f"its {name} is {b * scale:g} {unit} now, {a * scale:g} {unit} when recorded"
+        return f"{name} is {b * scale:g} {unit} now, {a * scale:g} {unit} when recorded"
     return None
 
 
@@ -178,7 +178,7 @@ def check_same_tracker(same: dict, ident: dict, url: str | None) -> str | None:
     changed = setup_changed(same.get("setup"), ident.get("setup"), "prism_constant_m")
     if changed is not None:  # the target's own offset: the same SMR measures alike
         raise UserError(
-            f"the tracker's setup changed since {source} was recorded: {changed} (it offsets "
+            f"the tracker's setup changed since {source} was recorded: its {changed} (it offsets "
             "every distance, and the fit would take the two parts for one campaign); set the "
             "SMR's constant back on the instrument, or start a new campaign"
         )
@@ -341,7 +341,7 @@ def run_campaign(
     ):  # right when the air changed since, a scale error when it did not: said, not refused
         notes.append({
             "level": "warning", "kind": "tracker_setup",
-            "message": f"the tracker's {ppm.removeprefix('its ')}: right if the air changed "
+            "message": f"the tracker's {ppm}: right if the air changed "
             "since (temperature, pressure), else a scale error of the difference between the "
             "two parts of the campaign",
         })  # fmt: skip

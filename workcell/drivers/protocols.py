@@ -5,6 +5,8 @@ Units SI. Joint vectors ordered base to wrist. Tracker positions are in the `tra
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
@@ -116,3 +118,19 @@ def close_quietly(*devices: Robot | Tracker) -> None:
             dev.close()
         except Exception:  # noqa: BLE001 - closing is best effort
             pass
+
+
+@contextmanager
+def driver_hooks(robot: object, **hooks: object) -> Iterator[None]:
+    """Give a driver its optional hooks for the block (UrRobot's `abort_requested`: a callable
+    that cuts a move short when it turns true; `state_during_move`: called with the states read
+    while the arm moves), and take them back afterwards (None), so that a later user of the same
+    robot is not stopped by this one's abort. A hook the driver has not is skipped."""
+    given = [name for name in hooks if hasattr(robot, name)]
+    for name in given:
+        setattr(robot, name, hooks[name])
+    try:
+        yield
+    finally:
+        for name in given:
+            setattr(robot, name, None)

@@ -143,6 +143,7 @@ SAFETY_STOP_BITS = {
     8: "safety violation",
     9: "safety fault",
 }
+SAFETY_STOP_MASK = sum(1 << bit for bit in SAFETY_STOP_BITS)
 RUNTIME_PLAYING = 2
 # the RTDE watchdog the control worker sets (ur_rtde setWatchdog): the controller stops the
 # program when no input arrives for 1/WATCHDOG_MIN_HZ s of wall time; the worker kicks it
@@ -357,11 +358,28 @@ def _control_worker_main(host: str, frequency: float) -> int:
         answer("error", _one_line(e))
         os._exit(1)
     answer("ok", True)
+
+    def serve(line: bytes) -> str:
+        """Answer one request; its method's name ("" for a request that failed)."""
+        try:
+            name, args = json.loads(line)
+            if name not in allowed:
+                raise RuntimeError(f"method {name!r} not available")
+            value = getattr(rc, name)(*args)
+            if name == "reuploadScript":  # a new program: its watchdog set again
+                rc.setWatchdog(WATCHDOG_MIN_HZ)
+            answer("ok", value)
+            return name
+        except ValueError as e:
+            answer("value_error", _one_line(e))
+        except Exception as e:
+            answer("error", _one_line(e))
+        return ""
+
     kick_every = 1.0 / (WATCHDOG_MIN_HZ * WATCHDOG_KICKS_PER_PERIOD)
     buf = b""
     while True:
-        r, _, _ = select.select([0], [], [], kick_every)
-        if not r:
+        if not select.select([0], [], [], kick_every)[0]:  # idle: the watchdog is kicked
             try:
                 rc.kickWatchdog()
             except Exception:  # noqa: BLE001 - a lost connection is the next request's answer
@@ -370,26 +388,8 @@ def _control_worker_main(host: str, frequency: float) -> int:
         chunk = os.read(0, 65536)
         if not chunk:
             break  # the driver's process has gone: no more kicks, the watchdog stops the arm
-        buf += chunk
-        stop = False
-        while b"\n" in buf:
-            line, buf = buf.split(b"\n", 1)
-            try:
-                name, args = json.loads(line)
-                if name not in allowed:
-                    raise RuntimeError(f"method {name!r} not available")
-                value = getattr(rc, name)(*args)
-                if name == "reuploadScript":  # a new program: its watchdog set again
-                    rc.setWatchdog(WATCHDOG_MIN_HZ)
-                answer("ok", value)
-                if name == "disconnect":
-                    stop = True
-                    break
-            except ValueError as e:
-                answer("value_error", _one_line(e))
-            except Exception as e:
-                answer("error", _one_line(e))
-        if stop:
+        *lines, buf = (buf + chunk).split(b"\n")
+        if any(serve(line) == "disconnect" for line in lines):
             break
     os._exit(0)  # skip the destructor: it joins threads that a broken reconnect left behind
 
@@ -1038,8 +1038,8 @@ class UrRobot:
         bits = int(rr.getSafetyStatusBits())
         if bits & BIT_PROTECTIVE_STOP:
             raise ProtectiveStop(f"UR {self.host}: protective stop {when}")
-        stops = [name for bit, name in SAFETY_STOP_BITS.items() if bits & (1 << bit)]
-        if stops:
+        if bits & SAFETY_STOP_MASK:  # polled through every move: the names only when stopped
+            stops = [name for bit, name in SAFETY_STOP_BITS.items() if bits & (1 << bit)]
             raise SafetyStop(f"UR {self.host}: {', '.join(stops)} {when}")
 
     def _raise_if_stopped_soon(self, rr, when: str, within_s: float = 0.2) -> None:
@@ -1109,18 +1109,16 @@ class UrRobot:
             rc = None
         if rc is None:
             self._refuse_another_client(rr, moving_only=self._had_control)
-            try:
-                rc = _ControlWorker(self.host, self.frequency)
-            except RuntimeError as e:
-                if "Failed to execute: stop" not in str(e):
-                    raise self._conn_error("RTDE control", e) from None
+            for again in (False, True):
+                try:
+                    rc = _ControlWorker(self.host, self.frequency)
+                    break
+                except RuntimeError as e:
+                    if again or "Failed to execute: stop" not in str(e):
+                        raise self._conn_error("RTDE control", e) from None
                 # ur_rtde saw a program running and asked the dashboard to stop it, which had
                 # stopped by itself meanwhile (an earlier worker's, its watchdog): once more
                 time.sleep(3.0 / WATCHDOG_MIN_HZ)
-                try:
-                    rc = _ControlWorker(self.host, self.frequency)
-                except RuntimeError as e2:
-                    raise self._conn_error("RTDE control", e2) from None
             self._rc = rc
             self._had_control = True  # a program running at a later reconnect may be ours
         if self._wait_playing(rr, rc, 0.1):

@@ -131,6 +131,7 @@ class WorkcellApp(App):
         self.last_export: dict | None = None
         self.last_validation: dict | None = None
         self.validating = False  # the closed-loop check moves the arm: no campaign meanwhile
+        self._validate_abort: threading.Event | None = None  # the running check's abort
         self.campaign_log: list[dict] = []  # events of the current campaign (tests read it)
         self.finished: list[m.CampaignFinished] = []
         self.notices: list[tuple[str, str, str]] = []
@@ -275,9 +276,8 @@ class WorkcellApp(App):
 
     def _quit_now(self, return_code: int = 0) -> None:
         if self.validating and self.devices is not None:
-            abort = getattr(self, "_validate_abort", None)
-            if abort is not None:  # the check's move stops at once (the driver's abort flag)
-                abort.set()
+            if self._validate_abort is not None:  # its move stops at once (the driver's flag)
+                self._validate_abort.set()
             try:  # the closed-loop check has no pause: stop the arm where it is
                 self.devices.robot.stop()
             except Exception:  # noqa: BLE001 - stopping is best effort while quitting
@@ -736,11 +736,10 @@ class WorkcellApp(App):
 
     @guarded
     def on_validate_abort_requested(self, msg: m.ValidateAbortRequested) -> None:
-        abort = getattr(self, "_validate_abort", None)
-        if self.validating and abort is not None:
+        if self.validating and self._validate_abort is not None:
             # the check's thread stops a move under way (the driver's abort_requested) and
             # sends no other; not stopped from here, where a driver call could block the UI
-            abort.set()
+            self._validate_abort.set()
 
     @guarded
     def on_validate_finished(self, msg: m.ValidateFinished) -> None:

@@ -1037,6 +1037,7 @@ def closed_loop(
     is in the numbers). `abort` (set by the operator) stops a move under way (a driver with
     `abort_requested`) and any later one: the arm is stopped and `UserError` says so."""
     from workcell.campaign.envelope import Guard
+    from workcell.drivers.protocols import driver_hooks
     from workcell.estimation.models import load_model
     from workcell.export.build import model_recording, model_session, nominal_for_model
     from workcell.export.table import load_table
@@ -1108,27 +1109,25 @@ def closed_loop(
         if abort.is_set():  # stopped on the way, or arrived as the abort came
             raise KeyboardInterrupt
 
-    hands_flag = hasattr(dev.robot, "abort_requested")
-    if hands_flag:
-        dev.robot.abort_requested = abort.is_set
     try:
         # the arm's joint temperatures now (None if the controller does not report them)
         if w := thermal_mismatch(model, table, dev.robot.state().temperature_c, ui=True):
             warnings.append(w)
             if log:
                 log(f"warning: {w}")
-        res = run_validation(
-            nominal,
-            table,
-            move,
-            tracker_measure(dev.tracker, readings),
-            n=targets,
-            seed=12345,
-            guard=Guard(env, spec, nominal.tool_m),  # the SMR the campaign declared
-            q_start=lambda: np.asarray(dev.robot.state().q_rad, float),
-            log=log,
-            clock=lambda: float(dev.robot.state().t_s),  # the controller's time
-        )
+        with driver_hooks(dev.robot, abort_requested=abort.is_set):
+            res = run_validation(
+                nominal,
+                table,
+                move,
+                tracker_measure(dev.tracker, readings),
+                n=targets,
+                seed=12345,
+                guard=Guard(env, spec, nominal.tool_m),  # the SMR the campaign declared
+                q_start=lambda: np.asarray(dev.robot.state().q_rad, float),
+                log=log,
+                clock=lambda: float(dev.robot.state().t_s),  # the controller's time
+            )
     except BaseException:
         if not abort.is_set():
             raise
@@ -1141,8 +1140,6 @@ def closed_loop(
             "again for one)"
         ) from None
     finally:
-        if hands_flag:
-            dev.robot.abort_requested = None
         close_quietly(dev.robot, dev.tracker)
     res["warnings"] = warnings + validation_warnings(res)
     res["envelope"] = env_what
