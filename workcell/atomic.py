@@ -1,13 +1,17 @@
 """Outputs written whole or not at all: each file goes to a fresh temporary name beside it,
 is flushed to disk, and only then renamed over the target (`os.replace`, atomic on POSIX). A
 failure on the way (a full disk, Ctrl-C, an error while formatting) leaves the earlier output
-as it was and no partial file behind."""
+as it was and no partial file behind. A kill (SIGKILL, a power cut) can leave the temporary
+file (`.NAME.PID.XXXXXXXX.tmp`); the next write of the same output removes those whose process
+is gone."""
 
 from __future__ import annotations
 
 import contextlib
 import os
+import re
 import tempfile
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -28,7 +32,10 @@ def atomic_files(
             p.parent.mkdir(parents=True, exist_ok=True)
             # the name cut short: a target name near the file system's limit (255 bytes) still
             # gets a temporary one within it
-            fd, tmp = tempfile.mkstemp(prefix=f".{p.name[:48]}.", suffix=".tmp", dir=p.parent)
+            _remove_orphans(p)
+            fd, tmp = tempfile.mkstemp(
+                prefix=f"{_tmp_prefix(p)}{os.getpid()}.", suffix=".tmp", dir=p.parent
+            )
             tmps.append(tmp)
             files.append(
                 os.fdopen(fd, "wb")
@@ -51,6 +58,39 @@ def atomic_files(
                 f.close()
         for tmp in tmps:
             Path(tmp).unlink(missing_ok=True)  # gone already once renamed
+
+
+def _tmp_prefix(p: Path) -> str:
+    return f".{p.name[:48]}."
+
+
+_ORPHAN_AGE_S = 60.0  # and not touched for a minute (a writer on another host has other pids)
+
+
+def _remove_orphans(p: Path) -> None:
+    """Remove the temporaries of earlier writes of `p` whose process no longer runs (a kill
+    between mkstemp and the rename); a live writer's, and any other file, are left alone."""
+    pattern = re.compile(re.escape(_tmp_prefix(p)) + r"(\d+)\.[A-Za-z0-9_]{8}\.tmp")
+    with contextlib.suppress(OSError):
+        for q in p.parent.iterdir():
+            m = pattern.fullmatch(q.name)
+            if m is None or _alive(int(m[1])):
+                continue
+            with contextlib.suppress(OSError):
+                if q.is_file() and time.time() - q.stat().st_mtime > _ORPHAN_AGE_S:
+                    q.unlink()
+
+
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError, ValueError):
+        return True  # another user's, or not a pid at all: not ours to remove
+    return True
 
 
 def write_text(path: str | os.PathLike, text: str) -> Path:
