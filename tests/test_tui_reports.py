@@ -183,6 +183,36 @@ def test_the_export_screen_states_the_base_correction_as_the_command_line(here):
     assert "Not in it" in ros and "above the noise floor" in ros["Not in it"], ros
 
 
+def test_the_export_notice_names_the_folder_and_a_new_one(here):
+    """The Export screen's notice and rows named the files only: an export to a folder that did
+    not exist made it without a word, and the operator could not tell where the files were."""
+    app = app_for()
+
+    async def flow():
+        async with app.run_test(size=SIZE) as pilot:
+            await pilot.press("f6")
+            view = app.views["export"]
+            rows = []
+            for out in ("cell7/today/corr", "cell7/today/corr2"):
+                view.query_one("#model").value = "m.json"
+                view.query_one("#out").value = out
+                view.query_one("#spacing").value = "0.12"
+                await pilot.pause()
+                n = len(app.notices)
+                await pilot.press("ctrl+r")
+                await until(pilot, lambda n=n: not view.running and len(app.notices) > n, 60, "x")
+                rows.append(({k: plain(v) for k, v in view.result_rows}, app.notices[-1][2]))
+            return rows
+
+    (first, note1), (second, note2) = asyncio.run(flow())
+    where = "cell7/today"
+    assert (here / "cell7/today/corr.json").is_file()
+    assert note1 == f"wrote corr.json, corr.csv in {where}, a new folder", note1
+    assert first["Folder"] == f"{where}, a new folder", first
+    assert note2 == f"wrote corr2.json, corr2.csv in {where}", note2
+    assert second["Folder"] == where, second
+
+
 # --------------------------------------------------------------------------- D: diagnose
 def test_diagnose_runs_the_residual_check_by_default_and_says_when_it_was_skipped(
     here, monkeypatch

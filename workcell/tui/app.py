@@ -35,6 +35,7 @@ from workcell.tui.screens import (
     FitScreen,
     PlanScreen,
 )
+from workcell.tui.screens.base import folder_text
 from workcell.tui.screens.campaign import campaign_outcome
 from workcell.tui.screens.devices import config_changes
 from workcell.tui.screens.fit import headline as fit_headline
@@ -692,7 +693,8 @@ class WorkcellApp(App):
         self.last_export = msg.summary
         self.views["export"].show_summary(msg.summary)
         self.notify(
-            f"wrote {', '.join(Path(f).name for f in msg.summary.get('files', []))}",
+            f"wrote {', '.join(Path(f).name for f in msg.summary.get('files', []))} "
+            f"in {folder_text(msg.summary)}",
             title="Export done",
             timeout=self.notify_timeout_s,
         )

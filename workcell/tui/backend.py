@@ -952,8 +952,10 @@ def export(cfg: ExportConfig, log: Callable[[str], None] | None = None) -> dict:
         outputs, False, log or (lambda m: None), kinds=output_kinds(cfg.format), named=out
     )
     model = load_model(cfg.model)
+    # the folder the files go to, and whether it is new (the screen and notice say both)
+    summary: dict = {"format": cfg.format, "model": cfg.model, "folder": str(out.parent)}
+    summary["new_folder"] = not out.parent.is_dir()
     out.parent.mkdir(parents=True, exist_ok=True)
-    summary: dict = {"format": cfg.format, "model": cfg.model}
     t0 = time.perf_counter()
     if cfg.format == "ros-yaml":
         from workcell.export.ros_yaml import export_ros_yaml

@@ -9,6 +9,14 @@ from textual.widgets import Footer, Header, Input
 from workcell.errors import UserError
 
 
+def folder_text(summary: dict) -> str:
+    """Where an output's files went: the folder as the operator typed it (relative to the
+    folder `workcell tui` was started in), and whether the export made it."""
+    folder = summary.get("folder") or "."
+    text = "the working folder" if folder == "." else folder
+    return text + (", a new folder" if summary.get("new_folder") else "")
+
+
 class WorkcellScreen(Screen):
     """A screen with the app header and the key footer; subclasses yield their body."""
 

@@ -18,7 +18,7 @@ from workcell.export.table import coverage_line
 from workcell.export.validate import DEFAULT_TARGETS, MAX_TARGETS, closure_line
 from workcell.tui.backend import ExportConfig
 from workcell.tui.messages import ExportRequested, ValidateAbortRequested, ValidateRequested
-from workcell.tui.screens.base import WorkcellScreen, um
+from workcell.tui.screens.base import WorkcellScreen, folder_text, um
 from workcell.tui.widgets import ConfirmScreen, KeyValue
 
 FORMATS = [
@@ -195,6 +195,7 @@ class ExportScreen(WorkcellScreen):
         v = s.get("validation") or {}
         rows = [("Format", s.get("format", "?"))]
         rows += [("File", Path(f).name) for f in s.get("files", [])]
+        rows.append(("Folder", folder_text(s)))
         if "grid" in s:
             sp = max(s["grid"]["spacing_m"]) * 1e3
             rows.append(
