@@ -13,7 +13,8 @@ works against it. It serves, on one host address (use a loopback alias such as 1
   robot model (the
   family name of the simulated arm, "UR5" for a UR5e, "UR10" for a UR10), power on/off, brake
   release, robotmode, safetymode/safetystatus, programState, running, play, stop, pause, unlock
-  protective stop, close (safety) popup, is in remote control (-> true), load, quit, ...
+  protective stop, close (safety) popup, is in remote control (-> true; e-Series only, a CB3
+  does not understand it, nor get operational mode), load, quit, ...
 - Primary script port, port 30003: a program (`def name(): ... end`) uploaded there starts to
   "run" (runtime_state 2, PLAYING). The URScript is not interpreted: the register handshake of
   ur_rtde's control script is emulated (out_int0 = 1 ready, command in in_int0, out_int0 = 2 done,
@@ -1240,8 +1241,8 @@ class UrControllerSim:
                 return SERIAL_NUMBER, False
             if low == "get robot model":
                 return dashboard_model_name(self.spec.model), False
-            if low == "is in remote control":
-                return "true", False
+            if low == "is in remote control" and v[0] >= 5:  # e-Series 5.6+ only; a CB3
+                return "true", False  # answers it as an unknown command
             if low == "robotmode":
                 return f"Robotmode: {ROBOT_MODES[self.robot_mode]}", False
             if low == "safetymode":
@@ -1325,7 +1326,7 @@ class UrControllerSim:
                 return "Added log message", False
             if low.startswith("setuserrole"):
                 return f"Setting user role: {line[12:].strip()}", False
-            if low == "get operational mode":
+            if low == "get operational mode" and v[0] >= 5:
                 return "NONE", False
             if low == "quit":
                 return "Disconnected", True

@@ -7,6 +7,7 @@ Every simulator runs in its own process (`SimProcess`, time-scaled) on its own l
 from __future__ import annotations
 
 import os
+import socket
 import threading
 import time
 
@@ -202,6 +203,14 @@ def _refused_before_anything_moves(sp, host: str, model: str, **kw) -> str:
     return msg
 
 
+def _dashboard_answer(host: str, command: str) -> str:
+    with socket.create_connection((host, 29999), timeout=5) as s, s.makefile("rwb") as f:
+        f.readline()  # the greeting
+        f.write(command.encode() + b"\n")
+        f.flush()
+        return f.readline().decode().rstrip("\n")
+
+
 def test_an_e_series_controller_is_refused_for_a_cb3_model():
     """The dashboard names the family only ("UR5" for a CB3 UR5 and a UR5e alike): the driver
     tells the generations apart by the software version, over the real client, before anything
@@ -211,6 +220,7 @@ def test_an_e_series_controller_is_refused_for_a_cb3_model():
         msg = _refused_before_anything_moves(sp, "127.0.0.36", "ur5")
         assert "runs PolyScope 5.15.0, so the arm is a UR5e, but --model ur5 is a CB3 UR5" in msg
         assert "give --model ur5e" in msg
+        assert _dashboard_answer("127.0.0.36", "is in remote control") == "true"
 
 
 def test_speed_limit_enforced_on_ur10():
@@ -246,6 +256,9 @@ def test_a_controller_of_another_arm_is_refused_before_anything_moves():
             assert db.polyscopeVersion().startswith("3.")  # a CB3 controller
         finally:
             db.disconnect()
+        # commands of e-Series software only are unknown to a CB3 (the simulator said "true")
+        for cmd in ("is in remote control", "get operational mode"):
+            assert _dashboard_answer("127.0.0.31", cmd) == f"could not understand: '{cmd}'"
         warned: list[str] = []
         msg = _refused_before_anything_moves(sp, "127.0.0.31", "ur5e", on_warning=warned.append)
         assert "the controller says it is a UR10 but --model is ur5e" in msg
