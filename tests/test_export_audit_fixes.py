@@ -79,8 +79,9 @@ def test_the_table_csv_header_carries_what_the_urscript_header_does(table_files)
     _, _, pj, pc = table_files
     csv_head = _head(pc.read_text())
     script_head = _head(generate_urscript(load_table(pj)))
-    # every URScript header line but its name and usage is in the CSV header
-    shared = [x for x in script_head if not x.startswith(("wc_correct:", "usage:"))]
+    # every URScript header line but its name, usage, loading and scope is in the CSV header
+    own = ("wc_correct:", "usage:", "load:", "scope:")
+    shared = [x for x in script_head if not x.startswith(own)]
     missing = [x for x in shared if x not in csv_head]
     assert not missing, missing
     for key in ("semantics: commanded = desired + delta", "TCP (SMR) in flange:", "conditions:"):

@@ -22,6 +22,11 @@ def table():
     return build_table(Corrector(m, nominal_for(m)), LO, HI, [DOWN, TILT], spacing_m=0.07)
 
 
+def _tcp(table) -> list[float]:
+    """The TCP the table assumes, as `get_tcp_offset()` returns it after `set_tcp(wc_tcp)`."""
+    return [*table.meta["tcp_m"], 0.0, 0.0, 0.0]
+
+
 def _on_table(table, k: int) -> np.ndarray:
     """Joints on the arm configuration orientation k's corrections were solved on."""
     return table.q_nodes[k][0, 0, 0]
@@ -33,7 +38,7 @@ def test_urscript_matches_python_table(table):
     P = rng.uniform(LO, HI, (150, 3))
     for i, x in enumerate(P):
         rv = DOWN if i % 2 else TILT
-        ns = run_urscript(text, actual_joints=_on_table(table, 0 if i % 2 else 1))
+        ns = run_urscript(text, actual_joints=_on_table(table, 0 if i % 2 else 1), tcp=_tcp(table))
         got = np.array(ns["wc_correct"](ns["_pose"]([*x, *rv])))
         want = table.correct(x[None], rv)[0]
         assert np.abs(got[:3] - want).max() < 1e-12
@@ -43,7 +48,7 @@ def test_urscript_matches_python_table(table):
 
 
 def test_urscript_halts_outside_volume_and_orientation(table):
-    ns = run_urscript(generate_urscript(table), actual_joints=_on_table(table, 0))
+    ns = run_urscript(generate_urscript(table), actual_joints=_on_table(table, 0), tcp=_tcp(table))
     with pytest.raises(URScriptHalt, match="outside the correction volume"):
         ns["wc_correct"](ns["_pose"]([*(HI + 0.01), *DOWN]))
     with pytest.raises(URScriptHalt, match="orientation"):
@@ -55,6 +60,52 @@ def test_interpreter_refuses_unknown_constructs():
         translate_urscript("def f(x):\n  movel(x)\nend\n")
     with pytest.raises(ValueError, match="unknown name"):
         translate_urscript("def f(x):\n  return tan(x)\nend\n")
+
+
+def test_the_script_halts_on_another_tcp(table):
+    """The table holds for the TCP (SMR) it was computed for: a TCP 1 mm or 10 mrad off moves
+    every corrected target by about that much. The header said "set the TCP above first" and
+    nothing checked it (URScript export audit, 2026-11-29)."""
+    text = generate_urscript(table)
+    assert "set_tcp(wc_tcp)" in text.split("global wc_lo")[0]  # the usage line says how
+    x, q0 = (LO + HI) / 2, _on_table(table, 0)
+    want = table.correct(x[None], DOWN)[0]
+    tcp = np.array(_tcp(table))
+    for off in ([1e-3, 0, 0, 0, 0, 0], [0, 0, 0, 0, 0, 0.01], -tcp):  # the last: no TCP set
+        ns = run_urscript(text, actual_joints=q0, tcp=tcp + off)
+        with pytest.raises(URScriptHalt, match="active TCP is not the correction table's"):
+            ns["wc_correct"](ns["_pose"]([*x, *DOWN]))
+    ns = run_urscript(text, actual_joints=q0, tcp=tcp + [5e-6, 0, 0, 0, 0, 5e-5])  # within
+    assert np.abs(np.array(ns["wc_correct"](ns["_pose"]([*x, *DOWN])))[:3] - want).max() < 1e-12
+
+
+def test_every_temporary_is_declared_local():
+    """URScript's scoping rules: a name assigned in a function without `local` is the program's
+    global of that name if one exists, so `i`, `a`, `k`, `x`, `t` of the correction overwrote a
+    program's variables (a loop counter `i` driving `movel(wc_correct(targets[i]))`). The
+    interpreter now refuses such a script, and the generated one passes it (the tests above
+    translate it)."""
+    with pytest.raises(ValueError, match="'i' assigned in f without `local`"):
+        translate_urscript("def f(x):\n  i = floor(x)\n  return i\nend\n")
+    with pytest.raises(ValueError, match="without `global`"):
+        translate_urscript("n = 3\n")
+    with pytest.raises(ValueError, match="'c' assigned in f without `local`"):
+        translate_urscript("def f(x):\n  c[0] = x\n  return c\nend\n")
+    src = translate_urscript("def f(x):\n  local i = floor(x)\n  i = i + 1\n  return i\nend\n")
+    assert "i = floor(x)" in src
+
+
+def test_a_script_larger_than_any_known_to_run_is_written_with_a_warning(table, tmp_path):
+    """No URScript size limit is documented; the largest script known to run on every UR
+    generation is UR's external_control (52 KB): beyond it, export says so."""
+    from workcell.export.urscript import KNOWN_RUNNING_BYTES, size_warning, write_urscript
+
+    small = write_urscript(table, tmp_path / "s.script")
+    assert small.stat().st_size < KNOWN_RUNNING_BYTES and size_warning(small) is None
+    big = tmp_path / "big.script"
+    big.write_text(small.read_text() + "# " + "x" * KNOWN_RUNNING_BYTES + "\n")
+    w = size_warning(big)
+    assert w is not None and w.startswith("warning: big.script is ") and "URSim" in w
 
 
 def test_urscript_and_table_halt_on_another_arm_configuration(table):
@@ -78,7 +129,7 @@ def test_urscript_and_table_halt_on_another_arm_configuration(table):
     for name, q in flips.items():
         got = configuration(q, dh_m)[0]
         assert not np.array_equal(got, table.configurations[0]), name
-        ns = run_urscript(text, actual_joints=q)
+        ns = run_urscript(text, actual_joints=q, tcp=_tcp(table))
         with pytest.raises(URScriptHalt, match="configuration"):
             ns["wc_correct"](ns["_pose"]([*x, *DOWN]))
         with pytest.raises(UserError, match=name):

@@ -225,12 +225,15 @@ def run(args: argparse.Namespace) -> int:
     if args.format == "table":
         summary["files"] = [str(p) for p in table.save(out)]
     else:
-        from workcell.export.urscript import write_urscript
+        from workcell.export.urscript import size_warning, write_urscript
 
         script = out if out.suffix else out.with_suffix(".script")
         files = [str(write_urscript(table, script))]
         files += [str(p) for p in table.save(script)]  # X.script -> X.json, X.csv
         summary["files"] = files
+        if (w := size_warning(script)) is not None:
+            summary["warnings"].append(w)
+            summary["script_size_warning"] = w
     return _report(args, summary)
 
 
@@ -262,6 +265,8 @@ def _report(args, summary: dict) -> int:
     else:
         for f in summary["files"]:
             print(f"wrote {f}")
+        if summary.get("script_size_warning"):
+            print(summary["script_size_warning"])
         if "max_interp_error_m" in summary:
             print(
                 f"grid {summary['grid']['shape']}, max interpolation error "

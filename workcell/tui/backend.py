@@ -1008,13 +1008,14 @@ def export(cfg: ExportConfig, log: Callable[[str], None] | None = None) -> dict:
     if cfg.format == "table":
         summary["files"] = [str(p) for p in table.save(out)]
     else:
-        from workcell.export.urscript import write_urscript
+        from workcell.export.urscript import size_warning, write_urscript
 
         script = out if out.suffix else out.with_suffix(".script")
         summary["files"] = [str(write_urscript(table, script))] + [
             str(p)
             for p in table.save(script)  # X.script -> X.json, X.csv
         ]
+        summary["script_size_warning"] = size_warning(script)
     summary["seconds"] = time.perf_counter() - t0
     return summary
 

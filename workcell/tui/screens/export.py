@@ -196,6 +196,8 @@ class ExportScreen(WorkcellScreen):
         rows = [("Format", s.get("format", "?"))]
         rows += [("File", Path(f).name) for f in s.get("files", [])]
         rows.append(("Folder", folder_text(s)))
+        if s.get("script_size_warning"):
+            rows.append(("Size", f"[yellow]{escape(s['script_size_warning'])}[/yellow]"))
         if "grid" in s:
             sp = max(s["grid"]["spacing_m"]) * 1e3
             rows.append(
