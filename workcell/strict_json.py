@@ -1,5 +1,5 @@
-"""JSON files written by hand (envelopes, bounds): a key given twice is refused, not silently
-replaced by its last value as `json.loads` does."""
+"""JSON files written or edited by hand (envelopes, bounds, models, tables): a key given twice is
+refused, not silently replaced by its last value as `json.loads` does."""
 
 from __future__ import annotations
 
@@ -39,9 +39,10 @@ def loads(text: str) -> Any:
 
 def loads_numbers(text: str) -> Any:
     """`json.loads` with integers beyond 64 bits read as floats (`_int`), for files workcell
-    writes and a user may edit (models, tables): duplicate keys are not refused here. Nesting
-    deeper than the parser recurses is a `json.JSONDecodeError`, as in `loads`."""
-    return _loads(text)
+    writes and a user may edit (models, tables): a key given twice is a `DuplicateKey`, as in
+    `loads` (a model with "theta" twice was read with the later one, 4 mm off, until
+    2026-11-29). Nesting deeper than the parser recurses is a `json.JSONDecodeError`."""
+    return _loads(text, object_pairs_hook=_no_duplicates)
 
 
 def _loads(text: str, **kw) -> Any:

@@ -192,6 +192,11 @@ def load_model(path: str | os.PathLike) -> FittedModel:
         raise UserError(f"{p}: not a regular file; give a model file (.json)")
     try:
         d = strict_json.loads_numbers(p.read_text(encoding="utf-8-sig"))
+    except strict_json.DuplicateKey as e:
+        raise UserError(
+            f"{p}: the key {e.args[0]!r} is given twice in one object (edited by hand?); a "
+            "model file has each key once: fit it again with `workcell fit`"
+        ) from None
     except (ValueError, UnicodeDecodeError) as e:
         why = getattr(e, "msg", "")
         why = why if why.startswith("nested too deeply") else "not JSON"

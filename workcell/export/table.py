@@ -639,28 +639,82 @@ def load_table(path: str | os.PathLike) -> CorrectionTable:
         tab = CorrectionTable.from_dict(d)
     except UserError as e:
         raise UserError(f"{p}: {e}") from None
+    except strict_json.DuplicateKey as e:
+        raise UserError(
+            f"{p}: the key {e.args[0]!r} is given twice in one object (edited by hand?); "
+            "export the table again"
+        ) from None
     except (ValueError, KeyError, TypeError, AttributeError, IndexError, OverflowError) as e:
         raise UserError(f"{p}: unreadable correction table ({type(e).__name__}: {e})") from None
-    _check_csv_beside(p, d.get("csv_sha256"))
+    _check_csv_beside(p, d.get("csv_sha256"), tab)
     return tab
 
 
-def _check_csv_beside(pj: Path, want: object) -> None:
-    """The CSV beside a table's JSON is the one written with it (`CorrectionTable.save` records
-    its sha256): a controller reads the CSV, workcell the JSON, and the two must be one table.
-    A JSON without the record (written before 2026-11-29) or without a CSV beside passes."""
+# a CSV number may differ from the JSON's by this much (m, rad) and still be the same table: a
+# spreadsheet that re-wrote the CSV with fewer digits; an edit is far larger
+CSV_MATCH_ATOL = 1e-9
+
+
+def _check_csv_beside(pj: Path, want: object, tab: CorrectionTable | None = None) -> None:
+    """The CSV beside a table's JSON is the one written with it: a controller reads the CSV,
+    workcell the JSON, and the two must be one table. `CorrectionTable.save` records the CSV's
+    sha256 (a JSON written before 2026-11-29 has none), and the CSV's rows are compared with the
+    JSON's nodes (`tab`) to `CSV_MATCH_ATOL`, whichever file was edited. A JSON without a CSV
+    beside passes."""
     pc = table_files(pj)[1]
-    if not isinstance(want, str) or not pc.is_file():
+    if not pc.is_file():
         return
-    h = hashlib.sha256()
-    with open(pc, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    if h.hexdigest() != want.lower():
+    if isinstance(want, str):
+        h = hashlib.sha256()
+        with open(pc, "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+        if h.hexdigest() != want.lower():
+            raise UserError(
+                f"{pc} is not the CSV written with {pj.name} (its sha256 differs: an export "
+                "interrupted between the two files, or a CSV edited since); export the table again"
+            )
+    if tab is not None and (why := _csv_rows_differ(tab, pc)) is not None:
         raise UserError(
-            f"{pc} is not the CSV written with {pj.name} (its sha256 differs: an export "
-            "interrupted between the two files, or a CSV edited since); export the table again"
+            f"{pc} and {pj.name} are not one table ({why}: one of them edited since the export); "
+            "export the table again"
         )
+
+
+def _csv_numbers(text: str) -> tuple[list[str], np.ndarray]:
+    rows = [r for r in csv.reader(io.StringIO(text)) if r and not r[0].lstrip().startswith("#")]
+    if not rows:
+        return [], np.zeros((0, 0))
+    try:
+        return rows[0], np.array([[float(x) for x in r] for r in rows[1:]], float)
+    except ValueError as e:  # a cell that is not a number, or rows of unequal length
+        raise UserError(f"unreadable correction table CSV ({e})") from None
+
+
+def _csv_rows_differ(tab: CorrectionTable, pc: Path) -> str | None:
+    """Why the CSV's rows are not the table's nodes (its columns, row count or a number beyond
+    `CSV_MATCH_ATOL`), or None when they are."""
+    try:
+        text = pc.read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError) as e:
+        return f"the CSV cannot be read: {e}"
+    try:
+        head, got = _csv_numbers(text)
+    except UserError as e:
+        return str(e)
+    want_head, want = _csv_numbers(tab.csv_text())
+    if [h.strip() for h in head] != want_head:
+        return f"the CSV's columns are {head}, the JSON's {want_head}"
+    if got.shape != want.shape:
+        return f"the CSV has {len(got)} node rows, the JSON {len(want)}"
+    bad = ~(np.abs(got - want) <= CSV_MATCH_ATOL)
+    if bad.any():
+        r, c = np.argwhere(bad)[0]
+        return (
+            f"{int(bad.any(axis=1).sum())} row(s) differ, the first node row {r + 1}'s "
+            f"{want_head[c]}: {got[r, c]!r} in the CSV, {want[r, c]!r} in the JSON"
+        )
+    return None
 
 
 # ---------------------------------------------------------------------- building

@@ -1,0 +1,99 @@
+"""Mends of a report-only fuzz audit of every input file (2026-11-29, later session): hand
+edits that were read as good input and gave plausible numbers (exit 0)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from test_export_table import DOWN, HI, LO, make_model
+
+from workcell.errors import UserError
+from workcell.estimation.models import load_model, save_model
+from workcell.export.correction import Corrector, nominal_for
+from workcell.export.table import build_table, load_table
+
+
+@pytest.fixture(scope="module")
+def table_pair(tmp_path_factory):
+    m = make_model(5)
+    tab = build_table(Corrector(m, nominal_for(m)), LO, HI, [DOWN], spacing_m=0.1, n_check=20)
+    d = tmp_path_factory.mktemp("pair")
+    pj, pc = tab.save(d / "t")
+    return pj, pc
+
+
+def _copy(pair, tmp_path):
+    pj, pc = pair
+    (tmp_path / "t.json").write_bytes(pj.read_bytes())
+    (tmp_path / "t.csv").write_bytes(pc.read_bytes())
+    return tmp_path / "t.json", tmp_path / "t.csv"
+
+
+def _edit_csv_cell(pc, column: str, row: int, value: str) -> None:
+    lines = pc.read_text().splitlines(keepends=True)
+    head = next(i for i, x in enumerate(lines) if not x.startswith("#"))
+    cols = lines[head].strip().split(",")
+    cells = lines[head + 1 + row].rstrip("\n").split(",")
+    cells[cols.index(column)] = value
+    lines[head + 1 + row] = ",".join(cells) + "\n"
+    pc.write_text("".join(lines))
+
+
+def test_a_csv_edited_beside_a_json_without_its_sha_is_refused(table_pair, tmp_path):
+    """The JSON's `csv_sha256` removed and one node's rz in the CSV changed by 2 mrad:
+    `validate --table` passed with the untouched table's figures. Now the rows are compared."""
+    pj, pc = _copy(table_pair, tmp_path)
+    d = json.loads(pj.read_text())
+    del d["csv_sha256"]
+    pj.write_text(json.dumps(d))
+    load_table(pj)  # untouched: one table
+    _edit_csv_cell(pc, "rz", 3, "0.002")
+    with pytest.raises(UserError, match=r"t.csv and t.json are not one table .*node row 4's rz"):
+        load_table(pj)
+
+
+def test_a_json_edited_beside_its_csv_is_refused(table_pair, tmp_path):
+    """JSON `delta_m` halved (the audit: x3) beside the CSV it was written with (its sha256 still matches): a
+    verdict on corrections the controller never reads."""
+    pj, pc = _copy(table_pair, tmp_path)
+    d = json.loads(pj.read_text())
+    d["delta_m"] = (np.asarray(d["delta_m"]) * 0.5).tolist()
+    pj.write_text(json.dumps(d))
+    with pytest.raises(UserError, match=r"not one table .*dx_m"):
+        load_table(pj)
+
+
+def test_a_spreadsheets_shorter_numbers_are_still_the_table(table_pair, tmp_path):
+    """A CSV re-written with 12 significant digits (a spreadsheet) is the same table."""
+    pj, pc = _copy(table_pair, tmp_path)
+    d = json.loads(pj.read_text())
+    del d["csv_sha256"]
+    pj.write_text(json.dumps(d))
+    out = []
+    for line in pc.read_text().splitlines():
+        if line.startswith("#") or line.startswith("orientation"):
+            out.append(line)
+        else:
+            out.append(",".join(f"{float(x):.12g}" for x in line.split(",")))
+    pc.write_text("\n".join(out) + "\n")
+    assert load_table(pj).shape
+
+
+def test_a_key_given_twice_in_a_model_or_table_is_refused(table_pair, tmp_path):
+    """A model with "theta" given twice was read with the later one (4 mm on a2), and exported
+    without a word; the envelope and bounds files already refused a key given twice."""
+    m = make_model(6)
+    p = save_model(m, tmp_path / "m.json")
+    text = p.read_text().rstrip()
+    assert text.endswith("}")
+    theta = json.loads(text)["theta"]
+    p.write_text(text[:-1] + f', "theta": {json.dumps(theta)}}}')
+    with pytest.raises(UserError, match=r"the key 'theta' is given twice"):
+        load_model(p)
+    pj, _ = _copy(table_pair, tmp_path)
+    text = pj.read_text().rstrip()
+    pj.write_text(text[:-1] + ', "format": "x"}')
+    with pytest.raises(UserError, match=r"the key 'format' is given twice"):
+        load_table(pj)
