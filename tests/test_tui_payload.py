@@ -64,7 +64,7 @@ def test_the_form_says_a_payload_typed_without_reconnecting():
 def test_without_a_declared_payload_the_controllers_setting_is_used(tmp_path):
     """The protocol simulators (a controller reached over RTDE): nothing typed in Payload, so
     the controller's payload setting is read at connect, shown, and recorded."""
-    cfg = DeviceConfig(effects="none", start_sim=True, sim_host="127.0.0.94", time_scale=10.0)
+    cfg = DeviceConfig(effects="none", start_sim=True, sim_host="127.0.0.88", time_scale=10.0)
     dev = backend.open_devices(cfg)
     try:
         assert dev.kind == "protocol simulators"

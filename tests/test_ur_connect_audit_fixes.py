@@ -108,6 +108,10 @@ def _client(host: str, **kw) -> subprocess.Popen:
     starve); prints the error's class and message."""
     code = textwrap.dedent(
         f"""
+        import signal
+        # Ctrl-C as in a terminal, whatever started the tests (a background job inherits
+        # SIGINT ignored, and Python then installs no handler for it)
+        signal.signal(signal.SIGINT, signal.default_int_handler)
         from workcell.drivers.ur_robot import UrRobot
         r = UrRobot({host!r}, **{kw!r})
         print("ready", flush=True)
@@ -155,7 +159,8 @@ def test_a_time_scale_faster_than_the_controller_is_refused_before_anything_move
         # the settle figure is from the measured clock rate (51 ms at 19.6x on a loaded machine)
         settle = re.search(r"a 1 s settle to ([0-9.]+) ms", msg)
         assert settle and 45.0 <= float(settle.group(1)) <= 56.0, msg
-        assert "give --time-scale 20 " in msg, msg
+        hint = re.search(r"give --time-scale ([0-9.]+) ", msg)  # from the measured rate
+        assert hint and 16.0 <= float(hint.group(1)) <= 24.0, msg
         assert r._rc is None  # no control program: nothing could move
         q0 = r._rr.getActualQ()
         r.close()

@@ -399,14 +399,16 @@ def test_tracker_delays_run_on_the_simulated_clock():
     with SimProcess(
         "127.0.0.32", time_scale=20.0, effects="none", with_tracker=True, tracker_faults=faults
     ) as sp:
-        t = SerialTracker(sp.info["tracker_port"], timeout_s=1.0, retries=0)
+        # limits far from the 0.25 s it takes (the bug made each reply take 20 s): a loaded
+        # machine's pty round trips took 2.6 s for the five, and one over 1 s
+        t = SerialTracker(sp.info["tracker_port"], timeout_s=5.0, retries=0)
         try:
             t0 = time.monotonic()
             t.connect()  # 3 requests
             r = t.measure()  # 2 more
             elapsed = time.monotonic() - t0
             assert r.status == "ok" and t.pop_faults() == []
-            assert 5 * 0.05 <= elapsed < 2.0, elapsed
+            assert 5 * 0.05 <= elapsed < 5 * 1.0, elapsed  # under the unscaled delays' 5 s
         finally:
             t.close()
 
@@ -546,14 +548,19 @@ def test_the_control_worker_sets_the_rtde_watchdog_so_a_dead_client_stops_the_ar
         r = robot_factory("127.0.0.99")
         r.connect()
         r.move_joints(QA, 1.0, 2.0)
-        # the driver's worker starts a slow asynchronous move (~3 s of robot time), then dies
-        r._rc.call("moveJ", QB.tolist(), 0.2, 0.5, True)
+        # the driver's worker starts a slow asynchronous move (~35 s of robot time, 3.5 s of
+        # wall time: longer than a loaded machine takes to tear the worker down), then dies
+        r._rc.call("moveJ", QB.tolist(), 0.02, 0.1, True)
         time.sleep(0.05)
         r._rc.kill()
-        time.sleep(1.0)  # 10 s of robot time: the move would have ended long ago
+        deadline = time.monotonic() + 3.0
+        while sp.state()["stats"]["watchdog_stops"] < 1 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert sp.state()["stats"]["watchdog_stops"] >= 1, "the arm was not stopped"
         q = np.array(sp.state()["q_rad"])
+        time.sleep(0.3)  # 3 s of robot time
+        assert np.max(np.abs(np.array(sp.state()["q_rad"]) - q)) < 1e-9, "the arm still moves"
         assert np.max(np.abs(q - QB)) > 0.01, "the arm ran on to its target"
-        assert sp.state()["stats"]["watchdog_stops"] >= 1
         r.close()
 
     with SimProcess("127.0.0.99", seed=5, time_scale=TS) as sp:
