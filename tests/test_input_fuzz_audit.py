@@ -97,3 +97,57 @@ def test_a_key_given_twice_in_a_model_or_table_is_refused(table_pair, tmp_path):
     pj.write_text(text[:-1] + ', "format": "x"}')
     with pytest.raises(UserError, match=r"the key 'format' is given twice"):
         load_table(pj)
+
+
+@pytest.fixture(scope="module")
+def fitted(tmp_path_factory):
+    """A dh and a gp model of 40 simulated poses, as `workcell fit` saves them."""
+    from simdata import dh_error_dataset
+
+    from workcell.estimation.fitting import fit_dataset, keep_in_model
+
+    _, ds = dh_error_dataset(40, seed=3)
+    d = tmp_path_factory.mktemp("fitted")
+    out = {}
+    for method in ("dh", "gp"):
+        model, report = fit_dataset(ds, method=method, holdout=0.25)
+        keep_in_model(model, ds, report)
+        out[method] = json.loads(save_model(model, d / f"{method}.json").read_text())
+    return out
+
+
+def _write(tmp_path, name, d):
+    p = tmp_path / name
+    p.write_text(json.dumps(d))
+    return p
+
+
+def test_a_held_out_rms_outside_its_own_interval_is_refused(fitted, tmp_path):
+    """info.heldout_rms_m set to 0.157 m beside its interval of ~0.1 mm: exported as "157000 um
+    above the noise floor", and `envelope --model` advised an 18.8 m margin."""
+    d = json.loads(json.dumps(fitted["dh"]))
+    lo, hi = d["info"]["heldout_rms_ci95_m"]
+    assert lo <= d["info"]["heldout_rms_m"] <= hi
+    load_model(_write(tmp_path, "ok.json", d))
+    d["info"]["heldout_rms_m"] = 0.157
+    with pytest.raises(UserError, match=r"heldout_rms_m 0.157 m lies outside its own 95 %"):
+        load_model(_write(tmp_path, "edited.json", d))
+
+
+def test_gp_training_joints_in_degrees_or_mismatched_arrays_are_refused(fitted, tmp_path):
+    """X x 57.3 (degrees) was read, and the GP's part of the correction vanished from the
+    exported table (0.893 mm, the dh table's, for the GP's 0.914); one alpha row dropped gave a
+    matmul error's text."""
+    load_model(_write(tmp_path, "ok.json", fitted["gp"]))
+    deg = json.loads(json.dumps(fitted["gp"]))
+    deg["X"] = (np.degrees(np.asarray(deg["X"]))).tolist()
+    with pytest.raises(UserError, match=r"joint angles in degrees\? the file wants radians"):
+        load_model(_write(tmp_path, "deg.json", deg))
+    short = json.loads(json.dumps(fitted["gp"]))
+    short["alpha"] = short["alpha"][:-1]
+    with pytest.raises(UserError, match=r"alpha has shape .* they do not belong together"):
+        load_model(_write(tmp_path, "short.json", short))
+    neg = json.loads(json.dumps(fitted["gp"]))
+    neg["lengthscales"][0] = -abs(neg["lengthscales"][0])
+    with pytest.raises(UserError, match=r"lengthscales must be finite and > 0"):
+        load_model(_write(tmp_path, "neg.json", neg))

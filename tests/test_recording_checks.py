@@ -132,6 +132,11 @@ UNIT_CASES = {
         lambda se, sa: ({**se, "payload": {**(se.get("payload") or {}), "mass_kg": 2500.0}}, sa),
         "looks like grams",
     ),
+    # fuzz audit, 2026-11-29: read, fitted (with the UR10's masses) and exported until then
+    "robot model naming another arm": (
+        lambda se, sa: ({**se, "robot": {**se["robot"], "model": "ur10"}}, sa),
+        "robot.dh is not its chain: a2 is -0.425 m, a ur10's -0.612 m (it is a ur5e's)",
+    ),
     "quaternion not unit": (
         lambda se, sa: (
             {

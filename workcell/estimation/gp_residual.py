@@ -152,6 +152,7 @@ class GPResidualModel:
             v = float(d[k])
             if not (np.isfinite(v) and v > 0.0):
                 raise ValueError(f"{k} must be a variance > 0, got {v:g}")
+        _check_arrays(d)
         return cls(
             base=model_from_dict(d["base"]),
             X=np.asarray(d["X"], float),
@@ -166,6 +167,38 @@ class GPResidualModel:
             else np.array([np.nan if x is None else x for x in d["log_hyper_std"]], float),
             info=d.get("info", {}),
         )
+
+
+def _check_arrays(d: dict) -> None:
+    """The shapes and ranges a GP model file's arrays must have: a hand edit gave a matmul
+    error's text, and training joints X in degrees were read, the GP's residual vanishing from
+    the exported table without a word (fuzz audit, 2026-11-29)."""
+    X = np.asarray(d["X"], float)
+    if X.ndim != 2 or not len(X) or not np.all(np.isfinite(X)):
+        raise ValueError(f"X must be finite joint angles (poses x joints), got shape {X.shape}")
+    if np.abs(X).max() > 4 * np.pi:
+        raise ValueError(
+            f"X reaches {np.abs(X).max():.4g}, beyond +-4 pi: joint angles in degrees? the file "
+            "wants radians"
+        )
+    jr = (d.get("info") or {}).get("joint_range_rad")
+    if jr is not None and np.shape(jr) == (X.shape[1], 2):
+        lo, hi = np.asarray(jr, float).T
+        if np.any(X < lo - 1e-9) or np.any(X > hi + 1e-9):
+            raise ValueError("X lies outside the model's own fitted joint range (joint_range_rad)")
+    shapes = {
+        "alpha": (len(X), None),
+        "scale": (X.shape[1],),
+        "lengthscales": (X.shape[1],),
+    }
+    for k, want in shapes.items():
+        a = np.asarray(d[k], float)
+        if a.ndim != len(want) or any(
+            w is not None and n != w for n, w in zip(a.shape, want, strict=True)
+        ):
+            raise ValueError(f"{k} has shape {a.shape}, X {X.shape}: they do not belong together")
+        if not np.all(np.isfinite(a)) or (k != "alpha" and not np.all(a > 0)):
+            raise ValueError(f"{k} must be finite" + ("" if k == "alpha" else " and > 0"))
 
 
 def fit_gp_residual(

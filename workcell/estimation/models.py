@@ -398,6 +398,16 @@ def info_problem(info: dict) -> str | None:
             ok = ci[0] <= ci[1]
         if not ok:
             return f"heldout_rms_ci95_m must be [low, high] in metres, got {str(ci)[:60]}"
+        rms = info.get("heldout_rms_m")
+        if (
+            rms is not None
+            and all(_metres(v) for v in ci)
+            and not (ci[0] * (1 - 1e-9) <= rms <= ci[1] * (1 + 1e-9))
+        ):  # the interval fit writes always holds its RMS (its chi-square part does)
+            return (
+                f"heldout_rms_m {rms:.6g} m lies outside its own 95 % interval "
+                f"[{ci[0]:.6g}, {ci[1]:.6g}] m"
+            )
     u = info.get("unexplained")
     if u is not None:
         if not isinstance(u, dict):
@@ -769,37 +779,19 @@ def error_stats(p_pred: np.ndarray, p_meas: np.ndarray, *, interval: bool = Fals
     return out
 
 
-ROBOT_CHAIN_TOL_M = 0.02  # a controller's own calibration moves a nominal length by mm
-
-
 def _check_robot_chain(m, nd, source: str, method: str, where: str) -> None:
     """A model's `robot` must be the arm its nominal chain is of (a catalogue arm's link lengths
-    within ROBOT_CHAIN_TOL_M): `export` scales its default volume and `validate` picks the arm
+    within `CHAIN_TOL_M`): `export` scales its default volume and `validate` picks the arm
     by that name, while the IK uses the chain; one edited without the other is refused."""
-    from workcell.kinematics.robots import CATALOGUE
+    from workcell.kinematics.robots import catalogue_mismatch
 
     name = getattr(m, "robot_model", None)
-    spec = CATALOGUE.get(name.strip().lower()) if isinstance(name, str) else None
-    if spec is None:
-        return
-    lengths = np.r_[np.asarray(nd.a, float), np.asarray(nd.d, float)]
-    want = np.r_[spec.dh.a, spec.dh.d]
-    if lengths.shape != want.shape:
-        return
-    j = int(np.argmax(np.abs(lengths - want)))
-    if abs(lengths[j] - want[j]) <= ROBOT_CHAIN_TOL_M:
-        return
-    other = [
-        k
-        for k, sp in CATALOGUE.items()
-        if np.allclose(lengths, np.r_[sp.dh.a, sp.dh.d], rtol=0, atol=ROBOT_CHAIN_TOL_M)
-    ]
-    is_ = f" (it is a {other[0]}'s)" if other else ""
-    raise UserError(
-        f"{source}: the {method} model says robot {name!r} but its {where}nominal chain is not a "
-        f"{name}'s{is_}: {'ad'[j // 6]}{j % 6 + 1} is {lengths[j]:.4g} m, a {name}'s "
-        f"{want[j]:.4g} m; edited by hand? restore the file or fit it again with `workcell fit`"
-    )
+    if (why := catalogue_mismatch(name, nd.a, nd.d)) is not None:
+        raise UserError(
+            f"{source}: the {method} model says robot {name!r} but its {where}nominal chain is "
+            f"not a {name}'s: {why}; edited by hand? restore the file or fit it again with "
+            "`workcell fit`"
+        )
 
 
 def _check_nominal_units(model, source: str, method: str) -> None:

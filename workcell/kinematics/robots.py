@@ -7,6 +7,7 @@ as Universal Robots publish them. All values SI.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -206,6 +207,32 @@ WAM7 = RobotSpec(
     link_coms_m=np.zeros((7, 3)),
     max_payload_kg=3.0,
 )
+
+
+CHAIN_TOL_M = 0.02  # a controller's own calibration moves a nominal length by mm, not cm
+
+
+def catalogue_mismatch(name: object, a_m: Sequence[float], d_m: Sequence[float]) -> str | None:
+    """When `name` is a catalogue arm whose link lengths the chain (a, d) is not, within
+    CHAIN_TOL_M: what differs, e.g. "a2 is 0.425 m, a ur10's 0.612 m (it is a ur5e's)"; None
+    when it is that arm's, or `name` is no catalogue arm."""
+    spec = CATALOGUE.get(name.strip().lower()) if isinstance(name, str) else None
+    if spec is None:
+        return None
+    lengths = np.r_[np.asarray(a_m, float), np.asarray(d_m, float)]
+    want = np.r_[spec.dh.a, spec.dh.d]
+    if lengths.shape != want.shape:
+        return None
+    j = int(np.argmax(np.abs(lengths - want)))
+    if abs(lengths[j] - want[j]) <= CHAIN_TOL_M:
+        return None
+    other = [
+        k
+        for k, sp in CATALOGUE.items()
+        if np.allclose(lengths, np.r_[sp.dh.a, sp.dh.d], rtol=0, atol=CHAIN_TOL_M)
+    ]
+    is_ = f" (it is a {other[0]}'s)" if other else ""
+    return f"{'ad'[j // 6]}{j % 6 + 1} is {lengths[j]:.4g} m, a {name}'s {want[j]:.4g} m{is_}"
 
 
 def robot_by_name(name: str) -> RobotSpec:

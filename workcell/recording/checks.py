@@ -20,7 +20,7 @@ from collections.abc import Callable, Iterable, Sequence
 import numpy as np
 
 from workcell.drivers.protocols import TRACKER_RANGE_M
-from workcell.kinematics.robots import DH, RobotSpec, robot_from_session
+from workcell.kinematics.robots import DH, RobotSpec, catalogue_mismatch, robot_from_session
 
 JOINT_LIMIT_MARGIN_RAD = 0.1  # measured joints may pass a limit by noise and overshoot only
 SMR_OFFSET_MAX_M = 1.0  # an SMR mounted a metre from the flange is not a calibration tool
@@ -73,8 +73,13 @@ def _length_hint(length_m: float, limit_m: float) -> str:
 
 
 def _dh_problems(robot: RobotSpec) -> list[str]:
-    """The declared DH chain in the format's units: link lengths in metres, angles in radians."""
+    """The declared DH chain in the format's units (link lengths in metres, angles in radians),
+    and the arm `robot.model` names: a catalogue arm's model name with another arm's chain
+    (a UR10 with a UR5e's links) was read, fitted and exported with the named arm's masses, to
+    be refused only by `export` as a model "edited by hand" (fuzz audit, 2026-11-29)."""
     out = []
+    if (why := catalogue_mismatch(robot.model, robot.dh.a, robot.dh.d)) is not None:
+        out.append(f"session robot.model is {robot.model!r} but robot.dh is not its chain: {why}")
     for name, lim, unit, other in (
         ("a", DH_LENGTH_MAX_M, "m", "millimetres; the format wants metres"),
         ("d", DH_LENGTH_MAX_M, "m", "millimetres; the format wants metres"),
