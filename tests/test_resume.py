@@ -131,6 +131,14 @@ def test_resume_refuses_a_recording_whose_plan_this_version_would_not_recreate(
     other["campaign"]["seed"] = 4
     with pytest.raises(UserError, match="pose 0 was commanded"):
         check_same_plan(other, cell.spec, env, cell.tool_m, "c.mcap")
+    # every sample is checked, not one per pose id: all six recorded as pose 0 (another tool's
+    # file) passed on the first, and five more poses were measured (fuzz audit, 2026-11-29)
+    same_id = copy.deepcopy(info)
+    for smp in same_id["samples"]:
+        smp["pose_id"] = 0
+    same_id["history"] = {0: same_id["samples"][0]}
+    with pytest.raises(UserError, match="pose 0 was commanded"):
+        check_same_plan(same_id, cell.spec, env, cell.tool_m, "c.mcap")
 
     real_order = plans.order_for_paths
     monkeypatch.setattr(

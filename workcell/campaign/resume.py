@@ -337,7 +337,7 @@ def check_same_plan(
     info: dict, spec: RobotSpec, env: Envelope, tool_m: np.ndarray, source: str
 ) -> None:
     """A grid or random plan is resumed by pose id, so the re-created plan must put every
-    recorded pose id at the configuration that was commanded for it; else (a recording made by
+    recorded sample's pose id at the configuration that was commanded for it; else (a recording made by
     a version that planned differently, another tool, an edited session) poses would be measured
     twice or missed. Refuses with one line. Adaptive plans check themselves on their history."""
     import numpy as np
@@ -359,7 +359,11 @@ def check_same_plan(
         )
     except ValueError as e:
         raise UserError(f"{source}: cannot re-create its plan ({e})") from None
-    for pid, sample in sorted(info["history"].items()):
+    # every sample, not one per pose id: 60 samples all with pose id 0 (a file another tool
+    # wrote) passed on their first and 59 more poses were measured (fuzz audit, 2026-11-29)
+    samples = info.get("samples") or list(info["history"].values())
+    for sample in samples:
+        pid = int(sample["pose_id"])
         q_rec = np.asarray(sample.get("q_commanded_rad", []), float)
         if not (0 <= pid < len(q) and q_rec.shape == q[pid].shape) or not np.allclose(
             q_rec, q[pid], rtol=0.0, atol=1e-9
