@@ -151,3 +151,19 @@ def test_gp_training_joints_in_degrees_or_mismatched_arrays_are_refused(fitted, 
     neg["lengthscales"][0] = -abs(neg["lengthscales"][0])
     with pytest.raises(UserError, match=r"lengthscales must be finite and > 0"):
         load_model(_write(tmp_path, "neg.json", neg))
+
+
+def test_replay_says_nothing_of_replacing_a_file_it_then_refuses_to_write(tmp_path, capsys):
+    """`replay BAD --save X --force` printed "replacing X: (--force)" and then the recording's
+    refusal: X was not replaced, and the first line was false (fit was mended for this)."""
+    from workcell.cli import main
+
+    bad = tmp_path / "empty.mcap"
+    bad.write_bytes(b"")
+    x = tmp_path / "notes.json"
+    x.write_text('{"mine": 1}')
+    capsys.readouterr()
+    rc = main(["replay", str(bad), "--online", "ekf-ann", "--save", str(x), "--force"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "replac" not in err[0], err
+    assert x.read_text() == '{"mine": 1}'

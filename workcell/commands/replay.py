@@ -225,13 +225,14 @@ def run(args: argparse.Namespace) -> int:
         )
     if args.every is not None and args.every < 1:
         raise UserError(f"--every must be >= 1, got {args.every}")
+    replacing: list[str] = []
     if args.save:
         from workcell.estimation.models import check_model_output
 
         check_output_path(args.save, "model file", inputs=[args.recording])
-        check_model_output(
-            args.save, args.recording, force=args.force, say=lambda m: print(m, file=sys.stderr)
-        )
+        # said once the model is written, as `fit` does: a refusal of the recording found later
+        # followed "replacing X: (--force)" and left X as it was (fuzz audit, 2026-11-29)
+        check_model_output(args.save, args.recording, force=args.force, say=replacing.append)
     rec = read_recording(args.recording, streams=False)
     if not rec.samples and not rec.session.get("chained_from"):
         why = f" ({rec.problems[0]})" if rec.problems else ""
@@ -290,6 +291,8 @@ def run(args: argparse.Namespace) -> int:
             save_model(model, args.save)
         except ValueError as e:
             raise UserError(str(e)) from None
+        for line in replacing:
+            print(line.replace("replacing ", "replaced ", 1), file=sys.stderr)
     if args.json:
         print(strict_json.dumps(est, indent=1))
     else:

@@ -78,8 +78,6 @@ def _dh_problems(robot: RobotSpec) -> list[str]:
     (a UR10 with a UR5e's links) was read, fitted and exported with the named arm's masses, to
     be refused only by `export` as a model "edited by hand" (fuzz audit, 2026-11-29)."""
     out = []
-    if (why := catalogue_mismatch(robot.model, robot.dh.a, robot.dh.d)) is not None:
-        out.append(f"session robot.model is {robot.model!r} but robot.dh is not its chain: {why}")
     for name, lim, unit, other in (
         ("a", DH_LENGTH_MAX_M, "m", "millimetres; the format wants metres"),
         ("d", DH_LENGTH_MAX_M, "m", "millimetres; the format wants metres"),
@@ -93,6 +91,8 @@ def _dh_problems(robot: RobotSpec) -> list[str]:
                 f"session robot.dh.{name}[{j}] is {_fmt(float(v[j]))} {unit} (more than "
                 f"{_fmt(lim)} {unit}): it looks like {other}"
             )
+    if not out and (why := catalogue_mismatch(robot.model, robot.dh.a, robot.dh.d)) is not None:
+        out.append(f"session robot.model is {robot.model!r} but robot.dh is not its chain: {why}")
     return out
 
 
