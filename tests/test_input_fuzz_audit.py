@@ -167,3 +167,30 @@ def test_replay_says_nothing_of_replacing_a_file_it_then_refuses_to_write(tmp_pa
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and "replac" not in err[0], err
     assert x.read_text() == '{"mine": 1}'
+
+
+def test_joints_far_from_their_command_and_repeats_far_apart_are_noted():
+    """Samples measured 1 rad from their commanded joints, and every pose written twice 3 mm
+    apart, were fitted without a word (`info` showed the repeats; nothing said the arm missed
+    its targets). Both are now notes every reading command prints; clean data has none."""
+    from dataclasses import replace
+
+    from simdata import dh_error_dataset
+
+    _, ds = dh_error_dataset(20, seed=2)
+    assert ds.gross_notes() == []
+    qc = ds.q.copy()
+    qc[:, 0] += 1.0
+    (note,) = replace(ds, q_commanded=qc).gross_notes()
+    assert note.startswith("20 of 20 samples were measured with joints more than 1 mrad from")
+    assert "up to 1 rad, joint 1" in note and "did not reach its target" in note
+    twice = ds.subset(np.r_[np.arange(20), np.arange(20)])
+    twice = replace(
+        twice, p_tracker=twice.p_tracker + np.r_[np.zeros((20, 3)), np.full((20, 3), 1.7e-3)]
+    )
+    (note,) = twice.gross_notes()
+    assert note.startswith("20 pose(s) measured again more than 10x the tracker's noise"), note
+    assert "the file holds a pose twice" in note
+    # measured again within the noise: no note
+    again = ds.subset(np.r_[np.arange(20), np.arange(20)])
+    assert again.gross_notes() == []

@@ -253,7 +253,41 @@ class Dataset:
             read_problems=tuple(read_problems),
             read_notes=tuple(notes),
         )
-        return ds.screened()
+        return replace(ds, read_notes=(*ds.read_notes, *ds.gross_notes())).screened()
+
+    def gross_notes(self) -> list[str]:
+        """Notes on samples the fit uses as they are but which say something went wrong:
+        joints measured far from where they were commanded (the arm did not reach its target),
+        and a pose measured again far beyond the tracker's noise from its first reading (the
+        set-up or the arm moved between them, or the file holds a pose twice). Both were read
+        without a word (fuzz audit, 2026-11-29: 1 rad off; every pose twice, 3 mm apart)."""
+        out = []
+        if self.q_commanded is not None and len(self):
+            d = np.abs(np.asarray(self.q_commanded, float) - np.asarray(self.q, float))
+            d = np.where(np.isfinite(d), d, 0.0)
+            off = d.max(axis=1) > ARRIVAL_NOTE_RAD
+            if off.any():
+                i, j = np.unravel_index(int(np.argmax(d)), d.shape)
+                out.append(
+                    f"{int(off.sum())} of {len(self)} samples were measured with joints more "
+                    f"than {ARRIVAL_NOTE_RAD * 1e3:g} mrad from their commanded ones (up to "
+                    f"{d[i, j]:.3g} rad, joint {j + 1} of pose {int(self.pose_id[i])}): the arm "
+                    "did not reach its target; the fit uses the measured joints"
+                )
+        if self.pose_id is not None and len(np.unique(self.pose_id)) < len(self):
+            from workcell.recording.repeats import repeat_drift
+
+            far = [r for r in repeat_drift(self) if r["max_m"] > REPEAT_NOTE_FACTOR * r["noise_m"]]
+            if far:
+                r = max(far, key=lambda x: x["max_m"] / x["noise_m"])
+                out.append(
+                    f"{len(far)} pose(s) measured again more than {REPEAT_NOTE_FACTOR:g}x the "
+                    f"tracker's noise from their first reading (pose {r['pose_id']}: "
+                    f"{r['max_m'] * 1e6:.0f} um, noise {r['noise_m'] * 1e6:.0f} um): the set-up "
+                    "or the arm moved between them, or the file holds a pose twice; `workcell "
+                    "info` lists the repeats"
+                )
+        return out
 
     def provenance(self) -> dict:
         """What a model file records of the data it was fitted on: the recording (path and
@@ -321,6 +355,11 @@ def read_warnings(ds: Dataset | Recording) -> list[str]:
 
 
 READ_WARNINGS_SHOWN = 2
+# a sample's measured joints this far from its commanded ones (the campaign's arrival check is
+# 0.2 mrad; ~1 mm at the SMR): a note
+ARRIVAL_NOTE_RAD = 1e-3
+# a pose measured again this many times the tracker's noise from its first reading: a note
+REPEAT_NOTE_FACTOR = 10.0
 
 
 DISTINCT_TOL_RAD = 1e-4  # 50x the encoders' noise (~2 urad): a pose measured again is one pose
