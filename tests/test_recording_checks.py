@@ -9,6 +9,7 @@ from __future__ import annotations
 import copy
 import json
 import math
+import re
 import shutil
 
 import numpy as np
@@ -362,3 +363,37 @@ def test_format_deviations_are_said_once_each(base, tmp_path):
             assert "struct" not in str(e) and "\n" not in str(e)
             continue
         assert not any("struct" in x or "unpack" in x for x in rec.problems), rec.problems
+
+
+@pytest.mark.parametrize(
+    "version, said",
+    [(True, "true"), (1.0, "1.0"), ("1", '"1"'), (None, "null"), ("missing", "missing")],
+)
+def test_format_version_is_the_integer(base, tmp_path, version, said):
+    """`true` and 1.0 equal 1 in Python and were read as version 1 while "1" was refused, and a
+    missing version was reported as "None" (fuzz audit, 2026-11-29)."""
+    session, samples, times, _ = base
+    se = copy.deepcopy(session)
+    if version == "missing":
+        del se["format_version"]
+    else:
+        se["format_version"] = version
+    p = write_raw(tmp_path / "v.mcap", se, samples, times)
+    with pytest.raises(RecordingError, match=f"session format_version is {re.escape(said)}; "):
+        read_recording(p)
+
+
+def test_a_footer_that_does_not_lead_to_the_summary_is_a_problem(base, tmp_path):
+    """A flipped bit in the footer's summary_start: `info` said "closed cleanly" with no
+    problem, while the mcap library's seeking reader (what Foxglove uses) could not open the
+    file (fuzz audit, 2026-11-29)."""
+    *_, p = base
+    assert not any("footer" in x for x in read_recording(p).problems)
+    data = bytearray(p.read_bytes())
+    at = len(data) - 8 - 4 - 8 - 8  # the footer: ..., summary_start u64, offset u64, crc u32
+    data[at + 2] ^= 0x10
+    bad = tmp_path / "flip.mcap"
+    bad.write_bytes(bytes(data))
+    rec = read_recording(bad)
+    assert len(rec.samples) == 16  # still read whole, from the start
+    assert any(x.startswith("the footer does not lead to the summary") for x in rec.problems)

@@ -106,6 +106,12 @@ def read_recording(path: str | os.PathLike, *, streams: bool = True) -> Recordin
                     rec.closed_cleanly = True
                 else:
                     handle(r)
+            if rec.closed_cleanly and (why := _summary_unreachable(f)) is not None:
+                rec.problems.append(
+                    f"the footer does not lead to the summary ({why}): tools that seek through "
+                    "the summary (Foxglove, the mcap library's seeking reader) cannot open the "
+                    "file; workcell reads it from the start, whole"
+                )
             if rec.closed_cleanly and f.tell() < rec.size_bytes:
                 rec.trailing_bytes = rec.size_bytes - f.tell()
                 rec.problems.append(
@@ -276,11 +282,31 @@ def _message(rec: Recording, channels, schemas, m: Message, streams: bool) -> No
         rec.tracker_measurements.append(msg)
 
 
+def _summary_unreachable(f) -> str | None:
+    """Why the mcap library's seeking reader cannot read the summary the footer points at (a
+    damaged footer offset), or None; the file position is kept. (A flipped bit in
+    summary_start: `info` said "closed cleanly" and Foxglove could not open the file.)"""
+    from mcap.reader import SeekingReader
+
+    here = f.tell()
+    try:
+        f.seek(0)  # the seeking reader reads the magic where the file stands
+        SeekingReader(f).get_summary()
+    except Exception as e:  # noqa: BLE001 - any failure of the seeking path is the finding
+        return f"{type(e).__name__}: {e}"[:120]
+    finally:
+        f.seek(here)
+    return None
+
+
 def _check_session(p: Path, s: dict) -> None:
     v = s.get("format_version")
-    if v != S.FORMAT_VERSION:
+    # the integer itself: `true` and 1.0 equal 1 in Python and passed, where "1" was refused
+    if type(v) is not int or v != S.FORMAT_VERSION:
+        got = "missing" if "format_version" not in s else f"{json.dumps(v)}"
         raise RecordingError(
-            f"{p}: session format_version is {v!r}; this workcell reads version {S.FORMAT_VERSION}"
+            f"{p}: session format_version is {got}; this workcell reads version "
+            f"{S.FORMAT_VERSION} (the integer)"
         )
     for key in ("robot", "tool", "tracker"):
         if not isinstance(s.get(key), dict):
