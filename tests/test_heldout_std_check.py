@@ -27,7 +27,7 @@ def test_the_dh_1_sigma_holds_dh_errors_and_says_when_physics_is_left_out(tmp_pa
     assert 0.4 < ok["z2_mean_over_3"] < 1.5 and ok["inside_95"] >= 0.85
     assert ok["poses"] == 30 and 0 < ok["median_m"] <= ok["max_m"]
     assert ok["p_mean"] >= 0.05 and ok["p_inside"] >= 0.05
-    assert "consistent with the 1-sigma and the tracker's noise" in heldout_std_text(ok)
+    assert "no evidence against the 1-sigma and the tracker's noise" in heldout_std_text(ok)
     left_out = _report(tmp_path, "joint_compliance", 3)["heldout_model_std"]
     assert left_out["z2_mean_over_3"] > 3  # measured 9.4
     assert left_out["p_mean"] < 1e-6
@@ -71,4 +71,4 @@ def test_a_1_sigma_too_small_fails_on_its_chances_not_a_fixed_mark():
     assert hs["p_mean"] > 0.05  # the gp case: the mean passes, the share inside does not
     assert "more errors outside the 95 % ellipsoid" in heldout_std_text(hs)
     old = {k: v for k, v in hs.items() if not k.startswith("p_")}  # a file of before: as then
-    assert "consistent with" in heldout_std_text(old)
+    assert "no evidence against" in heldout_std_text(old)

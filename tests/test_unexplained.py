@@ -190,3 +190,21 @@ def test_an_outlier_reading_among_the_heldout_poses_is_named_and_set_aside(tmp_p
     assert "heldout_outliers" not in model_b.info
     t2, _ = make_table(model_b, target_error_m=20e-6)
     assert "model_unexplained_without_outliers" not in t2.meta
+
+
+def test_the_export_headers_give_the_combined_uncertainty_the_readme_advises():
+    """The README advised adding what the model leaves unexplained to the 1-sigma in
+    quadrature, "as the reports advise"; no output said so (metrology audit, 2026-11-29)."""
+    from workcell.export.table import unexplained_lines
+
+    meta = {
+        "median_std_m": 4e-6,
+        "model_unexplained": {"rms_m": 3e-6, "upper_m": 1.08e-5, "floor_m": 1e-5},
+    }
+    lines = unexplained_lines(meta)
+    assert lines[1] == (
+        "for a target's uncertainty add the two in quadrature (3-D): median "
+        "sqrt(1-sigma^2 + unexplained^2) = 5e-06 m, 1.15e-05 m with the upper end of the "
+        "unexplained"
+    ), lines
+    assert len(unexplained_lines({**meta, "median_std_m": None})) == 1  # no 1-sigma: no sum

@@ -95,7 +95,8 @@ def heldout_std_text(hs: dict) -> str:
     if high:
         verdict = (
             f"about {math.sqrt(k):.1f}x what the 1-sigma and the tracker's noise say: what the "
-            "model leaves out (above), or a 1-sigma stated too small"
+            "model leaves out (above), or a 1-sigma stated too small; read the parameters' stds "
+            "as too small by as much"
         )
     elif few:
         verdict = (
@@ -105,7 +106,7 @@ def heldout_std_text(hs: dict) -> str:
         )
     else:
         n = hs.get("poses")
-        verdict = "consistent with the 1-sigma and the tracker's noise" + (
+        verdict = "no evidence against the 1-sigma and the tracker's noise" + (
             f" (a test of {n} poses: where the tracker's noise is the larger, a 1-sigma stated "
             "too small passes it; the unexplained part above says what the model leaves out)"
             if n
@@ -229,7 +230,10 @@ def base_text(tb: dict) -> str:
     if "translation_std_m" in tb:
         ts = ", ".join(f"{x * 1e3:.3f}" for x in tb["translation_std_m"])
         rs = ", ".join(f"{x * 1e3:.3f}" for x in tb["rotation_std_rad"])
-        txt += f" (1-sigma [{ts}] mm), quaternion wxyz [{qt}] (1-sigma about x, y, z [{rs}] mrad)"
+        txt += (
+            f" (1-sigma along the tracker's x, y, z [{ts}] mm), quaternion wxyz [{qt}] (1-sigma "
+            f"about the tracker's x, y, z [{rs}] mrad)"
+        )
     else:
         txt += f", quaternion wxyz [{qt}] (no covariance: no 1-sigma)"
     return txt + "; compare this, not the base offsets, with another model's base"
@@ -275,7 +279,8 @@ def print_report(r: dict, refit=None) -> None:
     if r.get("unexplained"):
         print(
             f"unexplained     {unexplained_text(r['unexplained'])}: what the model leaves out "
-            "beyond the tracker's noise, not in the parameters' std"
+            "beyond the tracker's noise, in neither the parameters' std nor the model 1-sigma: "
+            "add it in quadrature to the model 1-sigma for a target's uncertainty"
         )
     if (hs := r.get("heldout_model_std")) is not None:
         print(prose.fill(heldout_std_text(hs), width=100, subsequent_indent=" " * 16))

@@ -500,6 +500,21 @@ def unexplained_lines(meta: dict) -> list[str]:
     else:
         first = f"{lead} unexplained: {unexplained_text(u)} on its held-out poses"
     out = [first]
+    med = meta.get("median_std_m")
+    if has_std and is_finite_number(med) and is_finite_number(u.get("rms_m")):
+        # the advice the README gives, where the numbers are read (metrology audit, 2026-11-29):
+        # the 1-sigma alone was 1.4-2.1x small on simulated cells for the augmented model
+        both = float(np.hypot(med, u["rms_m"]))
+        up = u.get("upper_m")
+        upper = (
+            f", {float(np.hypot(med, up)):.3g} m with the upper end of the unexplained"
+            if is_finite_number(up)
+            else ""
+        )
+        out.append(
+            "for a target's uncertainty add the two in quadrature (3-D): median "
+            f"sqrt(1-sigma^2 + unexplained^2) = {both:.3g} m{upper}"
+        )
     w = meta.get("model_unexplained_without_outliers")
     if isinstance(w, dict):
         ids = ", ".join(str(i) for i in w.get("pose_ids", []))
