@@ -175,3 +175,20 @@ def test_the_real_iso_cube_series_barely_separates_base_y_from_the_smr_offset(ca
     assert "weakly identified" in out
     line = next(ln for ln in out.splitlines() if ln.strip().startswith("{base_ty, tool_z}"))
     assert "x what it would be with the others known, correlation +1.0000" in line
+
+
+def test_correlated_pairs_are_named_strongest_first():
+    """Pairs whose +- are not independent (|r| >= 0.9) are listed for `fit` to print: series B's
+    d4/alpha1 at r = -0.984 sat behind independent-looking +- (metrology audit, 2026-11-29)."""
+    from workcell.estimation.identifiability import correlated_pairs
+
+    names = ["a", "b", "c", "fixed"]
+    s = np.array([1.0, 2.0, 0.5])
+    R = np.array([[1.0, -0.95, 0.1], [-0.95, 1.0, 0.92], [0.1, 0.92, 1.0]])
+    cov = np.zeros((4, 4))
+    cov[:3, :3] = R * np.outer(s, s)
+    got = correlated_pairs(cov, names)
+    assert [g["parameters"] for g in got] == [["a", "b"], ["b", "c"]]
+    assert got[0]["correlation"] == pytest.approx(-0.95)
+    assert correlated_pairs(cov, names, threshold=0.96) == []
+    assert correlated_pairs(np.full((4, 4), np.nan), names) == []

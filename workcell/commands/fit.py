@@ -326,6 +326,20 @@ def print_report(r: dict, refit=None) -> None:
                     "   {" + ", ".join(g["parameters"]) + "}: std "
                     f"{g['std_inflation']:.0f}x what it would be with the others known{corr}"
                 )
+        pairs = i.get("correlated_pairs") or []
+        if pairs:
+            shown_pairs = ", ".join(
+                f"{'/'.join(c['parameters'])} {c['correlation']:+.3f}" for c in pairs[:8]
+            )
+            more = f" and {len(pairs) - 8} more (--json)" if len(pairs) > 8 else ""
+            print(
+                prose.fill(
+                    f"correlated      {len(pairs)} pair(s) with |r| >= 0.9, whose +- are not "
+                    f"independent (the model file holds the covariance): {shown_pairs}{more}",
+                    width=100,
+                    subsequent_indent=" " * 16,
+                )
+            )
     params = r.get("parameters") or {}
     shown = [(k, v) for k, v in params.items() if v.get("estimated", True)]
     if shown:

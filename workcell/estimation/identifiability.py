@@ -158,6 +158,7 @@ class Identifiability:
             weak = {
                 "weakly_identified": weak_directions(cov, self.names),
                 "weakly_identified_basis": WEAK_BASIS,
+                "correlated_pairs": correlated_pairs(cov, self.names),
             }
         sv_basis = (
             f"of the identification Jacobian ({self.jacobian_label}) over the {self.rank} "
@@ -370,6 +371,33 @@ WEAK_BASIS = (
     "the poses barely tell them apart, so their values are not separately meaningful, only "
     "their combination"
 )
+
+
+CORRELATED_ABS_R = 0.9  # a pair this correlated: its two +- are not independent
+
+
+def correlated_pairs(
+    cov: np.ndarray, names: list[str], threshold: float = CORRELATED_ABS_R
+) -> list[dict]:
+    """Pairs of estimated parameters whose correlation in the fit's covariance `cov` reaches
+    |r| >= `threshold`: `{"parameters": [a, b], "correlation": r}`, strongest first; [] when the
+    covariance is not usable. Their +- read as independent overstate what is known of a
+    difference and understate what is known of a sum (metrology audit, 2026-11-29: series B's
+    d4/alpha1 at r = -0.984 behind independent-looking +-)."""
+    cov = np.asarray(cov, float)
+    if cov.shape != (len(names), len(names)) or not np.all(np.isfinite(cov)):
+        return []
+    est = np.flatnonzero(np.diag(cov) > 0.0)
+    s = np.sqrt(np.diag(cov)[est])
+    C = cov[np.ix_(est, est)] / np.outer(s, s)
+    i, j = np.triu_indices(len(est), 1)
+    r = C[i, j]
+    keep = np.flatnonzero(np.abs(r) >= threshold)
+    keep = keep[np.argsort(-np.abs(r[keep]), kind="stable")]
+    return [
+        {"parameters": [names[est[i[k]]], names[est[j[k]]]], "correlation": float(r[k])}
+        for k in keep
+    ]
 
 
 def weak_directions(cov: np.ndarray, names: list[str], inflation: float = 100.0) -> list[dict]:
