@@ -1241,7 +1241,7 @@ class UrControllerSim:
                 return SERIAL_NUMBER, False
             if low == "get robot model":
                 return dashboard_model_name(self.spec.model), False
-            if low == "is in remote control" and v[0] >= 5:  # e-Series 5.6+ only; a CB3
+            if low == "is in remote control" and tuple(v[:2]) >= (5, 6):  # 5.6+ only; a CB3
                 return "true", False  # answers it as an unknown command
             if low == "robotmode":
                 return f"Robotmode: {ROBOT_MODES[self.robot_mode]}", False
@@ -1326,7 +1326,7 @@ class UrControllerSim:
                 return "Added log message", False
             if low.startswith("setuserrole"):
                 return f"Setting user role: {line[12:].strip()}", False
-            if low == "get operational mode" and v[0] >= 5:
+            if low == "get operational mode" and tuple(v[:2]) >= (5, 6):
                 return "NONE", False
             if low == "quit":
                 return "Disconnected", True

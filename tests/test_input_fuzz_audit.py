@@ -50,7 +50,7 @@ def test_a_csv_edited_beside_a_json_without_its_sha_is_refused(table_pair, tmp_p
     pj.write_text(json.dumps(d))
     load_table(pj)  # untouched: one table
     _edit_csv_cell(pc, "rz", 3, "0.002")
-    with pytest.raises(UserError, match=r"t.csv and t.json are not one table .*node row 4's rz"):
+    with pytest.raises(UserError, match=r"t.csv and t.json are not one table: .*node row 4's rz"):
         load_table(pj)
 
 
@@ -61,7 +61,7 @@ def test_a_json_edited_beside_its_csv_is_refused(table_pair, tmp_path):
     d = json.loads(pj.read_text())
     d["delta_m"] = (np.asarray(d["delta_m"]) * 0.5).tolist()
     pj.write_text(json.dumps(d))
-    with pytest.raises(UserError, match=r"not one table .*dx_m"):
+    with pytest.raises(UserError, match=r"not one table: .*dx_m: 0.00101"):
         load_table(pj)
 
 
@@ -189,8 +189,33 @@ def test_joints_far_from_their_command_and_repeats_far_apart_are_noted():
         twice, p_tracker=twice.p_tracker + np.r_[np.zeros((20, 3)), np.full((20, 3), 1.7e-3)]
     )
     (note,) = twice.gross_notes()
-    assert note.startswith("20 pose(s) measured again more than 10x the tracker's noise"), note
+    assert note.startswith(
+        "20 pose(s) measured again more than 10x the tracker's noise from their previous"
+    ), note
     assert "the file holds a pose twice" in note
     # measured again within the noise: no note
     again = ds.subset(np.r_[np.arange(20), np.arange(20)])
     assert again.gross_notes() == []
+
+
+def test_a_reference_pose_drifting_smoothly_is_not_a_moved_set_up():
+    """A reference pose measured 40 times while it drifts 200 um (the arm warming: what
+    `--reference-every` records) got the "set-up moved" note, judged by the distance from its
+    first reading (a review); steps between consecutive readings are judged now, and a step
+    still gives the note."""
+    from dataclasses import replace
+
+    from simdata import dh_error_dataset
+
+    _, ds = dh_error_dataset(20, seed=2)
+    idx = np.r_[np.arange(20), np.zeros(40, int)]
+    ref = ds.subset(idx)
+    p = ref.p_tracker.copy()
+    p[20:, 0] += np.linspace(0.0, 200e-6, 40)  # smooth, 5 um a step
+    t = np.r_[np.arange(20.0), 20.0 + np.arange(40.0)]
+    drift = replace(ref, p_tracker=p, elapsed_s=t)
+    assert drift.gross_notes() == []
+    p2 = p.copy()
+    p2[40:, 2] += 1e-3  # the tracker bumped half-way: a 1 mm step
+    (note,) = replace(ref, p_tracker=p2, elapsed_s=t).gross_notes()
+    assert "(pose 0: a step of 1000 um" in note and "the set-up or the arm moved" in note, note

@@ -9,7 +9,12 @@ from pathlib import Path
 
 from workcell import strict_json
 from workcell.commands import prose
-from workcell.commands.options import add_tracker_mpe, display_unit, parse_tracker_mpe
+from workcell.commands.options import (
+    add_tracker_mpe,
+    display_unit,
+    parse_tracker_mpe,
+    say_replaced,
+)
 from workcell.errors import UserError, check_output_path
 from workcell.estimation.fitting import FIT_METHODS, fit_recording
 from workcell.estimation.identifiability import GROUP_STAR_NOTE
@@ -164,8 +169,7 @@ def run(args: argparse.Namespace) -> int:
         chain_missing=args.chain_missing,
         smr_offset_m=smr,
     )
-    for line in replacing:
-        print(line.replace("replacing ", "replaced ", 1), file=sys.stderr)
+    say_replaced(replacing)
     if args.json:
         print(strict_json.dumps(report))
     else:

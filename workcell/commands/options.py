@@ -9,6 +9,16 @@ from workcell.errors import UserError
 from workcell.estimation.dh import TRACKER_MPE_M
 
 
+def say_replaced(lines: list[str]) -> None:
+    """Print the "replacing X: why" lines `check_model_output` gathered as "replaced X: why",
+    once the new file is written (a refusal found between the check and the write left X as it
+    was, after "replacing X")."""
+    import sys
+
+    for line in lines:
+        print(line.replace("replacing ", "replaced ", 1), file=sys.stderr)
+
+
 def add_tracker_mpe(p: argparse.ArgumentParser) -> None:
     a, b = TRACKER_MPE_M
     p.add_argument(

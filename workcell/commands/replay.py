@@ -15,6 +15,7 @@ import time
 
 from workcell import strict_json
 from workcell.commands import prose
+from workcell.commands.options import say_replaced
 from workcell.errors import UserError, check_output_path
 from workcell.estimation.identifiability import GROUP_STAR_NOTE
 from workcell.estimation.models import interval_um
@@ -291,8 +292,7 @@ def run(args: argparse.Namespace) -> int:
             save_model(model, args.save)
         except ValueError as e:
             raise UserError(str(e)) from None
-        for line in replacing:
-            print(line.replace("replacing ", "replaced ", 1), file=sys.stderr)
+        say_replaced(replacing)
     if args.json:
         print(strict_json.dumps(est, indent=1))
     else:

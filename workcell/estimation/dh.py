@@ -116,7 +116,7 @@ class DHModel:
         for i, n in enumerate(param_names(n_j)):
             out[n] = {
                 "value": float(self.theta[i]),
-                "std": float(self.std[i]) if self.free[i] else 0.0,
+                "std": float(self.std[i]) if self.free[i] else None,  # fixed: none (not 0)
                 "unit": param_unit(n),
                 "nominal": 0.0 if base.start <= i < base.stop else float(nom[i]),
                 "estimated": bool(self.free[i]),

@@ -356,9 +356,32 @@ class CorrectionTable:
                 f"{unit}; {again}"
             )
 
+    def csv_columns(self) -> list[str]:
+        """The CSV's column names."""
+        return (
+            ["orientation", "rx", "ry", "rz", "i", "j", "k", "x_m", "y_m", "z_m"]
+            + ["dx_m", "dy_m", "dz_m"]
+            + ([] if self.std_m is None else ["sx_m", "sy_m", "sz_m"])
+        )
+
+    def csv_rows(self) -> np.ndarray:
+        """The CSV's numbers, one row per node (orientation, then i, j, k), as floats."""
+        K, shape = len(self.orientations_rotvec), tuple(self.shape)
+        n = int(np.prod(shape))
+        ijk = np.indices(shape).reshape(3, -1).T
+        cols = [
+            np.repeat(np.arange(K), n)[:, None],
+            np.repeat(np.asarray(self.orientations_rotvec, float), n, axis=0),
+            np.tile(ijk, (K, 1)),
+            np.tile(self.node_positions().reshape(-1, 3), (K, 1)),
+            np.asarray(self.delta_m, float).reshape(-1, 3),
+        ]
+        if self.std_m is not None:
+            cols.append(np.asarray(self.std_m, float).reshape(-1, 3))
+        return np.hstack([np.asarray(c, float) for c in cols])
+
     def csv_text(self) -> str:
         """The table's CSV: one row per node, header lines starting with '#'."""
-        X = self.node_positions()
         f = io.StringIO(newline="")
         f.write(f"# grid: lo {self.lo_m.tolist()} hi {self.hi_m.tolist()} shape {self.shape}\n")
         f.write(f"# max_interp_error_m: {self.meta.get('max_interp_error_m')}\n")
@@ -372,25 +395,10 @@ class CorrectionTable:
             "index i, j, k, node position x_m, y_m, z_m (base_ref), correction dx_m, dy_m, "
             "dz_m (commanded = desired + delta)\n"
         )
-        w.writerow(
-            ["orientation", "rx", "ry", "rz", "i", "j", "k", "x_m", "y_m", "z_m"]
-            + ["dx_m", "dy_m", "dz_m"]
-            + ([] if self.std_m is None else ["sx_m", "sy_m", "sz_m"])
-        )
-        for o, rv in enumerate(self.orientations_rotvec):
-            for i in range(self.shape[0]):
-                for j in range(self.shape[1]):
-                    for k in range(self.shape[2]):
-                        w.writerow(
-                            [o, *(repr(float(v)) for v in rv), i, j, k]
-                            + [repr(float(v)) for v in X[i, j, k]]
-                            + [repr(float(v)) for v in self.delta_m[o, i, j, k]]
-                            + (
-                                []
-                                if self.std_m is None
-                                else [repr(float(v)) for v in self.std_m[o, i, j, k]]
-                            )
-                        )
+        w.writerow(self.csv_columns())
+        n_int = {c for c, name in enumerate(self.csv_columns()) if name in CSV_INDEX_COLUMNS}
+        for row in self.csv_rows().tolist():
+            w.writerow(int(v) if c in n_int else repr(v) for c, v in enumerate(row))
         return f.getvalue()
 
     def save(self, path: str | os.PathLike) -> tuple[Path, Path]:
@@ -665,6 +673,7 @@ def load_table(path: str | os.PathLike) -> CorrectionTable:
     return tab
 
 
+CSV_INDEX_COLUMNS = ("orientation", "i", "j", "k")
 # a CSV number may differ from the JSON's by this much (m, rad) and still be the same table: a
 # spreadsheet that re-wrote the CSV with fewer digits; an edit is far larger
 CSV_MATCH_ATOL = 1e-9
@@ -691,19 +700,27 @@ def _check_csv_beside(pj: Path, want: object, tab: CorrectionTable | None = None
             )
     if tab is not None and (why := _csv_rows_differ(tab, pc)) is not None:
         raise UserError(
-            f"{pc} and {pj.name} are not one table ({why}: one of them edited since the export); "
-            "export the table again"
+            f"{pc} and {pj.name} are not one table: {why}; one of them was edited since the "
+            "export: export the table again"
         )
 
 
 def _csv_numbers(text: str) -> tuple[list[str], np.ndarray]:
-    rows = [r for r in csv.reader(io.StringIO(text)) if r and not r[0].lstrip().startswith("#")]
-    if not rows:
+    """A table CSV's column names and numbers (rows x columns); UserError when they are not
+    numbers in rows of one length."""
+    lines = text.splitlines()
+    head = next(
+        (i for i, x in enumerate(lines) if x.strip() and not x.lstrip().startswith("#")), None
+    )
+    if head is None:
         return [], np.zeros((0, 0))
+    names = next(csv.reader([lines[head]]))
+    body = [x for x in lines[head + 1 :] if x.strip() and not x.lstrip().startswith("#")]
     try:
-        return rows[0], np.array([[float(x) for x in r] for r in rows[1:]], float)
+        got = np.loadtxt(body, delimiter=",", ndmin=2) if body else np.zeros((0, len(names)))
     except ValueError as e:  # a cell that is not a number, or rows of unequal length
-        raise UserError(f"unreadable correction table CSV ({e})") from None
+        raise UserError(f"a row that is not {len(names)} numbers ({e})") from None
+    return names, got
 
 
 def _csv_rows_differ(tab: CorrectionTable, pc: Path) -> str | None:
@@ -716,8 +733,8 @@ def _csv_rows_differ(tab: CorrectionTable, pc: Path) -> str | None:
     try:
         head, got = _csv_numbers(text)
     except UserError as e:
-        return str(e)
-    want_head, want = _csv_numbers(tab.csv_text())
+        return f"the CSV has {e}"
+    want_head, want = tab.csv_columns(), tab.csv_rows()
     if [h.strip() for h in head] != want_head:
         return f"the CSV's columns are {head}, the JSON's {want_head}"
     if got.shape != want.shape:
@@ -727,7 +744,7 @@ def _csv_rows_differ(tab: CorrectionTable, pc: Path) -> str | None:
         r, c = np.argwhere(bad)[0]
         return (
             f"{int(bad.any(axis=1).sum())} row(s) differ, the first node row {r + 1}'s "
-            f"{want_head[c]}: {got[r, c]!r} in the CSV, {want[r, c]!r} in the JSON"
+            f"{want_head[c]}: {float(got[r, c])!r} in the CSV, {float(want[r, c])!r} in the JSON"
         )
     return None
 

@@ -207,8 +207,8 @@ def size_warning(path: str | os.PathLike) -> str | None:
     return (
         f"warning: {p.name} is {size / 1e3:.0f} KB, larger than any URScript known to run on a "
         f"UR controller (UR's own external_control script, {KNOWN_RUNNING_BYTES / 1e3:.0f} KB): "
-        "load it on URSim or the controller before relying on it, or coarsen the grid "
-        "(--spacing) or shrink --volume"
+        "load it on URSim or the controller before relying on it, or make the grid coarser "
+        "(a larger --interp-error or --spacing) or the volume smaller (--volume)"
     )
 
 

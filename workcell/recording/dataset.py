@@ -275,19 +275,43 @@ class Dataset:
                     "did not reach its target; the fit uses the measured joints"
                 )
         if self.pose_id is not None and len(np.unique(self.pose_id)) < len(self):
-            from workcell.recording.repeats import repeat_drift
-
-            far = [r for r in repeat_drift(self) if r["max_m"] > REPEAT_NOTE_FACTOR * r["noise_m"]]
-            if far:
-                r = max(far, key=lambda x: x["max_m"] / x["noise_m"])
+            if (step := self._largest_repeat_step()) is not None:
+                n, pid, jump, noise = step
                 out.append(
-                    f"{len(far)} pose(s) measured again more than {REPEAT_NOTE_FACTOR:g}x the "
-                    f"tracker's noise from their first reading (pose {r['pose_id']}: "
-                    f"{r['max_m'] * 1e6:.0f} um, noise {r['noise_m'] * 1e6:.0f} um): the set-up "
-                    "or the arm moved between them, or the file holds a pose twice; `workcell "
-                    "info` lists the repeats"
+                    f"{n} pose(s) measured again more than {REPEAT_NOTE_FACTOR:g}x the tracker's "
+                    f"noise from their previous reading (pose {pid}: a step of {jump * 1e6:.0f} "
+                    f"um, noise {noise * 1e6:.0f} um): the set-up or the arm moved between them, "
+                    "or the file holds a pose twice; `workcell info` lists the repeats"
                 )
         return out
+
+    def _largest_repeat_step(self) -> tuple[int, int, float, float] | None:
+        """Among poses measured more than once: how many moved between two consecutive
+        readings by over REPEAT_NOTE_FACTOR x the noise of a difference, and the worst one's
+        (pose id, step m, noise m); None when none did. Steps, not the distance from the first
+        reading: a reference pose drifting smoothly with the arm's temperature (227 um over
+        160 min in a simulated cell, 3 min apart) is what `--reference-every` records, a step
+        is a set-up that moved (a review, 2026-11-29)."""
+        from workcell.recording.repeats import reading_sigma
+
+        groups = self.pose_groups()
+        sig = reading_sigma(self.sigma_m, self.p_tracker)
+        t = np.asarray(self.elapsed_s, float)
+        worst, n = None, 0
+        for g in np.unique(groups):
+            idx = np.flatnonzero(groups == g)
+            if len(idx) < 2:
+                continue
+            idx = idx[np.argsort(t[idx], kind="stable")]
+            jump = np.linalg.norm(np.diff(self.p_tracker[idx], axis=0), axis=1)
+            noise = np.sqrt(np.sum(sig[idx[1:]] ** 2 + sig[idx[:-1]] ** 2, axis=1))
+            ratio = jump / noise
+            k = int(np.nanargmax(ratio)) if np.isfinite(ratio).any() else -1
+            if k >= 0 and ratio[k] > REPEAT_NOTE_FACTOR:
+                n += 1
+                if worst is None or ratio[k] > worst[0]:
+                    worst = (ratio[k], int(self.pose_id[idx[0]]), float(jump[k]), float(noise[k]))
+        return None if worst is None else (n, *worst[1:])
 
     def provenance(self) -> dict:
         """What a model file records of the data it was fitted on: the recording (path and
@@ -358,7 +382,7 @@ READ_WARNINGS_SHOWN = 2
 # a sample's measured joints this far from its commanded ones (the campaign's arrival check is
 # 0.2 mrad; ~1 mm at the SMR): a note
 ARRIVAL_NOTE_RAD = 1e-3
-# a pose measured again this many times the tracker's noise from its first reading: a note
+# a pose measured again this many times the tracker's noise from its previous reading: a note
 REPEAT_NOTE_FACTOR = 10.0
 
 
