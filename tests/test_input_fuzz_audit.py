@@ -219,3 +219,12 @@ def test_a_reference_pose_drifting_smoothly_is_not_a_moved_set_up():
     p2[40:, 2] += 1e-3  # the tracker bumped half-way: a 1 mm step
     (note,) = replace(ref, p_tracker=p2, elapsed_s=t).gross_notes()
     assert "(pose 0: a step of 1000 um" in note and "the set-up or the arm moved" in note, note
+
+
+def test_a_fixed_parameter_has_no_std_rather_than_zero(fitted, tmp_path):
+    """`fit --json` gave a fixed parameter (d1, in the group {d1, base_tz}) "std 0.0", an exact
+    value it is not; the ROS YAML already said no 1-sigma is given (metrology audit)."""
+    params = load_model(_write(tmp_path, "m.json", fitted["dh"])).parameters()
+    fixed = [n for n, v in params.items() if not v["estimated"]]
+    assert fixed and all(params[n]["std"] is None for n in fixed), fixed
+    assert all(v["std"] is not None for v in params.values() if v["estimated"])
