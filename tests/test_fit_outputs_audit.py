@@ -82,3 +82,16 @@ def test_the_combined_base_carries_its_propagated_std():
     rot = Rotation.from_matrix(Ts[:, :3, :3] @ T0[:3, :3].T).as_rotvec()  # about tracker axes
     np.testing.assert_allclose(got["rotation_std_rad"], rot.std(0), rtol=0.1)
     assert "translation_std_m" not in base_pose_with_std(th, ref)  # no covariance, no std
+
+
+def test_extra_figures_are_spelled_out_not_printed_as_python_dictionaries():
+    """lddmm's text printed "cv_rms_m {'dh': 5.287564923947397e-05, ...}" under a first line
+    giving the same as "52.9 um" (metrology audit, 2026-11-29)."""
+    from workcell.commands.fit import extra_text
+
+    assert extra_text("cv_rms_m", {"dh": 5.287564923947397e-05, "nominal": 8.9e-4}) == (
+        "dh 52.88 um; nominal 890 um"
+    )
+    assert extra_text("cv_rms_ci95_m", {"dh": [4.7e-05, 6.05e-05]}) == "dh [47 um, 60.5 um]"
+    assert extra_text("posterior_noise_std_m", 1.8546985266961562e-05) == "18.55 um"
+    assert extra_text("converged", True) == "True" and extra_text("on", "dh") == "dh"

@@ -362,5 +362,5 @@ class MarginWatch:
             )
         return (
             f"kinematic margin {margin_mm:g} mm checked on {v.n} poses: SMR offset "
-            f"{_mm(v.offset_norm_m, v.offset_sigma_m)} mm from the declared one, {chain}"
+            f"{_mm(v.offset_norm_m, v.offset_sigma_m)} mm (1-sigma) from the declared one, {chain}"
         )

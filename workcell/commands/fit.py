@@ -84,6 +84,37 @@ EXTRA_LABELS = {
 HELDOUT_P = 0.05  # below this, the held-out errors are not what the 1-sigma and noise say
 
 
+def extra_text(key: str, v: object) -> str:
+    """A report's `extra` value as text: numbers to 4 significant digits, lengths (`_m` keys)
+    in um, nested dictionaries and lists spelled out (lddmm's text printed raw Python
+    dictionaries with 16-digit floats: metrology audit, 2026-11-29)."""
+
+    def scaled(k: str, x: float) -> str:
+        if k.endswith("_m"):
+            return f"{x * 1e6:.4g} um"
+        if k.endswith("_rad"):
+            return f"{x:.4g} rad"
+        if k.endswith(("_s", "_seconds")):
+            return f"{x:.3g} s"
+        return f"{x:.4g}"
+
+    def one(k: str, x: object) -> str:
+        if isinstance(x, bool) or not isinstance(x, int | float | list | tuple | dict):
+            return str(x)
+        if isinstance(x, int):
+            return str(x)
+        if isinstance(x, float):
+            return scaled(k, x)
+        if isinstance(x, dict):
+            return "; ".join(
+                f"{k2} {one(k2 if k2.endswith(('_m', '_rad', '_s')) else k, x2)}"
+                for k2, x2 in x.items()
+            )
+        return "[" + ", ".join(one(k, y) for y in x) + "]"
+
+    return one(key, v)
+
+
 def heldout_std_text(hs: dict) -> str:
     """The fit's line on its 1-sigma at the held-out poses (`fitting.heldout_std_check`): the
     mean of the normalised errors and the share inside the 95 % ellipsoid, each with its chance
@@ -429,7 +460,7 @@ def print_report(r: dict, refit=None) -> None:
     for k, v in (r.get("extra") or {}).items():
         if k.startswith("gp_") and isinstance(v, (int, float, list)):
             continue  # the GP's hyperparameters: in the table above, with their std
-        print(f"{EXTRA_LABELS.get(k, k):>16} {v}")
+        print(f"{EXTRA_LABELS.get(k, k):>16} {extra_text(k, v)}")
     b = r.get("bounds")
     if b:
         print(prose.fill(b["line"], width=100))

@@ -459,8 +459,8 @@ def drift_line(d: dict) -> str:
     over = f"its {d['span'] / 60:.1f} min" if d["unit"] == "s" else f"its {d['targets']} targets"
     return (
         f"drift: the corrected error changes by {d['change_m'] * 1e6:.1f} +- "
-        f"{d['change_std_m'] * 1e6:.1f} um over {over} (linear trend; p = {d['p_value']:.2g} "
-        "for none)"
+        f"{d['change_std_m'] * 1e6:.1f} um (1-sigma) over {over} (linear trend; p = "
+        f"{d['p_value']:.2g} for none)"
     )
 
 
