@@ -228,8 +228,6 @@ def test_deep_nesting_and_long_digit_strings_are_bad_json_not_tracebacks():
 
     with pytest.raises(json.JSONDecodeError, match="nested too deeply"):
         strict_json.loads('{"a": ' + "[" * 100_000 + "]" * 100_000 + "}")
-    with pytest.raises(json.JSONDecodeError, match="nested too deeply"):
-        strict_json.loads_numbers('{"a": ' + "[" * 100_000 + "]" * 100_000 + "}")
     assert strict_json.loads("[" + "9" * 5000 + "]") == [float("inf")]
     assert strict_json.loads("[-" + "9" * 5000 + "]") == [float("-inf")]
     assert strict_json.loads("[12345678901234567890123]") == [1.2345678901234568e22]

@@ -178,24 +178,24 @@ def test_joints_far_from_their_command_and_repeats_far_apart_are_noted():
     from simdata import dh_error_dataset
 
     _, ds = dh_error_dataset(20, seed=2)
-    assert ds.gross_notes() == []
+    assert ds.suspect_sample_notes() == []
     qc = ds.q.copy()
     qc[:, 0] += 1.0
-    (note,) = replace(ds, q_commanded=qc).gross_notes()
+    (note,) = replace(ds, q_commanded=qc).suspect_sample_notes()
     assert note.startswith("20 of 20 samples were measured with joints more than 1 mrad from")
     assert "up to 1 rad, joint 1" in note and "did not reach its target" in note
     twice = ds.subset(np.r_[np.arange(20), np.arange(20)])
     twice = replace(
         twice, p_tracker=twice.p_tracker + np.r_[np.zeros((20, 3)), np.full((20, 3), 1.7e-3)]
     )
-    (note,) = twice.gross_notes()
+    (note,) = twice.suspect_sample_notes()
     assert note.startswith(
         "20 pose(s) measured again more than 10x the tracker's noise from their previous"
     ), note
     assert "the file holds a pose twice" in note
     # measured again within the noise: no note
     again = ds.subset(np.r_[np.arange(20), np.arange(20)])
-    assert again.gross_notes() == []
+    assert again.suspect_sample_notes() == []
 
 
 def test_a_reference_pose_drifting_smoothly_is_not_a_moved_set_up():
@@ -214,10 +214,10 @@ def test_a_reference_pose_drifting_smoothly_is_not_a_moved_set_up():
     p[20:, 0] += np.linspace(0.0, 200e-6, 40)  # smooth, 5 um a step
     t = np.r_[np.arange(20.0), 20.0 + np.arange(40.0)]
     drift = replace(ref, p_tracker=p, elapsed_s=t)
-    assert drift.gross_notes() == []
+    assert drift.suspect_sample_notes() == []
     p2 = p.copy()
     p2[40:, 2] += 1e-3  # the tracker bumped half-way: a 1 mm step
-    (note,) = replace(ref, p_tracker=p2, elapsed_s=t).gross_notes()
+    (note,) = replace(ref, p_tracker=p2, elapsed_s=t).suspect_sample_notes()
     assert "(pose 0: a step of 1000 um" in note and "the set-up or the arm moved" in note, note
 
 

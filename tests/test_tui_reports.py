@@ -147,6 +147,20 @@ def test_a_campaign_that_recorded_no_pose_is_a_stop_in_the_command_lines_words(
     assert "; ".join(nothing_recorded(res, "run.mcap")) == str(cli.value)
 
 
+async def export_on_screen(app, pilot, out: str, fmt: str = "table") -> dict[str, str]:
+    """Export m.json from the Export screen (0.12 m spacing) to `out`; its result rows, plain."""
+    view = app.views["export"]
+    view.query_one("#model").value = "m.json"
+    view.query_one("#format", Select).value = fmt
+    view.query_one("#out").value = out
+    view.query_one("#spacing").value = "0.12"
+    await pilot.pause()
+    n = len(app.notices)
+    await pilot.press("ctrl+r")
+    await until(pilot, lambda: not view.running and len(app.notices) > n, 60, "export")
+    return {k: plain(v) for k, v in view.result_rows}
+
+
 # --------------------------------------------------------------------------- C: base correction
 def test_the_export_screen_states_the_base_correction_as_the_command_line(here):
     """`workcell export` prints "base correction: targets expressed in another estimate of the
@@ -158,16 +172,7 @@ def test_the_export_screen_states_the_base_correction_as_the_command_line(here):
     app = app_for()
 
     async def export(pilot, fmt: str, out: str) -> dict[str, str]:
-        view = app.views["export"]
-        view.query_one("#model").value = "m.json"
-        view.query_one("#format", Select).value = fmt
-        view.query_one("#out").value = out
-        view.query_one("#spacing").value = "0.12"
-        await pilot.pause()
-        n = len(app.notices)
-        await pilot.press("ctrl+r")
-        await until(pilot, lambda: not view.running and len(app.notices) > n, 60, "export")
-        return {k: plain(v) for k, v in view.result_rows}
+        return await export_on_screen(app, pilot, out, fmt)
 
     async def flow():
         async with app.run_test(size=SIZE) as pilot:
@@ -191,17 +196,9 @@ def test_the_export_notice_names_the_folder_and_a_new_one(here):
     async def flow():
         async with app.run_test(size=SIZE) as pilot:
             await pilot.press("f6")
-            view = app.views["export"]
             rows = []
             for out in ("cell7/today/corr", "cell7/today/corr2"):
-                view.query_one("#model").value = "m.json"
-                view.query_one("#out").value = out
-                view.query_one("#spacing").value = "0.12"
-                await pilot.pause()
-                n = len(app.notices)
-                await pilot.press("ctrl+r")
-                await until(pilot, lambda n=n: not view.running and len(app.notices) > n, 60, "x")
-                rows.append(({k: plain(v) for k, v in view.result_rows}, app.notices[-1][2]))
+                rows.append((await export_on_screen(app, pilot, out), app.notices[-1][2]))
             return rows
 
     (first, note1), (second, note2) = asyncio.run(flow())

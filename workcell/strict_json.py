@@ -31,17 +31,11 @@ def _int(s: str) -> int | float:
 
 
 def loads(text: str) -> Any:
-    """`json.loads`, raising `DuplicateKey` for a key given twice in any object, and a
-    `json.JSONDecodeError` (not a RecursionError past the loaders' checks) for nesting deeper
-    than Python's parser recurses."""
-    return _loads(text, object_pairs_hook=_no_duplicates)
-
-
-def loads_numbers(text: str) -> Any:
-    """`json.loads` with integers beyond 64 bits read as floats (`_int`), for files workcell
-    writes and a user may edit (models, tables): a key given twice is a `DuplicateKey`, as in
-    `loads` (a model with "theta" twice was read with the later one, 4 mm off, until
-    2026-11-29). Nesting deeper than the parser recurses is a `json.JSONDecodeError`."""
+    """`json.loads` for files written or edited by hand (envelopes, bounds, models, tables):
+    a key given twice in any object is a `DuplicateKey` (a model with "theta" twice was read
+    with the later one, 4 mm off, until 2026-11-29), integers beyond 64 bits are floats
+    (`_int`), and nesting deeper than Python's parser recurses is a `json.JSONDecodeError`
+    (not a RecursionError past the loaders' checks)."""
     return _loads(text, object_pairs_hook=_no_duplicates)
 
 

@@ -106,7 +106,7 @@ def check_model_output(
     if not p.is_file() or not Path(recording).is_file():
         return  # nothing to replace, or the command refuses the missing recording itself
     try:
-        d = strict_json.loads_numbers(p.read_text(encoding="utf-8-sig"))
+        d = strict_json.loads(p.read_text(encoding="utf-8-sig"))
     except PermissionError:
         raise UserError(
             f"model file {p} exists and cannot be read (permissions), so it cannot be checked "
@@ -191,7 +191,7 @@ def load_model(path: str | os.PathLike) -> FittedModel:
     if not p.is_file():  # a directory, or a pipe (reading it would wait forever)
         raise UserError(f"{p}: not a regular file; give a model file (.json)")
     try:
-        d = strict_json.loads_numbers(p.read_text(encoding="utf-8-sig"))
+        d = strict_json.loads(p.read_text(encoding="utf-8-sig"))
     except strict_json.DuplicateKey as e:
         raise UserError(
             f"{p}: the key {e.args[0]!r} is given twice in one object (edited by hand?); a "

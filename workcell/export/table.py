@@ -395,8 +395,9 @@ class CorrectionTable:
             "index i, j, k, node position x_m, y_m, z_m (base_ref), correction dx_m, dy_m, "
             "dz_m (commanded = desired + delta)\n"
         )
-        w.writerow(self.csv_columns())
-        n_int = {c for c, name in enumerate(self.csv_columns()) if name in CSV_INDEX_COLUMNS}
+        columns = self.csv_columns()
+        w.writerow(columns)
+        n_int = {c for c, name in enumerate(columns) if name in CSV_INDEX_COLUMNS}
         for row in self.csv_rows().tolist():
             w.writerow(int(v) if c in n_int else repr(v) for c, v in enumerate(row))
         return f.getvalue()
@@ -656,7 +657,7 @@ def load_table(path: str | os.PathLike) -> CorrectionTable:
     if not p.is_file():
         raise UserError(f"{p}: not a regular file; give a correction table (.json)")
     try:
-        d = strict_json.loads_numbers(p.read_text(encoding="utf-8-sig"))
+        d = strict_json.loads(p.read_text(encoding="utf-8-sig"))
         if not isinstance(d, dict):
             raise ValueError("not a JSON object")
         tab = CorrectionTable.from_dict(d)

@@ -323,9 +323,10 @@ _BUILTINS = {
     "False": False,
 }
 
+_DEF = re.compile(r"^def (\w+)\(([\w, ]*)\):$")
 _LINE_FORMS = [
     (re.compile(r"^global (\w+) = (.+)$"), lambda m: f"{m[1]} = {m[2]}", 0),
-    (re.compile(r"^def (\w+)\(([\w, ]*)\):$"), lambda m: f"def {m[1]}({m[2]}):", +1),
+    (_DEF, lambda m: f"def {m[1]}({m[2]}):", +1),
     (re.compile(r"^if (.+):$"), lambda m: f"if {m[1]}:", +1),
     (re.compile(r"^elif (.+):$"), lambda m: f"elif {m[1]}:", 0),
     (re.compile(r"^else:$"), lambda m: "else:", 0),
@@ -337,7 +338,6 @@ _LINE_FORMS = [
     (re.compile(r"^(\w+(?:\[\w+\])?) = (.+)$"), lambda m: f"{m[1]} = {m[2]}", 0),
 ]
 _ASSIGN = re.compile(r"^(global |local )?(\w+)(?:\[\w+\])? = ")
-_DEF = re.compile(r"^def (\w+)\(([\w, ]*)\):$")
 
 
 def translate_urscript(text: str) -> str:

@@ -253,9 +253,9 @@ class Dataset:
             read_problems=tuple(read_problems),
             read_notes=tuple(notes),
         )
-        return replace(ds, read_notes=(*ds.read_notes, *ds.gross_notes())).screened()
+        return replace(ds, read_notes=(*ds.read_notes, *ds.suspect_sample_notes())).screened()
 
-    def gross_notes(self) -> list[str]:
+    def suspect_sample_notes(self) -> list[str]:
         """Notes on samples the fit uses as they are but which say something went wrong:
         joints measured far from where they were commanded (the arm did not reach its target),
         and a pose measured again far beyond the tracker's noise from its first reading (the
@@ -296,22 +296,20 @@ class Dataset:
 
         groups = self.pose_groups()
         sig = reading_sigma(self.sigma_m, self.p_tracker)
-        t = np.asarray(self.elapsed_s, float)
-        worst, n = None, 0
-        for g in np.unique(groups):
-            idx = np.flatnonzero(groups == g)
-            if len(idx) < 2:
-                continue
-            idx = idx[np.argsort(t[idx], kind="stable")]
-            jump = np.linalg.norm(np.diff(self.p_tracker[idx], axis=0), axis=1)
-            noise = np.sqrt(np.sum(sig[idx[1:]] ** 2 + sig[idx[:-1]] ** 2, axis=1))
-            ratio = jump / noise
-            k = int(np.nanargmax(ratio)) if np.isfinite(ratio).any() else -1
-            if k >= 0 and ratio[k] > REPEAT_NOTE_FACTOR:
-                n += 1
-                if worst is None or ratio[k] > worst[0]:
-                    worst = (ratio[k], int(self.pose_id[idx[0]]), float(jump[k]), float(noise[k]))
-        return None if worst is None else (n, *worst[1:])
+        order = np.lexsort((np.asarray(self.elapsed_s, float), groups))  # by pose, then time
+        a, b = order[:-1], order[1:]
+        same = groups[a] == groups[b]  # consecutive readings of one pose
+        a, b = a[same], b[same]
+        jump = np.linalg.norm(self.p_tracker[b] - self.p_tracker[a], axis=1)
+        noise = np.sqrt(np.sum(sig[a] ** 2 + sig[b] ** 2, axis=1))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ratio = np.where(np.isfinite(jump / noise), jump / noise, -np.inf)
+        over = ratio > REPEAT_NOTE_FACTOR
+        if not over.any():
+            return None
+        k = int(np.argmax(ratio))
+        n = len(np.unique(groups[a[over]]))
+        return n, int(self.pose_id[a[k]]), float(jump[k]), float(noise[k])
 
     def provenance(self) -> dict:
         """What a model file records of the data it was fitted on: the recording (path and
